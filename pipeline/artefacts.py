@@ -29,7 +29,7 @@ import os
 import tempfile
 from collections.abc import Mapping
 from dataclasses import dataclass
-from functools import lru_cache
+from functools import cache
 from pathlib import Path
 from typing import Any
 
@@ -151,7 +151,7 @@ def _py_column(s: pd.Series) -> Any:
     return s.to_numpy()
 
 
-@lru_cache(maxsize=None)
+@cache
 def load_schema(name: str) -> Schema:
     """Read ``schemas/NAME.json``."""
     path = SCHEMA_DIR / f"{name}.json"

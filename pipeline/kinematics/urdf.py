@@ -98,7 +98,9 @@ def parse_urdf(xml: str) -> RobotDescription:
         xyz = _floats(origin.get("xyz") if origin is not None else None, (0, 0, 0), f"{name} xyz")
         rpy = _floats(origin.get("rpy") if origin is not None else None, (0, 0, 0), f"{name} rpy")
         axis_el = el.find("axis")
-        axis = _floats(axis_el.get("xyz") if axis_el is not None else None, (1, 0, 0), f"{name} axis")
+        axis = _floats(
+            axis_el.get("xyz") if axis_el is not None else None, (1, 0, 0), f"{name} axis"
+        )
         norm = float(np.linalg.norm(axis))
         if jtype != "fixed" and norm < 1e-12:
             raise BadInput(f"URDF: joint {name} has a zero axis")
@@ -132,9 +134,11 @@ def chain_joints(robot: RobotDescription, base_link: str, tip_link: str) -> list
         If a link is missing, the tip does not descend from the base, a link
         has two parent joints, or a joint on the way is of an unsupported type.
     """
-    known = set(robot.links) | {j.child for j in robot.joints.values()} | {
-        j.parent for j in robot.joints.values()
-    }
+    known = (
+        set(robot.links)
+        | {j.child for j in robot.joints.values()}
+        | {j.parent for j in robot.joints.values()}
+    )
     for link in (base_link, tip_link):
         if link not in known:
             raise BadInput(
@@ -158,7 +162,9 @@ def chain_joints(robot: RobotDescription, base_link: str, tip_link: str) -> list
             )
         j = parent_of[link]
         if j.type not in SUPPORTED_TYPES:
-            raise BadInput(f"URDF {robot.name!r}: joint {j.name!r} of type {j.type!r} is not supported")
+            raise BadInput(
+                f"URDF {robot.name!r}: joint {j.name!r} of type {j.type!r} is not supported"
+            )
         path.append(j)
         link = j.parent
         if len(path) > len(robot.joints):
