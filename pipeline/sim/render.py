@@ -1,0 +1,367 @@
+"""Accurate rendering of a circular target on a plate, and its exact projected ellipse.
+
+The scene seen by one capture is a plane (the plate, target frame ``z = 0``,
+normal ``+z`` towards the camera) carrying nested discs: the plate
+(``plate_radius_m``, grey ``plate``), optional extra discs (a second blob) and
+the target (diameter ``D``, grey ``target``) at the origin; outside the plate
+the background grey. Rendering is by area coverage:
+
+1. every pixel centre is back-projected through the camera (exact inverse of
+   the radial distortion) and intersected with the plane, giving its plane
+   coordinates ``(x, y)``;
+2. a pixel whose centre lies farther from a disc edge than its own footprint
+   is wholly inside or outside that disc; every other (edge) pixel is
+   supersampled on an ``N x N`` grid of sub-pixel points, each back-projected
+   exactly (so distortion and perspective are exact inside the pixel), and
+   its coverage is the fraction of sub-points inside the disc;
+3. layers are composited back to front, ``g <- g (1 - c) + g_layer c``;
+4. then Gaussian blur (optics), vignetting ``1 - v (r / r_corner)^2``,
+   exposure gain, sensor noise ``N(0, sigma^2)`` and quantisation to ``uint8``.
+
+A capture during motion averages step 1-3 over several poses of the exposure
+(``T_camera_target`` of shape ``(K, 4, 4)``).
+
+The reference geometry is :func:`projected_ellipse`: many points of the 3-D
+circle projected through the same camera model, and the ellipse fitted to them
+(centre, full long and short axes, long-axis angle). This is the contour the
+spec defines (boundary at the grey level halfway between target and plate).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import cv2
+import numpy as np
+from numpy.typing import ArrayLike
+
+from pipeline.kinematics.se3 import F64
+from pipeline.sim.camera import CameraModel
+
+#: (x_m, y_m, diameter_m, grey) of an extra disc in the target plane.
+ExtraDisc = tuple[float, float, float, float]
+#: (u, v, semi_major_px, semi_minor_px, angle_rad, grey) image-space occluder.
+Occluder = tuple[float, float, float, float, float, float]
+
+
+def _plane_coords(
+    camera: CameraModel, T_camera_target: F64, xy_norm: F64
+) -> tuple[F64, np.ndarray]:
+    """Intersect rays ``(x, y, 1)`` with the target plane.
+
+    Returns plane coordinates ``(..., 2)`` in the target frame and a mask of
+    rays that hit the plane in front of the camera.
+    """
+    R = T_camera_target[:3, :3]
+    t = T_camera_target[:3, 3]
+    n = R[:, 2]
+    denom = xy_norm[..., 0] * n[0] + xy_norm[..., 1] * n[1] + n[2]
+    num = float(n @ t)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        s = num / denom
+    ok = np.isfinite(s) & (s > 0)
+    s = np.where(ok, s, 0.0)
+    # p_target = R^T (s d - t)
+    px = s * xy_norm[..., 0] - t[0]
+    py = s * xy_norm[..., 1] - t[1]
+    pz = s - t[2]
+    x = R[0, 0] * px + R[1, 0] * py + R[2, 0] * pz
+    y = R[0, 1] * px + R[1, 1] * py + R[2, 1] * pz
+    out = np.stack([x, y], axis=-1)
+    out[~ok] = 1e9
+    return out, ok
+
+
+def _roi(camera: CameraModel, T_camera_target: F64, radius: float) -> tuple[int, int, int, int]:
+    """Pixel bounding box ``(u0, u1, v0, v1)`` (exclusive ends) of a disc, or the image."""
+    W, H = camera.width, camera.height
+    a = np.linspace(0.0, 2 * np.pi, 96, endpoint=False)
+    pts = np.stack([radius * np.cos(a), radius * np.sin(a), np.zeros_like(a)], axis=-1)
+    p_cam = pts @ T_camera_target[:3, :3].T + T_camera_target[:3, 3]
+    if np.any(p_cam[:, 2] <= 1e-6):
+        return 0, W, 0, H
+    uv = camera.project(p_cam)
+    if not np.all(np.isfinite(uv)):
+        return 0, W, 0, H
+    # distortion can fold far-off points back; be generous with the margin
+    m = 4
+    u0 = int(np.clip(np.floor(uv[:, 0].min()) - m, 0, W))
+    u1 = int(np.clip(np.ceil(uv[:, 0].max()) + m + 1, 0, W))
+    v0 = int(np.clip(np.floor(uv[:, 1].min()) - m, 0, H))
+    v1 = int(np.clip(np.ceil(uv[:, 1].max()) + m + 1, 0, H))
+    return u0, u1, v0, v1
+
+
+def _coverage(
+    camera: CameraModel,
+    T_camera_target: F64,
+    xy: F64,
+    ok: np.ndarray,
+    foot: F64,
+    uv_grid: F64,
+    centre: tuple[float, float],
+    radius: float,
+    subsamples: int,
+) -> F64:
+    """Area fraction of each ROI pixel inside one disc of the target plane."""
+    rho = np.hypot(xy[..., 0] - centre[0], xy[..., 1] - centre[1])
+    cov = ((rho <= radius) & ok).astype(float)
+    band = np.abs(rho - radius) <= foot
+    if not np.any(band):
+        return cov
+    n = max(int(subsamples), 1)
+    off = (np.arange(n) + 0.5) / n - 0.5
+    ou, ov = np.meshgrid(off, off)
+    sub = np.stack([ou.ravel(), ov.ravel()], axis=-1)  # (n*n, 2)
+    centres = uv_grid[band]  # (M, 2)
+    pts = centres[:, None, :] + sub[None, :, :]  # (M, n*n, 2)
+    sxy, sok = _plane_coords(camera, T_camera_target, camera.pixel_to_normalised(pts))
+    inside = (np.hypot(sxy[..., 0] - centre[0], sxy[..., 1] - centre[1]) <= radius) & sok
+    cov[band] = inside.mean(axis=1)
+    return cov
+
+
+def render_ideal(
+    camera: CameraModel,
+    T_camera_target: ArrayLike,
+    diameter_m: float,
+    *,
+    levels: tuple[float, float] = (40.0, 200.0),
+    plate_radius_m: float = 0.03,
+    background_grey: float | None = None,
+    extra_discs: Sequence[ExtraDisc] = (),
+    subsamples: int = 16,
+) -> F64:
+    """Noise-free, blur-free grey image ``(H, W)`` float by area coverage (steps 1-3).
+
+    ``T_camera_target`` may be ``(K, 4, 4)``: the mean over the K poses (motion
+    during the exposure).
+    """
+    T_all = np.asarray(T_camera_target, dtype=float)
+    if T_all.ndim == 2:
+        T_all = T_all[None]
+    target_grey, plate_grey = float(levels[0]), float(levels[1])
+    bg = 0.85 * plate_grey if background_grey is None else float(background_grey)
+    H, W = camera.height, camera.width
+    acc = np.zeros((H, W))
+    rays_all = camera.pixel_rays()
+    for T in T_all:
+        img = np.full((H, W), bg)
+        u0, u1, v0, v1 = _roi(camera, T, plate_radius_m)
+        if u1 > u0 and v1 > v0:
+            rays = rays_all[v0:v1, u0:u1]
+            vv, uu = np.mgrid[v0:v1, u0:u1].astype(float)
+            uv_grid = np.stack([uu, vv], axis=-1)
+            xy, ok = _plane_coords(camera, T, rays)
+            # pixel footprint on the plane (m): |d xy / du| + |d xy / dv|, conservative
+            if xy.shape[0] > 1 and xy.shape[1] > 1:
+                gu = np.linalg.norm(np.gradient(xy, axis=1), axis=-1)
+                gv = np.linalg.norm(np.gradient(xy, axis=0), axis=-1)
+                foot = np.where(ok, 0.75 * (gu + gv) + 1e-9, 0.0)
+                foot = np.minimum(foot, 1.0)
+            else:
+                foot = np.full(xy.shape[:2], 1.0)
+            roi = np.full(xy.shape[:2], bg)
+            layers: list[tuple[tuple[float, float], float, float, int]] = [
+                ((0.0, 0.0), plate_radius_m, plate_grey, 4)
+            ]
+            for x, y, d, g in extra_discs:
+                layers.append(((float(x), float(y)), 0.5 * float(d), float(g), subsamples))
+            layers.append(((0.0, 0.0), 0.5 * diameter_m, target_grey, subsamples))
+            for c, r, g, ns in layers:
+                cov = _coverage(camera, T, xy, ok, foot, uv_grid, c, r, ns)
+                roi = roi * (1.0 - cov) + g * cov
+            img[v0:v1, u0:u1] = roi
+        acc += img
+    return acc / len(T_all)
+
+
+def finish_image(
+    ideal: F64,
+    camera: CameraModel,
+    *,
+    blur_sigma_px: float = 0.7,
+    noise_sigma: float = 2.0,
+    vignetting: float = 0.15,
+    exposure: float = 1.0,
+    rng: np.random.Generator | None = None,
+    occluders: Sequence[Occluder] = (),
+) -> np.ndarray:
+    """Optics and sensor (step 4): occluders, blur, vignetting, exposure, noise, ``uint8``."""
+    img: np.ndarray = np.array(ideal, dtype=np.float32)
+    H, W = img.shape
+    if occluders:
+        vv, uu = np.mgrid[0:H, 0:W].astype(np.float32)
+        for u, v, a, b, ang, grey in occluders:
+            c, s = np.cos(ang), np.sin(ang)
+            du, dv = uu - u, vv - v
+            x = (c * du + s * dv) / a
+            y = (-s * du + c * dv) / b
+            r = np.sqrt(x * x + y * y)
+            # soft edge about 3 px wide
+            w = np.clip((1.0 - r) * min(a, b) / 3.0 + 0.5, 0.0, 1.0)
+            img = img * (1 - w) + np.float32(grey) * w
+    if blur_sigma_px > 0:
+        img = cv2.GaussianBlur(img, (0, 0), blur_sigma_px, borderType=cv2.BORDER_REFLECT)
+    if vignetting:
+        vv, uu = np.mgrid[0:H, 0:W].astype(np.float32)
+        r2 = (uu - camera.cx) ** 2 + (vv - camera.cy) ** 2
+        r2max = max(camera.cx, W - 1 - camera.cx) ** 2 + max(camera.cy, H - 1 - camera.cy) ** 2
+        img = img * (1.0 - np.float32(vignetting) * (r2 / np.float32(r2max)))
+    img = img * np.float32(exposure)
+    if noise_sigma > 0:
+        gen = rng if rng is not None else np.random.default_rng(0)
+        img = img + gen.normal(0.0, noise_sigma, size=img.shape).astype(np.float32)
+    out: np.ndarray = np.clip(np.rint(img), 0, 255).astype(np.uint8)
+    return out
+
+
+def render_target_image(
+    camera: CameraModel,
+    T_camera_target: ArrayLike,
+    diameter_m: float,
+    *,
+    levels: tuple[float, float] = (40.0, 200.0),
+    plate_radius_m: float = 0.03,
+    blur_sigma_px: float = 0.7,
+    noise_sigma: float = 2.0,
+    vignetting: float = 0.15,
+    rng: np.random.Generator | None = None,
+    extra_discs: Sequence[ExtraDisc] = (),
+    background_grey: float | None = None,
+    exposure: float = 1.0,
+    occluders: Sequence[Occluder] = (),
+    subsamples: int = 16,
+) -> np.ndarray:
+    """Render one camera image of a circular target on its plate.
+
+    Parameters
+    ----------
+    camera : CameraModel
+    T_camera_target : (4, 4) or (K, 4, 4)
+        Target frame in the camera frame: circle centre at the origin, plate
+        normal ``+z`` (towards the camera for a visible target). ``(K, 4, 4)``
+        averages K poses over the exposure (motion blur).
+    diameter_m : float
+        Target circle diameter ``D``.
+    levels : (target_grey, plate_grey)
+        Grey levels before vignetting/exposure; ``(40, 200)`` is dark on
+        light, ``(200, 40)`` light on dark.
+    plate_radius_m : float
+        Radius of the circular plate carrying the target.
+    blur_sigma_px, noise_sigma, vignetting, exposure : float
+        Optics and sensor (see :func:`finish_image`).
+    rng : numpy Generator, optional
+        Source of the sensor noise (default: a fixed seed).
+    extra_discs : sequence of (x_m, y_m, diameter_m, grey)
+        Further discs painted on the plate (e.g. a second blob).
+    background_grey : float, optional
+        Grey outside the plate (default ``0.85 * plate_grey``).
+    occluders : sequence of (u, v, a_px, b_px, angle_rad, grey)
+        Image-space elliptical occluders in front of the plate.
+    subsamples : int
+        ``N`` of the ``N x N`` supersampling of target edge pixels.
+
+    Returns
+    -------
+    (height, width) uint8
+    """
+    ideal = render_ideal(
+        camera,
+        T_camera_target,
+        diameter_m,
+        levels=levels,
+        plate_radius_m=plate_radius_m,
+        background_grey=background_grey,
+        extra_discs=extra_discs,
+        subsamples=subsamples,
+    )
+    return finish_image(
+        ideal,
+        camera,
+        blur_sigma_px=blur_sigma_px,
+        noise_sigma=noise_sigma,
+        vignetting=vignetting,
+        exposure=exposure,
+        rng=rng,
+        occluders=occluders,
+    )
+
+
+def fit_ellipse(points: ArrayLike) -> tuple[float, float, float, float, float]:
+    """Least-squares conic fit to points on a closed contour.
+
+    Fits ``A x^2 + B x y + C y^2 + D x + E y + F = 0`` (smallest right singular
+    vector of the design matrix, points centred and scaled first for
+    conditioning), then converts to centre, full axes and long-axis angle.
+
+    Parameters
+    ----------
+    points : (N, 2), N >= 5
+
+    Returns
+    -------
+    u, v, long_axis, short_axis, angle_rad
+        Centre, full axis lengths, angle of the long axis from ``+u`` towards
+        ``+v`` in ``(-pi/2, pi/2]``.
+    """
+    p = np.asarray(points, dtype=float)
+    m = p.mean(axis=0)
+    sc = float(np.sqrt(np.mean(np.sum((p - m) ** 2, axis=1))))
+    q = (p - m) / sc
+    x, y = q[:, 0], q[:, 1]
+    Dm = np.stack([x * x, x * y, y * y, x, y, np.ones_like(x)], axis=1)
+    _, _, Vt = np.linalg.svd(Dm, full_matrices=False)
+    A, B, C, D, E, F = Vt[-1]
+    M2 = np.array([[2 * A, B], [B, 2 * C]])
+    x0, y0 = np.linalg.solve(M2, [-D, -E])
+    F0 = F + 0.5 * (D * x0 + E * y0)
+    Mq = np.array([[A, B / 2], [B / 2, C]])
+    lam, vec = np.linalg.eigh(Mq)
+    if F0 > 0:
+        lam, F0 = -lam, -F0
+    axes = np.sqrt(-F0 / lam)  # semi-axes for eigenvalues in ascending order
+    # ascending lam -> largest axis first only if both positive
+    i_long = int(np.argmax(axes))
+    i_short = 1 - i_long
+    d = vec[:, i_long]
+    ang = float(np.arctan2(d[1], d[0]))
+    if ang <= -np.pi / 2:
+        ang += np.pi
+    elif ang > np.pi / 2:
+        ang -= np.pi
+    u = float(m[0] + sc * x0)
+    v = float(m[1] + sc * y0)
+    return u, v, float(2 * sc * axes[i_long]), float(2 * sc * axes[i_short]), ang
+
+
+def projected_contour(
+    camera: CameraModel, T_camera_target: ArrayLike, diameter_m: float, n: int = 720
+) -> F64:
+    """Pixels ``(n, 2)`` of ``n`` points of the target circle through the camera model."""
+    T = np.asarray(T_camera_target, dtype=float)
+    a = np.linspace(0.0, 2 * np.pi, n, endpoint=False)
+    r = 0.5 * diameter_m
+    pts = np.stack([r * np.cos(a), r * np.sin(a), np.zeros_like(a)], axis=-1)
+    return camera.project(pts @ T[:3, :3].T + T[:3, 3])
+
+
+def projected_ellipse(
+    camera: CameraModel, T_camera_target: ArrayLike, diameter_m: float, n: int = 720
+) -> tuple[float, float, float, float, float]:
+    """The true image ellipse of the target: fit to its exactly projected contour.
+
+    Parameters
+    ----------
+    camera : CameraModel
+    T_camera_target : (4, 4)
+    diameter_m : float
+    n : int
+        Number of circle points projected.
+
+    Returns
+    -------
+    u, v, long_axis_px, short_axis_px, angle_rad
+        See :func:`fit_ellipse`; the long axis is the full length ``s``.
+    """
+    return fit_ellipse(projected_contour(camera, T_camera_target, diameter_m, n))
