@@ -1,0 +1,88 @@
+"""Options, progress bars and the end-of-run summary shared by the CLI commands."""
+
+from __future__ import annotations
+
+import contextlib
+from collections.abc import Callable, Iterator
+from typing import Any
+
+import click
+
+
+def _parse_set(
+    ctx: click.Context, param: click.Parameter, value: tuple[str, ...]
+) -> dict[str, str]:
+    out: dict[str, str] = {}
+    for item in value:
+        key, sep, val = item.partition("=")
+        if not sep or not key:
+            raise click.BadParameter(f"{item!r}: expected KEY=VALUE")
+        out[key.strip()] = val.strip()
+    return out
+
+
+def set_option(fn: Callable[..., Any]) -> Callable[..., Any]:
+    """``--set KEY=VALUE`` (repeatable): override a key of the ``touchup`` metadata."""
+    return click.option(
+        "--set",
+        "overrides",
+        multiple=True,
+        callback=_parse_set,
+        metavar="KEY=VALUE",
+        help="Override a key of the recording's `touchup` metadata "
+        "(target_diameter_m, designated_u, polarity, threshold_px, ...). Repeatable.",
+    )(fn)
+
+
+def distance_option(fn: Callable[..., Any]) -> Callable[..., Any]:
+    """``--distance A:B=METRES`` (repeatable): a known distance between two targets."""
+    return click.option(
+        "--distance",
+        multiple=True,
+        metavar="A:B=METRES",
+        help="Known centre distance between targets A and B (labels in first-touch order). "
+        "Makes the length scale identifiable. Repeatable; replaces the metadata's known_distances.",
+    )(fn)
+
+
+@contextlib.contextmanager
+def progress_bars(enabled: bool = True) -> Iterator[Callable[[str, int, int | None], None] | None]:
+    """A rich progress display; yields the callback the orchestrator calls (or None)."""
+    if not enabled:
+        yield None
+        return
+    from rich.progress import (
+        BarColumn,
+        MofNCompleteColumn,
+        Progress,
+        TextColumn,
+        TimeElapsedColumn,
+    )
+
+    with Progress(
+        TextColumn("[bold]{task.description:<10}"),
+        BarColumn(),
+        MofNCompleteColumn(),
+        TimeElapsedColumn(),
+        transient=False,
+    ) as bars:
+        tasks: dict[str, Any] = {}
+
+        def update(stage: str, done: int, total: int | None) -> None:
+            if stage not in tasks:
+                tasks[stage] = bars.add_task(stage, total=total)
+            bars.update(tasks[stage], completed=done, total=total)
+
+        yield update
+
+
+def echo_summary(result: Any) -> None:
+    """Print what each stage did and where its files are."""
+    click.echo(f"run folder: {result.out_dir}")
+    for rec in result.stages:
+        took = f"{rec.seconds:6.1f} s" if rec.status == "ran" else "      -"
+        click.echo(f"  {rec.stage:<9} {rec.status:<7} {took}  {', '.join(rec.outputs)}")
+    s = result.summary
+    if s:
+        for line in s.get("headline", []):
+            click.echo(f"  {line}")

@@ -1,0 +1,34 @@
+"""Rule-based rejection flags, never deletes, and states every reason."""
+
+from __future__ import annotations
+
+from types import SimpleNamespace
+
+import pandas as pd
+
+from pipeline.stages.outliers import OutlierConfig, flag_outliers
+
+
+def test_rules_flag_with_reasons_and_keep_rows() -> None:
+    table = pd.DataFrame(
+        {
+            "touchup_id": [0, 1, 2, 3],
+            "target_id": [0, 0, 1, 1],
+            "dx_flange": 0.0,
+            "dy_flange": 0.0,
+            "dz_flange": 0.0,
+            "weight": 1.0,
+            "converged": [True, False, True, True],
+            "stamp_ns": [1, 2, 3, 4],
+            "j1": [0.1, 0.2, 0.3, 0.4],
+            "moving": [False, False, True, False],
+            "border_contact": [False, True, False, False],
+        }
+    )
+    out = flag_outliers(table, SimpleNamespace(joint_names=["j1"]), OutlierConfig())
+    assert list(out["touchup_id"]) == [0, 1, 2, 3]
+    assert list(out["inlier"]) == [True, False, False, True]
+    assert out.loc[1, "reason"] == "not converged; contour cut by the border"
+    assert out.loc[2, "reason"] == "captured while moving"
+    assert out.loc[0, "reason"] == ""
+    assert list(out["j1"]) == [0.1, 0.2, 0.3, 0.4]
