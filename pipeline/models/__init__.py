@@ -1,0 +1,21 @@
+"""Kinematic error models behind one interface (:class:`pipeline.models.base.ErrorModel`).
+
+Every module of this package except ``base`` and ``observability`` defines a
+model and registers it by name; importing the package imports them all, so a
+new model is one new file. ``get_model(name)`` / ``model_names()`` look them up.
+"""
+
+from __future__ import annotations
+
+import importlib
+import pkgutil
+
+from pipeline.models.base import ErrorModel, get_model, model_names, register
+
+_NOT_MODELS = {"base", "observability"}
+
+for _info in pkgutil.iter_modules(__path__):
+    if _info.name not in _NOT_MODELS and not _info.name.startswith("_"):
+        importlib.import_module(f"{__name__}.{_info.name}")
+
+__all__ = ["ErrorModel", "get_model", "model_names", "register"]

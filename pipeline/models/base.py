@@ -1,0 +1,262 @@
+"""The error-model interface, its registry and the twist algebra every model shares.
+
+An error model parameterises the kinematics of a serial chain (base link to
+flange link) by a vector ``x`` of small corrections to the nominal URDF
+(``x = 0`` is the nominal robot). It answers three questions:
+
+* where the flange-frame points ``p_flange`` land in the base frame at joint
+  vectors ``q`` and how they move with ``x`` (:meth:`ErrorModel.pin_and_jacobian`);
+* which URDF joint origins reproduce the corrected kinematics
+  (:meth:`ErrorModel.origins`), so a calibrated URDF is exact;
+* the names, joints and units of its parameters.
+
+Analytic Jacobians come from one identity. If the product of transforms that
+gives ``T_base_flange`` contains a factor perturbed on its right by a local
+twist ``xi = (v, w)`` (``F -> F exp([xi])``) at a frame whose base pose is
+``T_base_F = (R, o)``, a point ``p`` (base frame) carried by everything after
+it moves by
+
+    dp = R v + (R w) x (p - o)                                   (1)
+
+(the adjoint map of the twist to the base frame, applied to the point; Murray,
+Li & Sastry 1994, ch. 2). Every parameter of every model is such a twist (or a
+sum of them), so each model only records the frames and twists of its factors.
+
+A new model is one new module in :mod:`pipeline.models` that subclasses
+:class:`ErrorModel` and decorates it with :func:`register`.
+"""
+
+from __future__ import annotations
+
+from abc import ABC, abstractmethod
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import ArrayLike
+
+from pipeline.kinematics.chain import Chain
+from pipeline.kinematics.se3 import F64, matrix_from_axis_angle, skew
+
+_REGISTRY: dict[str, type[ErrorModel]] = {}
+
+
+def register(cls: type[ErrorModel]) -> type[ErrorModel]:
+    """Class decorator: make an error model available by its ``name``."""
+    _REGISTRY[cls.name] = cls
+    return cls
+
+
+def model_names() -> list[str]:
+    """Registered model names, in registration order."""
+    import pipeline.models  # noqa: F401  (imports every model module)
+
+    return list(_REGISTRY)
+
+
+def get_model(name: str) -> type[ErrorModel]:
+    """The model class registered as ``name``.
+
+    Raises
+    ------
+    KeyError
+        With the known names, if ``name`` is not registered.
+    """
+    import pipeline.models  # noqa: F401
+
+    if name not in _REGISTRY:
+        raise KeyError(f"unknown error model {name!r}; known: {', '.join(_REGISTRY)}")
+    return _REGISTRY[name]
+
+
+@dataclass(frozen=True)
+class ChainLayout:
+    """The nominal chain cut at its actuated joints.
+
+    ``T_base_flange(q) = prod_k [pre_k @ origin_k @ M_k(q_k)] @ tail`` with
+    ``pre_k`` the product of the fixed joints between actuated joint ``k-1``
+    and ``k`` and ``tail`` the fixed joints after the last one.
+
+    Attributes
+    ----------
+    names : joint names, (n,)
+    pre : (n, 4, 4)
+    origin : (n, 4, 4) nominal ``T_parent_joint`` of each actuated joint
+    axis : (n, 3) unit axes in the joint frames
+    prismatic : (n,) bool
+    tail : (4, 4)
+    """
+
+    names: tuple[str, ...]
+    pre: F64
+    origin: F64
+    axis: F64
+    prismatic: np.ndarray
+    tail: F64
+
+    @classmethod
+    def from_chain(cls, chain: Chain) -> ChainLayout:
+        pre, origin, axis, pris, names = [], [], [], [], []
+        acc = np.eye(4)
+        for j in chain.joints:
+            if j.actuated:
+                pre.append(acc)
+                origin.append(np.asarray(j.T_parent_joint, dtype=float))
+                axis.append(np.asarray(j.axis, dtype=float))
+                pris.append(j.type == "prismatic")
+                names.append(j.name)
+                acc = np.eye(4)
+            else:
+                acc = acc @ j.T_parent_joint
+        return cls(
+            names=tuple(names),
+            pre=np.array(pre).reshape(-1, 4, 4),
+            origin=np.array(origin).reshape(-1, 4, 4),
+            axis=np.array(axis).reshape(-1, 3),
+            prismatic=np.array(pris, dtype=bool),
+            tail=acc,
+        )
+
+    @property
+    def n(self) -> int:
+        return len(self.names)
+
+
+class ErrorModel(ABC):
+    """A parameterisation of a chain's kinematic errors (see module docstring).
+
+    Subclasses set ``name`` and ``description`` and fill ``param_names``,
+    ``param_joints`` and ``param_units`` (``"m"`` or ``"rad"``) in ``__init__``.
+    """
+
+    name: str = ""
+    description: str = ""
+
+    def __init__(self, chain: Chain) -> None:
+        self.nominal = chain
+        self.layout = ChainLayout.from_chain(chain)
+        self.param_names: list[str] = []
+        self.param_joints: list[str] = []
+        self.param_units: list[str] = []
+
+    @property
+    def n_params(self) -> int:
+        return len(self.param_names)
+
+    def zero(self) -> F64:
+        """The nominal robot's parameter vector (all corrections zero)."""
+        return np.zeros(self.n_params)
+
+    @abstractmethod
+    def pin_and_jacobian(
+        self, x: ArrayLike, q: ArrayLike, p_flange: ArrayLike, *, jac: bool = True
+    ) -> tuple[F64, F64, F64 | None]:
+        """Points in the base frame and their Jacobian with respect to ``x``.
+
+        Parameters
+        ----------
+        x : (P,) model parameters
+        q : (N, n) joint vectors, columns in ``layout.names`` order
+        p_flange : (N, 3) or (3,) points in the flange frame
+        jac : also compute the Jacobian
+
+        Returns
+        -------
+        p_base : (N, 3)
+            ``T_base_flange(q_i; x) @ p_flange_i``.
+        R_base_flange : (N, 3, 3)
+            Rotation of the flange (the derivative of ``p_base`` w.r.t. ``p_flange``).
+        J : (N, 3, P) or None
+            ``d p_base / d x``.
+        """
+
+    @abstractmethod
+    def origins(self, x: ArrayLike) -> dict[str, F64]:
+        """New ``T_parent_joint`` of the actuated joints that reproduce the model at ``x``."""
+
+    def chain(self, x: ArrayLike) -> Chain:
+        """The corrected chain (base link to flange link) as a :class:`Chain`."""
+        return self.nominal.with_origins(self.origins(x))
+
+
+# ----------------------------------------------------------------------------- helpers
+
+
+def as_points(p_flange: ArrayLike, N: int) -> F64:
+    """Broadcast flange-frame points to ``(N, 3)``."""
+    return np.broadcast_to(np.asarray(p_flange, dtype=float), (N, 3))
+
+
+def so3_exp(r: ArrayLike) -> F64:
+    """``exp([r]_x)`` for one rotation vector ``r`` (3,) -> (3, 3)."""
+    r = np.asarray(r, dtype=float)
+    th = float(np.linalg.norm(r))
+    if th < 1e-12:
+        return np.eye(3) + skew(r)
+    return matrix_from_axis_angle(r / th, th)
+
+
+def so3_right_jacobian(r: ArrayLike) -> F64:
+    """Right Jacobian of SO(3): ``exp([r + dr]) = exp([r]) exp([J_r(r) dr])`` to first order.
+
+    ``J_r = I - (1 - cos t)/t^2 [r] + (t - sin t)/t^3 [r]^2`` (Chirikjian 2011,
+    eq. 10.86), with its series near ``t = 0``.
+    """
+    r = np.asarray(r, dtype=float)
+    t = float(np.linalg.norm(r))
+    K = skew(r)
+    if t < 1e-6:
+        return np.eye(3) - 0.5 * K + (1.0 / 6.0) * (K @ K)
+    return np.eye(3) - (1 - np.cos(t)) / t**2 * K + (t - np.sin(t)) / t**3 * (K @ K)
+
+
+def translation(p: ArrayLike) -> F64:
+    T = np.eye(4)
+    T[:3, 3] = np.asarray(p, dtype=float)
+    return T
+
+
+def rotation(R: ArrayLike) -> F64:
+    T = np.eye(4)
+    T[:3, :3] = np.asarray(R, dtype=float)
+    return T
+
+
+def motion(axis: F64, prismatic: bool, qk: F64) -> F64:
+    """Joint motion ``M(q)`` for a batch ``(N,) -> (N, 4, 4)``."""
+    M = np.zeros(qk.shape + (4, 4))
+    M[:, 3, 3] = 1.0
+    if prismatic:
+        M[:, :3, :3] = np.eye(3)
+        M[:, :3, 3] = qk[:, None] * axis
+    else:
+        M[:, :3, :3] = matrix_from_axis_angle(axis, qk)
+    return M
+
+
+def point_motion(T_base_F: F64, twists: F64, p_base: F64) -> F64:
+    """Equation (1): point velocities for local twists at a frame.
+
+    Parameters
+    ----------
+    T_base_F : (N, 4, 4) base pose of the frame the twists act at
+    twists : (6, m) or (N, 6, m) local twists ``(v; w)`` in frame F, one per column
+    p_base : (N, 3) points moved by the factor
+
+    Returns
+    -------
+    (N, 3, m) ``R v + (R w) x (p - o)``.
+    """
+    R = T_base_F[:, :3, :3]
+    v = R @ twists[..., :3, :]
+    w = R @ twists[..., 3:, :]
+    d = (p_base - T_base_F[:, :3, 3])[:, :, None]
+    return v + np.cross(w, d, axis=1)
+
+
+def rmul(T: F64, C: F64) -> F64:
+    """``T @ C`` for a batch ``T (N, 4, 4)`` and a constant ``C (4, 4)``."""
+    return T @ C
+
+
+ModelFactory = Callable[[Chain], ErrorModel]

@@ -1,0 +1,134 @@
+"""Full per-joint origin corrections: six per joint plus the joint zero offset.
+
+Each actuated joint ``k`` gets
+
+    origin_k' = Trans(xyz_k + d_k) @ R_k @ exp([r_k]) @ Rot(axis_k, dq0_k)
+
+with ``xyz_k, R_k`` its nominal URDF origin, ``d_k`` (3, m) a translation in
+the parent frame, ``r_k`` (3, rad) a rotation vector in the nominal joint
+frame and ``dq0_k`` the zero offset (a translation along the axis for a
+prismatic joint). This is the simulator's deviation model
+(``origin(xyz + dxyz) @ RPY(drpy) @ Rot(axis, dq0)``) with the rotation in
+exponential coordinates, so it represents any true robot of that kind
+exactly. It is over-complete on purpose (the rotation about the axis and the
+zero offset coincide, the first joint's origin is the base frame the targets
+absorb, ...): identification keeps what the touch-ups identify (QR with column
+pivoting) and holds the rest at nominal (``pipeline.stages.identify``).
+
+Jacobian, by equation (1) of :mod:`pipeline.models.base`: ``d_k`` is a pure
+translation in frame ``X_k`` (the parent frame after the fixed joints before
+``k``), ``r_k`` a rotation ``J_r(r_k) dr`` at frame ``Y_k = X_k Trans R_k
+exp([r_k])``, ``dq0`` a rotation (translation) about (along) the axis at ``Y_k``.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numpy.typing import ArrayLike
+
+from pipeline.kinematics.chain import Chain
+from pipeline.kinematics.se3 import F64
+from pipeline.models.base import (
+    ErrorModel,
+    as_points,
+    motion,
+    point_motion,
+    register,
+    rotation,
+    so3_exp,
+    so3_right_jacobian,
+    translation,
+)
+
+COMPONENTS = ("dx", "dy", "dz", "rx", "ry", "rz", "dq0")
+_UNITS = {"dx": "m", "dy": "m", "dz": "m", "rx": "rad", "ry": "rad", "rz": "rad", "dq0": "rad"}
+
+
+@register
+class FullOriginModel(ErrorModel):
+    """Six origin corrections and a zero offset per joint (see module docstring)."""
+
+    name = "full"
+    description = "per-joint origin corrections (xyz, rotation vector) and zero offsets"
+    components: tuple[str, ...] = COMPONENTS
+
+    def __init__(self, chain: Chain) -> None:
+        super().__init__(chain)
+        L = self.layout
+        self._slot: dict[tuple[int, str], int] = {}
+        for k, jn in enumerate(L.names):
+            for c in self.components:
+                self._slot[(k, c)] = len(self.param_names)
+                self.param_names.append(f"{jn}.{c}")
+                self.param_joints.append(jn)
+                unit = _UNITS[c]
+                if c == "dq0" and L.prismatic[k]:
+                    unit = "m"
+                self.param_units.append(unit)
+
+    def _unpack(self, x: ArrayLike) -> tuple[F64, F64, F64]:
+        x = np.asarray(x, dtype=float)
+        n = self.layout.n
+        full = np.zeros((n, 7))
+        for (k, c), i in self._slot.items():
+            full[k, COMPONENTS.index(c)] = x[i]
+        return full[:, :3], full[:, 3:6], full[:, 6]
+
+    def _fixed_part(self, k: int, d: F64, r: F64) -> F64:
+        """``Trans(xyz + d) @ R @ exp([r])`` of joint ``k``."""
+        o = self.layout.origin[k]
+        return translation(o[:3, 3] + d) @ rotation(o[:3, :3] @ so3_exp(r))
+
+    def origins(self, x: ArrayLike) -> dict[str, F64]:
+        L = self.layout
+        d, r, dq0 = self._unpack(x)
+        out = {}
+        for k, jn in enumerate(L.names):
+            A = self._fixed_part(k, d[k], r[k])
+            out[jn] = A @ motion(L.axis[k], bool(L.prismatic[k]), np.array([dq0[k]]))[0]
+        return out
+
+    def pin_and_jacobian(
+        self, x: ArrayLike, q: ArrayLike, p_flange: ArrayLike, *, jac: bool = True
+    ) -> tuple[F64, F64, F64 | None]:
+        L = self.layout
+        q = np.atleast_2d(np.asarray(q, dtype=float))
+        N = q.shape[0]
+        pf = as_points(p_flange, N)
+        d, r, dq0 = self._unpack(x)
+        T = np.broadcast_to(np.eye(4), (N, 4, 4))
+        Xs, Ys = [], []
+        for k in range(L.n):
+            X = T @ L.pre[k]
+            Y = X @ self._fixed_part(k, d[k], r[k])
+            Xs.append(X)
+            Ys.append(Y)
+            T = Y @ motion(L.axis[k], bool(L.prismatic[k]), q[:, k] + dq0[k])
+        T = T @ L.tail
+        R = T[:, :3, :3]
+        p = np.einsum("nij,nj->ni", R, pf) + T[:, :3, 3]
+        if not jac:
+            return p, R, None
+        J = np.zeros((N, 3, self.n_params))
+        comps = set(self.components)
+        for k in range(L.n):
+            if comps & {"dx", "dy", "dz"}:
+                RX = Xs[k][:, :3, :3]
+                for i, c in enumerate(("dx", "dy", "dz")):
+                    if (k, c) in self._slot:
+                        J[:, :, self._slot[(k, c)]] = RX[:, :, i]
+            if comps & {"rx", "ry", "rz"}:
+                tw = np.zeros((6, 3))
+                tw[3:] = so3_right_jacobian(r[k])
+                cols = point_motion(Ys[k], tw, p)
+                for i, c in enumerate(("rx", "ry", "rz")):
+                    if (k, c) in self._slot:
+                        J[:, :, self._slot[(k, c)]] = cols[:, :, i]
+            if (k, "dq0") in self._slot:
+                tw = np.zeros((6, 1))
+                if L.prismatic[k]:
+                    tw[:3, 0] = L.axis[k]
+                else:
+                    tw[3:, 0] = L.axis[k]
+                J[:, :, self._slot[(k, "dq0")]] = point_motion(Ys[k], tw, p)[:, :, 0]
+        return p, R, J
