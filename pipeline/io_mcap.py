@@ -1,0 +1,354 @@
+"""Streaming MCAP access for recordings (../shared/spec/recording.md).
+
+One linear pass over the file with :class:`mcap.stream_reader.StreamReader`
+(chunks are decompressed one at a time, so memory is bounded by one chunk),
+and small hand-written decoders for the few message types a recording holds:
+
+- ROS 2 CDR (``ros2msg`` schemas): ``std_msgs/String``, ``sensor_msgs/JointState``,
+  ``sensor_msgs/Image``, ``sensor_msgs/CompressedImage``. The CDR layout of these
+  types is fixed, so the decoders read it directly (``numpy.frombuffer`` for the
+  arrays) and never parse the schema text: ``MSG: pkg/Type`` and
+  ``MSG: pkg/msg/Type`` lines, comments and constants are all equally fine.
+- Foxglove ``foxglove.RawImage`` / ``foxglove.CompressedImage`` in JSON, and in
+  protobuf when ``foxglove-schemas-protobuf`` is installed.
+
+A truncated file (recorder killed) ends the stream early; :class:`StreamState`
+records that and how many bytes were read.
+"""
+
+from __future__ import annotations
+
+import base64
+import json
+import os
+import struct
+from collections.abc import Iterator
+from dataclasses import dataclass, field
+from typing import Any
+
+import cv2
+import numpy as np
+from mcap.records import Channel, Message, Metadata, Schema
+from mcap.stream_reader import StreamReader
+
+from pipeline.errors import BadInput
+
+IMAGE_TYPES = {
+    "sensor_msgs/Image": "ros_image",
+    "sensor_msgs/msg/Image": "ros_image",
+    "sensor_msgs/CompressedImage": "ros_compressed",
+    "sensor_msgs/msg/CompressedImage": "ros_compressed",
+    "foxglove.RawImage": "fox_raw",
+    "foxglove.CompressedImage": "fox_compressed",
+    "foxglove_msgs/RawImage": "fox_raw",
+    "foxglove_msgs/msg/RawImage": "fox_raw",
+    "foxglove_msgs/CompressedImage": "fox_compressed",
+    "foxglove_msgs/msg/CompressedImage": "fox_compressed",
+}
+JOINT_TYPES = {"sensor_msgs/JointState", "sensor_msgs/msg/JointState"}
+STRING_TYPES = {"std_msgs/String", "std_msgs/msg/String"}
+DEFAULT_IMAGE_TOPICS = ("/camera/image_raw", "/camera/image_raw/compressed")
+
+
+@dataclass
+class StreamState:
+    """What one pass over a file saw (filled in while streaming)."""
+
+    path: str
+    file_size: int = 0
+    bytes_read: int = 0
+    truncated: bool = False
+    error: str = ""
+    schemas: dict[int, Schema] = field(default_factory=dict)
+    channels: dict[int, Channel] = field(default_factory=dict)
+    metadata: dict[str, dict[str, str]] = field(default_factory=dict)
+
+    def topic_type(self, channel_id: int) -> tuple[str, str, str]:
+        """``(topic, schema name, message encoding)`` of a channel."""
+        ch = self.channels[channel_id]
+        sc = self.schemas.get(ch.schema_id)
+        return ch.topic, (sc.name if sc is not None else ""), ch.message_encoding
+
+
+class _CountingFile:
+    """A read-only binary file wrapper counting the bytes handed out."""
+
+    def __init__(self, f: Any) -> None:
+        self._f = f
+        self.count = 0
+
+    def read(self, n: int = -1) -> bytes:
+        b: bytes = self._f.read(n)
+        self.count += len(b)
+        return b
+
+    def read1(self, n: int = -1) -> bytes:  # pragma: no cover - not used by mcap
+        return self.read(n)
+
+
+def iter_messages(path: str | os.PathLike[str], state: StreamState) -> Iterator[Message]:
+    """Yield every Message record of ``path`` in file order, filling ``state``.
+
+    Schemas, channels and metadata records are collected into ``state`` as
+    they pass (they precede the messages that use them). A file that ends early
+    or breaks mid-record stops the iteration with ``state.truncated`` set.
+
+    Raises
+    ------
+    BadInput
+        If the file is missing or not an MCAP file at all.
+    """
+    path = os.fspath(path)
+    try:
+        state.file_size = os.path.getsize(path)
+        fh = open(path, "rb", buffering=1 << 20)  # noqa: SIM115 - closed below
+    except OSError as exc:
+        raise BadInput(f"{path}: cannot open: {exc.strerror}") from exc
+    with fh:
+        head = fh.read(8)
+        if not head.startswith(b"\x89MCAP"):
+            raise BadInput(f"{path}: not an MCAP file (bad magic {head[:5]!r})")
+        fh.seek(0)
+        cf = _CountingFile(fh)
+        reader = StreamReader(cf, validate_crcs=False)  # type: ignore[arg-type]
+        seen_footer = False
+        try:
+            for rec in reader.records:
+                if isinstance(rec, Message):
+                    yield rec
+                elif isinstance(rec, Schema):
+                    state.schemas[rec.id] = rec
+                elif isinstance(rec, Channel):
+                    state.channels[rec.id] = rec
+                elif isinstance(rec, Metadata):
+                    state.metadata[rec.name] = dict(rec.metadata)
+                elif type(rec).__name__ == "Footer":
+                    seen_footer = True
+        except Exception as exc:  # noqa: BLE001 - any break in the stream is truncation
+            state.truncated = True
+            state.error = f"{type(exc).__name__}: {exc}"[:200]
+        state.bytes_read = cf.count
+        if not seen_footer and not state.truncated:
+            state.truncated = True
+            state.error = "no footer"
+
+
+# --------------------------------------------------------------------------- CDR
+
+
+class _Cdr:
+    """Minimal little/big-endian CDR cursor over one message (offsets after the 4-byte header)."""
+
+    __slots__ = ("buf", "pos", "e")
+
+    def __init__(self, buf: bytes) -> None:
+        if len(buf) < 4:
+            raise ValueError("message shorter than the CDR header")
+        self.buf = buf
+        self.pos = 4
+        self.e = "<" if buf[1] & 1 else ">"
+
+    def align(self, n: int) -> None:
+        r = (self.pos - 4) % n
+        if r:
+            self.pos += n - r
+
+    def u8(self) -> int:
+        v = self.buf[self.pos]
+        self.pos += 1
+        return v
+
+    def u32(self) -> int:
+        self.align(4)
+        (v,) = struct.unpack_from(self.e + "I", self.buf, self.pos)
+        self.pos += 4
+        return int(v)
+
+    def i32(self) -> int:
+        self.align(4)
+        (v,) = struct.unpack_from(self.e + "i", self.buf, self.pos)
+        self.pos += 4
+        return int(v)
+
+    def string(self) -> str:
+        n = self.u32()
+        s = self.buf[self.pos : self.pos + max(n - 1, 0)]
+        self.pos += n
+        return s.decode("utf-8", errors="replace")
+
+    def strings(self) -> list[str]:
+        return [self.string() for _ in range(self.u32())]
+
+    def f64s(self) -> np.ndarray:
+        n = self.u32()
+        if n:
+            self.align(8)
+        a = np.frombuffer(self.buf, dtype=self.e + "f8", count=n, offset=self.pos)
+        self.pos += 8 * n
+        return a.astype(np.float64)
+
+    def bytes_(self) -> memoryview:
+        n = self.u32()
+        if self.pos + n > len(self.buf):
+            raise ValueError("byte array runs past the message end")
+        v = memoryview(self.buf)[self.pos : self.pos + n]
+        self.pos += n
+        return v
+
+    def stamp_ns(self) -> tuple[int, str]:
+        sec = self.i32()
+        nsec = self.u32()
+        frame = self.string()
+        return sec * 1_000_000_000 + nsec, frame
+
+
+def decode_string(data: bytes) -> str:
+    """``std_msgs/String`` CDR -> its text."""
+    return _Cdr(data).string()
+
+
+def decode_joint_state(data: bytes) -> tuple[int, list[str], np.ndarray]:
+    """``sensor_msgs/JointState`` CDR -> ``(stamp_ns, names, positions (n,))``."""
+    c = _Cdr(data)
+    stamp, _ = c.stamp_ns()
+    names = c.strings()
+    pos = c.f64s()
+    return stamp, names, pos
+
+
+@dataclass
+class EncodedImage:
+    """An image message before pixel decoding."""
+
+    stamp_ns: int
+    kind: str  # "raw" or "compressed"
+    encoding: str  # raw: mono8, rgb8, ...; compressed: png, jpeg, ...
+    height: int = 0
+    width: int = 0
+    step: int = 0
+    bigendian: bool = False
+    data: bytes | memoryview = b""
+
+
+def decode_image_message(schema_name: str, msg_encoding: str, data: bytes) -> EncodedImage:
+    """Any supported image message -> :class:`EncodedImage` (pixels not yet decoded)."""
+    kind = IMAGE_TYPES[schema_name]
+    if kind == "ros_image":
+        c = _Cdr(data)
+        stamp, _ = c.stamp_ns()
+        h = c.u32()
+        w = c.u32()
+        enc = c.string()
+        big = bool(c.u8())
+        step = c.u32()
+        return EncodedImage(stamp, "raw", enc, h, w, step, big, c.bytes_())
+    if kind == "ros_compressed":
+        c = _Cdr(data)
+        stamp, _ = c.stamp_ns()
+        fmt = c.string()
+        return EncodedImage(stamp, "compressed", fmt, data=c.bytes_())
+    obj = _foxglove_object(schema_name, msg_encoding, data)
+    ts = obj.get("timestamp") or {}
+    if isinstance(ts, dict):
+        stamp = int(ts.get("sec", 0)) * 1_000_000_000 + int(ts.get("nsec", 0))
+    else:
+        stamp = int(ts)
+    payload = obj.get("data", b"")
+    if isinstance(payload, str):
+        payload = base64.b64decode(payload)
+    if kind == "fox_raw":
+        return EncodedImage(
+            stamp,
+            "raw",
+            str(obj.get("encoding", "")),
+            int(obj.get("height", 0)),
+            int(obj.get("width", 0)),
+            int(obj.get("step", 0)),
+            False,
+            payload,
+        )
+    return EncodedImage(stamp, "compressed", str(obj.get("format", "")), data=payload)
+
+
+def _foxglove_object(schema_name: str, msg_encoding: str, data: bytes) -> dict[str, Any]:
+    if msg_encoding == "json":
+        out: dict[str, Any] = json.loads(bytes(data))
+        return out
+    if msg_encoding == "protobuf":
+        try:
+            if schema_name.endswith("RawImage"):
+                from foxglove_schemas_protobuf.RawImage_pb2 import RawImage as Pb
+            else:
+                from foxglove_schemas_protobuf.CompressedImage_pb2 import (
+                    CompressedImage as Pb,  # type: ignore[assignment]
+                )
+        except ImportError as exc:
+            raise ValueError("protobuf images need foxglove-schemas-protobuf installed") from exc
+        m = Pb()
+        m.ParseFromString(bytes(data))
+        res: dict[str, Any] = {
+            "timestamp": {"sec": m.timestamp.seconds, "nsec": m.timestamp.nanos},
+            "data": bytes(m.data),
+        }
+        for k in ("encoding", "format", "height", "width", "step"):
+            if hasattr(m, k):
+                res[k] = getattr(m, k)
+        return res
+    raise ValueError(f"unsupported message encoding {msg_encoding!r}")
+
+
+RAW_ENCODINGS = {
+    "mono8",
+    "8uc1",
+    "rgb8",
+    "bgr8",
+    "rgba8",
+    "bgra8",
+    "mono16",
+    "16uc1",
+}
+
+
+def image_to_gray(img: EncodedImage) -> np.ndarray:
+    """Decode pixels to a 2-D grey image (uint8 or uint16, a view where possible).
+
+    Colour images are reduced to grey with ITU-R BT.601 weights (cv2). Raises
+    ``ValueError`` naming the encoding when it is not supported.
+    """
+    if img.kind == "raw":
+        enc = img.encoding.lower()
+        h, w, step = img.height, img.width, img.step
+        if enc not in RAW_ENCODINGS:
+            raise ValueError(f"unknown image encoding {img.encoding!r}")
+        buf = np.frombuffer(img.data, dtype=np.uint8)
+        if step == 0:
+            step = w * {"mono16": 2, "16uc1": 2, "rgb8": 3, "bgr8": 3}.get(
+                enc, 4 if "a8" in enc else 1
+            )
+        if h <= 0 or w <= 0 or buf.size < h * step:
+            raise ValueError(f"image {w}x{h} step {step} but {buf.size} bytes of data")
+        rows = buf[: h * step].reshape(h, step)
+        if enc in ("mono8", "8uc1"):
+            return rows[:, :w]
+        if enc in ("mono16", "16uc1"):
+            dt = ">u2" if img.bigendian else "<u2"
+            return rows[:, : 2 * w].copy().view(dt).reshape(h, w).astype(np.uint16)
+        nch = 3 if enc in ("rgb8", "bgr8") else 4
+        px = np.ascontiguousarray(rows[:, : nch * w]).reshape(h, w, nch)
+        code = {
+            "rgb8": cv2.COLOR_RGB2GRAY,
+            "bgr8": cv2.COLOR_BGR2GRAY,
+            "rgba8": cv2.COLOR_RGBA2GRAY,
+            "bgra8": cv2.COLOR_BGRA2GRAY,
+        }[enc]
+        return cv2.cvtColor(px, code)
+    fmt = img.encoding.lower()
+    if not any(k in fmt for k in ("png", "jpeg", "jpg", "tiff", "bmp", "webp")):
+        raise ValueError(f"unknown compressed image format {img.encoding!r}")
+    arr = np.frombuffer(img.data, dtype=np.uint8)
+    out = cv2.imdecode(arr, cv2.IMREAD_UNCHANGED)
+    if out is None:
+        raise ValueError(f"compressed image ({img.encoding!r}) does not decode")
+    if out.ndim == 3:
+        out = cv2.cvtColor(out, cv2.COLOR_BGRA2GRAY if out.shape[2] == 4 else cv2.COLOR_BGR2GRAY)
+    return out

@@ -1,0 +1,613 @@
+"""Sub-pixel detection of the circular target's image ellipse.
+
+The measuring data of one image (../shared/spec/recording.md) are the centre
+``(u, v)`` and the full long axis ``s`` of the ellipse fitting the target
+contour, the contour being the boundary at the grey level halfway between
+target and plate. :func:`detect_target` estimates them in four steps:
+
+1. **Coarse blob** on a 4x area-downsampled copy: plate level = median, the
+   target's extreme level = min (dark on light) or max; threshold halfway;
+   connected components; the blob is picked by size and, when an expected
+   ``(u, v, s)`` is given, by distance to it. Competing blobs are counted and
+   an ambiguity ratio reported.
+2. **Local levels** in a full-resolution window around the blob: planes
+   ``g_in(u, v)``, ``g_out(u, v)`` fitted to the pixels well inside and well
+   outside the blob (absorbs vignetting and shading), giving the halfway
+   level ``g_mid = (g_in + g_out) / 2`` at every pixel.
+3. **Sub-pixel edge points**: the zero crossings of ``g - g_mid`` along every
+   row and column of the window, by linear interpolation between the two
+   pixel centres that straddle it. A crossing on a row is used where the
+   contour normal is within 60 deg of the row (``|n_u| >= 0.5``), a crossing
+   on a column where ``|n_v| >= 0.5`` (normal from a first fit). Linear
+   interpolation errs in opposite directions for opposite sub-pixel phases,
+   and a contour sweeps all phases, so the fit is not biased by the grid.
+4. **Ellipse fit** (algebraic conic fit on normalised coordinates, then
+   Gauss-Newton on the geometric distances) and a **curvature correction**:
+   blurring a convex contour with an isotropic kernel of variance ``sigma^2``
+   moves its halfway-level line inwards by ``sigma^2 kappa / 2`` (``kappa``
+   the local curvature; for a disc of radius R: ``R - sigma^2 / (2R)``, from
+   the second-order expansion of the blurred indicator). ``sigma^2`` is
+   measured from the image itself: across an edge of width ``sigma``,
+   ``integral p (1 - p) dn = sigma / sqrt(pi)`` for the normalised profile ``p``
+   (an erf), so ``sigma = sqrt(pi) * sum p (1 - p) / perimeter``. Each edge
+   point is moved out by ``sigma^2 kappa / 2`` and the ellipse refitted.
+
+Quality figures: RMS geometric fit residual (px), completeness (share of the
+ellipse's parameter angle covered by edge points), border contact, number of
+competing blobs, ambiguity ratio, contrast, and the measured edge width.
+"""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass
+from typing import Any
+
+import cv2
+import numpy as np
+
+POLARITIES = ("dark_on_light", "light_on_dark")
+
+
+@dataclass
+class DetectConfig:
+    """Detection settings.
+
+    Attributes
+    ----------
+    polarity : {"dark_on_light", "light_on_dark"} or None
+        None: from the recording's metadata (ingest fills it) or automatic.
+    downsample : int
+        Factor of the coarse blob search.
+    min_area_px : float
+        Smallest blob (full-resolution px^2) considered a target.
+    max_area_frac : float
+        Largest blob as a share of the image.
+    min_contrast_frac : float
+        Least ``|g_out - g_in| / max(g_out, g_in)``; lower is "no target".
+    max_edge_sigma_px : float
+        Edges wider than this (motion blur, out-of-focus occluder) mark the
+        detection as blurred (``found`` stays True, ``quality_ok`` False).
+    min_completeness : float
+        Below this share of contour the detection is flagged incomplete.
+    curvature_correction : bool
+        Apply the blur-curvature correction of step 4.
+    ambiguity_ratio : float
+        A competing blob at least this fraction of the chosen one's area (and
+        not clearly excluded by the expected position) flags ``ambiguous``.
+    """
+
+    polarity: str | None = None
+    downsample: int = 4
+    min_area_px: float = 30.0
+    max_area_frac: float = 0.25
+    min_contrast_frac: float = 0.25
+    max_edge_sigma_px: float = 2.0
+    min_completeness: float = 0.9
+    curvature_correction: bool = True
+    ambiguity_ratio: float = 0.5
+
+    def to_dict(self) -> dict[str, Any]:
+        return asdict(self)
+
+
+#: keys of the dict :func:`detect_target` returns (also the detections columns)
+RESULT_KEYS = (
+    "found",
+    "u",
+    "v",
+    "s",
+    "s_minor",
+    "angle",
+    "s_inv",
+    "residual_px",
+    "completeness",
+    "border_contact",
+    "n_blobs",
+    "ambiguity",
+    "ambiguous",
+    "contrast",
+    "edge_sigma_px",
+    "n_edge_points",
+    "quality_ok",
+    "reason",
+)
+
+
+def _empty(reason: str, n_blobs: int = 0) -> dict[str, Any]:
+    nan = float("nan")
+    return {
+        "found": False,
+        "u": nan,
+        "v": nan,
+        "s": nan,
+        "s_minor": nan,
+        "angle": nan,
+        "s_inv": nan,
+        "residual_px": nan,
+        "completeness": 0.0,
+        "border_contact": False,
+        "n_blobs": n_blobs,
+        "ambiguity": 0.0,
+        "ambiguous": False,
+        "contrast": nan,
+        "edge_sigma_px": nan,
+        "n_edge_points": 0,
+        "quality_ok": False,
+        "reason": reason,
+    }
+
+
+# ----------------------------------------------------------------- ellipse math
+
+
+def fit_conic(pts: np.ndarray) -> np.ndarray | None:
+    """Algebraic conic fit ``A x^2 + B xy + C y^2 + D x + E y + F = 0``.
+
+    Minimises ``sum (conic(x_i))^2`` with ``|coefficients| = 1``: the smallest
+    right singular vector of the design matrix (here the eigenvector of its
+    scatter matrix), on centred, scaled points (Hartley-style normalisation),
+    mapped back to pixel coordinates.
+
+    Parameters
+    ----------
+    pts : (N, 2), N >= 5
+
+    Returns
+    -------
+    (6,) conic coefficients in pixel coordinates, or None if degenerate.
+    """
+    if pts.shape[0] < 6:
+        return None
+    m = pts.mean(axis=0)
+    q = pts - m
+    sc = float(np.sqrt(np.mean(np.sum(q * q, axis=1))))
+    if not sc > 0:
+        return None
+    x = q[:, 0] / sc
+    y = q[:, 1] / sc
+    D = np.stack([x * x, x * y, y * y, x, y, np.ones_like(x)], axis=1)
+    # smallest eigenvector of the scatter matrix = smallest right singular vector
+    _, V = np.linalg.eigh(D.T @ D)
+    a, b, c, d, e, f = V[:, 0]
+    # undo scaling then translation: x = (X - mx)/sc
+    a, b, c, d, e = a / sc**2, b / sc**2, c / sc**2, d / sc, e / sc
+    mx, my = m
+    A, B, C = a, b, c
+    Dn = d - 2 * a * mx - b * my
+    En = e - 2 * c * my - b * mx
+    Fn = f + a * mx * mx + b * mx * my + c * my * my - d * mx - e * my
+    return np.array([A, B, C, Dn, En, Fn])
+
+
+def conic_to_params(k: np.ndarray) -> tuple[float, float, float, float, float] | None:
+    """Conic -> ``(u, v, a, b, theta)``: centre, semi-axes ``a >= b``, long-axis angle.
+
+    ``theta`` is measured from ``+u`` towards ``+v``, in ``(-pi/2, pi/2]``.
+    Returns None when the conic is not a real ellipse.
+    """
+    A, B, C, D, E, F = k
+    M2 = np.array([[2 * A, B], [B, 2 * C]])
+    det = 4 * A * C - B * B
+    if det <= 0:
+        return None
+    x0, y0 = np.linalg.solve(M2, [-D, -E])
+    F0 = F + 0.5 * (D * x0 + E * y0)
+    lam, vec = np.linalg.eigh(np.array([[A, B / 2], [B / 2, C]]))
+    if F0 > 0:
+        lam, F0 = -lam, -F0
+    if np.any(lam <= 0) or F0 >= 0:
+        return None
+    ax = np.sqrt(-F0 / lam)
+    i = int(np.argmax(ax))
+    d = vec[:, i]
+    th = float(np.arctan2(d[1], d[0]))
+    if th <= -np.pi / 2:
+        th += np.pi
+    elif th > np.pi / 2:
+        th -= np.pi
+    return float(x0), float(y0), float(ax[i]), float(ax[1 - i]), th
+
+
+def ellipse_foot(
+    pts: np.ndarray, p: tuple[float, float, float, float, float], newton: int = 4
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Signed geometric distance of points to an ellipse, the foot angle and curvature.
+
+    Uses a few Newton steps on the parameter angle ``t`` of the closest point
+    ``(a cos t, b sin t)`` in the ellipse frame.
+
+    Returns
+    -------
+    dist : (N,) signed distance, positive outside
+    t : (N,) parameter angle of the foot point
+    kappa : (N,) curvature of the ellipse at the foot point, 1/px
+    """
+    u0, v0, a, b, th = p
+    c, s = np.cos(th), np.sin(th)
+    du = pts[:, 0] - u0
+    dv = pts[:, 1] - v0
+    x = c * du + s * dv
+    y = -s * du + c * dv
+    t = np.arctan2(a * y, b * x)
+    for _ in range(newton):
+        ct, st = np.cos(t), np.sin(t)
+        # f(t) = (a^2 - b^2) ct st - x a st + y b ct = 0
+        f = (a * a - b * b) * ct * st - x * a * st + y * b * ct
+        fp = (a * a - b * b) * (ct * ct - st * st) - x * a * ct - y * b * st
+        t = t - f / np.where(np.abs(fp) > 1e-12, fp, 1e-12)
+    ct, st = np.cos(t), np.sin(t)
+    ex, ey = a * ct, b * st
+    d = np.hypot(x - ex, y - ey)
+    inside = (x / a) ** 2 + (y / b) ** 2 < 1.0
+    d = np.where(inside, -d, d)
+    kappa = a * b / np.power(a * a * st * st + b * b * ct * ct, 1.5)
+    return d, t, kappa
+
+
+def ellipse_normals(p: tuple[float, float, float, float, float], t: np.ndarray) -> np.ndarray:
+    """Outward unit normals ``(N, 2)`` in image coordinates at parameter angles ``t``."""
+    _, _, a, b, th = p
+    nx = b * np.cos(t)
+    ny = a * np.sin(t)
+    nn = np.hypot(nx, ny)
+    nx, ny = nx / nn, ny / nn
+    c, s = np.cos(th), np.sin(th)
+    return np.stack([c * nx - s * ny, s * nx + c * ny], axis=1)
+
+
+def refine_geometric(
+    pts: np.ndarray, p: tuple[float, float, float, float, float], iterations: int = 3
+) -> tuple[tuple[float, float, float, float, float], np.ndarray]:
+    """Gauss-Newton on the orthogonal distances of ``pts`` to the ellipse ``p``.
+
+    Parameters ``(u, v, a, b, theta)``; the distance derivatives are those of
+    the foot point (the foot moves along the contour, so only the normal
+    component counts): with ``d = n . (p - c - R e(t))``, ``dd/dc = -n``,
+    ``dd/da = -n . R (cos t, 0)``, ``dd/db = -n . R (0, sin t)``,
+    ``dd/dtheta = -n . R' (a cos t, b sin t)``.
+
+    Returns the refined parameters and the final residuals ``(N,)``.
+    """
+    q = np.array(p, dtype=float)
+    d = np.zeros(len(pts))
+    for _ in range(iterations):
+        pp = (q[0], q[1], q[2], q[3], q[4])
+        d, t, _ = ellipse_foot(pts, pp)
+        n = ellipse_normals(pp, t)
+        c, s = np.cos(q[4]), np.sin(q[4])
+        ct, st = np.cos(t), np.sin(t)
+        Ja = n[:, 0] * c * ct + n[:, 1] * s * ct
+        Jb = -n[:, 0] * s * st + n[:, 1] * c * st
+        ex, ey = q[2] * ct, q[3] * st
+        # d(R e)/dtheta = (-s ex - c ey, c ex - s ey)
+        Jt = n[:, 0] * (-s * ex - c * ey) + n[:, 1] * (c * ex - s * ey)
+        J = -np.stack([n[:, 0], n[:, 1], Ja, Jb, Jt], axis=1)
+        step, *_ = np.linalg.lstsq(J, -d, rcond=None)
+        q = q + step
+        if np.max(np.abs(step[:4])) < 1e-7:
+            break
+    if q[3] > q[2]:
+        q[2], q[3] = q[3], q[2]
+        q[4] += np.pi / 2
+    q[4] = (q[4] + np.pi / 2) % np.pi - np.pi / 2
+    pp = (q[0], q[1], q[2], q[3], q[4])
+    d, _, _ = ellipse_foot(pts, pp)
+    return pp, d
+
+
+# ----------------------------------------------------------------- detection
+
+
+def _plane_fit(roi: np.ndarray, m: np.ndarray, ua: np.ndarray, va: np.ndarray) -> np.ndarray:
+    """Least-squares plane ``g = c0 + c1 u + c2 v`` over the pixels ``m`` of a window.
+
+    Normal equations from masked sums (coordinates centred for conditioning).
+    """
+    w = m.astype(np.float64)
+    wr, wc = w.sum(axis=1), w.sum(axis=0)  # per row (v), per column (u)
+    n = float(wr.sum())
+    if n < 6:
+        return np.array([float(roi[m].mean()) if n else 0.0, 0.0, 0.0])
+    uc, vc = float(ua.mean()), float(va.mean())
+    du = (ua - uc).astype(np.float64)
+    dv = (va - vc).astype(np.float64)
+    wg = w * roi
+    gr, gc = wg.sum(axis=1), wg.sum(axis=0)
+    suv = float(dv @ (w @ du))
+    A = np.array(
+        [
+            [n, wc @ du, wr @ dv],
+            [wc @ du, wc @ (du * du), suv],
+            [wr @ dv, suv, wr @ (dv * dv)],
+        ]
+    )
+    rhs = np.array([gr.sum(), gc @ du, gr @ dv])
+    try:
+        c = np.linalg.solve(A + np.eye(3) * 1e-9, rhs)
+    except np.linalg.LinAlgError:
+        c = np.array([rhs[0] / n, 0.0, 0.0])
+    return np.array([c[0] - c[1] * uc - c[2] * vc, c[1], c[2]])
+
+
+def _crossings(
+    roi: np.ndarray, mid: np.ndarray, amp: np.ndarray, min_step: float
+) -> tuple[np.ndarray, np.ndarray]:
+    """Halfway-level crossings along rows and columns of the window.
+
+    Returns ``(row_pts, col_pts)``, each ``(N, 2)`` in window ``(x, y)`` pixels.
+    """
+    h = roi - mid
+    # along rows: between (y, x) and (y, x+1)
+    a0, a1 = h[:, :-1], h[:, 1:]
+    m = (a0 * a1 < 0) | ((a0 == 0) & (a1 != 0))
+    m &= np.abs(a1 - a0) > min_step * 0.5 * (amp[:, :-1] + amp[:, 1:])
+    ys, xs = np.nonzero(m)
+    t = a0[ys, xs] / (a0[ys, xs] - a1[ys, xs])
+    rows = np.stack([xs + t, ys.astype(float)], axis=1)
+    b0, b1 = h[:-1, :], h[1:, :]
+    m2 = (b0 * b1 < 0) | ((b0 == 0) & (b1 != 0))
+    m2 &= np.abs(b1 - b0) > min_step * 0.5 * (amp[:-1, :] + amp[1:, :])
+    ys2, xs2 = np.nonzero(m2)
+    t2 = b0[ys2, xs2] / (b0[ys2, xs2] - b1[ys2, xs2])
+    cols = np.stack([xs2.astype(float), ys2 + t2], axis=1)
+    return rows, cols
+
+
+def _completeness(t: np.ndarray, bins: int = 36) -> float:
+    """Share of ``bins`` equal sectors of the parameter angle holding an edge point."""
+    idx = ((np.mod(t, 2 * np.pi) / (2 * np.pi)) * bins).astype(int) % bins
+    return float(np.mean(np.bincount(idx, minlength=bins) > 0))
+
+
+def _edge_width(
+    roi: np.ndarray,
+    uu: np.ndarray,
+    vv: np.ndarray,
+    g_in: np.ndarray,
+    g_out: np.ndarray,
+    outer: np.ndarray,
+    p: tuple[float, float, float, float, float],
+    completeness: float,
+) -> tuple[float, float]:
+    """Edge width ``sigma`` (px) and grey noise, from the normalised edge profile.
+
+    ``sigma = sqrt(pi) * sum_band p (1 - p) / L`` with ``p = (g - g_in) / (g_out - g_in)``
+    clipped to ``[0, 1]``, the sum over pixels within 3 px of the contour, ``L``
+    the visible contour length; a flat pixel with noise ``eps`` (in units of the
+    contrast) adds about ``2 eps / sqrt(2 pi)`` on average, removed.
+    """
+    u0, v0, a, b, th = p
+    c, s = np.cos(th), np.sin(th)
+    du = uu - u0
+    dv = vv - v0
+    x = (c * du + s * dv) / a
+    y = (-s * du + c * dv) / b
+    rho = np.sqrt(x * x + y * y) + 1e-12
+    # first-order distance to the contour: (rho - 1) / |grad rho|
+    gx = x / (a * rho)
+    gy = y / (b * rho)
+    dist = (rho - 1.0) / np.sqrt(gx * gx + gy * gy)
+    band = np.abs(dist) < 3.0
+    diff = g_out - g_in
+    diff = np.where(np.abs(diff) > 1e-9, diff, 1e-9)
+    pq = np.clip((roi[band] - g_in[band]) / diff[band], 0.0, 1.0)
+    noise = float(np.std(roi[outer] - g_out[outer])) if outer.sum() > 10 else 0.0
+    contrast = float(np.mean(np.abs(diff[band]))) if band.any() else 1.0
+    eps = noise / max(contrast, 1e-9)
+    h = ((a - b) / (a + b)) ** 2
+    perim = np.pi * (a + b) * (1 + 3 * h / (10 + np.sqrt(4 - 3 * h))) * max(completeness, 1e-3)
+    n_band = float(band.sum())
+    flat_bias = 2 * eps / np.sqrt(2 * np.pi)
+    edge_sum = float(np.sum(pq * (1 - pq))) - flat_bias * max(n_band - 2.0 * perim, 0.0)
+    sigma = float(np.sqrt(np.pi) * max(edge_sum, 0.0) / perim)
+    return sigma, noise
+
+
+def _auto_polarity(bg: float, lo: float, hi: float) -> str:
+    return "dark_on_light" if (bg - lo) >= (hi - bg) else "light_on_dark"
+
+
+def detect_target(
+    image: np.ndarray,
+    config: DetectConfig | None = None,
+    expected: tuple[float, float, float] | None = None,
+) -> dict[str, Any]:
+    """Find the target ellipse in one grey image.
+
+    Parameters
+    ----------
+    image : (H, W) uint8 / uint16 / float
+        Grey image, ``u`` = column, ``v`` = row, pixel centres at integers.
+    config : DetectConfig
+    expected : (u, v, s), optional
+        Where the target is expected (e.g. the previous capture): picks the
+        blob closest to it among competitors.
+
+    Returns
+    -------
+    dict with the keys :data:`RESULT_KEYS`: ``found``, centre ``u, v`` (px),
+    full long axis ``s`` and short axis ``s_minor`` (px), long-axis ``angle``
+    (rad from +u towards +v), ``s_inv = 1/s``, and the quality figures.
+    ``reason`` is "" for a clean detection, else a short tag (``no_blob``,
+    ``low_contrast``, ``fit_failed``, ``incomplete``, ``border``, ``ambiguous``,
+    ``blurred``).
+    """
+    cfg = config or DetectConfig()
+    img = np.asarray(image)
+    if img.ndim != 2:
+        raise ValueError(f"detect_target needs a 2-D grey image, got shape {img.shape}")
+    if img.dtype not in (np.uint8, np.uint16, np.float32):
+        img = img.astype(np.float32)
+    H, W = img.shape
+    k = max(int(cfg.downsample), 1)
+    Ws, Hs = W // k, H // k
+    # plain subsampling: the coarse search only needs the blob, and a threshold
+    # halfway between the levels is many noise sigmas from both
+    small = np.ascontiguousarray(img[k // 2 : Hs * k : k, k // 2 : Ws * k : k])
+    sub = small[::2, ::2].ravel()
+    bg = float(np.partition(sub, sub.size // 2)[sub.size // 2])
+    lo, hi, _, _ = cv2.minMaxLoc(small)
+    pol = cfg.polarity or _auto_polarity(bg, lo, hi)
+    if pol not in POLARITIES:
+        raise ValueError(f"unknown polarity {pol!r}")
+    dark = pol == "dark_on_light"
+    ext = lo if dark else hi
+    if abs(bg - ext) / max(bg, ext, 1e-9) < cfg.min_contrast_frac:
+        out = _empty("low_contrast")
+        out["contrast"] = abs(bg - ext)
+        return out
+    thr = 0.5 * (bg + ext)
+    mask = (small < thr) if dark else (small > thr)
+    n_lab, labels, stats, cents = cv2.connectedComponentsWithStats(
+        mask.view(np.uint8), connectivity=8
+    )
+    kk = float(k * k)
+    areas_all = stats[1:, cv2.CC_STAT_AREA] * kk
+    ok = (areas_all >= cfg.min_area_px) & (areas_all <= cfg.max_area_frac * H * W)
+    cand = np.nonzero(ok)[0] + 1
+    if cand.size == 0:
+        return _empty("no_blob")
+    areas = stats[cand, cv2.CC_STAT_AREA] * kk
+    cu = cents[cand, 0] * k + k // 2
+    cv_ = cents[cand, 1] * k + k // 2
+    use_exp = expected is not None and bool(np.all(np.isfinite(expected)))
+    if use_exp:
+        assert expected is not None
+        eu, ev, es = expected
+        es = max(float(es), 1.0)
+        score = np.hypot(cu - eu, cv_ - ev) / es + np.abs(np.log(np.sqrt(areas * 4 / np.pi) / es))
+        order = np.argsort(score)
+    else:
+        order = np.argsort(-areas)
+    best = int(order[0])
+    ambiguity = 0.0
+    ambiguous = False
+    if cand.size > 1:
+        second = int(order[1])
+        ambiguity = float(min(areas[second], areas[best]) / max(areas[best], areas[second]))
+        if use_exp:
+            ambiguous = bool(score[second] < score[best] + 0.5 and ambiguity > cfg.ambiguity_ratio)
+        else:
+            ambiguous = ambiguity > cfg.ambiguity_ratio
+    lab = int(cand[best])
+    n_blobs = int(cand.size)
+    x0s, y0s, ws, hs = (int(stats[lab, j]) for j in range(4))
+    border = bool(x0s == 0 or y0s == 0 or x0s + ws >= Ws or y0s + hs >= Hs)
+    mg = 6
+    u0 = max(x0s * k - mg, 0)
+    v0 = max(y0s * k - mg, 0)
+    u1 = min((x0s + ws) * k + mg, W)
+    v1 = min((y0s + hs) * k + mg, H)
+    roi = img[v0:v1, u0:u1].astype(np.float32)
+    inside = ((roi < thr) if dark else (roi > thr)).view(np.uint8)
+    ker = np.ones((3, 3), np.uint8)
+    core = cv2.erode(inside, ker, iterations=2)
+    outer = cv2.dilate(inside, ker, iterations=3) == 0
+    core_b = core.astype(bool) if core.any() else inside.astype(bool)
+    if not core_b.any() or int(outer.sum()) < 6:
+        return _empty("fit_failed", n_blobs)
+    ua = np.arange(u0, u1, dtype=np.float32)
+    va = np.arange(v0, v1, dtype=np.float32)
+    c_in = _plane_fit(roi, core_b, ua, va)
+    c_out = _plane_fit(roi, outer, ua, va)
+    g_in = c_in[0] + c_in[1] * ua[None, :] + c_in[2] * va[:, None]
+    g_out = c_out[0] + c_out[1] * ua[None, :] + c_out[2] * va[:, None]
+    mid = 0.5 * (g_in + g_out)
+    amp = np.abs(g_out - g_in)
+    contrast = float(
+        abs(
+            (c_out[0] - c_in[0])
+            + (c_out[1] - c_in[1]) * ua.mean()
+            + (c_out[2] - c_in[2]) * va.mean()
+        )
+    )
+    lvl = max(
+        abs(c_out[0] + c_out[1] * ua.mean() + c_out[2] * va.mean()),
+        abs(c_in[0] + c_in[1] * ua.mean() + c_in[2] * va.mean()),
+        1e-9,
+    )
+    if contrast / lvl < cfg.min_contrast_frac:
+        out = _empty("low_contrast", n_blobs)
+        out["contrast"] = contrast
+        return out
+    rows, cols = _crossings(roi, mid, amp, 0.15)
+    # keep the crossings next to the chosen blob (coarse labels, dilated by one cell)
+    lab_win = labels[max(y0s - 1, 0) : y0s + hs + 1, max(x0s - 1, 0) : x0s + ws + 1] == lab
+    lab_win = cv2.dilate(lab_win.view(np.uint8), ker, iterations=1).astype(bool)
+    ly0, lx0 = max(y0s - 1, 0), max(x0s - 1, 0)
+
+    def _in_blob(p: np.ndarray) -> np.ndarray:
+        ix = np.floor((p[:, 0] + u0) / k).astype(int) - lx0
+        iy = np.floor((p[:, 1] + v0) / k).astype(int) - ly0
+        okk = (ix >= 0) & (iy >= 0) & (ix < lab_win.shape[1]) & (iy < lab_win.shape[0])
+        res = np.zeros(len(p), bool)
+        res[okk] = lab_win[iy[okk], ix[okk]]
+        return res
+
+    rows = rows[_in_blob(rows)] + (u0, v0)
+    cols = cols[_in_blob(cols)] + (u0, v0)
+    pts = np.concatenate([rows, cols])
+    if pts.shape[0] < 8:
+        return _empty("fit_failed", n_blobs)
+    k0 = fit_conic(pts)
+    p0 = conic_to_params(k0) if k0 is not None else None
+    if p0 is None:
+        return _empty("fit_failed", len(cand))
+    # choose crossings by the contour normal of the first fit, drop outliers
+    d0, t0, _ = ellipse_foot(pts, p0, newton=2)
+    n0 = ellipse_normals(p0, t0)
+    nr = rows.shape[0]
+    keep = np.concatenate([np.abs(n0[:nr, 0]) >= 0.5, np.abs(n0[nr:, 1]) >= 0.5])
+    scale_d = 1.25 * float(np.mean(np.abs(d0[keep]))) + 0.05 if keep.any() else 1.0
+    keep &= np.abs(d0) < max(4 * scale_d, 0.5)
+    pts = pts[keep]
+    k1 = fit_conic(pts) if pts.shape[0] >= 8 else None
+    p1 = conic_to_params(k1) if k1 is not None else None
+    if p1 is None:
+        return _empty("fit_failed", len(cand))
+    d1, t1, kap = ellipse_foot(pts, p1, newton=2)
+    completeness = _completeness(t1)
+    sigma, noise = _edge_width(roi, ua[None, :], va[:, None], g_in, g_out, outer, p1, completeness)
+    res = d1
+    if cfg.curvature_correction and np.isfinite(sigma) and sigma > 0:
+        sig2 = min(sigma, cfg.max_edge_sigma_px) ** 2
+        nrm = ellipse_normals(p1, t1)
+        pts = pts + nrm * (0.5 * sig2 * kap)[:, None]
+        k2 = fit_conic(pts)
+        p2 = conic_to_params(k2) if k2 is not None else None
+        if p2 is None:
+            return _empty("fit_failed", len(cand))
+        p1 = p2
+        res, _, _ = ellipse_foot(pts, p1, newton=2)
+    u, v, a, b, th = p1
+    s = 2.0 * a
+    reason = ""
+    quality = True
+    if completeness < cfg.min_completeness:
+        reason, quality = "incomplete", False
+    if border:
+        reason, quality = (reason or "border"), False
+    if sigma > cfg.max_edge_sigma_px:
+        reason, quality = (reason or "blurred"), False
+    if ambiguous:
+        reason, quality = (reason or "ambiguous"), False
+    return {
+        "found": True,
+        "u": float(u),
+        "v": float(v),
+        "s": float(s),
+        "s_minor": float(2.0 * b),
+        "angle": float(th),
+        "s_inv": float(1.0 / s),
+        "residual_px": float(np.sqrt(np.mean(res**2))),
+        "completeness": completeness,
+        "border_contact": border,
+        "n_blobs": len(cand),
+        "ambiguity": ambiguity,
+        "ambiguous": ambiguous,
+        "contrast": contrast,
+        "edge_sigma_px": sigma,
+        "n_edge_points": int(pts.shape[0]),
+        "quality_ok": quality,
+        "reason": reason,
+    }

@@ -1,0 +1,548 @@
+"""Ingest: one streaming pass over a recording -> frames, detections, recording info.
+
+The recording contract is ../shared/spec/recording.md. The file is read once,
+in file order (:func:`pipeline.io_mcap.iter_messages`); every image is decoded
+and handed to :func:`pipeline.stages.detect.detect_target` at once, so only one
+image is in memory at a time. Joint states (small) are kept, and after the
+pass every image stamp gets
+
+- the joint vector linearly interpolated at its ``header.stamp``
+  (``q(t) = q_k + (t - t_k) / (t_{k+1} - t_k) (q_{k+1} - q_k)`` between the
+  bracketing joint states, sorted by their own header stamps);
+- a stillness measure: the largest joint speed ``max_j |dq_j/dt|`` over the
+  finite differences of consecutive joint states within ``+- still_window_s``
+  of the stamp, and the gap between the bracketing joint states.
+
+Outputs: the ``frames`` and ``detections`` artefacts (``schemas/frames.json``,
+``schemas/detections.json``; one row per image, ``frame_index`` = the image's
+0-based index on its topic in log-time order) and a :class:`RecordingInfo`.
+"""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+import pandas as pd
+
+from pipeline.errors import BadInput
+from pipeline.io_mcap import (
+    DEFAULT_IMAGE_TOPICS,
+    IMAGE_TYPES,
+    JOINT_TYPES,
+    STRING_TYPES,
+    StreamState,
+    decode_image_message,
+    decode_joint_state,
+    decode_string,
+    image_to_gray,
+    iter_messages,
+)
+from pipeline.kinematics.urdf import RobotDescription, chain_joints, parse_urdf
+from pipeline.stages.detect import RESULT_KEYS, DetectConfig, detect_target
+
+Progress = Callable[[int, "int | None"], None]
+
+#: ``touchup`` metadata keys of the spec
+METADATA_KEYS = (
+    "base_link",
+    "flange_link",
+    "target_diameter_m",
+    "designated_u",
+    "designated_v",
+    "designated_size_px",
+    "threshold_px",
+    "threshold_size_px",
+    "polarity",
+    "known_distances",
+)
+
+
+@dataclass
+class IngestConfig:
+    """Ingest settings.
+
+    Attributes
+    ----------
+    image_topic : str or None
+        None: automatic (``/camera/image_raw``, ``/camera/image_raw/compressed``,
+        else the only image-typed topic, Foxglove types included).
+    joint_topic, description_topic : str
+    overrides : dict
+        Command-line values of the ``touchup`` metadata keys (win over the file).
+    still_window_s : float
+        Half-width of the window around an image stamp for the joint speed.
+    moving_speed_rad_s : float
+        Joint speed above which a capture counts as taken while moving.
+    max_joint_gap_s : float
+        Bracketing joint states farther apart than this flag a joint-state gap.
+    """
+
+    image_topic: str | None = None
+    joint_topic: str = "/joint_states"
+    description_topic: str = "/robot_description"
+    overrides: dict[str, str] = field(default_factory=dict)
+    still_window_s: float = 0.06
+    moving_speed_rad_s: float = 2e-3
+    max_joint_gap_s: float = 0.1
+
+
+@dataclass
+class RecordingInfo:
+    """What ingest learnt about a recording (besides the per-image tables)."""
+
+    path: str
+    urdf: str
+    metadata: dict[str, str]
+    inferred: dict[str, str]
+    joint_names: list[str]
+    base_link: str
+    flange_link: str
+    image_topic: str
+    n_images: int
+    n_joint_states: int
+    truncated: bool
+    warnings: list[str]
+    image_width: int = 0
+    image_height: int = 0
+    joint_stamps_ns: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64), repr=False)
+    joint_positions: np.ndarray = field(default_factory=lambda: np.zeros((0, 0)), repr=False)
+
+
+def _prescan(path: str) -> tuple[dict[str, tuple[str, str]], dict[str, dict[str, str]]]:
+    """Channels ``{topic: (schema, encoding)}`` and metadata from the summary, if any."""
+    from mcap.reader import make_reader
+
+    topics: dict[str, tuple[str, str]] = {}
+    meta: dict[str, dict[str, str]] = {}
+    try:
+        with open(path, "rb") as f:
+            r = make_reader(f)
+            s = r.get_summary()
+            if s is None:
+                return topics, meta
+            for ch in s.channels.values():
+                sc = s.schemas.get(ch.schema_id)
+                topics[ch.topic] = (sc.name if sc else "", ch.message_encoding)
+            for m in r.iter_metadata():
+                meta[m.name] = dict(m.metadata)
+    except Exception:  # noqa: BLE001 - a broken summary just means: stream
+        return {}, {}
+    return topics, meta
+
+
+def _choose_image_topic(topics: dict[str, tuple[str, str]], requested: str | None) -> str | None:
+    if requested:
+        return requested
+    for t in DEFAULT_IMAGE_TOPICS:
+        if t in topics and topics[t][0] in IMAGE_TYPES:
+            return t
+    imgs = sorted(t for t, (sn, _) in topics.items() if sn in IMAGE_TYPES)
+    return imgs[0] if imgs else None
+
+
+def infer_links(robot: RobotDescription, joint_names: list[str]) -> tuple[str, str]:
+    """Base and flange link of a URDF: the root link, and the child of the last arm joint.
+
+    The last arm joint is the actuated joint of ``joint_names`` deepest in the
+    tree; the flange is its child link, or the child of a fixed joint named
+    like a flange/tool0 hanging from it.
+    """
+    children = {j.child for j in robot.joints.values()}
+    roots = [ln for ln in robot.links if ln not in children]
+    base = roots[0] if roots else robot.links[0]
+    depth: dict[str, int] = {}
+
+    def _depth(link: str) -> int:
+        if link in depth:
+            return depth[link]
+        par = [j for j in robot.joints.values() if j.child == link]
+        d = 0 if not par else _depth(par[0].parent) + 1
+        depth[link] = d
+        return d
+
+    arm = [robot.joints[n] for n in joint_names if n in robot.joints]
+    if not arm:
+        return base, robot.links[-1]
+    last = max(arm, key=lambda j: _depth(j.child))
+    tip = last.child
+    for j in robot.joints.values():
+        if j.parent == tip and j.type == "fixed" and j.child.lower() in ("flange", "tool0"):
+            return base, j.child
+    return base, tip
+
+
+def ingest_recording(
+    path: str | os.PathLike[str],
+    config: IngestConfig,
+    detect_config: DetectConfig,
+    progress: Progress | None = None,
+) -> tuple[pd.DataFrame, pd.DataFrame, RecordingInfo]:
+    """Stream an MCAP once: decode and detect every image, collect joint states.
+
+    Parameters
+    ----------
+    path : recording (../shared/spec/recording.md)
+    config : IngestConfig
+    detect_config : DetectConfig
+        ``polarity`` None takes the metadata's, else automatic per image.
+    progress : callable(n_done, n_total or None), optional
+        Called every few images with the count so far and the total (from the
+        MCAP summary; None when it is missing).
+
+    Returns
+    -------
+    frames : DataFrame, schema ``frames``
+        ``frame_index, stamp_ns, log_time_ns, max_joint_speed, joint_gap_ns,
+        nearest_joint_dt_ns, moving, joint_gap, extrapolated`` and one column
+        per joint (interpolated position at the stamp).
+    detections : DataFrame, schema ``detections``
+        ``frame_index`` and the keys of :data:`pipeline.stages.detect.RESULT_KEYS`.
+    info : RecordingInfo
+
+    Raises
+    ------
+    BadInput
+        One line naming the file and the topic/value: no images, no joint
+        states, no URDF, unknown image encoding, joint names not in the URDF,
+        non-finite joint positions.
+    """
+    path = os.fspath(path)
+    topics, pre_meta = _prescan(path)
+    image_topic = _choose_image_topic(topics, config.image_topic)
+    n_total: int | None = None
+    if topics and image_topic:
+        try:
+            from mcap.reader import make_reader
+
+            with open(path, "rb") as f:
+                s = make_reader(f).get_summary()
+            if s is not None and s.statistics is not None:
+                n_total = sum(
+                    int(s.statistics.channel_message_counts.get(cid, 0))
+                    for cid, ch in s.channels.items()
+                    if ch.topic == image_topic
+                )
+        except Exception:  # noqa: BLE001
+            n_total = None
+    metadata: dict[str, str] = dict(pre_meta.get("touchup", {}))
+    polarity = (
+        detect_config.polarity or config.overrides.get("polarity") or metadata.get("polarity")
+    )
+    dcfg = DetectConfig(**{**detect_config.to_dict(), "polarity": polarity or None})
+
+    state = StreamState(path)
+    urdf: str | None = None
+    j_stamp: list[int] = []
+    j_pos: list[np.ndarray] = []
+    j_names: list[str] | None = None
+    name_orders: dict[tuple[str, ...], np.ndarray] = {}
+    rows: list[dict[str, Any]] = []
+    img_log: list[int] = []
+    img_stamp: list[int] = []
+    expected: tuple[float, float, float] | None = None
+    width = height = 0
+    seen_image_topics: set[str] = set()
+    n_joint_msgs = 0
+    for msg in iter_messages(path, state):
+        topic, sname, menc = state.topic_type(msg.channel_id)
+        if image_topic is None and sname in IMAGE_TYPES:
+            image_topic = _choose_image_topic({topic: (sname, menc)}, None)
+        if topic == image_topic:
+            if sname not in IMAGE_TYPES:
+                raise BadInput(f"{path}: topic {topic}: type {sname!r} is not an image type")
+            k = len(rows)
+            try:
+                enc = decode_image_message(sname, menc, msg.data)
+            except (ValueError, IndexError, KeyError) as exc:
+                raise BadInput(f"{path}: {topic} message {k}: undecodable: {exc}") from exc
+            try:
+                grey = image_to_gray(enc)
+            except ValueError as exc:
+                if "unknown" in str(exc):
+                    raise BadInput(f"{path}: {topic} message {k}: {exc}") from exc
+                det = {kk: v for kk, v in zip(RESULT_KEYS, _nan_row(), strict=True)}
+                det["reason"] = f"decode_failed: {exc}"[:120]
+                grey = None
+            if grey is not None:
+                height, width = grey.shape
+                det = detect_target(grey, dcfg, expected)
+                if det["found"] and det["quality_ok"]:
+                    expected = (det["u"], det["v"], det["s"])
+            rows.append(det)
+            img_log.append(int(msg.log_time))
+            img_stamp.append(int(enc.stamp_ns) if enc.stamp_ns > 0 else int(msg.log_time))
+            if progress is not None and (k % 16 == 0):
+                progress(k + 1, n_total)
+        elif sname in IMAGE_TYPES:
+            seen_image_topics.add(topic)
+        elif topic == config.joint_topic:
+            if sname not in JOINT_TYPES:
+                raise BadInput(
+                    f"{path}: topic {topic}: type {sname!r} is not sensor_msgs/JointState"
+                )
+            try:
+                stamp, names, pos = decode_joint_state(msg.data)
+            except (ValueError, IndexError, UnicodeDecodeError) as exc:
+                raise BadInput(
+                    f"{path}: {topic} message {n_joint_msgs}: undecodable: {exc}"
+                ) from exc
+            if j_names is None:
+                if urdf is None:
+                    # the URDF normally comes first; keep names as they come
+                    j_names = list(names)
+                else:
+                    j_names = _arm_joint_names(path, urdf, names, config)
+            key = tuple(names)
+            order = name_orders.get(key)
+            if order is None:
+                missing = [n for n in j_names if n not in names]
+                if missing:
+                    raise BadInput(
+                        f"{path}: {topic} message {n_joint_msgs}: joints {missing} missing "
+                        f"(has {list(names)})"
+                    )
+                order = np.array([names.index(n) for n in j_names])
+                name_orders[key] = order
+            if len(pos) != len(names):
+                raise BadInput(
+                    f"{path}: {topic} message {n_joint_msgs}: {len(names)} names but "
+                    f"{len(pos)} positions"
+                )
+            q = pos[order]
+            if not np.all(np.isfinite(q)):
+                raise BadInput(f"{path}: {topic} message {n_joint_msgs}: non-finite position {q}")
+            j_stamp.append(stamp if stamp > 0 else int(msg.log_time))
+            j_pos.append(q)
+            n_joint_msgs += 1
+        elif topic == config.description_topic and urdf is None:
+            if sname not in STRING_TYPES:
+                raise BadInput(f"{path}: topic {topic}: type {sname!r} is not std_msgs/String")
+            urdf = decode_string(msg.data)
+    if progress is not None:
+        progress(len(rows), n_total)
+    # metadata seen while streaming (summary-less files)
+    for k2, v2 in state.metadata.get("touchup", {}).items():
+        metadata.setdefault(k2, v2)
+    warnings: list[str] = []
+    if state.truncated:
+        pct = 100.0 * state.bytes_read / max(state.file_size, 1)
+        warnings.append(
+            f"{path}: truncated recording ({state.error}); read {state.bytes_read} of "
+            f"{state.file_size} bytes ({pct:.1f} %), {len(rows)} images, "
+            f"{n_joint_msgs} joint states"
+        )
+    if urdf is None:
+        raise BadInput(f"{path}: no URDF on {config.description_topic}")
+    if not rows:
+        extra = f" (image topics present: {sorted(seen_image_topics)})" if seen_image_topics else ""
+        raise BadInput(f"{path}: no image messages on {image_topic or 'any image topic'}{extra}")
+    if n_joint_msgs == 0:
+        raise BadInput(f"{path}: no joint states on {config.joint_topic}")
+    assert j_names is not None
+    robot = _parse(path, urdf)
+    arm = _arm_joint_names(path, urdf, j_names, config)
+    if arm != j_names:
+        idx = [j_names.index(n) for n in arm]
+        j_pos = [q[idx] for q in j_pos]
+        j_names = arm
+    # metadata: overrides win; inferred keys filled and reported
+    metadata.update({k: str(v) for k, v in config.overrides.items() if v is not None})
+    inferred: dict[str, str] = {}
+    base_i, flange_i = infer_links(robot, j_names)
+    if "base_link" not in metadata:
+        metadata["base_link"] = base_i
+        inferred["base_link"] = f"{base_i} (root link of the URDF)"
+    if "flange_link" not in metadata:
+        metadata["flange_link"] = flange_i
+        inferred["flange_link"] = f"{flange_i} (child link of the last arm joint)"
+    for ln in (metadata["base_link"], metadata["flange_link"]):
+        if ln not in robot.links:
+            raise BadInput(f"{path}: link {ln!r} (touchup metadata/override) is not in the URDF")
+    try:
+        chain = chain_joints(robot, metadata["base_link"], metadata["flange_link"])
+    except BadInput as exc:
+        raise BadInput(f"{path}: {exc}") from exc
+    chain_names = [j.name for j in chain if j.actuated]
+    missing = [n for n in chain_names if n not in j_names]
+    if missing:
+        raise BadInput(
+            f"{path}: {config.joint_topic} lacks URDF chain joints {missing} "
+            f"(joint states name {j_names})"
+        )
+    idx = [j_names.index(n) for n in chain_names]
+    Q = np.asarray(j_pos)[:, idx]
+    J_t = np.asarray(j_stamp, dtype=np.int64)
+    o = np.argsort(J_t, kind="stable")
+    J_t, Q = J_t[o], Q[o]
+    if "polarity" not in metadata:
+        pols = [r for r in rows if r["found"]]
+        metadata["polarity"] = polarity or "dark_on_light"
+        inferred["polarity"] = f"{metadata['polarity']} (automatic, from {len(pols)} images)"
+    if "designated_u" not in metadata and width:
+        metadata["designated_u"] = repr((width - 1) / 2.0)
+        inferred["designated_u"] = f"{metadata['designated_u']} (image centre)"
+    if "designated_v" not in metadata and height:
+        metadata["designated_v"] = repr((height - 1) / 2.0)
+        inferred["designated_v"] = f"{metadata['designated_v']} (image centre)"
+
+    # frame table, log-time order
+    img_log_a = np.asarray(img_log, dtype=np.int64)
+    order_img = np.argsort(img_log_a, kind="stable")
+    stamps = np.asarray(img_stamp, dtype=np.int64)[order_img]
+    frames = _frame_table(stamps, img_log_a[order_img], J_t, Q, chain_names, config)
+    det_df = pd.DataFrame([rows[i] for i in order_img])
+    det_df.insert(0, "frame_index", np.arange(len(rows), dtype=np.int64))
+    det_df["reason"] = det_df["reason"].astype(str)
+    n_gap = int(frames["joint_gap"].sum())
+    if n_gap:
+        warnings.append(f"{n_gap} images have a joint-state gap around their stamp")
+    info = RecordingInfo(
+        path=path,
+        urdf=urdf,
+        metadata=metadata,
+        inferred=inferred,
+        joint_names=chain_names,
+        base_link=metadata["base_link"],
+        flange_link=metadata["flange_link"],
+        image_topic=str(image_topic),
+        n_images=len(rows),
+        n_joint_states=n_joint_msgs,
+        truncated=state.truncated,
+        warnings=warnings,
+        image_width=width,
+        image_height=height,
+        joint_stamps_ns=J_t,
+        joint_positions=Q,
+    )
+    return frames, det_df, info
+
+
+def _nan_row() -> list[Any]:
+    from pipeline.stages.detect import _empty
+
+    d = _empty("")
+    return [d[k] for k in RESULT_KEYS]
+
+
+def _parse(path: str, urdf: str) -> RobotDescription:
+    try:
+        return parse_urdf(urdf)
+    except BadInput as exc:
+        raise BadInput(f"{path}: /robot_description: {exc}") from exc
+    except Exception as exc:  # noqa: BLE001 - malformed XML etc.
+        raise BadInput(f"{path}: /robot_description is not a readable URDF: {exc}") from exc
+
+
+def _arm_joint_names(path: str, urdf: str, names: list[str], config: IngestConfig) -> list[str]:
+    """The joint-state names that are actuated URDF joints (order of the message).
+
+    Raises BadInput when none match, or when a joint-state name is not in the URDF.
+    """
+    robot = _parse(path, urdf)
+    act = {n for n, j in robot.joints.items() if j.actuated}
+    unknown = [n for n in names if n not in robot.joints]
+    if unknown:
+        raise BadInput(
+            f"{path}: {config.joint_topic} names joints {unknown} that the URDF on "
+            f"{config.description_topic} does not have (URDF joints: {sorted(act)})"
+        )
+    return [n for n in names if n in act]
+
+
+def _frame_table(
+    stamps: np.ndarray,
+    log_times: np.ndarray,
+    J_t: np.ndarray,
+    Q: np.ndarray,
+    names: list[str],
+    config: IngestConfig,
+) -> pd.DataFrame:
+    """Joint vector and stillness at every image stamp (see module docstring)."""
+    n = len(stamps)
+    tq = (J_t - J_t[0]).astype(np.float64) * 1e-9
+    ts = (stamps - J_t[0]).astype(np.float64) * 1e-9
+    q_at = np.empty((n, Q.shape[1]))
+    for j in range(Q.shape[1]):
+        q_at[:, j] = np.interp(ts, tq, Q[:, j])
+    k = np.searchsorted(J_t, stamps, side="right")  # J_t[k-1] <= t < J_t[k]
+    before = np.clip(k - 1, 0, len(J_t) - 1)
+    after = np.clip(k, 0, len(J_t) - 1)
+    extrap = (k == 0) | (k == len(J_t))
+    gap = np.where(extrap, -1, J_t[after] - J_t[before])
+    near = np.minimum(np.abs(stamps - J_t[before]), np.abs(J_t[after] - stamps))
+    # joint speed of consecutive states
+    if len(J_t) > 1:
+        dt = np.diff(tq)
+        dq = np.abs(np.diff(Q, axis=0))
+        spd = np.max(dq, axis=1) / np.where(dt > 0, dt, np.inf)
+        tmid = 0.5 * (tq[1:] + tq[:-1])
+    else:
+        spd = np.zeros(0)
+        tmid = np.zeros(0)
+    w = config.still_window_s
+    lo = np.searchsorted(tmid, ts - w, side="left")
+    hi = np.searchsorted(tmid, ts + w, side="right")
+    max_speed = np.array(
+        [float(spd[a:b].max()) if b > a else np.nan for a, b in zip(lo, hi, strict=True)]
+    )
+    # no difference inside the window (gap): use the bracketing pair
+    nan = ~np.isfinite(max_speed)
+    if nan.any() and len(spd):
+        max_speed[nan] = spd[np.clip(k[nan] - 1, 0, len(spd) - 1)]
+    df = pd.DataFrame(
+        {
+            "frame_index": np.arange(n, dtype=np.int64),
+            "stamp_ns": stamps.astype(np.int64),
+            "log_time_ns": log_times.astype(np.int64),
+            "max_joint_speed": max_speed,
+            "joint_gap_ns": gap.astype(np.int64),
+            "nearest_joint_dt_ns": near.astype(np.int64),
+            "moving": max_speed > config.moving_speed_rad_s,
+            "joint_gap": (gap > config.max_joint_gap_s * 1e9) | extrap,
+            "extrapolated": extrap,
+        }
+    )
+    for j, nm in enumerate(names):
+        df[nm] = q_at[:, j]
+    return df
+
+
+def load_image(path: str | os.PathLike[str], image_topic: str, frame_index: int) -> np.ndarray:
+    """Decode one image again: the ``frame_index``-th message (log-time order) of a topic.
+
+    Returns the grey image ``(H, W)``. Raises BadInput when there is no such frame.
+    """
+    path = os.fspath(path)
+    try:
+        from mcap.reader import make_reader
+
+        with open(path, "rb") as f:
+            r = make_reader(f)
+            if r.get_summary() is not None:
+                for i, (sc, ch, m) in enumerate(
+                    r.iter_messages(topics=[image_topic], log_time_order=True)
+                ):
+                    if i == frame_index:
+                        enc = decode_image_message(
+                            sc.name if sc else "", ch.message_encoding, m.data
+                        )
+                        return image_to_gray(enc)
+                raise BadInput(f"{path}: {image_topic} has no frame {frame_index}")
+    except BadInput:
+        raise
+    except Exception:  # noqa: BLE001 - fall back to a linear scan
+        pass
+    state = StreamState(path)
+    i = 0
+    for msg in iter_messages(path, state):
+        topic, sname, menc = state.topic_type(msg.channel_id)
+        if topic != image_topic:
+            continue
+        if i == frame_index:
+            return image_to_gray(decode_image_message(sname, menc, msg.data))
+        i += 1
+    raise BadInput(f"{path}: {image_topic} has no frame {frame_index}")
