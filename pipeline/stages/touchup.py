@@ -1,0 +1,473 @@
+"""Touch-up extraction: from frames + detections to the touch-up table.
+
+Nothing in a recording marks where a touch-up starts or ends
+(../shared/spec/recording.md); this stage finds them from the streams alone,
+with the flange poses of the NOMINAL model (URDF in the recording, FK at the
+joint vector interpolated at each image stamp):
+
+1. **Segments.** Consecutive still captures whose flange poses differ by more
+   than ``rot_split_rad`` in orientation or ``trans_split_m`` in position are
+   separated by a large move: a new touch-up starts. (Probing shifts and loop
+   steps are small pure translations of the flange.) A capture taken while
+   moving joins the neighbouring still capture whose pose is nearer.
+2. **Probing and loop.** Inside a segment, the loop starts at the last
+   capture that returns to the segment's first pose after leaving it (the
+   probing shifts come back to the base pose before the loop), else at the
+   first capture. The final pose is that of the last still capture; the
+   captures at that pose at the end of the segment are the repeated captures
+   at convergence, and their detections are averaged.
+3. **Image Jacobian.** Every pair of consecutive still captures with good
+   detections whose flange poses differ by a small pure translation
+   ``d_F = R_a^T (t_b - t_a)`` (flange frame) gives three equations
+   ``m_b - m_a = J d_F`` for ``m = (u, v, s_inv)``; ``J`` (3 x 3) is fitted row
+   by row by iteratively reweighted least squares (Huber), globally and per
+   target (used when the target has enough well-spread pairs).
+4. **Targets.** The virtual-pin point ``p`` (flange frame) is unknown, but all
+   touch-ups of one target satisfy ``R_i p + t_i = c``. RANSAC over triples of
+   touch-ups with distinct orientations solves ``(R_i - R_j) p = t_j - t_i``;
+   the ``p`` that makes most touch-ups coincide in pairs wins, is refined, and
+   the points ``c_i = R_i p + t_i`` are grouped within ``group_radius_m``,
+   labelled 0, 1, ... in first-touch order.
+5. **Convergence and correction.** ``e_T = (u - u0, v - v0, 1/s - 1/s0)`` of
+   the averaged final captures; converged when ``|u - u0|, |v - v0| <=
+   threshold_px`` and ``|s - s0| <= threshold_size_px``. The residual
+   correction is the flange translation that cancels ``e_T`` to first order:
+   ``d_F = -J^{-1} e_T`` (the paper's touch-up step, section 2.1, applied once
+   more on paper): at joint vector ``q`` the point ``p + d_F`` touched the target.
+"""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass
+from typing import Any
+
+import numpy as np
+import pandas as pd
+
+from pipeline.errors import BadInput
+from pipeline.kinematics.chain import fk, load_chain
+from pipeline.kinematics.se3 import rotation_angle
+
+
+@dataclass
+class TouchupConfig:
+    """Touch-up extraction settings (see module docstring for the steps)."""
+
+    rot_split_rad: float = 0.01
+    trans_split_m: float = 0.03
+    same_pose_m: float = 2e-5
+    same_pose_rad: float = 2e-4
+    pure_translation_rad: float = 2e-4
+    min_step_m: float = 5e-5
+    max_step_m: float = 0.02
+    group_radius_m: float = 0.02
+    min_pairs_per_target: int = 6
+    default_threshold_px: float = 0.5
+    default_threshold_size_px: float = 0.5
+    ransac_samples: int = 400
+    seed: int = 0
+
+    def to_dict(self) -> dict[str, Any]:
+        return asdict(self)
+
+
+def _rel(T_a: np.ndarray, T_b: np.ndarray) -> tuple[float, np.ndarray]:
+    """Rotation angle and flange-frame translation from pose a to pose b."""
+    R = T_a[:3, :3].T @ T_b[:3, :3]
+    return float(rotation_angle(R)), T_a[:3, :3].T @ (T_b[:3, 3] - T_a[:3, 3])
+
+
+def _huber_rows(X: np.ndarray, Y: np.ndarray, iters: int = 10) -> np.ndarray:
+    """Row-wise robust fit of ``Y = X J^T``: ``X (N, 3)``, ``Y (N, 3)`` -> ``J (3, 3)``."""
+    J = np.zeros((Y.shape[1], X.shape[1]))
+    for r in range(Y.shape[1]):
+        y = Y[:, r]
+        w = np.ones(len(y))
+        coef = np.zeros(X.shape[1])
+        for _ in range(iters):
+            sw = np.sqrt(w)
+            coef, *_ = np.linalg.lstsq(X * sw[:, None], y * sw, rcond=None)
+            res = y - X @ coef
+            sc = 1.4826 * float(np.median(np.abs(res))) + 1e-15
+            k = 1.5 * sc
+            a = np.abs(res)
+            w = np.where(a <= k, 1.0, k / np.maximum(a, 1e-300))
+        J[r] = coef
+    return J
+
+
+def estimate_jacobian(dF: np.ndarray, dm: np.ndarray) -> np.ndarray | None:
+    """Image Jacobian from pairs: ``dm (N, 3) ~ J dF (N, 3)``; None if ill-posed.
+
+    Parameters
+    ----------
+    dF : (N, 3) flange-frame translations (m)
+    dm : (N, 3) changes of ``(u, v, s_inv)`` (px, px, 1/px)
+
+    Returns
+    -------
+    (3, 3) ``J`` with ``dm = J dF``, or None with fewer than 4 pairs or
+    translations that do not span 3-D (singular value ratio < 0.05).
+    """
+    if len(dF) < 4:
+        return None
+    sv = np.linalg.svd(dF, compute_uv=False)
+    if sv[-1] < 0.05 * sv[0]:
+        return None
+    return _huber_rows(dF, dm)
+
+
+def _group_targets(Ts: np.ndarray, config: TouchupConfig) -> tuple[np.ndarray, np.ndarray]:
+    """Label touch-ups by target from their final flange poses (module docstring, step 4).
+
+    Returns labels ``(n,)`` (0, 1, ... in first-touch order) and the pin estimate ``p (3,)``.
+    """
+    n = len(Ts)
+    if n == 1:
+        return np.zeros(1, dtype=np.int64), np.zeros(3)
+    R = Ts[:, :3, :3]
+    t = Ts[:, :3, 3]
+    ang = np.array([[float(rotation_angle(R[i].T @ R[j])) for j in range(n)] for i in range(n)])
+    rng = np.random.default_rng(config.seed)
+    eps = config.group_radius_m * 0.25
+
+    def score(p: np.ndarray) -> tuple[int, float]:
+        c = R @ p + t
+        d = np.linalg.norm(c[:, None, :] - c[None, :, :], axis=-1)
+        ok = (d < eps) & (ang > 0.05)
+        return int(ok.any(axis=1).sum()), float(np.sum(np.minimum(d, eps)))
+
+    best_p = np.zeros(3)
+    best = (-1, np.inf)
+    pairs = [(i, j) for i in range(n) for j in range(i + 1, n) if ang[i, j] > 0.05]
+    if pairs:
+        tries = config.ransac_samples
+        for _ in range(tries):
+            k = rng.integers(len(pairs))
+            i, j = pairs[k]
+            # a third touch-up, paired with i
+            cands = [m for m in range(n) if m not in (i, j) and ang[i, m] > 0.05]
+            if not cands:
+                A = R[i] - R[j]
+                b = t[j] - t[i]
+            else:
+                m = cands[int(rng.integers(len(cands)))]
+                A = np.concatenate([R[i] - R[j], R[i] - R[m]])
+                b = np.concatenate([t[j] - t[i], t[m] - t[i]])
+            p, *_ = np.linalg.lstsq(A, b, rcond=None)
+            sc = score(p)
+            if sc[0] > best[0] or (sc[0] == best[0] and sc[1] < best[1]):
+                best, best_p = sc, p
+    labels = _cluster(R @ best_p + t, config.group_radius_m)
+    # refine p with the groups: R_i p + t_i = c_g for every member
+    for _ in range(2):
+        rows, rhs = [], []
+        for g in np.unique(labels):
+            idx = np.nonzero(labels == g)[0]
+            if len(idx) < 2:
+                continue
+            Rm = R[idx].mean(axis=0)
+            tm = t[idx].mean(axis=0)
+            for i in idx:
+                rows.append(R[i] - Rm)
+                rhs.append(tm - t[i])
+        if not rows:
+            break
+        p_new, *_ = np.linalg.lstsq(np.concatenate(rows), np.concatenate(rhs), rcond=None)
+        if not np.all(np.isfinite(p_new)):
+            break
+        best_p = p_new
+        labels = _cluster(R @ best_p + t, config.group_radius_m)
+    return labels, best_p
+
+
+def _cluster(c: np.ndarray, radius: float) -> np.ndarray:
+    """Greedy grouping in order: join the nearest existing group centre within ``radius``."""
+    labels = np.full(len(c), -1, dtype=np.int64)
+    centres: list[list[np.ndarray]] = []
+    for i, ci in enumerate(c):
+        if centres:
+            d = [np.linalg.norm(ci - np.mean(g, axis=0)) for g in centres]
+            k = int(np.argmin(d))
+            if d[k] < radius:
+                labels[i] = k
+                centres[k].append(ci)
+                continue
+        labels[i] = len(centres)
+        centres.append([ci])
+    return labels
+
+
+def _meta_float(meta: dict[str, str], key: str) -> float | None:
+    v = meta.get(key)
+    if v is None or str(v).strip() == "":
+        return None
+    try:
+        return float(v)
+    except ValueError as exc:
+        raise BadInput(f"touchup metadata {key}={v!r} is not a number") from exc
+
+
+def extract_touchups(
+    frames: pd.DataFrame,
+    detections: pd.DataFrame,
+    info: Any,
+    config: TouchupConfig,
+) -> pd.DataFrame:
+    """Find, group and correct the touch-ups of a recording.
+
+    Parameters
+    ----------
+    frames : frames artefact (one row per image, joint columns)
+    detections : detections artefact (same ``frame_index``)
+    info : RecordingInfo (urdf, metadata, joint names, base/flange links)
+    config : TouchupConfig
+
+    Returns
+    -------
+    DataFrame per ``schemas/touchups.json``: one row per touch-up (converged
+    or not), with ``target_id``, the correction ``dx/dy/dz_flange`` (m), the
+    joint columns (converged joint vector), the ``e_T`` history and quality
+    flags. ``df.attrs`` holds ``image_jacobian`` (3 x 3 nested list, global),
+    ``pin_estimate_flange`` and the designated values used.
+    """
+    meta = dict(info.metadata)
+    inferred = getattr(info, "inferred", {})
+    names = list(info.joint_names)
+    df = frames.merge(detections, on="frame_index", how="left", suffixes=("", "_det"))
+    df = df.sort_values("frame_index").reset_index(drop=True)
+    n = len(df)
+    if n == 0:
+        raise BadInput(f"{info.path}: no images to extract touch-ups from")
+    chain = load_chain(info.urdf, info.base_link, info.flange_link)
+    Q = df[names].to_numpy(dtype=float)
+    T = fk(chain, Q)
+    found = df["found"].fillna(False).to_numpy(bool)
+    good = found & df["quality_ok"].fillna(False).to_numpy(bool)
+    still = ~df["moving"].to_numpy(bool) & ~df["joint_gap"].to_numpy(bool)
+    u = df["u"].to_numpy(float)
+    v = df["v"].to_numpy(float)
+    s = df["s"].to_numpy(float)
+
+    # 1. segments
+    seg = np.full(n, -1, dtype=np.int64)
+    still_idx = np.nonzero(still)[0]
+    if len(still_idx) == 0:
+        raise BadInput(f"{info.path}: every capture was taken while the arm moved")
+    cur = 0
+    seg[still_idx[0]] = 0
+    for a, b in zip(still_idx[:-1], still_idx[1:], strict=True):
+        ang, d = _rel(T[a], T[b])
+        if ang > config.rot_split_rad or np.linalg.norm(d) > config.trans_split_m:
+            cur += 1
+        seg[b] = cur
+    for i in np.nonzero(~still)[0]:
+        prev = still_idx[still_idx < i]
+        nxt = still_idx[still_idx > i]
+        cand = []
+        for j in [int(x) for x in prev[-1:]] + [int(x) for x in nxt[:1]]:
+            ang, d = _rel(T[j], T[i])
+            cand.append((ang * 0.2 + np.linalg.norm(d), j))
+        seg[i] = seg[min(cand)[1]] if cand else 0
+
+    # designated values
+    u0 = _meta_float(meta, "designated_u")
+    v0 = _meta_float(meta, "designated_v")
+    s0 = _meta_float(meta, "designated_size_px")
+    thr = _meta_float(meta, "threshold_px")
+    thr_s = _meta_float(meta, "threshold_size_px")
+    n_seg = int(seg.max()) + 1
+    seg_frames = [np.nonzero(seg == k)[0] for k in range(n_seg)]
+
+    def final_block(fr: np.ndarray) -> np.ndarray:
+        st = [i for i in fr if still[i]]
+        if not st:
+            return np.array([], dtype=np.int64)
+        last = st[-1]
+        block = [last]
+        for i in reversed(st[:-1]):
+            ang, d = _rel(T[last], T[i])
+            if ang < config.same_pose_rad and np.linalg.norm(d) < config.same_pose_m:
+                block.insert(0, i)
+            else:
+                break
+        return np.array(block, dtype=np.int64)
+
+    finals = [final_block(fr) for fr in seg_frames]
+    if s0 is None or "designated_u" in inferred:
+        fin_good = np.array([i for b in finals for i in b if good[i]], dtype=np.int64)
+        if len(fin_good):
+            if s0 is None:
+                s0 = float(np.median(s[fin_good]))
+                meta["designated_size_px"] = repr(s0)
+                inferred["designated_size_px"] = f"{s0:.3f} (median size at the final captures)"
+            if "designated_u" in inferred:
+                u0 = float(np.median(u[fin_good]))
+                v0 = float(np.median(v[fin_good]))
+                meta["designated_u"], meta["designated_v"] = repr(u0), repr(v0)
+                inferred["designated_u"] = f"{u0:.3f} (median centre at the final captures)"
+                inferred["designated_v"] = f"{v0:.3f} (median centre at the final captures)"
+    if u0 is None or v0 is None or s0 is None:
+        raise BadInput(f"{info.path}: cannot infer the designated centre/size (no detections)")
+    if thr is None:
+        thr = config.default_threshold_px
+        meta["threshold_px"] = repr(thr)
+        inferred["threshold_px"] = f"{thr} (default)"
+    if thr_s is None:
+        thr_s = config.default_threshold_size_px
+        meta["threshold_size_px"] = repr(thr_s)
+        inferred["threshold_size_px"] = f"{thr_s} (default)"
+
+    # 2. loop starts
+    loop_start = []
+    for fr in seg_frames:
+        st = [i for i in fr if still[i]]
+        start = fr[0]
+        if st:
+            away = False
+            for i in st[1:]:
+                ang, d = _rel(T[st[0]], T[i])
+                at_first = ang < config.same_pose_rad and np.linalg.norm(d) < config.same_pose_m
+                if not at_first:
+                    away = True
+                elif away:
+                    start = i
+                    away = False
+        loop_start.append(int(start))
+
+    # 3. Jacobian pairs (consecutive still good captures within a segment)
+    pairs: list[tuple[int, np.ndarray, np.ndarray]] = []
+    for k, fr in enumerate(seg_frames):
+        st = [i for i in fr if still[i] and good[i]]
+        for a, b in zip(st[:-1], st[1:], strict=False):
+            ang, d = _rel(T[a], T[b])
+            step = float(np.linalg.norm(d))
+            if ang < config.pure_translation_rad and config.min_step_m < step < config.max_step_m:
+                dm = np.array([u[b] - u[a], v[b] - v[a], 1.0 / s[b] - 1.0 / s[a]])
+                pairs.append((k, d, dm))
+    if not pairs:
+        raise BadInput(
+            f"{info.path}: no two still captures differ by a small pure flange translation: "
+            "the image Jacobian cannot be estimated"
+        )
+    dF_all = np.array([p[1] for p in pairs])
+    dm_all = np.array([p[2] for p in pairs])
+    J_global = estimate_jacobian(dF_all, dm_all)
+    if J_global is None:
+        raise BadInput(
+            f"{info.path}: the small flange translations ({len(pairs)} pairs) do not span "
+            "three directions: the image Jacobian cannot be estimated"
+        )
+
+    # 4. targets from final (or last seen) poses
+    rep = []
+    for k, fr in enumerate(seg_frames):
+        b = finals[k]
+        cand = [i for i in b if found[i]] or [i for i in fr if still[i] and found[i]]
+        cand = cand or [i for i in fr if still[i]] or list(fr)
+        rep.append(cand[-1])
+    labels, p_pin = _group_targets(T[np.array(rep)], config)
+    seg_pairs: dict[int, list[int]] = {}
+    for idx, (k, _, _) in enumerate(pairs):
+        seg_pairs.setdefault(int(labels[k]), []).append(idx)
+    J_target: dict[int, np.ndarray] = {}
+    for g, idx in seg_pairs.items():
+        if len(idx) >= config.min_pairs_per_target:
+            Jg = estimate_jacobian(dF_all[idx], dm_all[idx])
+            if Jg is not None and np.all(np.isfinite(Jg)):
+                J_target[g] = Jg
+
+    # 5. per touch-up rows
+    out: list[dict[str, Any]] = []
+    for k, fr in enumerate(seg_frames):
+        b = finals[k]
+        avg = [i for i in b if good[i]]
+        avg_found = [i for i in b if found[i]]
+        use = avg or avg_found
+        lost = len(use) == 0
+        loop_fr = [i for i in fr if i >= loop_start[k]]
+        hist = [i for i in loop_fr if found[i]]
+        row: dict[str, Any] = {
+            "touchup_id": k,
+            "target_id": int(labels[k]),
+            "lost": lost,
+            "first_frame": int(fr[0]),
+            "last_frame": int(fr[-1]),
+            "loop_start_frame": int(loop_start[k]),
+            "n_probe_frames": int(sum(1 for i in fr if i < loop_start[k])),
+            "frame_indices": [int(i) for i in fr],
+            "converged_frame_indices": [int(i) for i in use],
+            "n_captures": len(fr),
+            "n_converged_captures": len(avg),
+            "n_iterations": int(max(len({_pose_key(T[i]) for i in loop_fr if still[i]}) - 1, 0)),
+            "moving": bool(len(b) == 0),
+            "e_u_history": [float(u[i] - u0) for i in hist],
+            "e_v_history": [float(v[i] - v0) for i in hist],
+            "e_s_history": [float(s[i] - s0) for i in hist],
+        }
+        ref = use if use else (list(b) if len(b) else [int(fr[-1])])
+        q = Q[ref].mean(axis=0)
+        for j, nm in enumerate(names):
+            row[nm] = float(q[j])
+        row["stamp_ns"] = int(df["stamp_ns"].iloc[ref[-1]])
+        Jk = J_target.get(int(labels[k]), J_global)
+        row["jacobian_source"] = "target" if int(labels[k]) in J_target else "global"
+        if lost:
+            mu = mv = ms = float("nan")
+            row.update(converged=False, dx_flange=0.0, dy_flange=0.0, dz_flange=0.0)
+        else:
+            mu = float(np.mean(u[use]))
+            mv = float(np.mean(v[use]))
+            ms = float(np.mean(s[use]))
+            conv = abs(mu - u0) <= thr and abs(mv - v0) <= thr and abs(ms - s0) <= thr_s
+            e_T = np.array([mu - u0, mv - v0, 1.0 / ms - 1.0 / s0])
+            try:
+                d = -np.linalg.solve(Jk, e_T)
+            except np.linalg.LinAlgError:
+                d = np.zeros(3)
+            row.update(
+                converged=bool(conv),
+                dx_flange=float(d[0]),
+                dy_flange=float(d[1]),
+                dz_flange=float(d[2]),
+            )
+        row.update(
+            u=mu,
+            v=mv,
+            s=ms,
+            e_u=mu - u0,
+            e_v=mv - v0,
+            e_s_px=ms - s0,
+            e_sinv=(1.0 / ms - 1.0 / s0) if np.isfinite(ms) else float("nan"),
+            fit_residual_px=float(np.max(df["residual_px"].to_numpy(float)[use]))
+            if use
+            else float("nan"),
+            border_contact=bool(np.any(df["border_contact"].fillna(False).to_numpy(bool)[use]))
+            if use
+            else False,
+            ambiguous=bool(np.any(df["ambiguous"].fillna(False).to_numpy(bool)[use]))
+            if use
+            else False,
+            weight=1.0,
+        )
+        out.append(row)
+    table = pd.DataFrame(out)
+    # stable column order: declared first, then extras
+    table.attrs["image_jacobian"] = J_global.tolist()
+    table.attrs["image_jacobian_per_target"] = {int(g): J.tolist() for g, J in J_target.items()}
+    table.attrs["pin_estimate_flange"] = p_pin.tolist()
+    table.attrs["designated"] = {
+        "u": u0,
+        "v": v0,
+        "s": s0,
+        "threshold_px": thr,
+        "threshold_size_px": thr_s,
+    }
+    table.attrs["n_jacobian_pairs"] = len(pairs)
+    return table
+
+
+def _pose_key(T: np.ndarray) -> tuple[int, int, int]:
+    """Position rounded to 20 um: captures at one pose share the key."""
+    p = np.round(T[:3, 3] / 2e-5).astype(int)
+    return int(p[0]), int(p[1]), int(p[2])
