@@ -1,0 +1,216 @@
+"""Simulation scenarios: TOML files in ``datasets/scenarios/`` read into typed settings.
+
+Every key is optional; the defaults below make the standard cell (LR Mate-like
+arm, 3 targets x 12 poses, 640 x 512 PNG images, a calibration bar). Sections
+and keys (see ``docs/simulator.md`` for the meaning of each)::
+
+    [robot]    name | urdf, base_link, flange_link, sigma_xyz_m, sigma_rpy_rad, sigma_q0_rad
+    [camera]   width, height, f_px, f_jitter, pp_jitter_px, k1, k2, standoff_m,
+               mount_xyz_m, mount_jitter_m, mount_tilt_rad, image ("png"|"raw"),
+               blur_sigma_px, noise_sigma, vignetting, exposure_s, latency_s, subsamples
+    [targets]  count, diameter_m, polarity, plate_radius_m, bar, centre_m, spread_m,
+               tilt_deg, levels (target, plate, background)
+    [touchup]  threshold_px, threshold_size_px, gain, max_iterations, repeat_captures,
+               probe_shift_m, designated_u, designated_v
+    [poses]    per_target, cone_half_angle_deg, roll_range_deg, plan (Parquet path)
+    [timing]   joint_rate_hz, encoder_noise_rad, start_ns, settle_s, compute_s,
+               max_speed_rad_s, chunk_size
+    [faults]   capture_while_moving, second_blob, unconverged, knocked_target,
+               joint_state_gap, lost_target, truncate (booleans)
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import tomllib
+
+from pipeline.errors import BadInput
+
+
+@dataclass(frozen=True)
+class RobotCfg:
+    name: str = "lrmate"
+    urdf: str | None = None
+    base_link: str = "base_link"
+    flange_link: str = "flange"
+    sigma_xyz_m: float = 5e-4
+    sigma_rpy_rad: float = 1.5e-3
+    sigma_q0_rad: float = 1e-3
+    home: tuple[float, ...] | None = None
+
+
+@dataclass(frozen=True)
+class CameraCfg:
+    width: int = 640
+    height: int = 512
+    f_px: float = 900.0
+    f_jitter: float = 0.03
+    pp_jitter_px: float = 4.0
+    k1: float = -0.07
+    k2: float = 0.007
+    standoff_m: float = 0.17
+    mount_xyz_m: tuple[float, float, float] = (0.03, 0.0, 0.08)
+    mount_jitter_m: float = 0.005
+    mount_tilt_rad: float = 0.05
+    image: str = "png"
+    blur_sigma_px: float = 0.7
+    noise_sigma: float = 2.0
+    vignetting: float = 0.15
+    exposure_s: float = 0.01
+    latency_s: float = 0.03
+    subsamples: int = 16
+
+
+@dataclass(frozen=True)
+class TargetsCfg:
+    count: int = 3
+    diameter_m: float = 0.010
+    polarity: str = "dark_on_light"
+    plate_radius_m: float = 0.03
+    bar: bool = True
+    centre_m: tuple[float, float, float] | None = None
+    spread_m: float = 0.6
+    tilt_deg: float = 15.0
+    levels: tuple[float, float, float] = (40.0, 200.0, 170.0)
+
+
+@dataclass(frozen=True)
+class TouchupCfg:
+    threshold_px: float = 0.5
+    threshold_size_px: float = 0.5
+    gain: float = 0.9
+    max_iterations: int = 12
+    repeat_captures: int = 3
+    probe_shift_m: float = 0.002
+    designated_u: float | None = None
+    designated_v: float | None = None
+
+
+@dataclass(frozen=True)
+class PosesCfg:
+    per_target: int = 12
+    cone_half_angle_deg: float = 30.0
+    roll_range_deg: float = 60.0
+    plan: str | None = None
+
+
+@dataclass(frozen=True)
+class TimingCfg:
+    joint_rate_hz: float = 100.0
+    encoder_noise_rad: float = 1e-6
+    start_ns: int = 1_700_000_000_000_000_000
+    settle_s: float = 0.15
+    compute_s: float = 0.2
+    max_speed_rad_s: float = 1.0
+    chunk_size: int = 4 * 1024 * 1024
+
+
+@dataclass(frozen=True)
+class FaultsCfg:
+    capture_while_moving: bool = False
+    second_blob: bool = False
+    unconverged: bool = False
+    knocked_target: bool = False
+    joint_state_gap: bool = False
+    lost_target: bool = False
+    truncate: bool = False
+
+    def any(self) -> bool:
+        return any(dataclasses.asdict(self).values())
+
+
+@dataclass(frozen=True)
+class Scenario:
+    name: str = "standard"
+    robot: RobotCfg = field(default_factory=RobotCfg)
+    camera: CameraCfg = field(default_factory=CameraCfg)
+    targets: TargetsCfg = field(default_factory=TargetsCfg)
+    touchup: TouchupCfg = field(default_factory=TouchupCfg)
+    poses: PosesCfg = field(default_factory=PosesCfg)
+    timing: TimingCfg = field(default_factory=TimingCfg)
+    faults: FaultsCfg = field(default_factory=FaultsCfg)
+    base_dir: str = "."
+
+    def to_dict(self) -> dict[str, Any]:
+        d = dataclasses.asdict(self)
+        d.pop("base_dir")
+        return d
+
+
+_SECTIONS: dict[str, type] = {
+    "robot": RobotCfg,
+    "camera": CameraCfg,
+    "targets": TargetsCfg,
+    "touchup": TouchupCfg,
+    "poses": PosesCfg,
+    "timing": TimingCfg,
+    "faults": FaultsCfg,
+}
+
+
+def _section(cls: type, raw: Any, where: str) -> Any:
+    if not isinstance(raw, dict):
+        raise BadInput(f"{where}: must be a table")
+    fields = {f.name: f for f in dataclasses.fields(cls)}
+    kw: dict[str, Any] = {}
+    for k, v in raw.items():
+        if k not in fields:
+            raise BadInput(f"{where}: unknown key {k!r} (known: {', '.join(fields)})")
+        default = fields[k].default
+        if isinstance(v, list):
+            v = tuple(v)
+        if isinstance(default, bool) and not isinstance(v, bool):
+            raise BadInput(f"{where}.{k}: {v!r} is not true/false")
+        if isinstance(default, float) and isinstance(v, int) and not isinstance(v, bool):
+            v = float(v)
+        if isinstance(default, (int, float, str)) and not isinstance(v, type(default)):
+            raise BadInput(f"{where}.{k}: {v!r} is not a {type(default).__name__}")
+        kw[k] = v
+    return cls(**kw)
+
+
+def scenario_from_dict(
+    raw: dict[str, Any], where: str = "scenario", base_dir: str = "."
+) -> Scenario:
+    """Build a :class:`Scenario` from a parsed TOML table (unknown keys are errors)."""
+    kw: dict[str, Any] = {"base_dir": base_dir}
+    for k, v in raw.items():
+        if k == "name":
+            kw["name"] = str(v)
+        elif k in _SECTIONS:
+            kw[k] = _section(_SECTIONS[k], v, f"{where} [{k}]")
+        else:
+            raise BadInput(f"{where}: unknown section {k!r} (known: name, {', '.join(_SECTIONS)})")
+    sc = Scenario(**kw)
+    if sc.targets.polarity not in ("dark_on_light", "light_on_dark"):
+        raise BadInput(
+            f"{where} [targets] polarity {sc.targets.polarity!r} is not dark_on_light/light_on_dark"
+        )
+    if sc.camera.image not in ("png", "raw"):
+        raise BadInput(f"{where} [camera] image {sc.camera.image!r} is not 'png' or 'raw'")
+    if sc.targets.count < 1 or sc.poses.per_target < 1:
+        raise BadInput(f"{where}: needs at least one target and one pose per target")
+    return sc
+
+
+def load_scenario(path: str | Path) -> Scenario:
+    """Read a scenario TOML file.
+
+    Raises
+    ------
+    BadInput
+        Missing file, bad TOML, unknown section/key or a value of the wrong type.
+    """
+    p = Path(path)
+    if not p.exists():
+        raise BadInput(f"{p}: scenario file not found")
+    try:
+        raw = tomllib.loads(p.read_text())
+    except tomllib.TOMLDecodeError as exc:
+        raise BadInput(f"{p}: not valid TOML: {exc}") from exc
+    raw.setdefault("name", p.stem)
+    return scenario_from_dict(raw, where=str(p), base_dir=str(p.parent))
