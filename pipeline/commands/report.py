@@ -1,0 +1,54 @@
+"""``vtcal report RUN_DIR``: re-render report.html and run.rrd from a run folder's artefacts."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import click
+
+from pipeline.errors import BadInput
+
+
+@click.command(
+    "report",
+    epilog="""\b
+Examples:
+  vtcal report runs/sample                 # both files, into the run folder
+  vtcal report runs/sample --no-rrd        # only report.html
+  vtcal report runs/sample --html /tmp/r.html --rrd /tmp/r.rrd
+""",
+)
+@click.argument("run_dir", type=click.Path(file_okay=False, path_type=Path))
+@click.option("--html", "html_path", type=click.Path(dir_okay=False, path_type=Path), default=None,
+              help="Where to write the HTML report (default RUN_DIR/report.html).")  # fmt: skip
+@click.option("--rrd", "rrd_path", type=click.Path(dir_okay=False, path_type=Path), default=None,
+              help="Where to write the Rerun recording (default RUN_DIR/run.rrd).")  # fmt: skip
+@click.option("--no-html", is_flag=True, help="Do not write the HTML report.")
+@click.option("--no-rrd", is_flag=True, help="Do not write the Rerun recording.")
+def command(
+    run_dir: Path, html_path: Path | None, rrd_path: Path | None, no_html: bool, no_rrd: bool
+) -> None:
+    """Re-render report.html and run.rrd of RUN_DIR from its saved artefacts.
+
+    Nothing is re-solved and the recording is not needed: images (thumbnails of
+    rejected touch-ups, camera images in run.rrd) are added only if the
+    recording named in RUN_DIR/recording.json is still reachable.
+    """
+    if not run_dir.is_dir():
+        raise BadInput(f"{run_dir}: not a run folder (no such directory)")
+    if not any(
+        (run_dir / n).exists() for n in ("recording.json", "touchups.parquet", "inliers.parquet")
+    ):
+        raise BadInput(
+            f"{run_dir}: not a run folder (no recording.json, touchups.parquet or inliers.parquet)"
+        )
+    if not no_html:
+        from pipeline.report.html import build_report
+
+        out = build_report(run_dir, html_path)
+        click.echo(f"report: {out} ({out.stat().st_size / 1e6:.2f} MB)")
+    if not no_rrd:
+        from pipeline.report.rrd import build_rrd
+
+        out = build_rrd(run_dir, rrd_path)
+        click.echo(f"rerun:  {out} ({out.stat().st_size / 1e6:.2f} MB)  open with: rerun {out}")

@@ -1,0 +1,544 @@
+"""``report.html``: the accuracy report of a run, one self-contained file.
+
+Built only from the artefacts of a run folder (:func:`pipeline.report.data.load_run`),
+so ``vtcal report RUN_DIR`` re-renders it without re-solving and without the
+recording. Layout (template ``reports/report.html.j2``, jinja2 with autoescape):
+
+1. the verdict: accuracy before and after (mm: RMS, max; predicted and
+   cross-validated where the run has them), the robot, the recording, the
+   date (from the recording's stamps, so the file is deterministic), whether
+   the length scale was identified;
+2. residuals: histograms before/after and per target;
+3. parameters with standard errors, and what was not identifiable and why;
+4. conditioning and observability;
+5. touch-ups: every rejected one with its reason and, when the recording is
+   still reachable, a thumbnail with the fitted ellipse; e_T convergence;
+6. cross-validation and the error-model comparison;
+7. the run: stages, timings, inferred settings, warnings.
+
+Everything is inline (CSS, SVG plots, PNG thumbnails as ``data:`` URIs) and a
+Content-Security-Policy forbids any request, so the file opens offline.
+"""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+from typing import Any
+
+import jinja2
+import numpy as np
+import pandas as pd
+
+from pipeline import __version__
+from pipeline.artefacts import atomic_write_bytes
+from pipeline.report import plots
+from pipeline.report.data import (
+    NOMINAL,
+    RunData,
+    accuracy_figures,
+    artefact_hashes,
+    convergence_traces,
+    crossval_summary,
+    designated,
+    detection_ellipse,
+    load_run,
+    pin_positions,
+    residual_groups,
+    residual_norms,
+    run_uuid,
+    target_positions,
+    touchup_frames,
+)
+
+TEMPLATE_DIR = Path(__file__).resolve().parent.parent.parent / "reports"
+TEMPLATE = "report.html.j2"
+#: at most this many thumbnails / convergence traces (keeps the file small)
+MAX_THUMBS = 40
+MAX_TRACES = 60
+NA = "not available"
+
+
+def _fmt(x: Any, digits: int = 3) -> str:
+    if x is None:
+        return "–"
+    if isinstance(x, (bool, np.bool_)):
+        return "yes" if x else "no"
+    if isinstance(x, (int, np.integer)):
+        return str(int(x))
+    try:
+        f = float(x)
+    except (TypeError, ValueError):
+        return str(x)
+    if not math.isfinite(f):
+        return "–"
+    if f != 0 and (abs(f) < 1e-3 or abs(f) >= 1e5):
+        return f"{f:.{digits}g}"
+    return f"{f:.{digits}f}"
+
+
+# ------------------------------------------------------------------ sections
+
+
+def _verdict(data: RunData) -> dict[str, Any]:
+    rec = data.recording or {}
+    idf = data.identify or {}
+    figs = accuracy_figures(data)
+    groups = residual_groups(data)
+    before = after = None
+    for label, g in groups.items():
+        n = residual_norms(g)
+        if n is None or not len(n):
+            continue
+        rms = float(np.sqrt(np.nanmean(n * n)) * 1e3)
+        mx = float(np.nanmax(n) * 1e3)
+        if label == NOMINAL:
+            before = (rms, mx)
+        elif after is None:
+            after = (rms, mx, label)
+    scale_held = idf.get("scale_held")
+    known = data.meta.get("known_distances", "")
+    if scale_held is None and idf:
+        scale_held = not bool(known)
+    if scale_held:
+        scale_text = (
+            "The length scale was NOT identifiable: the recording carries no known distance "
+            "between targets, so the robot's scale was held at the nominal model's. The figures "
+            "below are shape accuracy (registration with scale); absolute accuracy needs a "
+            "known distance (recording metadata known_distances or --distance)."
+        )
+    elif scale_held is False:
+        scale_text = (
+            f"The length scale was identified from the known distance(s) {known or '(given)'}."
+        )
+    else:
+        scale_text = ""
+    rpath = rec.get("path")
+    return {
+        "robot": data.robot_name(),
+        "recording": Path(rpath).name if rpath else NA,
+        "recording_path": str(rpath) if rpath else "",
+        "recording_reachable": data.recording_path() is not None,
+        "date": data.date(),
+        "model": idf.get("model") or idf.get("error_model") or "",
+        "before": before,
+        "after": after,
+        "ratio": (before[0] / after[0]) if before and after and after[0] > 0 else None,
+        "figures": [
+            {
+                "label": f.label,
+                "rms": _fmt(f.rms_mm, 3),
+                "max": _fmt(f.max_mm, 3),
+                "n": "" if f.n is None else str(f.n),
+            }
+            for f in figs
+        ],
+        "scale_held": scale_held,
+        "scale_text": scale_text,
+        "n_images": rec.get("n_images"),
+        "n_joint_states": rec.get("n_joint_states"),
+        "truncated": bool(rec.get("truncated")),
+    }
+
+
+def _residual_section(data: RunData) -> dict[str, Any]:
+    groups = residual_groups(data)
+    hist = {}
+    per_target: dict[str, list[np.ndarray]] = {}
+    tids: list[str] = []
+    if groups:
+        all_t = sorted(
+            {str(t) for g in groups.values() if "target_id" in g for t in g["target_id"]}
+        )
+        tids = all_t
+        for label, g in groups.items():
+            n = residual_norms(g)
+            if n is None:
+                continue
+            hist[label] = n * 1e3
+            if "target_id" in g and tids:
+                per_target[label] = [
+                    n[(g["target_id"].astype(str) == t).to_numpy()] * 1e3 for t in tids
+                ]
+    if not hist:
+        # no residual table: rebuild the calibrated one from calibrated.urdf + targets
+        tu = data.touchup_table()
+        tp = target_positions(data)
+        if tu is not None and tp:
+            inl = tu[tu["inlier"].astype(bool)] if "inlier" in tu else tu
+            p = pin_positions(data, inl)
+            if p is not None:
+                tgt = np.array([tp.get(int(t), np.full(3, np.nan)) for t in inl["target_id"]])
+                n = np.linalg.norm(p - tgt, axis=1)
+                hist["calibrated (recomputed)"] = n * 1e3
+                tids = [str(t) for t in sorted(tp)]
+                per_target["calibrated (recomputed)"] = [
+                    n[(inl["target_id"].astype(str) == t).to_numpy()] * 1e3 for t in tids
+                ]
+    out: dict[str, Any] = {"available": bool(hist)}
+    if hist:
+        out["hist_svg"] = plots.histogram(hist, "residual distance (mm)")
+        if per_target and tids:
+            out["target_svg"] = plots.per_target(tids, per_target, "residual (mm)")
+    return out
+
+
+def _targets_section(data: RunData) -> dict[str, Any]:
+    df = data.targets
+    if df is None or not len(df):
+        return {"available": False}
+    cols = [str(c) for c in df.columns]
+
+    def in_mm(c: str) -> bool:
+        return (c in ("x", "y", "z") or c.startswith(("sigma", "std", "se_"))) and bool(
+            pd.api.types.is_float_dtype(df[c])
+        )
+
+    shown = {c: (df[c] * 1e3 if in_mm(c) else df[c]).tolist() for c in cols}
+    rows = [[_fmt(shown[c][i], 3) for c in cols] for i in range(len(df))]
+    headers = [f"{c} (mm)" if in_mm(c) else c for c in cols]
+    tp = target_positions(data)
+    svg = None
+    if tp:
+        pts = {"targets": np.array(list(tp.values()))}
+        labels = {"targets": [str(k) for k in tp]}
+        tu = data.touchup_table()
+        if tu is not None:
+            p = pin_positions(data, tu)
+            if p is not None:
+                pts["pin at touch-ups"] = p
+        svg = plots.scatter_xy(pts, "x (m)", "y (m)", labels)
+    return {"available": True, "headers": headers, "rows": rows, "svg": svg}
+
+
+PARAM_COLS = {
+    "name": ("name", "parameter"),
+    "value": ("value", "estimate"),
+    "se": ("std", "std_error", "stderr", "sigma", "se"),
+    "nominal": ("nominal",),
+    "unit": ("unit",),
+    "identifiable": ("identifiable", "identified"),
+    "reason": ("held_reason", "reason", "why", "note"),
+}
+
+
+def _parameters_section(data: RunData) -> dict[str, Any]:
+    df = data.parameters
+    idf = data.identify or {}
+    unid = idf.get("unidentifiable") or idf.get("unidentifiable_parameters") or []
+    out: dict[str, Any] = {"available": df is not None and len(df) > 0, "unidentifiable": []}
+    if isinstance(unid, dict):
+        out["unidentifiable"] = [{"name": str(k), "why": str(v)} for k, v in unid.items()]
+    elif isinstance(unid, list):
+        for u in unid:
+            if isinstance(u, dict):
+                out["unidentifiable"].append(
+                    {"name": str(u.get("name", u)), "why": str(u.get("reason", u.get("why", "")))}
+                )
+            else:
+                out["unidentifiable"].append({"name": str(u), "why": ""})
+    if df is None or not len(df):
+        return out
+    models = None
+    mcol = next((c for c in ("model", "error_model") if c in df.columns), None)
+    if mcol is not None:
+        chosen = idf.get("model")
+        models = [str(m) for m in pd.unique(df[mcol])]
+        if chosen in models:
+            df = df[df[mcol] == chosen]
+        else:
+            df = df[df[mcol] == models[0]]
+    pick = {k: next((c for c in opts if c in df.columns), None) for k, opts in PARAM_COLS.items()}
+    rows = []
+    for _, r in df.iterrows():
+        unit = str(r[pick["unit"]]) if pick["unit"] else ""
+        scale = 1e3 if unit == "m" else (180.0 / math.pi if unit == "rad" else 1.0)
+        shown_unit = {"m": "mm", "rad": "deg"}.get(unit, unit)
+
+        def val(key: str, r: Any = r, scale: float = scale) -> str:
+            c = pick[key]
+            if c is None:
+                return ""
+            v = r[c]
+            if isinstance(v, (float, int, np.floating, np.integer)) and not isinstance(v, bool):
+                return _fmt(float(v) * scale, 4)
+            return _fmt(v)
+
+        ident = r[pick["identifiable"]] if pick["identifiable"] else True
+        rows.append(
+            {
+                "name": str(r[pick["name"]]) if pick["name"] else "",
+                "value": val("value"),
+                "se": val("se"),
+                "nominal": val("nominal"),
+                "unit": shown_unit,
+                "identifiable": bool(ident) if ident is not None else True,
+                "reason": str(r[pick["reason"]])
+                if pick["reason"] and pd.notna(r[pick["reason"]])
+                else "",
+            }
+        )
+    out.update(
+        rows=rows,
+        has_nominal=pick["nominal"] is not None,
+        models=models,
+        shown_model=str(df[mcol].iloc[0]) if mcol else "",
+    )
+    return out
+
+
+def _conditioning_section(data: RunData) -> dict[str, Any]:
+    idf = data.identify or {}
+    if not idf:
+        return {"available": False}
+    items = []
+    for key in ("condition_number", "cond", "rank", "n_parameters", "n_observations", "dof"):
+        if key in idf and not isinstance(idf[key], (dict, list)):
+            items.append((key.replace("_", " "), _fmt(idf[key], 4)))
+    obs = idf.get("observability") or {}
+    obs_rows = []
+    if isinstance(obs, dict):
+        for k in sorted(obs):
+            obs_rows.append((k, _fmt(obs[k], 4)))
+    for k in ("O1", "O2", "O3", "O4", "O5"):
+        if k in idf and (k, _fmt(idf[k], 4)) not in obs_rows:
+            obs_rows.append((k, _fmt(idf[k], 4)))
+    sv = idf.get("singular_values")
+    svg = None
+    if isinstance(sv, list) and len(sv) > 1:
+        try:
+            svg = plots.singular_values(np.asarray(sv, dtype=float))
+        except (TypeError, ValueError):
+            svg = None
+    other = []
+    shown = {"condition_number", "cond", "rank", "n_parameters", "n_observations", "dof"}
+    shown |= {"observability", "singular_values", "O1", "O2", "O3", "O4", "O5"}
+    shown |= {"unidentifiable", "unidentifiable_parameters", "model", "scale_held"}
+    for k in sorted(idf):
+        if k in shown:
+            continue
+        v = idf[k]
+        if isinstance(v, (str, int, float, bool)) or v is None:
+            other.append((k.replace("_", " "), _fmt(v, 4)))
+        elif isinstance(v, dict) and all(
+            isinstance(x, (str, int, float, bool)) or x is None for x in v.values()
+        ):
+            other.append(
+                (k.replace("_", " "), ", ".join(f"{a}: {_fmt(b, 4)}" for a, b in v.items()))
+            )
+        elif (
+            isinstance(v, list)
+            and len(v) <= 12
+            and all(isinstance(x, (str, int, float)) for x in v)
+        ):
+            other.append((k.replace("_", " "), ", ".join(_fmt(x, 4) for x in v)))
+    return {
+        "available": True,
+        "facts": items,
+        "observability": obs_rows,
+        "svg": svg,
+        "other": other,
+    }
+
+
+def _touchup_section(data: RunData, images: dict[int, np.ndarray] | None) -> dict[str, Any]:
+    from pipeline.report.images import annotate, png_data_uri
+
+    tu = data.touchup_table()
+    if tu is None:
+        return {"available": False}
+    inl = tu["inlier"].astype(bool) if "inlier" in tu else pd.Series(True, index=tu.index)
+    conv = tu["converged"].astype(bool) if "converged" in tu else inl
+    frames = touchup_frames(data)
+    d0 = designated(data)
+    rejected = []
+    for _, r in tu[~inl].iterrows():
+        tid = int(r["touchup_id"])
+        fr = frames.get(tid, [])
+        thumb = None
+        if images is not None and fr and fr[-1] in images:
+            ell = detection_ellipse(data, fr[-1])
+            thumb = png_data_uri(annotate(images[fr[-1]], ell, d0[:2] if d0 else None))
+        rejected.append(
+            {
+                "id": tid,
+                "target": str(r.get("target_id", "")),
+                "reason": r["reason"] or "rejected",
+                "converged": bool(r.get("converged", False)),
+                "frame": fr[-1] if fr else None,
+                "thumb": thumb,
+            }
+        )
+    return {
+        "available": True,
+        "n": len(tu),
+        "n_converged": int(conv.sum()),
+        "n_inliers": int(inl.sum()),
+        "n_rejected": int((~inl).sum()),
+        "n_targets": int(tu["target_id"].nunique()) if "target_id" in tu else None,
+        "rejected": rejected,
+        "images_note": (
+            ""
+            if images is not None
+            else "Thumbnails are not shown: the recording named in recording.json is not reachable."
+        ),
+    }
+
+
+def _convergence_section(data: RunData) -> dict[str, Any]:
+    tr = convergence_traces(data)
+    if not tr:
+        return {"available": False}
+    keys = sorted(tr)[:MAX_TRACES]
+    m = data.meta
+
+    def f(k: str) -> float | None:
+        try:
+            return float(m[k])
+        except (KeyError, ValueError):
+            return None
+
+    svg = plots.convergence(
+        {f"#{k}": tr[k] for k in keys},
+        [f("threshold_px"), f("threshold_px"), f("threshold_size_px")],
+        ["px", "px", "px"],
+    )
+    iters = [len(tr[k]) for k in keys]
+    return {
+        "available": True,
+        "svg": svg,
+        "n": len(tr),
+        "shown": len(keys),
+        "median_iters": float(np.median(iters)) if iters else None,
+        "max_iters": max(iters) if iters else None,
+    }
+
+
+def _crossval_section(data: RunData) -> dict[str, Any]:
+    rows = crossval_summary(data)
+    if not rows:
+        return {"available": False}
+    svg = plots.bars(
+        [r["model"] for r in rows],
+        {"held-out RMS": [r["rms_mm"] for r in rows], "held-out max": [r["max_mm"] for r in rows]},
+        "mm",
+    )
+    best = min(
+        (r for r in rows if r["rms_mm"] is not None and math.isfinite(r["rms_mm"])),
+        key=lambda r: r["rms_mm"],
+        default=None,
+    )
+    return {
+        "available": True,
+        "svg": svg,
+        "rows": [
+            {
+                "model": r["model"],
+                "rms": _fmt(r["rms_mm"]),
+                "max": _fmt(r["max_mm"]),
+                "n": r["n"] or "",
+            }
+            for r in rows
+        ],
+        "best": best["model"] if best else None,
+    }
+
+
+def _run_section(data: RunData) -> dict[str, Any]:
+    rec = data.recording or {}
+    run = data.run or {}
+    stages = []
+    for s in run.get("stages", []) if isinstance(run.get("stages"), list) else []:
+        if isinstance(s, dict):
+            stages.append(
+                {
+                    "stage": s.get("stage", ""),
+                    "status": s.get("status", ""),
+                    "seconds": _fmt(s.get("seconds"), 2),
+                    "outputs": ", ".join(map(str, s.get("outputs", []))),
+                    "note": s.get("note", ""),
+                }
+            )
+    inferred = rec.get("inferred") or {}
+    if isinstance(inferred, list):
+        inferred = {str(k): "" for k in inferred}
+    return {
+        "stages": stages,
+        "metadata": sorted(data.meta.items()),
+        "inferred": sorted((str(k), str(v)) for k, v in inferred.items()),
+        "warnings": [str(w) for w in rec.get("warnings", []) or []],
+        "problems": data.problems,
+        "hashes": sorted(artefact_hashes(data.run_dir).items()),
+        "run_id": run_uuid(data.run_dir),
+        "version": __version__,
+        "joint_names": data.joint_names,
+        "base_link": data.base_link or NA,
+        "flange_link": data.flange_link or NA,
+        "image_topic": rec.get("image_topic") or NA,
+    }
+
+
+# ------------------------------------------------------------------ entry
+
+
+def report_context(data: RunData, images: dict[int, np.ndarray] | None) -> dict[str, Any]:
+    """Everything the template shows (pure: artefacts and images in, plain values out)."""
+    return {
+        "verdict": _verdict(data),
+        "residuals": _residual_section(data),
+        "targets": _targets_section(data),
+        "parameters": _parameters_section(data),
+        "conditioning": _conditioning_section(data),
+        "touchups": _touchup_section(data, images),
+        "convergence": _convergence_section(data),
+        "crossval": _crossval_section(data),
+        "run": _run_section(data),
+        "NA": NA,
+    }
+
+
+def render(context: dict[str, Any]) -> str:
+    """Render the report template with a context from :func:`report_context`."""
+    env = jinja2.Environment(
+        loader=jinja2.FileSystemLoader(str(TEMPLATE_DIR)),
+        autoescape=True,
+        undefined=jinja2.StrictUndefined,
+        trim_blocks=True,
+        lstrip_blocks=True,
+    )
+    env.filters["fmt"] = _fmt
+    css = (TEMPLATE_DIR / "report.css").read_text()
+    return env.get_template(TEMPLATE).render(css=css, **context)
+
+
+def _report_images(data: RunData) -> dict[int, np.ndarray] | None:
+    """Images of the rejected touch-ups' last captures, if the recording is reachable."""
+    path = data.recording_path()
+    tu = data.touchup_table()
+    if path is None or tu is None:
+        return None
+    from pipeline.report.images import load_frames
+
+    inl = tu["inlier"].astype(bool) if "inlier" in tu else pd.Series(True, index=tu.index)
+    frames = touchup_frames(data)
+    want = [frames[t][-1] for t in tu.loc[~inl, "touchup_id"].astype(int) if frames.get(t)]
+    return load_frames(path, (data.recording or {}).get("image_topic"), want[:MAX_THUMBS])
+
+
+def build_report(run_dir: Path, out_path: Path | None = None) -> Path:
+    """Write ``report.html`` of a run folder from its artefacts; return its path.
+
+    Parameters
+    ----------
+    run_dir : the run folder (``vtcal run --out``)
+    out_path : destination (default ``run_dir / "report.html"``)
+
+    Sections whose artefacts are missing say "not available". Images are read
+    again from the recording only if the path in ``recording.json`` exists.
+    """
+    run_dir = Path(run_dir)
+    out = Path(out_path) if out_path is not None else run_dir / "report.html"
+    data = load_run(run_dir)
+    html = render(report_context(data, _report_images(data)))
+    atomic_write_bytes(out, html.encode("utf-8"))
+    return out

@@ -1,0 +1,142 @@
+"""Camera images for the report and the Rerun recording, fetched again from the recording.
+
+Images are not artefacts (a run folder stays small); when the recording named
+in ``recording.json`` is still reachable, the few images the report shows are
+read back from it by frame index (the 0-based index of the image message on
+the image topic, in file order, as ingest numbers them). When it is not, the
+outputs simply go without images.
+"""
+
+from __future__ import annotations
+
+import base64
+from collections.abc import Iterable
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from pipeline.io_mcap import (
+    DEFAULT_IMAGE_TOPICS,
+    IMAGE_TYPES,
+    StreamState,
+    decode_image_message,
+    image_to_gray,
+    iter_messages,
+)
+
+
+def load_frames(
+    path: Path, image_topic: str | None, indices: Iterable[int]
+) -> dict[int, np.ndarray]:
+    """Grey images ``{frame index: (H, W) uint8}`` of the wanted frames of a recording.
+
+    One streaming pass, stopped as soon as every wanted frame is found. Frames
+    that cannot be decoded (or a file that ends early) are simply missing from
+    the result; nothing raises for a damaged recording.
+    """
+    want = {int(i) for i in indices if int(i) >= 0}
+    out: dict[int, np.ndarray] = {}
+    if not want:
+        return out
+    state = StreamState(path=str(path))
+    topic = image_topic
+    count = 0
+    try:
+        for msg in iter_messages(path, state):
+            t, schema, enc = state.topic_type(msg.channel_id)
+            if schema not in IMAGE_TYPES:
+                continue
+            if topic is None:
+                if t not in DEFAULT_IMAGE_TOPICS:
+                    continue
+                topic = t
+            if t != topic:
+                continue
+            idx = count
+            count += 1
+            if idx not in want:
+                continue
+            try:
+                g = image_to_gray(decode_image_message(schema, enc, msg.data))
+            except Exception:  # noqa: BLE001 - an undecodable frame is just not shown
+                continue
+            out[idx] = _to_u8(g)
+            if len(out) == len(want) or count > max(want):
+                break
+    except Exception:  # noqa: BLE001 - unreachable/damaged recording: no images
+        return out
+    return out
+
+
+def _to_u8(g: np.ndarray) -> np.ndarray:
+    if g.dtype == np.uint8:
+        return np.ascontiguousarray(g)
+    return np.ascontiguousarray((g.astype(np.float64) / 257.0).clip(0, 255).astype(np.uint8))
+
+
+def ellipse_polyline(
+    u: float, v: float, s: float, s_minor: float, angle: float, n: int = 72
+) -> np.ndarray:
+    """Points ``(n + 1, 2)`` (u, v) px of the fitted ellipse, closed.
+
+    ``(u, v) + R(angle) [s/2 cos t, s_minor/2 sin t]``: ``s``, ``s_minor`` are
+    the full axis lengths and ``angle`` the long-axis angle from ``+u`` towards
+    ``+v`` (rad), as the detection stage writes them.
+    """
+    t = np.linspace(0.0, 2.0 * np.pi, n + 1)
+    a, b = 0.5 * s, 0.5 * (s_minor if np.isfinite(s_minor) else s)
+    th = angle if np.isfinite(angle) else 0.0
+    c, si = np.cos(th), np.sin(th)
+    x, y = a * np.cos(t), b * np.sin(t)
+    return np.stack([u + c * x - si * y, v + si * x + c * y], axis=1)
+
+
+def annotate(
+    gray: np.ndarray,
+    ellipse: tuple[float, float, float, float, float] | None,
+    designated: tuple[float, float] | None,
+    width: int = 320,
+) -> np.ndarray:
+    """A BGR thumbnail ``width`` px wide with the fitted ellipse and the designated point.
+
+    The ellipse (green) and its centre are drawn after scaling so lines stay
+    one pixel wide; the designated pixel is a red cross.
+    """
+    h0, w0 = gray.shape[:2]
+    k = width / float(w0)
+    img = cv2.resize(gray, (width, max(1, round(h0 * k))), interpolation=cv2.INTER_AREA)
+    bgr = cv2.cvtColor(img, cv2.COLOR_GRAY2BGR)
+
+    def px(p: np.ndarray) -> np.ndarray:
+        # pixel-centre convention: centre of pixel i maps to (i + 0.5) k - 0.5
+        return (p + 0.5) * k - 0.5
+
+    if ellipse is not None and all(np.isfinite(ellipse[:3])):
+        poly = px(ellipse_polyline(*ellipse))
+        cv2.polylines(
+            bgr, [np.round(poly * 16).astype(np.int32)], True, (60, 200, 60), 1, cv2.LINE_AA, 4
+        )
+        cu, cv_ = px(np.array(ellipse[:2]))
+        cv2.circle(bgr, (round(cu), round(cv_)), 2, (60, 200, 60), -1, cv2.LINE_AA)
+    if designated is not None and all(np.isfinite(designated)):
+        du, dv = px(np.array(designated))
+        p = (round(du), round(dv))
+        cv2.drawMarker(bgr, p, (40, 40, 220), cv2.MARKER_CROSS, 12, 1, cv2.LINE_AA)
+    return bgr
+
+
+def png_data_uri(img: np.ndarray) -> str:
+    """``data:image/png;base64,...`` of an image (deterministic encoder settings)."""
+    ok, buf = cv2.imencode(".png", img, [cv2.IMWRITE_PNG_COMPRESSION, 9])
+    if not ok:  # pragma: no cover - cv2 always encodes uint8 images
+        raise ValueError("PNG encoding failed")
+    return "data:image/png;base64," + base64.b64encode(buf.tobytes()).decode("ascii")
+
+
+def png_bytes(img: np.ndarray) -> bytes:
+    """PNG bytes of an image (for Rerun's EncodedImage)."""
+    ok, buf = cv2.imencode(".png", img, [cv2.IMWRITE_PNG_COMPRESSION, 6])
+    if not ok:  # pragma: no cover
+        raise ValueError("PNG encoding failed")
+    return bytes(buf.tobytes())

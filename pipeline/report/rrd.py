@@ -1,0 +1,372 @@
+"""``run.rrd``: the Rerun recording of a run, for 3-D inspection.
+
+Built only from the artefacts of a run folder (like the HTML report). Entity
+tree (base frame = ``world``, z up, metres)::
+
+    world/robot/nominal          LineStrips3D  skeleton of the nominal robot at the pose
+    world/robot/calibrated       LineStrips3D  skeleton of the calibrated robot
+    world/robot/calibrated/flange            Transform3D  T_base_flange (calibrated)
+    world/robot/calibrated/flange/pin        Points3D     virtual pin (flange frame)
+    world/robot/calibrated/flange/camera     Transform3D  nominal camera mount (a guess)
+    world/robot/calibrated/flange/camera/image  Pinhole + EncodedImage + ellipse + designated point
+    world/targets                Points3D      identified target centres (static)
+    world/pins                   Points3D      calibrated pin at every used touch-up (static)
+    world/residuals_xS           Arrows3D      target -> pin, lengths scaled by S (static)
+    world/rejected               Points3D      rejected touch-ups, labelled with the reason
+    convergence/du|dv|ds         Scalars       |e_T| components per capture, px
+    log/rejected                 TextLog       one line per rejected touch-up
+    notes                        TextDocument  what is shown and what is guessed
+
+Timelines: ``touchup`` (sequence: the touch-up id; poses, images, rejected
+marks) and ``capture`` (sequence: the frame index of each capture of a
+touch-up, for the convergence series). Nothing wall-clock is logged (the
+``log_time`` timeline is disabled), and the recording id is
+:func:`pipeline.report.data.run_uuid` of the folder's artefacts, so the same
+folder gives the same recording.
+
+The camera intrinsics and mount are unknown to the pipeline (the method never
+needs them). The frustum is a nominal guess: the camera sits at the flange
+origin looking at the virtual pin, with focal length ``f = s0 d / D`` from
+eq. (1) of the seed paper (``s0`` the designated size, ``d`` the pin
+stand-off, ``D`` the target diameter). The notes say so.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+import rerun as rr
+
+from pipeline.artefacts import atomic_write_bytes
+from pipeline.report.data import (
+    RunData,
+    convergence_traces,
+    designated,
+    detection_ellipse,
+    load_run,
+    pin_positions,
+    run_uuid,
+    skeleton_points,
+    target_positions,
+    touchup_frames,
+)
+
+APP_ID = "vtcal"
+#: residual arrows are drawn this many times their length
+RESIDUAL_SCALE = 100
+#: at most this many camera images are logged (one per touch-up: its last capture)
+MAX_IMAGES = 200
+GREY = (150, 150, 160)
+BLUE = (31, 111, 235)
+RED = (209, 36, 47)
+GREEN = (45, 164, 78)
+ORANGE = (227, 98, 9)
+
+
+def camera_guess(
+    data: RunData, p_flange_pin: np.ndarray | None
+) -> tuple[np.ndarray, float, tuple[int, int]] | None:
+    """Nominal camera: ``(T_flange_camera (4,4), focal px, (width, height))`` or None.
+
+    The camera frame (x right, y down, z optical axis, as OpenCV) sits at the
+    flange origin with its z axis towards the virtual pin; the focal length
+    is ``f = s0 d / D`` (seed paper eq. 1, with ``d = |p_flange_pin|``); the
+    image size is ``2 * designated + 1`` (designated pixel at the centre).
+    """
+    d0 = designated(data)
+    if p_flange_pin is None or d0 is None:
+        return None
+    d = float(np.linalg.norm(p_flange_pin))
+    if d <= 0:
+        return None
+    try:
+        D = float(data.meta.get("target_diameter_m", "nan"))
+    except ValueError:
+        D = float("nan")
+    s0 = d0[2]
+    f = s0 * d / D if np.isfinite(D) and D > 0 and np.isfinite(s0) else 2.0 * (d0[0] + 0.5)
+    z = p_flange_pin / d
+    x = np.cross([0.0, 1.0, 0.0], z) if abs(z[1]) < 0.9 else np.cross(z, [0.0, 0.0, 1.0])
+    x /= np.linalg.norm(x)
+    y = np.cross(z, x)
+    T = np.eye(4)
+    T[:3, :3] = np.stack([x, y, z], axis=1)
+    size = (int(round(2 * d0[0] + 1)), int(round(2 * d0[1] + 1)))
+    return T, f, size
+
+
+def build_rrd(run_dir: Path, out_path: Path | None = None, recording_id: str | None = None) -> Path:
+    """Write ``run.rrd`` of a run folder from its artefacts; return its path.
+
+    Parameters
+    ----------
+    run_dir : the run folder
+    out_path : destination (default ``run_dir / "run.rrd"``)
+    recording_id : Rerun recording id (default :func:`run_uuid` of the folder,
+        so the same artefacts always give the same id)
+
+    The file is written to a temporary sibling, finalised by
+    ``RecordingStream.disconnect()`` and then moved into place.
+    """
+    run_dir = Path(run_dir)
+    out = Path(out_path) if out_path is not None else run_dir / "run.rrd"
+    data = load_run(run_dir)
+    rid = recording_id or run_uuid(run_dir)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    tmp = out.with_name(f".{out.name}.partial")
+    rec = rr.RecordingStream(APP_ID, recording_id=rid, send_properties=False)
+    rec.set_log_time_enabled(False)
+    rec.save(str(tmp))
+    try:
+        log_run(rec, data)
+    finally:
+        rec.disconnect()
+    atomic_write_bytes(out, tmp.read_bytes())
+    tmp.unlink(missing_ok=True)
+    return out
+
+
+def log_run(rec: rr.RecordingStream, data: RunData) -> list[str]:
+    """Log everything of a run into an open recording stream; return notes (what was skipped)."""
+    notes: list[str] = []
+    rec.log("world", rr.ViewCoordinates.RIGHT_HAND_Z_UP, static=True)
+    tu = data.touchup_table()
+    nominal = data.nominal_chain()
+    calibrated = data.calibrated_chain()
+    p_pin = data.p_flange_pin()
+    targets = target_positions(data)
+
+    # ---------------------------------------------------------------- static
+    if targets:
+        ids = sorted(targets)
+        rec.log(
+            "world/targets",
+            rr.Points3D(
+                np.array([targets[k] for k in ids]),
+                radii=0.004,
+                colors=[GREEN] * len(ids),
+                labels=[f"target {k}" for k in ids],
+                show_labels=True,
+            ),
+            static=True,
+        )
+    else:
+        notes.append("targets: not available (no targets.parquet)")
+    if tu is None:
+        notes.append("touch-ups: not available")
+        _notes(rec, data, notes, None)
+        return notes
+    inl = tu["inlier"].astype(bool).to_numpy() if "inlier" in tu else np.ones(len(tu), bool)
+    pins = pin_positions(data, tu)
+    if pins is not None:
+        rec.log(
+            "world/pins",
+            rr.Points3D(pins[inl], radii=0.002, colors=[BLUE] * int(inl.sum())),
+            static=True,
+        )
+        if targets:
+            tg = np.array([targets.get(int(t), np.full(3, np.nan)) for t in tu["target_id"]])
+            ok = inl & np.all(np.isfinite(tg), axis=1)
+            rec.log(
+                f"world/residuals_x{RESIDUAL_SCALE}",
+                rr.Arrows3D(
+                    origins=tg[ok],
+                    vectors=(pins[ok] - tg[ok]) * RESIDUAL_SCALE,
+                    colors=[ORANGE] * int(ok.sum()),
+                    labels=[
+                        f"#{int(t)}: {np.linalg.norm(pins[i] - tg[i]) * 1e3:.3f} mm"
+                        for i, t in zip(
+                            np.flatnonzero(ok), tu["touchup_id"].to_numpy()[ok], strict=True
+                        )
+                    ],
+                ),
+                static=True,
+            )
+        if (~inl).any():
+            rej = tu[~inl]
+            rec.log(
+                "world/rejected",
+                rr.Points3D(
+                    pins[~inl],
+                    radii=0.004,
+                    colors=[RED] * len(rej),
+                    labels=[
+                        f"#{t}: {why}"
+                        for t, why in zip(rej["touchup_id"], rej["reason"], strict=True)
+                    ],
+                    show_labels=True,
+                ),
+                static=True,
+            )
+    else:
+        notes.append("calibrated robot: not available (no calibrated.urdf with a virtual_pin)")
+
+    # ------------------------------------------------------- per touch-up pose
+    q = data.joint_matrix(tu)
+    cam = camera_guess(data, p_pin)
+    if cam is None:
+        notes.append("camera frustum: not shown (no virtual pin or no designated pixel)")
+    frames = touchup_frames(data)
+    images = _images(data, tu, frames)
+    if images is None:
+        notes.append("images: not shown (the recording in recording.json is not reachable)")
+    d0 = designated(data)
+    if q is not None:
+        sk_nom = skeleton_points(nominal, q) if nominal is not None else None
+        sk_cal = skeleton_points(calibrated, q) if calibrated is not None else None
+        T_flange = None
+        if calibrated is not None:
+            from pipeline.kinematics.chain import fk
+
+            T_pin = fk(calibrated, q)
+            T_flange = T_pin.copy()
+            if p_pin is not None:
+                T_flange[:, :3, 3] -= np.einsum("nij,j->ni", T_pin[:, :3, :3], p_pin)
+        if cam is not None:
+            T_fc, f, (w, h) = cam
+            rec.log(
+                "world/robot/calibrated/flange/camera",
+                rr.Transform3D(translation=T_fc[:3, 3], mat3x3=T_fc[:3, :3]),
+                static=True,
+            )
+            rec.log(
+                "world/robot/calibrated/flange/camera/image",
+                rr.Pinhole(
+                    focal_length=f,
+                    width=w,
+                    height=h,
+                    camera_xyz=rr.ViewCoordinates.RDF,
+                    image_plane_distance=float(np.linalg.norm(p_pin)) if p_pin is not None else 0.1,
+                ),
+                static=True,
+            )
+        if p_pin is not None:
+            rec.log(
+                "world/robot/calibrated/flange/pin",
+                rr.Points3D([p_pin], radii=0.003, colors=[ORANGE], labels=["virtual pin"]),
+                static=True,
+            )
+        for i, (tid, target, reason) in enumerate(
+            zip(tu["touchup_id"].astype(int), tu["target_id"], tu["reason"], strict=True)
+        ):
+            rec.set_time("touchup", sequence=tid)
+            status = "used" if inl[i] else f"rejected: {reason}"
+            if sk_nom is not None:
+                rec.log(
+                    "world/robot/nominal",
+                    rr.LineStrips3D([sk_nom[i]], radii=0.003, colors=[GREY], labels=["nominal"]),
+                )
+            if sk_cal is not None:
+                rec.log(
+                    "world/robot/calibrated",
+                    rr.LineStrips3D(
+                        [sk_cal[i]],
+                        radii=0.004,
+                        colors=[BLUE if inl[i] else RED],
+                        labels=[f"#{tid} target {target} ({status})"],
+                    ),
+                )
+            if T_flange is not None:
+                rec.log(
+                    "world/robot/calibrated/flange",
+                    rr.Transform3D(translation=T_flange[i, :3, 3], mat3x3=T_flange[i, :3, :3]),
+                )
+            fr = frames.get(tid, [])
+            img_path = "world/robot/calibrated/flange/camera/image"
+            if images is not None and fr and fr[-1] in images:
+                from pipeline.report.images import ellipse_polyline, png_bytes
+
+                rec.log(
+                    img_path,
+                    rr.EncodedImage(contents=png_bytes(images[fr[-1]]), media_type="image/png"),
+                )
+                ell = detection_ellipse(data, fr[-1])
+                if ell is not None:
+                    rec.log(
+                        f"{img_path}/ellipse",
+                        rr.LineStrips2D(
+                            [ellipse_polyline(*ell)], colors=[GREEN], labels=["fitted ellipse"]
+                        ),
+                    )
+                else:
+                    rec.log(f"{img_path}/ellipse", rr.Clear(recursive=False))
+                if d0 is not None:
+                    rec.log(
+                        f"{img_path}/designated",
+                        rr.Points2D([d0[:2]], radii=2.0, colors=[RED], labels=["designated"]),
+                    )
+            if not inl[i]:
+                rec.log(
+                    "log/rejected",
+                    rr.TextLog(
+                        f"touch-up {tid} (target {target}) rejected: {reason}", level="WARN"
+                    ),
+                )
+    else:
+        notes.append("robot poses: not available (no joint columns or no URDF)")
+
+    # ------------------------------------------------------------ convergence
+    traces = convergence_traces(data)
+    if traces:
+        for tid in sorted(traces):
+            tr = np.abs(traces[tid])
+            fr = frames.get(tid, list(range(len(tr))))
+            seq = np.asarray(
+                fr[-len(tr) :] if len(fr) >= len(tr) else range(len(tr)), dtype=np.int64
+            )
+            for k, name in enumerate(("du", "dv", "ds")):
+                rec.send_columns(
+                    f"convergence/{name}/touchup_{tid:04d}",
+                    indexes=[rr.TimeColumn("capture", sequence=seq)],
+                    columns=rr.Scalars.columns(scalars=tr[:, k]),
+                )
+    else:
+        notes.append("e_T convergence: not available")
+    _notes(rec, data, notes, cam)
+    return notes
+
+
+def _images(
+    data: RunData, tu: pd.DataFrame, frames: dict[int, list[int]]
+) -> dict[int, np.ndarray] | None:
+    path = data.recording_path()
+    if path is None:
+        return None
+    from pipeline.report.images import load_frames
+
+    want = [frames[int(t)][-1] for t in tu["touchup_id"] if frames.get(int(t))]
+    return load_frames(path, (data.recording or {}).get("image_topic"), want[:MAX_IMAGES])
+
+
+def _notes(
+    rec: rr.RecordingStream,
+    data: RunData,
+    notes: list[str],
+    cam: tuple[np.ndarray, float, tuple[int, int]] | None,
+) -> None:
+    lines = [
+        f"# vtcal run: {data.robot_name()}",
+        "",
+        f"Recorded {data.date()}. Base frame = `world` (metres, z up).",
+        "",
+        "* grey skeleton: nominal robot; blue: calibrated (red when the touch-up was rejected)",
+        "* green points: identified targets; blue: calibrated virtual pin at each used touch-up",
+        f"* orange arrows `world/residuals_x{RESIDUAL_SCALE}`: target -> pin residuals drawn "
+        f"{RESIDUAL_SCALE} times longer than they are",
+        "* red points `world/rejected`: rejected touch-ups, labelled with the reason",
+        "* `convergence/*`: |e_T| per capture (px) on the `capture` timeline",
+        "",
+    ]
+    if cam is not None:
+        lines.append(
+            f"The camera frustum is a NOMINAL GUESS: the intrinsics and the camera mount are "
+            f"unknown to the pipeline (never needed). Shown at the flange origin looking at the "
+            f"virtual pin, focal length {cam[1]:.0f} px from s0 d / D."
+        )
+    if notes:
+        lines += ["", "Not shown:", *[f"* {n}" for n in notes]]
+    rec.log(
+        "notes", rr.TextDocument("\n".join(lines), media_type=rr.MediaType.MARKDOWN), static=True
+    )
