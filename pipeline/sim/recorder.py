@@ -83,6 +83,7 @@ class Recorder:
     )
 
     def __init__(self, f: IO[bytes], chunk_size: int = 4 * 1024 * 1024) -> None:
+        self._f = f
         self._w = Writer(f, chunk_size=chunk_size, compression=CompressionType.ZSTD)
         self._schemas: dict[str, Any] = {}
         self._heap: list[tuple[int, int, str, str, Any, Callable[[int, int], None] | None]] = []
@@ -129,6 +130,14 @@ class Recorder:
             self.counts[topic] = idx + 1
             self.last_log_time[topic] = t
             self.sequence += 1
+
+    def cut_chunk(self) -> int:
+        """Write everything queued, close the chunk in progress; return the file position."""
+        self.flush(None)
+        inner = getattr(self._w, "_writer", None)
+        if inner is not None:
+            inner.flush()
+        return int(self._f.tell())
 
     def finish(self) -> None:
         self.flush(None)

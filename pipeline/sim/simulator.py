@@ -462,6 +462,8 @@ class Session:
             "/camera/image_raw/compressed" if sc.camera.image == "png" else "/camera/image_raw"
         )
         self.robot: Robot | None = None
+        self.last_renders = 1
+        self.safe_bytes = 0
 
     # ------------------------------------------------------------ helpers
     def _T_camera_target(self, q: F64, tg: Target) -> F64:
@@ -490,7 +492,12 @@ class Session:
         moving = rob.moving_at(t_start) or rob.moving_at(t_start + exp_ns)
         if moving:
             exp_ns = int(max(sc.camera.exposure_s, 0.04) * NS)
-        n_sub = 5 if moving else 1
+        n_sub = 1
+        if moving:
+            # enough sub-exposure renders that consecutive copies are < 0.5 px apart
+            ends = [self._T_camera_target(rob.q_at(t), tg) for t in (t_start, t_start + exp_ns)]
+            sweep = float(np.linalg.norm(cam_project(self, ends[1]) - cam_project(self, ends[0])))
+            n_sub = int(np.clip(np.ceil(sweep / 0.5), 5, 40))
         times = [t_start + exp_ns * (k + 0.5) / n_sub for k in range(n_sub)]
         qs = [rob.q_at(t) for t in times]
         Ts = np.stack([self._T_camera_target(q, tg) for q in qs])
@@ -527,6 +534,7 @@ class Session:
         if moving:
             c = np.array([cam.project(T[:3, 3]) for T in Ts])
             blur_px = float(np.linalg.norm(c[-1] - c[0]) * n_sub / max(n_sub - 1, 1))
+        self.last_renders = n_sub
         stamp_ns = t_mid
         log_ns = t_start + exp_ns + int(sc.camera.latency_s * NS)
         rec = {
@@ -548,6 +556,7 @@ class Session:
             "true_ellipse": [float(x) for x in ell],
             "blur_px": blur_px,
             "mcap_sequence": -1,
+            "in_file": True,
             "log_time_ns": int(log_ns),
             "stamp_ns": int(stamp_ns),
         }
@@ -586,22 +595,44 @@ class Session:
         q_new, _ = solve_ik(self.cell.nominal, T_goal, q, max_iter=50, respect_limits=False)
         return q_new
 
-    def small_move(self, q_goal: F64, capture_midway: bool = False) -> None:
+    def small_move(self, q_goal: F64) -> None:
         rob = self.robot
         assert rob is not None
         dur = rob.move_duration(q_goal, self.sc.timing.max_speed_rad_s, 0.3)
         rob.start_move(q_goal, dur)
-        if capture_midway:
-            rob.advance(0.45 * dur)
-            return
         rob.advance(dur + self.sc.timing.settle_s)
 
-    def large_move(self, q_goal: F64) -> None:
+    def _blur_fraction(self, tg: Target, dur: float, latest: float, want_px: float = 4.0) -> float:
+        """Latest fraction of the current move (<= ``latest``) whose exposure smears >= want_px."""
+        rob = self.robot
+        assert rob is not None
+        exp_ns = max(self.sc.camera.exposure_s, 0.04) * NS
+        t0 = rob.t
+        for frac in np.arange(latest, 0.3, -0.02):
+            ta = t0 + frac * dur * NS
+            a = cam_project(self, self._T_camera_target(rob.q_at(ta), tg))
+            b = cam_project(self, self._T_camera_target(rob.q_at(ta + exp_ns), tg))
+            if np.linalg.norm(b - a) >= want_px:
+                return float(frac)
+        return 0.3
+
+    def large_move(
+        self, q_goal: F64, stop_at: float | None = None, tg: Target | None = None
+    ) -> None:
+        """Move to ``q_goal`` and settle; with ``stop_at`` return mid-move (blurred capture)."""
         rob = self.robot
         assert rob is not None
         dur = rob.move_duration(q_goal, self.sc.timing.max_speed_rad_s, 0.8)
         rob.start_move(q_goal, dur)
+        if stop_at is not None and tg is not None:
+            rob.advance(self._blur_fraction(tg, dur, stop_at) * dur)
+            return
         rob.advance(dur + self.sc.timing.settle_s)
+
+
+def cam_project(sess: Session, T_camera_target: F64) -> F64:
+    """Pixel of the target centre (for blur estimates)."""
+    return sess.cell.camera.project(T_camera_target[:3, 3])
 
 
 def _measure(det: tuple[float, float, float]) -> F64:
@@ -625,7 +656,7 @@ def simulate(sc: Scenario, seed: int, out: Path) -> dict[str, Any]:
         rec.finish()
     os.replace(tmp, out)
     if sc.faults.truncate:
-        truth["truncated"] = _truncate(out, truth, sess.rng_fault)
+        truth["truncated"] = _truncate(out, truth, sess.rng_fault, sess.safe_bytes)
     return truth
 
 
@@ -666,6 +697,12 @@ def _run(sess: Session) -> dict[str, Any]:
     for tid, _ in plan:
         labels.setdefault(tid, len(labels))
     faults_at = _fault_plan(sess, plan)
+    tail_index = -1
+    safe_bytes = 0
+    if sc.faults.truncate:
+        # one more touch-up (a repeat of the first pose) during which the recorder dies
+        plan = plan + [plan[0]]
+        tail_index = len(plan) - 1
 
     t0 = sc.timing.start_ns
     rec.push(t0, "/robot_description", "std_msgs/msg/String", {"data": cell.nominal_urdf})
@@ -767,7 +804,10 @@ def _run(sess: Session) -> dict[str, Any]:
 
         # ---- large move to the planned pose
         n_dropped = len(rob.dropped)
-        sess.large_move(q_plan)
+        capture_mid = faults_at["capture_while_moving"] == ti
+        if ti == tail_index:
+            safe_bytes = rec.cut_chunk()
+        sess.large_move(q_plan, stop_at=0.94 if capture_mid else None, tg=tg)
         if faults_at["joint_state_gap"] == ti:
             dropped = rob.dropped[n_dropped:]
             n_pre = rob.emitted_before_gap[len(rob.gaps) - 1]
@@ -856,8 +896,6 @@ def _run(sess: Session) -> dict[str, Any]:
             )
 
         # ---- the closed loop
-        moving_iter = 1 if faults_at["capture_while_moving"] == ti else -1
-        capture_mid = False
         if tid not in jac:
             lost = True
         else:
@@ -870,9 +908,9 @@ def _run(sess: Session) -> dict[str, Any]:
                     fault_here.append(
                         {
                             "type": "capture_while_moving",
-                            "phase": "correction",
+                            "phase": "approach",
                             "exposure_s": max(sc.camera.exposure_s, 0.04),
-                            "renders": 5,
+                            "renders": sess.last_renders,
                             "blur_px": [sess.images[idx]["blur_px"]],
                             "_images": [idx],
                         }
@@ -900,8 +938,8 @@ def _run(sess: Session) -> dict[str, Any]:
                     break
                 dp = -gain * np.linalg.solve(J, e)
                 q = sess.nominal_shift(q, dp)
-                capture_mid = it + 1 == moving_iter
-                sess.small_move(q, capture_midway=capture_mid)
+                capture_mid = False
+                sess.small_move(q)
             if converged:
                 for _ in range(max(tt.repeat_captures - 1, 0)):
                     conv_images.append(len(sess.images))
@@ -926,6 +964,7 @@ def _run(sess: Session) -> dict[str, Any]:
                 "final_error_px": final_err,
                 "target_centre": tg.centre.tolist(),
                 "pin_miss_mm": ((pin - tg.centre) * 1000.0).tolist(),
+                "in_file": True,
             }
         )
         for fh in fault_here:
@@ -941,6 +980,7 @@ def _run(sess: Session) -> dict[str, Any]:
 
     rob.advance(1.0)
     rec.flush(None)
+    sess.safe_bytes = safe_bytes
 
     # image indices are known once written (log-time order)
     img_by_pos = sess.images
@@ -1065,8 +1105,14 @@ def _truth(
     }
 
 
-def _truncate(path: Path, truth: dict[str, Any], rng: np.random.Generator) -> dict[str, Any]:
-    """Cut the finished file at 75-90 % of its bytes (the recorder was killed).
+def _truncate(
+    path: Path, truth: dict[str, Any], rng: np.random.Generator, safe_bytes: int
+) -> dict[str, Any]:
+    """Cut the finished file inside the data of its last touch-up (the recorder was killed).
+
+    ``safe_bytes`` is where the chunk before the last touch-up ended; the cut
+    falls between it and the summary section, so every other fault's messages
+    survive.
 
     What survives is found by streaming the cut file with the stock reader
     until it breaks; the images lost are listed as a ``truncated_file`` fault.
@@ -1075,7 +1121,10 @@ def _truncate(path: Path, truth: dict[str, Any], rng: np.random.Generator) -> di
     from mcap.stream_reader import StreamReader
 
     size = path.stat().st_size
-    cut = int(size * rng.uniform(0.75, 0.9))
+    with path.open("rb") as f:
+        f.seek(size - 28)
+        summary_start = int.from_bytes(f.read(8), "little") or size - 37
+    cut = int(safe_bytes + rng.uniform(0.3, 0.8) * (summary_start - safe_bytes))
     os.truncate(path, cut)
     topics: dict[int, str] = {}
     kept: dict[str, int] = {}
@@ -1093,6 +1142,10 @@ def _truncate(path: Path, truth: dict[str, Any], rng: np.random.Generator) -> di
             pass
     n_img = kept.get(truth["image_topic"], 0)
     lost = [im for im in truth["images"] if im["index"] >= n_img]
+    for im in lost:
+        im["in_file"] = False
+    for tu in truth["touchups"]:
+        tu["in_file"] = all(i < n_img for i in tu["image_indices"])
     truth["faults"].append(
         {
             "type": "truncated_file",
