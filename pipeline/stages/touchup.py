@@ -66,6 +66,7 @@ class TouchupConfig:
     default_threshold_size_px: float = 0.5
     ransac_samples: int = 400
     seed: int = 0
+    tilt_correction: bool = True
 
     def to_dict(self) -> dict[str, Any]:
         return asdict(self)
@@ -127,7 +128,7 @@ def _group_targets(Ts: np.ndarray, config: TouchupConfig) -> tuple[np.ndarray, n
         return np.zeros(1, dtype=np.int64), np.zeros(3)
     R = Ts[:, :3, :3]
     t = Ts[:, :3, 3]
-    ang = np.array([[float(rotation_angle(R[i].T @ R[j])) for j in range(n)] for i in range(n)])
+    ang = rotation_angle(np.einsum("iba,jbc->ijac", R, R))  # angle of R_i^T R_j
     rng = np.random.default_rng(config.seed)
     eps = config.group_radius_m * 0.25
 
@@ -143,8 +144,7 @@ def _group_targets(Ts: np.ndarray, config: TouchupConfig) -> tuple[np.ndarray, n
     if pairs:
         tries = config.ransac_samples
         for _ in range(tries):
-            k = rng.integers(len(pairs))
-            i, j = pairs[k]
+            i, j = pairs[int(rng.integers(len(pairs)))]
             # a third touch-up, paired with i
             cands = [m for m in range(n) if m not in (i, j) and ang[i, m] > 0.05]
             if not cands:
@@ -168,9 +168,9 @@ def _group_targets(Ts: np.ndarray, config: TouchupConfig) -> tuple[np.ndarray, n
                 continue
             Rm = R[idx].mean(axis=0)
             tm = t[idx].mean(axis=0)
-            for i in idx:
-                rows.append(R[i] - Rm)
-                rhs.append(tm - t[i])
+            for ii in idx:
+                rows.append(R[ii] - Rm)
+                rhs.append(tm - t[ii])
         if not rows:
             break
         p_new, *_ = np.linalg.lstsq(np.concatenate(rows), np.concatenate(rhs), rcond=None)
@@ -196,6 +196,130 @@ def _cluster(c: np.ndarray, radius: float) -> np.ndarray:
         labels[i] = len(centres)
         centres.append([ci])
     return labels
+
+
+def camera_from_jacobian(J: np.ndarray, s0: float) -> tuple[np.ndarray, float, float]:
+    """Camera orientation in the flange frame, focal length and stand-off from ``J``.
+
+    A flange translation ``d`` moves the target by ``-R_camera_flange d`` in the
+    camera frame, so near the optical axis ``du = -(f/z) (R_cf d)_x``,
+    ``dv = -(f/z) (R_cf d)_y``: the first two rows of ``J`` are ``-(f/z)`` times
+    the first two rows of ``R_cf``. With ``s = f D / z``, ``s_inv = z / (f D)`` and
+    ``d s_inv / dz = 1 / (f D)``, so ``z = s_inv / |J_2|`` (the third row's norm).
+
+    Returns
+    -------
+    R_flange_camera : (3, 3)
+    f_px : float, focal length in pixels (nominal-model metres)
+    z_m : float, stand-off at the designated size
+    """
+    gx = float(np.linalg.norm(J[0]))
+    gy = float(np.linalg.norm(J[1]))
+    rx = -J[0] / gx
+    ry = -J[1] / gy
+    M = np.stack([rx, ry, np.cross(rx, ry)])
+    U, _, Vt = np.linalg.svd(M)
+    R_cf = U @ Vt
+    z = (1.0 / s0) / float(np.linalg.norm(J[2]))
+    f = 0.5 * (gx + gy) * z
+    return R_cf.T, f, z
+
+
+def tilt_bias(
+    shape: np.ndarray,
+    T_base_flange: np.ndarray,
+    labels: np.ndarray,
+    J: np.ndarray,
+    s0: float,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Offsets between the ellipse and the projected circle centre / untilted size.
+
+    A circle of radius ``R`` at distance ``z`` whose plane is tilted by ``theta``
+    images as an ellipse with ``b / a = cos(theta)`` (``a = f R / z``), whose centre
+    lies off the image of the circle's centre by ``(a^2 / f) sin(theta) cos(theta)``
+    along the minor axis, away from the side the plate normal leans to, and
+    whose long axis exceeds ``f 2R / z`` by ``s (a / f)^2 sin^2(theta) / 2`` (second
+    order expansion of the perspective projection of the tilted circle).
+    ``f`` comes from the image Jacobian (:func:`camera_from_jacobian`). Which end
+    of the minor axis the normal leans to is ambiguous in one image; the sign
+    is chosen per target so that the plate normals of all its touch-ups agree
+    in the base frame (nominal flange orientations, camera orientation from ``J``).
+
+    Parameters
+    ----------
+    shape : (n, 5) per touch-up: u, v, s, s_minor, long-axis angle (NaN if lost)
+    T_base_flange : (n, 4, 4) nominal flange poses at the final captures
+    labels : (n,) target labels
+    J : (3, 3) image Jacobian
+    s0 : designated size
+
+    Returns
+    -------
+    bias : (n, 3) ``(du, dv, ds)``: add du, dv to the ellipse centre, subtract ds
+        from its long axis (0 where not resolved)
+    tilt_deg : (n,) tilt of the plate from the image (NaN if lost)
+    resolved : (n,) the sign was resolved (at least two touch-ups of the target
+        with distinct orientations, or a negligible tilt)
+    """
+    n = len(shape)
+    bias = np.zeros((n, 3))
+    resolved = np.zeros(n, dtype=bool)
+    ok = np.all(np.isfinite(shape), axis=1)
+    a = 0.5 * shape[:, 2]
+    b = 0.5 * shape[:, 3]
+    cos_t = np.clip(np.where(ok, b / np.where(ok, a, 1.0), 1.0), 0.0, 1.0)
+    sin_t = np.sqrt(1.0 - cos_t**2)
+    tilt_deg = np.where(ok, np.degrees(np.arccos(cos_t)), np.nan)
+    try:
+        R_fc, f, _ = camera_from_jacobian(J, s0)
+    except (np.linalg.LinAlgError, ValueError):
+        return bias, tilt_deg, resolved
+    if not np.isfinite(f) or f <= 0:
+        return bias, tilt_deg, resolved
+    phi = shape[:, 4]
+    m = np.stack([-np.sin(phi), np.cos(phi)], axis=1)  # minor-axis direction (u, v)
+    n_cam = np.stack([sin_t * m[:, 0], sin_t * m[:, 1], -cos_t], axis=1)
+    n_base = np.einsum("nij,jk,nk->ni", T_base_flange[:, :3, :3], R_fc, np.nan_to_num(n_cam))
+    n_flip = np.einsum(
+        "nij,jk,nk->ni",
+        T_base_flange[:, :3, :3],
+        R_fc,
+        np.nan_to_num(n_cam * np.array([-1.0, -1.0, 1.0])),
+    )
+    sign = np.ones(n)
+    for g in np.unique(labels):
+        idx = [int(i) for i in np.nonzero((labels == g) & ok)[0]]
+        if not idx:
+            continue
+        if len(idx) == 1:
+            resolved[idx[0]] = bool(tilt_deg[idx[0]] < 2.0)
+            continue
+        best, best_sc = None, -1.0
+        if len(idx) <= 12:
+            for code in range(1 << (len(idx) - 1)):
+                sg = np.array(
+                    [1.0] + [(-1.0 if (code >> j) & 1 else 1.0) for j in range(len(idx) - 1)]
+                )
+                vecs = np.where(sg[:, None] > 0, n_base[idx], n_flip[idx])
+                sc = float(np.linalg.norm(vecs.sum(axis=0)))
+                if sc > best_sc:
+                    best, best_sc = sg, sc
+        else:
+            sg = np.ones(len(idx))
+            for _ in range(5):
+                for j in range(len(idx)):
+                    rest = np.where(sg[:, None] > 0, n_base[idx], n_flip[idx]).sum(axis=0)
+                    rest -= n_base[idx[j]] if sg[j] > 0 else n_flip[idx[j]]
+                    sg[j] = 1.0 if n_base[idx[j]] @ rest >= n_flip[idx[j]] @ rest else -1.0
+            best = sg
+        assert best is not None
+        sign[idx] = best
+        resolved[idx] = True
+    shift = (a**2 / f) * sin_t * cos_t
+    bias[:, 0] = np.where(ok & resolved, sign * shift * m[:, 0], 0.0)
+    bias[:, 1] = np.where(ok & resolved, sign * shift * m[:, 1], 0.0)
+    bias[:, 2] = np.where(ok, shape[:, 2] * (a / f) ** 2 * sin_t**2 / 2.0, 0.0)
+    return bias, tilt_deg, resolved
 
 
 def _meta_float(meta: dict[str, str], key: str) -> float | None:
@@ -363,21 +487,41 @@ def extract_touchups(
     rep = []
     for k, fr in enumerate(seg_frames):
         b = finals[k]
-        cand = [i for i in b if found[i]] or [i for i in fr if still[i] and found[i]]
-        cand = cand or [i for i in fr if still[i]] or list(fr)
-        rep.append(cand[-1])
+        pick = [int(i) for i in b if found[i]] or [int(i) for i in fr if still[i] and found[i]]
+        pick = pick or [int(i) for i in fr if still[i]] or [int(i) for i in fr]
+        rep.append(pick[-1])
     labels, p_pin = _group_targets(T[np.array(rep)], config)
     seg_pairs: dict[int, list[int]] = {}
-    for idx, (k, _, _) in enumerate(pairs):
-        seg_pairs.setdefault(int(labels[k]), []).append(idx)
+    for ip, (k, _, _) in enumerate(pairs):
+        seg_pairs.setdefault(int(labels[k]), []).append(ip)
     J_target: dict[int, np.ndarray] = {}
-    for g, idx in seg_pairs.items():
-        if len(idx) >= config.min_pairs_per_target:
-            Jg = estimate_jacobian(dF_all[idx], dm_all[idx])
+    for g, members in seg_pairs.items():
+        if len(members) >= config.min_pairs_per_target:
+            Jg = estimate_jacobian(dF_all[members], dm_all[members])
             if Jg is not None and np.all(np.isfinite(Jg)):
                 J_target[g] = Jg
 
-    # 5. per touch-up rows
+    # 5. averaged final captures, the tilt bias, then one row per touch-up
+    s_minor = df["s_minor"].to_numpy(float)
+    ang2 = 2.0 * df["angle"].to_numpy(float)
+    uses = []
+    shape = np.full((n_seg, 5), np.nan)  # u, v, s, s_minor, long-axis angle
+    for k in range(n_seg):
+        b = finals[k]
+        use_k = [int(i) for i in b if good[i]] or [int(i) for i in b if found[i]]
+        uses.append(use_k)
+        if use_k:
+            shape[k] = [
+                np.mean(u[use_k]),
+                np.mean(v[use_k]),
+                np.mean(s[use_k]),
+                np.mean(s_minor[use_k]),
+                0.5 * np.arctan2(np.mean(np.sin(ang2[use_k])), np.mean(np.cos(ang2[use_k]))),
+            ]
+    T_rep = np.array([T[uses[k][-1]] if uses[k] else T[rep[k]] for k in range(n_seg)])
+    bias, tilt_deg, resolved = tilt_bias(shape, T_rep, labels, J_global, s0)
+    if not config.tilt_correction:
+        bias[:] = 0.0
     out: list[dict[str, Any]] = []
     for k, fr in enumerate(seg_frames):
         b = finals[k]
@@ -420,7 +564,9 @@ def extract_touchups(
             mv = float(np.mean(v[use]))
             ms = float(np.mean(s[use]))
             conv = abs(mu - u0) <= thr and abs(mv - v0) <= thr and abs(ms - s0) <= thr_s
-            e_T = np.array([mu - u0, mv - v0, 1.0 / ms - 1.0 / s0])
+            # the image of the circle's centre, and the size an untilted target would show
+            mu_c, mv_c, ms_c = mu + bias[k, 0], mv + bias[k, 1], ms - bias[k, 2]
+            e_T = np.array([mu_c - u0, mv_c - v0, 1.0 / ms_c - 1.0 / s0])
             try:
                 d = -np.linalg.solve(Jk, e_T)
             except np.linalg.LinAlgError:
@@ -449,6 +595,11 @@ def extract_touchups(
             if use
             else False,
             weight=1.0,
+            tilt_deg=float(tilt_deg[k]),
+            tilt_resolved=bool(resolved[k]),
+            bias_u_px=float(bias[k, 0]),
+            bias_v_px=float(bias[k, 1]),
+            bias_s_px=float(bias[k, 2]),
         )
         out.append(row)
     table = pd.DataFrame(out)
