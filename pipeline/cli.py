@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import importlib
 import importlib.util
+import os
 import sys
 from typing import Any
 
@@ -82,3 +83,16 @@ def main(argv: list[str] | None = None) -> Any:
     except KeyboardInterrupt:
         click.echo("vtcal: interrupted; finished artefacts are intact", err=True)
         sys.exit(130)
+    except Exception as exc:  # a bug, not bad input: one line, traceback on request
+        if os.environ.get("VTCAL_DEBUG"):
+            raise
+        where = exc.__traceback__
+        while where is not None and where.tb_next is not None:
+            where = where.tb_next
+        loc = f" ({where.tb_frame.f_code.co_filename}:{where.tb_lineno})" if where else ""
+        click.echo(
+            f"vtcal: internal error: {type(exc).__name__}: {exc}{loc}; "
+            "set VTCAL_DEBUG=1 for the traceback and please report it",
+            err=True,
+        )
+        sys.exit(70)

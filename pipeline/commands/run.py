@@ -1,0 +1,88 @@
+"""``vtcal run``: one recording through every stage, into one run folder."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import click
+
+from pipeline.commands._common import distance_option, echo_summary, progress_bars, set_option
+from pipeline.orchestrator import STAGES, RunConfig, run_pipeline
+
+
+@click.command(
+    "run",
+    epilog="""\b
+Examples:
+  vtcal run datasets/samples/sample_lrmate.mcap --out runs/sample
+  vtcal run rec.mcap --out runs/rec --until touchups      # stop after extraction
+  vtcal run rec.mcap --out runs/rec --model all           # fit every error model
+  vtcal run rec.mcap --out runs/rec --set polarity=light_on_dark --distance 0:2=0.25
+""",
+)
+@click.argument("recording", type=click.Path(dir_okay=False, path_type=Path))
+@click.option(
+    "--out",
+    "-o",
+    type=click.Path(file_okay=False, path_type=Path),
+    required=True,
+    help="Run folder to write the artefacts into (created).",
+)
+@click.option("--until", type=click.Choice(STAGES), default=None, help="Stop after this stage.")
+@click.option("--force", is_flag=True, help="Re-run every stage even if its outputs are fresh.")
+@click.option(
+    "--model", default=None, help="Error model to identify (see `vtcal identify --help`), or 'all'."
+)
+@distance_option
+@set_option
+@click.option("--image-topic", default=None, help="Image topic (default: auto-detect).")
+@click.option("--joint-topic", default="/joint_states", show_default=True)
+@click.option("--description-topic", default="/robot_description", show_default=True)
+@click.option("--base-link", default=None, help="URDF base link (overrides the metadata).")
+@click.option("--flange-link", default=None, help="URDF flange link (overrides the metadata).")
+@click.option("--no-report", is_flag=True, help="Skip report.html and run.rrd.")
+@click.option("--quiet", "-q", is_flag=True, help="No progress bars.")
+def command(
+    recording: Path,
+    out: Path,
+    until: str | None,
+    force: bool,
+    model: str | None,
+    distance: tuple[str, ...],
+    overrides: dict[str, str],
+    image_topic: str | None,
+    joint_topic: str,
+    description_topic: str,
+    base_link: str | None,
+    flange_link: str | None,
+    no_report: bool,
+    quiet: bool,
+) -> None:
+    """Calibrate from RECORDING (an MCAP file per shared/spec/recording.md).
+
+    Writes into --out one Parquet artefact per stage (frames, detections,
+    touchups, inliers, parameters, residuals, targets, crossval), calibrated.urdf
+    with the virtual pin, report.html and run.rrd. Stages whose inputs and
+    options are unchanged are skipped.
+    """
+    overrides = dict(overrides)
+    if base_link:
+        overrides["base_link"] = base_link
+    if flange_link:
+        overrides["flange_link"] = flange_link
+    if distance:
+        overrides["known_distances"] = ";".join(distance)
+    stage_options: dict[str, dict[str, object]] = {}
+    if model:
+        stage_options["identify"] = {"model": model}
+    cfg = RunConfig(
+        image_topic=image_topic,
+        joint_topic=joint_topic,
+        description_topic=description_topic,
+        overrides=overrides,
+        stage_options=stage_options,
+        report=not no_report,
+    )
+    with progress_bars(enabled=not quiet) as progress:
+        result = run_pipeline(recording, out, cfg, until=until, force=force, progress=progress)
+    echo_summary(result)

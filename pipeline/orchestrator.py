@@ -1,0 +1,339 @@
+"""The run orchestrator: stages in order, their artefacts on disk, content-based caching.
+
+This is the one place (with :mod:`pipeline.artefacts`) where a run touches the
+disk. Each stage is a pure function called here; its output artefacts carry in
+their Parquet metadata the hashes of the inputs they were made from, a hash of
+the stage's configuration and the package version. A stage whose outputs exist
+and whose recorded inputs, configuration and version all match is skipped
+(``force=True`` re-runs everything).
+
+Stages, in order (``--until`` stops after the named one)::
+
+    ingest     recording.mcap -> frames.parquet, detections.parquet, recording.json
+    touchups   frames, detections -> touchups.parquet
+    outliers   touchups -> inliers.parquet
+    identify   inliers -> parameters.parquet, residuals.parquet, targets.parquet,
+               calibrated.urdf, identify.json
+    crossval   inliers -> crossval.parquet
+    report     every artefact -> report.html, run.rrd
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from pipeline import __version__
+from pipeline.artefacts import (
+    atomic_write_bytes,
+    config_hash,
+    file_hash,
+    read_meta,
+)
+from pipeline.errors import BadInput
+from pipeline.known_distances import parse_distances
+
+STAGES = ("ingest", "touchups", "outliers", "identify", "crossval", "report")
+
+#: Reports progress of a long stage: ``(stage, done, total or None)``.
+Progress = Callable[[str, int, int | None], None]
+
+
+@dataclass
+class StageRecord:
+    """What happened to one stage in a run."""
+
+    stage: str
+    status: str  # "ran", "cached", "skipped"
+    outputs: list[str] = field(default_factory=list)
+    seconds: float = 0.0
+    note: str = ""
+
+
+@dataclass
+class RunResult:
+    """Everything the CLI prints at the end of a run."""
+
+    out_dir: Path
+    stages: list[StageRecord]
+    summary: dict[str, Any]
+
+
+def _jsonable(obj: Any) -> Any:
+    """JSON form of configs and summaries; numpy arrays (bulk data) are left out."""
+    import numpy as np
+
+    if dataclasses.is_dataclass(obj) and not isinstance(obj, type):
+        return {
+            f.name: _jsonable(getattr(obj, f.name))
+            for f in dataclasses.fields(obj)
+            if not isinstance(getattr(obj, f.name), np.ndarray)
+        }
+    if isinstance(obj, np.generic):
+        return obj.item()
+    if isinstance(obj, Mapping):
+        return {str(k): _jsonable(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [_jsonable(v) for v in obj]
+    if isinstance(obj, Path):
+        return str(obj)
+    return obj
+
+
+def write_json(path: Path, obj: Any) -> None:
+    """Atomically write a JSON side file (sorted keys: byte-stable)."""
+    atomic_write_bytes(path, (json.dumps(_jsonable(obj), indent=1, sort_keys=True) + "\n").encode())
+
+
+def is_fresh(outputs: list[Path], inputs: Mapping[str, str], config: Mapping[str, Any]) -> bool:
+    """True when every output exists and its Parquet metadata records these inputs and config.
+
+    Non-Parquet outputs only need to exist; they are written after the stage's
+    Parquet artefacts, so their presence plus a fresh Parquet means the stage finished.
+    """
+    want_cfg = config_hash(config)
+    parquet = [p for p in outputs if p.suffix == ".parquet"]
+    if not all(p.exists() for p in outputs) or not parquet:
+        return False
+    for p in parquet:
+        try:
+            meta = read_meta(p)
+        except Exception:
+            return False
+        if (
+            meta.get("version") != __version__
+            or meta.get("config_hash") != want_cfg
+            or json.loads(meta.get("inputs", "{}")) != dict(inputs)
+        ):
+            return False
+    return True
+
+
+def hashes(paths: Mapping[str, Path]) -> dict[str, str]:
+    """``{name: file hash}`` of existing input files."""
+    missing = [str(p) for p in paths.values() if not p.exists()]
+    if missing:
+        raise BadInput(f"missing input artefact(s): {', '.join(missing)}")
+    return {name: file_hash(p) for name, p in sorted(paths.items())}
+
+
+@dataclass
+class RunConfig:
+    """Options of ``vtcal run`` that change what the stages compute.
+
+    ``overrides`` replace keys of the recording's ``touchup`` metadata
+    (``base_link``, ``polarity``, ``known_distances``, ...). ``stage_options``
+    holds per-stage keyword overrides for the stage config dataclasses
+    (``{"identify": {"model": "full"}}``).
+    """
+
+    image_topic: str | None = None
+    joint_topic: str = "/joint_states"
+    description_topic: str = "/robot_description"
+    overrides: dict[str, str] = field(default_factory=dict)
+    stage_options: dict[str, dict[str, Any]] = field(default_factory=dict)
+    report: bool = True
+
+
+def run_paths(out: Path) -> dict[str, Path]:
+    """The files a run folder holds (see ``../shared/spec/outputs.md``)."""
+    names = {
+        "recording": "recording.json",
+        "frames": "frames.parquet",
+        "detections": "detections.parquet",
+        "touchups": "touchups.parquet",
+        "inliers": "inliers.parquet",
+        "parameters": "parameters.parquet",
+        "residuals": "residuals.parquet",
+        "targets": "targets.parquet",
+        "calibrated_urdf": "calibrated.urdf",
+        "identify": "identify.json",
+        "crossval": "crossval.parquet",
+        "report": "report.html",
+        "rrd": "run.rrd",
+        "run": "run.json",
+    }
+    return {k: out / v for k, v in names.items()}
+
+
+def _build(cls: Any, options: Mapping[str, Any], **base: Any) -> Any:
+    """Instantiate a stage config dataclass from defaults, ``base`` and user ``options``."""
+    names = {f.name for f in dataclasses.fields(cls)}
+    unknown = set(options) - names
+    if unknown:
+        raise BadInput(f"unknown option(s) for {cls.__name__}: {', '.join(sorted(unknown))}")
+    return cls(**{k: v for k, v in base.items() if k in names}, **dict(options))
+
+
+def run_pipeline(
+    recording: Path,
+    out: Path,
+    config: RunConfig | None = None,
+    *,
+    until: str | None = None,
+    force: bool = False,
+    progress: Progress | None = None,
+) -> RunResult:
+    """Run every stage on one recording, writing artefacts into ``out``.
+
+    Parameters
+    ----------
+    recording : MCAP file (``../shared/spec/recording.md``)
+    out : run folder (created)
+    config : stage options; defaults are the embedded defaults
+    until : last stage to run (one of :data:`STAGES`)
+    force : re-run stages even when their cached outputs are fresh
+    progress : callback for progress bars
+
+    Returns
+    -------
+    RunResult with one :class:`StageRecord` per stage and the identification summary.
+    """
+    import time
+
+    import pandas as pd
+
+    from pipeline.artefacts import read_artefact, write_artefact
+
+    cfg = config or RunConfig()
+    if until is not None and until not in STAGES:
+        raise BadInput(f"--until {until!r}: not a stage (stages: {', '.join(STAGES)})")
+    last = STAGES.index(until) if until else len(STAGES) - 1
+    recording = Path(recording)
+    if not recording.is_file():
+        raise BadInput(f"{recording}: no such recording file")
+    from pipeline.stages import detect, identify, ingest, outliers, touchup
+
+    out.mkdir(parents=True, exist_ok=True)
+    P = run_paths(out)
+    records: list[StageRecord] = []
+    opts = cfg.stage_options
+
+    def stage(name: str, outputs: list[Path], inputs: dict[str, str], conf: Any, fn: Any) -> None:
+        conf_dict = {"stage": name, "config": _jsonable(conf)}
+        t0 = time.perf_counter()
+        if not force and is_fresh(outputs, inputs, conf_dict):
+            records.append(StageRecord(name, "cached", [p.name for p in outputs]))
+            return
+        fn(conf_dict)
+        records.append(
+            StageRecord(name, "ran", [p.name for p in outputs], time.perf_counter() - t0)
+        )
+
+    # -- ingest + detection (one streaming pass over the recording) --------------
+    ingest_cfg = _build(
+        ingest.IngestConfig,
+        opts.get("ingest", {}),
+        image_topic=cfg.image_topic,
+        joint_topic=cfg.joint_topic,
+        description_topic=cfg.description_topic,
+        overrides=dict(cfg.overrides),
+    )
+    detect_cfg = _build(detect.DetectConfig, opts.get("detect", {}))
+    rec_inputs = {"recording": file_hash(recording)}
+
+    def do_ingest(conf: dict[str, Any]) -> None:
+        def cb(done: int, total: int | None) -> None:
+            if progress:
+                progress("ingest", done, total)
+
+        frames, detections, info = ingest.ingest_recording(
+            recording, ingest_cfg, detect_cfg, progress=cb
+        )
+        joint_meta = {"joint_names": json.dumps(list(info.joint_names))}
+        write_artefact(
+            P["frames"],
+            frames,
+            "frames",
+            stage="ingest",
+            config=conf,
+            inputs=rec_inputs,
+            extra_meta=joint_meta,
+        )
+        write_artefact(
+            P["detections"],
+            detections,
+            "detections",
+            stage="ingest",
+            config=conf,
+            inputs=rec_inputs,
+        )
+        write_json(P["recording"], info)
+
+    stage(
+        "ingest",
+        [P["frames"], P["detections"], P["recording"]],
+        rec_inputs,
+        {"ingest": ingest_cfg, "detect": detect_cfg},
+        do_ingest,
+    )
+    if last < STAGES.index("touchups"):
+        return _finish(out, P, records)
+
+    info = ingest.RecordingInfo(**json.loads(P["recording"].read_text()))
+
+    # -- touch-up extraction ---------------------------------------------------
+    touchup_cfg = _build(touchup.TouchupConfig, opts.get("touchups", {}))
+    tu_inputs = hashes({"frames": P["frames"], "detections": P["detections"]})
+
+    def do_touchups(conf: dict[str, Any]) -> None:
+        frames = read_artefact(P["frames"], "frames")
+        detections = read_artefact(P["detections"], "detections")
+        table = touchup.extract_touchups(frames, detections, info, touchup_cfg)
+        write_artefact(
+            P["touchups"], table, "touchups", stage="touchups", config=conf, inputs=tu_inputs
+        )
+
+    stage("touchups", [P["touchups"]], tu_inputs, touchup_cfg, do_touchups)
+    if last < STAGES.index("outliers"):
+        return _finish(out, P, records)
+
+    # -- outlier rejection -------------------------------------------------------
+    out_cfg = _build(outliers.OutlierConfig, opts.get("outliers", {}))
+    ol_inputs = hashes({"touchups": P["touchups"]})
+
+    def do_outliers(conf: dict[str, Any]) -> None:
+        table = read_artefact(P["touchups"], "touchups")
+        flagged = outliers.flag_outliers(table, info, out_cfg)
+        write_artefact(
+            P["inliers"], flagged, "inliers", stage="outliers", config=conf, inputs=ol_inputs
+        )
+
+    stage("outliers", [P["inliers"]], ol_inputs, out_cfg, do_outliers)
+    if last < STAGES.index("identify"):
+        return _finish(out, P, records)
+
+    # -- identification ----------------------------------------------------------
+    id_cfg = _build(
+        identify.IdentifyConfig,
+        opts.get("identify", {}),
+        distances=parse_distances(info.metadata.get("known_distances", "")),
+    )
+    id_inputs = hashes({"inliers": P["inliers"]})
+
+    def do_identify(conf: dict[str, Any]) -> None:
+        table = read_artefact(P["inliers"], "inliers")
+        result = identify.identify(table, info.urdf, info.base_link, info.flange_link, id_cfg)
+        identify.write_outputs(result, out, stage_config=conf, inputs=id_inputs)
+
+    stage(
+        "identify",
+        [P["parameters"], P["residuals"], P["targets"], P["calibrated_urdf"], P["identify"]],
+        id_inputs,
+        id_cfg,
+        do_identify,
+    )
+    del pd
+    return _finish(out, P, records)
+
+
+def _finish(out: Path, P: dict[str, Path], records: list[StageRecord]) -> RunResult:
+    summary: dict[str, Any] = {}
+    if P["identify"].exists():
+        summary = json.loads(P["identify"].read_text())
+    write_json(P["run"], {"version": __version__, "stages": records})
+    return RunResult(out, records, summary)

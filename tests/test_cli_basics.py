@@ -1,0 +1,57 @@
+"""CLI plumbing: help everywhere, one-line errors with exit codes, known-distance parsing."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+
+import pytest
+from click.testing import CliRunner
+
+from pipeline.cli import COMMANDS, cli, main
+from pipeline.errors import BadInput
+from pipeline.known_distances import parse_distances
+
+
+def test_help_lists_available_commands() -> None:
+    res = CliRunner().invoke(cli, ["--help"])
+    assert res.exit_code == 0
+    available = cli.list_commands(None)  # type: ignore[arg-type]
+    assert available, "no command modules found"
+    for name in available:
+        assert name in res.output
+
+
+@pytest.mark.parametrize("name", sorted(COMMANDS))
+def test_every_command_has_help(name: str) -> None:
+    if name not in cli.list_commands(None):  # type: ignore[arg-type]
+        pytest.skip(f"command {name} not built yet")
+    res = CliRunner().invoke(cli, [name, "--help"])
+    assert res.exit_code == 0, res.output
+    assert "Usage: " in res.output and len(res.output.splitlines()) > 4
+
+
+def test_module_entry_point_runs() -> None:
+    out = subprocess.run(
+        [sys.executable, "-m", "pipeline", "--version"], capture_output=True, text=True, check=True
+    )
+    assert "vtcal" in out.stdout
+
+
+def test_vtcal_error_is_one_line_with_exit_code(capsys: pytest.CaptureFixture[str]) -> None:
+    if "run" not in cli.list_commands(None):  # type: ignore[arg-type]
+        pytest.skip("run not built yet")
+    with pytest.raises(SystemExit) as exc:
+        main(["run", "/nonexistent/rec.mcap", "--out", "/tmp/vtcal-never", "-q"])
+    assert exc.value.code == BadInput.exit_code
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "/nonexistent/rec.mcap" in err[0]
+
+
+def test_parse_distances() -> None:
+    assert parse_distances("0:2=0.725946") == [(0, 2, 0.725946)]
+    assert parse_distances("a:b=1; 0:1=0.5") == [("a", "b", 1.0), (0, 1, 0.5)]
+    assert parse_distances("") == []
+    for bad in ("0:2", "0=1", "0:2=-1", "0:2=x", ":2=1"):
+        with pytest.raises(BadInput, match="expected A:B=METRES"):
+            parse_distances(bad)
