@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import os
 from collections.abc import Iterable, Sequence
+from typing import Any
 
 import cv2
 import numpy as np
@@ -79,7 +80,7 @@ def write_recording(
     """
     compressed = encoding in ("png", "jpeg")
     topic = image_topic or ("/camera/image_raw/compressed" if compressed else "/camera/image_raw")
-    events: list[tuple[int, int, str, object]] = []
+    events: list[tuple[int, int, str, tuple[int, Any]]] = []
     for t, q in joints:
         events.append((int(t) + 2_000_000, 1, "js", (int(t), np.asarray(q, dtype=float))))
     for t, img in images:
@@ -99,7 +100,8 @@ def write_recording(
                 "/robot_description", s_str, {"data": urdf}, log_time=t0, publish_time=t0
             )
         for seq, (log_t, _, kind, payload) in enumerate(events):
-            t, data = payload  # type: ignore[misc]
+            t, data = payload
+            msg: dict[str, Any]
             if kind == "js":
                 msg = {
                     "header": {"stamp": _stamp(t), "frame_id": ""},
