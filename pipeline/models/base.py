@@ -223,14 +223,21 @@ def rotation(R: ArrayLike) -> F64:
 
 
 def motion(axis: F64, prismatic: bool, qk: F64) -> F64:
-    """Joint motion ``M(q)`` for a batch ``(N,) -> (N, 4, 4)``."""
+    """Joint motion ``M(q)`` for a batch ``(N,) -> (N, 4, 4)``.
+
+    Revolute: ``Rot(a, q) = I + sin(q) K + (1 - cos(q)) K^2`` with ``K = [a]_x``
+    (Rodrigues); prismatic: ``Trans(q a)``.
+    """
     M = np.zeros(qk.shape + (4, 4))
     M[:, 3, 3] = 1.0
     if prismatic:
-        M[:, :3, :3] = np.eye(3)
+        M[:, 0, 0] = M[:, 1, 1] = M[:, 2, 2] = 1.0
         M[:, :3, 3] = qk[:, None] * axis
     else:
-        M[:, :3, :3] = matrix_from_axis_angle(axis, qk)
+        K = np.array([[0.0, -axis[2], axis[1]], [axis[2], 0.0, -axis[0]], [-axis[1], axis[0], 0.0]])
+        M[:, :3, :3] = (
+            np.eye(3) + np.sin(qk)[:, None, None] * K + (1.0 - np.cos(qk))[:, None, None] * (K @ K)
+        )
     return M
 
 
@@ -250,8 +257,13 @@ def point_motion(T_base_F: F64, twists: F64, p_base: F64) -> F64:
     R = T_base_F[:, :3, :3]
     v = R @ twists[..., :3, :]
     w = R @ twists[..., 3:, :]
-    d = (p_base - T_base_F[:, :3, 3])[:, :, None]
-    return v + np.cross(w, d, axis=1)
+    d = p_base - T_base_F[:, :3, 3]
+    dx, dy, dz = d[:, 0, None], d[:, 1, None], d[:, 2, None]
+    out = np.empty_like(v)
+    out[:, 0] = v[:, 0] + w[:, 1] * dz - w[:, 2] * dy
+    out[:, 1] = v[:, 1] + w[:, 2] * dx - w[:, 0] * dz
+    out[:, 2] = v[:, 2] + w[:, 0] * dy - w[:, 1] * dx
+    return out
 
 
 def rmul(T: F64, C: F64) -> F64:

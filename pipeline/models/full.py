@@ -65,13 +65,16 @@ class FullOriginModel(ErrorModel):
                 if c == "dq0" and L.prismatic[k]:
                     unit = "m"
                 self.param_units.append(unit)
+        self._k_idx = np.array([k for (k, _c) in self._slot], dtype=np.int64)
+        self._c_idx = np.array([COMPONENTS.index(c) for (_k, c) in self._slot], dtype=np.int64)
+        # among exactly dependent columns keep the zero offset (pivoting tie-break)
+        self.param_priority = np.array(
+            [1.05 if n.endswith(".dq0") else 1.0 for n in self.param_names]
+        )
 
     def _unpack(self, x: ArrayLike) -> tuple[F64, F64, F64]:
-        x = np.asarray(x, dtype=float)
-        n = self.layout.n
-        full = np.zeros((n, 7))
-        for (k, c), i in self._slot.items():
-            full[k, COMPONENTS.index(c)] = x[i]
+        full = np.zeros((self.layout.n, 7))
+        full[self._k_idx, self._c_idx] = np.asarray(x, dtype=float)
         return full[:, :3], full[:, 3:6], full[:, 6]
 
     def _fixed_part(self, k: int, d: F64, r: F64) -> F64:

@@ -1,0 +1,882 @@
+"""Identification: from converged touch-ups to a calibrated robot.
+
+Measurement model (one row ``i`` per converged touch-up of target ``k``)::
+
+    T_base_flange(q_i; x) @ (p_flange_pin + d_i) = p_base_target[k]          (1)
+
+with ``x`` the error model's kinematic corrections (:mod:`pipeline.models`),
+``p_flange_pin`` the virtual pin, ``d_i`` the residual correction
+``(dx, dy, dz)_flange`` of the touch-up (``../shared/spec/touchups.md``) and
+every target position unknown. A known distance ``D`` between targets ``A``
+and ``B`` adds the residual ``w_D (|p_A - p_B| - D)`` with a strong weight
+``w_D``. Rows are weighted by ``sqrt(weight)``.
+
+Solver: Levenberg-Marquardt (MINPACK through ``scipy.optimize.least_squares``;
+TRF when a robust loss is asked for) with the analytic Jacobian of (1):
+``d/dx`` from the model, ``d/dp_pin = R_base_flange``, ``d/dp_target = -I``.
+Radian parameters are scaled by the working radius ``L`` (``x_scale = 1/L``)
+so a radian and the metre it moves the pin by weigh alike. The pin and targets
+start from the exact linear least-squares solution of (1) at nominal kinematics.
+
+Identifiability: the scaled kinematic columns, with the pin and target columns
+projected out, go through a QR factorisation with column pivoting (Businger &
+Golub 1965; the base-parameter method of Gautier & Khalil 1990 / Hollerbach &
+Wampler 1996). Columns whose pivot is below ``rank_tol`` times the largest are
+held at nominal and named with a reason: absorbed by the targets or the pin
+(base frame, pin against the last joint), the length scale without a known
+distance, or redundant with named identified parameters.
+
+Uncertainty: ``cov = sigma^2 (J^T J)^-1`` over the estimated unknowns with
+``sigma^2 = |r|^2 / (m - p)``; standard errors, the correlation matrix, and the
+pin position error the covariance predicts over poses spread through the
+touched volume (``sqrt(mean trace(J_w cov J_w^T))``). A covariance sees only
+random error: systematic input errors are invisible to it.
+
+Observability indices O1..O5 (:mod:`pipeline.models.observability`) of the
+reduced Jacobian are recorded with its condition number.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import time
+from dataclasses import dataclass, field
+from functools import lru_cache
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pandas as pd
+import scipy.linalg
+from scipy.optimize import least_squares
+
+from pipeline.errors import BadInput, CalibrationFailed
+from pipeline.evaluate import workspace_poses
+from pipeline.kinematics.chain import Chain, load_chain
+from pipeline.kinematics.se3 import F64
+from pipeline.kinematics.urdf_write import write_calibrated_urdf
+from pipeline.models import get_model, model_names
+from pipeline.models.base import ErrorModel
+from pipeline.models.observability import indices_from_singular_values, project_out
+
+DEFAULT_MODEL = "full"
+
+
+@dataclass
+class IdentifyConfig:
+    """Identification settings.
+
+    Attributes
+    ----------
+    model : error model name (``full``, ``mdh``, ``poe``, ``offsets``) or ``all``
+    distances : known distances ``(label A, label B, metres)`` between targets
+    robust_loss : ``scipy.optimize.least_squares`` loss (``linear``, ``soft_l1``, ``huber``, ``cauchy``, ...)
+    f_scale : soft threshold of a robust loss, metres of pin residual
+    distance_weight : weight of a known-distance residual relative to a touch-up row
+    rank_tol : relative pivot threshold below which a parameter is structurally unidentifiable
+    data_tol : relative pivot threshold below which these touch-ups do not excite a parameter
+    max_nfev : iteration budget of the solver
+    n_workspace : poses over which the predicted error is evaluated
+    seed : seed of those poses
+    """
+
+    model: str = DEFAULT_MODEL
+    distances: list[tuple[int | str, int | str, float]] = field(default_factory=list)
+    robust_loss: str = "linear"
+    f_scale: float = 1e-4
+    distance_weight: float = 100.0
+    rank_tol: float = 1e-8
+    data_tol: float = 1e-6
+    max_nfev: int = 200
+    n_workspace: int = 200
+    seed: int = 0
+
+
+@dataclass
+class IdentifyResult:
+    """Everything identification produces for one error model.
+
+    Attributes
+    ----------
+    model : error model name
+    parameters, residuals, targets : artefact tables (``schemas/NAME.json``)
+    calibrated_urdf : nominal URDF with the corrections in its joint origins and the virtual pin
+    summary : JSON-able figures (see :func:`identify`)
+    chain : calibrated chain, base link to flange link
+    p_flange_pin : (3,) identified virtual pin, flange frame
+    x : (P,) model parameters (held ones 0)
+    """
+
+    model: str
+    parameters: pd.DataFrame
+    residuals: pd.DataFrame
+    targets: pd.DataFrame
+    calibrated_urdf: str
+    summary: dict[str, Any]
+    chain: Chain
+    p_flange_pin: F64
+    x: F64 = field(repr=False, default_factory=lambda: np.zeros(0))
+
+
+# ----------------------------------------------------------------------------- input
+
+
+@dataclass
+class _Data:
+    """The rows that enter the fit, and bookkeeping for every input row."""
+
+    q: F64  # (N, n) used rows
+    d: F64  # (N, 3)
+    sw: F64  # (N,) sqrt weights
+    tk: np.ndarray  # (N,) target index 0..K-1 among used targets
+    K: int
+    target_ids: list[int]  # per used target index
+    target_labels: list[str]
+    dist: list[tuple[int, int, float]]  # (target index A, B, metres)
+    dropped_distances: list[str]
+    rows: (
+        pd.DataFrame
+    )  # every input row: touchup_id, target_id, target_label, used, reason, weight, q...
+    used_idx: np.ndarray  # positions of used rows in ``rows``
+    q_all: F64  # (M, n) all rows (NaN where missing)
+    d_all: F64
+    tk_all: np.ndarray  # target index per row (-1 if target not used)
+
+
+def _prepare(touchups: pd.DataFrame, chain: Chain, config: IdentifyConfig) -> _Data:
+    df = touchups.reset_index(drop=True)
+    names = chain.joint_names
+    missing = [c for c in ("touchup_id", "target_id", *names) if c not in df.columns]
+    if missing:
+        raise BadInput(
+            f"touch-up table: missing column(s) {missing} (joints of the chain: {names}; "
+            f"columns: {list(df.columns)})"
+        )
+    M = len(df)
+    q_all = df[names].to_numpy(dtype=float)
+    d_all = np.zeros((M, 3))
+    for i, c in enumerate(("dx_flange", "dy_flange", "dz_flange")):
+        if c in df.columns:
+            d_all[:, i] = df[c].to_numpy(dtype=float)
+    w = df["weight"].to_numpy(dtype=float) if "weight" in df.columns else np.ones(M)
+    reason = [[] for _ in range(M)]  # type: list[list[str]]
+    if "converged" in df.columns:
+        for i in np.flatnonzero(~df["converged"].fillna(False).to_numpy(dtype=bool)).tolist():
+            reason[i].append("not converged")
+    if "inlier" in df.columns:
+        rej = df["reason"].astype(str).to_numpy() if "reason" in df.columns else None
+        for i in np.flatnonzero(~df["inlier"].fillna(False).to_numpy(dtype=bool)).tolist():
+            extra = f" ({rej[i]})" if rej is not None and rej[i] not in ("", "nan", "None") else ""
+            reason[i].append("rejected as outlier" + extra)
+    for i in np.flatnonzero(~(w > 0)).tolist():
+        reason[i].append("weight not positive")
+    for i in np.flatnonzero(~np.all(np.isfinite(q_all), axis=1)).tolist():
+        reason[i].append("joint position missing")
+    for i in np.flatnonzero(~np.all(np.isfinite(d_all), axis=1)).tolist():
+        reason[i].append("correction missing")
+        d_all[i] = 0.0
+    used = np.array([not r for r in reason], dtype=bool)
+
+    raw_labels = df["target_id"].tolist()
+    order: list[Any] = []
+    for lab in raw_labels:
+        if lab not in order and not (isinstance(lab, float) and math.isnan(lab)):
+            order.append(lab)
+    all_int = all(
+        isinstance(v, (int, np.integer)) or (isinstance(v, float) and v.is_integer()) for v in order
+    )
+    tid_of = {lab: (int(lab) if all_int else i) for i, lab in enumerate(order)}
+    row_tid = np.array([tid_of.get(lab, -1) for lab in raw_labels], dtype=np.int64)
+    row_label = [str(int(lab)) if all_int and lab in tid_of else str(lab) for lab in raw_labels]
+    for i in np.flatnonzero(row_tid < 0).tolist():
+        reason[i].append("no target label")
+        used[i] = False
+
+    used_labels = [lab for lab in order if np.any(used & (row_tid == tid_of[lab]))]
+    k_of = {tid_of[lab]: k for k, lab in enumerate(used_labels)}
+    tk_all = np.array([k_of.get(int(t), -1) for t in row_tid], dtype=np.int64)
+    label_text = [str(int(lab)) if all_int else str(lab) for lab in used_labels]
+    all_text = {(str(int(lab)) if all_int else str(lab)) for lab in order}
+
+    dist: list[tuple[int, int, float]] = []
+    dropped: list[str] = []
+    for a, b, metres in config.distances:
+        sa, sb = str(a), str(b)
+        for s in (sa, sb):
+            if s not in all_text:
+                raise BadInput(
+                    f"known distance {a}:{b}={metres}: no target {s!r} in the touch-up table "
+                    f"(targets: {sorted(all_text)})"
+                )
+        if sa == sb or not metres > 0:
+            raise BadInput(f"known distance {a}:{b}={metres}: needs two targets and metres > 0")
+        if sa in label_text and sb in label_text:
+            dist.append((label_text.index(sa), label_text.index(sb), float(metres)))
+        else:
+            dropped.append(f"{a}:{b}={metres} (a target has no usable touch-up)")
+
+    rows = pd.DataFrame(
+        {
+            "touchup_id": df["touchup_id"].to_numpy(dtype=np.int64),
+            "target_id": row_tid,
+            "target_label": row_label,
+            "used": used,
+            "reason": ["; ".join(r) for r in reason],
+            "weight": np.where(np.isfinite(w), w, 0.0),
+        }
+    )
+    ui = np.flatnonzero(used)
+    return _Data(
+        q=q_all[ui],
+        d=d_all[ui],
+        sw=np.sqrt(w[ui]),
+        tk=tk_all[ui],
+        K=len(used_labels),
+        target_ids=[tid_of[lab] for lab in used_labels],
+        target_labels=label_text,
+        dist=dist,
+        dropped_distances=dropped,
+        rows=rows,
+        used_idx=ui,
+        q_all=q_all,
+        d_all=d_all,
+        tk_all=tk_all,
+    )
+
+
+def _refuse_early(data: _Data, source_rows: int) -> None:
+    N = len(data.q)
+    if N == 0:
+        raise CalibrationFailed(
+            f"no usable touch-ups ({source_rows} rows, none converged with weight > 0 and joint "
+            "positions): add converged touch-ups"
+        )
+    if data.K < 2 and not data.dist:
+        raise CalibrationFailed(
+            f"all {N} usable touch-ups are of a single target ({data.target_labels[0]}) and no "
+            "known distance is given: touch up at least one more target (and give a known "
+            "distance with --distance A:B=METRES for absolute accuracy)"
+        )
+    if N < 2 or float(np.ptp(data.q, axis=0).max()) < 1e-6:
+        raise CalibrationFailed(
+            f"all {N} usable touch-ups have the same joint vector: add touch-ups at different "
+            "arm orientations around each target"
+        )
+
+
+# ----------------------------------------------------------------------------- problem
+
+
+class _Problem:
+    """Residuals (1) and their analytic Jacobian over ``z = [x_free, pin, targets]``."""
+
+    def __init__(
+        self,
+        model: ErrorModel,
+        data: _Data,
+        config: IdentifyConfig,
+        gauge: F64 | None = None,
+    ) -> None:
+        self.model = model
+        self.data = data
+        self.P = model.n_params
+        self.wd = float(config.distance_weight)
+        self.N = len(data.q)
+        self.gauge = gauge  # (P,) row of the scale-gauge constraint gauge @ x = 0, or None
+        self.m = 3 * self.N + len(data.dist) + (gauge is not None)
+        self.free = np.arange(self.P)
+
+    # z layout helpers
+    def split(self, z: F64) -> tuple[F64, F64, F64]:
+        nf = len(self.free)
+        x = np.zeros(self.P)
+        x[self.free] = z[:nf]
+        return x, z[nf : nf + 3], z[nf + 3 :].reshape(self.data.K, 3)
+
+    def join(self, x: F64, pin: F64, targets: F64) -> F64:
+        return np.concatenate([x[self.free], pin, targets.ravel()])
+
+    def full_eval(self, x: F64, pin: F64, targets: F64, jac: bool = True) -> tuple[F64, F64 | None]:
+        """Residual (m,) and Jacobian (m, P + 3 + 3K) over all model parameters."""
+        D = self.data
+        pts = pin + D.d
+        p, R, Jx = self.model.pin_and_jacobian(x, D.q, pts, jac=jac)
+        e = (p - targets[D.tk]) * D.sw[:, None]
+        r = np.empty(self.m)
+        r[: 3 * self.N] = e.ravel()
+        for j, (a, b, dm) in enumerate(D.dist):
+            r[3 * self.N + j] = self.wd * (np.linalg.norm(targets[a] - targets[b]) - dm)
+        if self.gauge is not None:
+            r[-1] = self.wd * float(self.gauge @ x)
+        if not jac:
+            return r, None
+        assert Jx is not None
+        ncol = self.P + 3 + 3 * D.K
+        J = np.zeros((self.m, ncol))
+        sw = D.sw[:, None, None]
+        J[: 3 * self.N, : self.P] = (Jx * sw).reshape(3 * self.N, self.P)
+        J[: 3 * self.N, self.P : self.P + 3] = (R * sw).reshape(3 * self.N, 3)
+        rows = np.arange(3 * self.N).reshape(self.N, 3)
+        for c in range(3):
+            J[rows[:, c], self.P + 3 + 3 * D.tk + c] = -D.sw
+        for j, (a, b, _) in enumerate(D.dist):
+            u = targets[a] - targets[b]
+            u = u / max(np.linalg.norm(u), 1e-12)
+            J[3 * self.N + j, self.P + 3 + 3 * a : self.P + 6 + 3 * a] = self.wd * u
+            J[3 * self.N + j, self.P + 3 + 3 * b : self.P + 6 + 3 * b] = -self.wd * u
+        if self.gauge is not None:
+            J[-1, : self.P] = self.wd * self.gauge
+        return r, J
+
+    def columns(self) -> np.ndarray:
+        """Columns of the full Jacobian that ``z`` covers."""
+        return np.concatenate([self.free, np.arange(self.P, self.P + 3 + 3 * self.data.K)])
+
+    def fun(self, z: F64) -> F64:
+        return self.full_eval(*self.split(z), jac=False)[0]
+
+    def jac(self, z: F64) -> F64:
+        J = self.full_eval(*self.split(z))[1]
+        assert J is not None
+        return J[:, self.columns()]
+
+
+def _initial_pin_targets(model: ErrorModel, data: _Data, x: F64) -> tuple[F64, F64]:
+    """Exact linear least squares of (1) for the pin and targets at fixed kinematics."""
+    N, K = len(data.q), data.K
+    p0, R, _ = model.pin_and_jacobian(x, data.q, data.d, jac=False)
+    A = np.zeros((3 * N, 3 + 3 * K))
+    A[:, :3] = R.reshape(3 * N, 3)
+    rows = np.arange(3 * N).reshape(N, 3)
+    for c in range(3):
+        A[rows[:, c], 3 + 3 * data.tk + c] = -1.0
+    b = -p0.ravel()
+    sw = np.repeat(data.sw, 3)
+    sol = np.linalg.lstsq(A * sw[:, None], b * sw, rcond=None)[0]
+    sol = np.asarray(sol, dtype=float)
+    return sol[:3], sol[3:].reshape(K, 3)
+
+
+@dataclass(frozen=True)
+class _Structure:
+    """What a model can identify from touch-ups of this robot at all."""
+
+    kept: np.ndarray  # columns identified, sorted
+    held: dict[int, str]  # column -> reason
+    gauge: F64 | None  # (P,) scale-gauge row (scaled units), None if the scale is identified
+    length: float  # characteristic length of the scaling the gauge was built in
+
+
+@lru_cache(maxsize=64)
+def _structure(
+    name: str, urdf: str, base_link: str, flange_link: str, has_dist: bool, tol: float
+) -> _Structure:
+    """Structural identifiability from exact synthetic touch-ups of the nominal robot.
+
+    Redundancies are exact only where the residuals vanish (a base rotation turns
+    a residual vector; a uniform scale shrinks it), so they are found on exact
+    touch-ups of the nominal robot: 3 targets x 15 poses spread over the joint
+    ranges, with a known distance, the Jacobian (scaled, pin and targets
+    projected out) through a pivoted QR. Without a known distance one more
+    direction is unidentifiable, the uniform scale: the model-parameter
+    direction ``v`` that, with the pin and targets, scales every pin position
+    (least squares of ``J_x v + J_pin w = p``). It is held by the gauge
+    constraint ``v . x_scaled = 0`` (the fit has no component along the scale
+    of the nominal robot) instead of holding one arbitrary length. Cached per
+    robot and model.
+    """
+    from pipeline.evaluate import synthetic_touchups
+
+    chain = load_chain(urdf, base_link, flange_link)
+    model = get_model(name)(chain)
+    rng = np.random.default_rng(20240601)
+    lo = np.where(np.isfinite(chain.lower), chain.lower, -np.pi)
+    hi = np.where(np.isfinite(chain.upper), chain.upper, np.pi)
+    p_c = np.array([0.013, -0.009, 0.15])
+    table, tg = synthetic_touchups(
+        chain, p_c, 3, 15, rng, q_centre=np.clip(0.0, lo, hi), centre_spread_rad=0.8
+    )
+    data = _prepare(table, chain, IdentifyConfig(distances=[(0, 1, 1.0)]))
+    prob = _Problem(model, data, IdentifyConfig(distance_weight=1.0))
+    P = model.n_params
+    _, J = prob.full_eval(model.zero(), p_c, tg)
+    assert J is not None
+    Lc = float(np.sqrt(np.mean(np.sum(tg**2, axis=1))))
+    pscale = np.where(np.array(model.param_units) == "rad", Lc, 1.0)
+    prio = np.asarray(getattr(model, "param_priority", np.ones(P)), dtype=float)
+    A = project_out(J[:, :P] * pscale, J[:, P:])
+    kept, held, _ = _select(A * prio, tol)
+    reasons = _held_reasons(A, kept, held, model.param_names, tol)
+    gauge = None
+    if not has_dist:
+        # scale: the direction that leaves every touch-up row unchanged but stretches the
+        # distance between targets 0 and 1 (J_x v + J_pin w + J_t u = 0, d|t0 - t1| = 1)
+        N = len(data.q)
+        B = np.concatenate([J[:, kept] * pscale[kept], J[:, P:]], axis=1)
+        rhs = np.zeros(B.shape[0])
+        rhs[3 * N] = 1.0
+        sol = np.linalg.lstsq(B, rhs, rcond=None)[0]
+        fit = np.linalg.norm(B @ sol - rhs)
+        v = sol[: len(kept)]
+        if fit < 1e-6 and np.linalg.norm(v) > 0:
+            gauge = np.zeros(P)
+            gauge[kept] = v / np.linalg.norm(v)
+    return _Structure(kept=kept, held=reasons, gauge=gauge, length=Lc)
+
+
+def _select(A: F64, tol: float) -> tuple[np.ndarray, np.ndarray, F64]:
+    """Pivoted QR of the reduced, scaled Jacobian: kept (sorted) and held columns, |R_ii|."""
+    if A.shape[1] == 0:
+        return np.arange(0), np.arange(0), np.zeros(0)
+    _, R, piv = scipy.linalg.qr(A, mode="economic", pivoting=True)
+    rd = np.abs(np.diag(R))
+    if rd.size == 0 or rd[0] == 0:
+        return np.arange(0), np.asarray(piv), rd
+    rank = int(np.sum(rd > tol * rd[0]))
+    return np.sort(piv[:rank]), np.asarray(piv[rank:]), rd
+
+
+def _held_reasons(
+    A: F64, kept: np.ndarray, held: np.ndarray, names: list[str], tol: float
+) -> dict[int, str]:
+    """A one-line reason for each held column (see module docstring)."""
+    out: dict[int, str] = {}
+    norms = np.linalg.norm(A, axis=0)
+    big = norms.max() if norms.size else 1.0
+    Ak = A[:, kept]
+    for j in held:
+        j = int(j)
+        if norms[j] <= max(tol, 1e-9) * big:
+            out[j] = (
+                "moves the pin as the target positions or the virtual pin do (base frame, "
+                "pin offset): absorbed by them"
+            )
+            continue
+        c = np.linalg.lstsq(Ak, A[:, j], rcond=None)[0] if kept.size else np.zeros(0)
+        top = np.argsort(-np.abs(c))[:3]
+        deps = ", ".join(names[int(kept[t])] for t in top if abs(c[t]) > 1e-6)
+        out[j] = f"redundant with identified parameters ({deps})" if deps else "not identifiable"
+    return out
+
+
+# ----------------------------------------------------------------------------- main
+
+
+def identify(
+    touchups: pd.DataFrame,
+    urdf: str,
+    base_link: str,
+    flange_link: str,
+    config: IdentifyConfig | None = None,
+) -> IdentifyResult | dict[str, IdentifyResult]:
+    """Identify kinematic corrections, the virtual pin and the targets from touch-ups.
+
+    Parameters
+    ----------
+    touchups : DataFrame
+        A touch-up table (``../shared/spec/touchups.md``; the touchups and
+        inliers artefacts are ones). Rows used: ``converged`` (if the column
+        exists), ``inlier`` (if it exists), ``weight > 0`` and finite joints.
+    urdf : nominal URDF XML
+    base_link, flange_link : the chain (``flange_link`` may be a tool link; its
+        fixed joints stay nominal and the pin is found in its frame)
+    config : IdentifyConfig
+
+    Returns
+    -------
+    IdentifyResult, or ``{model name: IdentifyResult}`` for ``model="all"``.
+
+    Raises
+    ------
+    BadInput
+        Missing joint columns, unknown model, a distance naming an unknown target.
+    CalibrationFailed
+        No usable touch-ups, a single target without a known distance, all
+        poses identical, or too few touch-ups for the model (says how many to add).
+    """
+    config = config or IdentifyConfig()
+    chain = load_chain(urdf, base_link, flange_link)
+    data = _prepare(touchups, chain, config)
+    _refuse_early(data, len(touchups))
+    if config.model == "all":
+        results: dict[str, IdentifyResult] = {}
+        errors: list[str] = []
+        for name in model_names():
+            try:
+                results[name] = _identify_one(name, chain, data, urdf, flange_link, config)
+            except (BadInput, CalibrationFailed) as exc:
+                errors.append(f"{name}: {exc}")
+        if not results:
+            raise CalibrationFailed("no error model could be identified: " + " | ".join(errors))
+        for r in results.values():
+            r.summary["other_models_failed"] = errors
+        return results
+    return _identify_one(config.model, chain, data, urdf, flange_link, config)
+
+
+def _identify_one(
+    name: str, chain: Chain, data: _Data, urdf: str, flange_link: str, config: IdentifyConfig
+) -> IdentifyResult:
+    t0 = time.perf_counter()
+    try:
+        model = get_model(name)(chain)
+    except KeyError as exc:
+        raise BadInput(f"--model {name!r}: {exc.args[0]}") from exc
+    x0 = model.zero()
+    pin0, tg0 = _initial_pin_targets(model, data, x0)
+    prob = _Problem(model, data, config)
+    P, K, N = model.n_params, data.K, len(data.q)
+
+    # -- scaling and identifiability
+    p_nom, _, _ = model.pin_and_jacobian(x0, data.q, pin0 + data.d, jac=False)
+    Lc = float(max(np.sqrt(np.mean(np.sum(p_nom**2, axis=1))), 0.1))
+    units = np.array(model.param_units)
+    pscale = np.where(units == "rad", Lc, 1.0)  # column scale: J[:, j] * pscale[j]
+    _, J0 = prob.full_eval(x0, pin0, tg0)
+    assert J0 is not None
+    Jn0 = J0[:, P:]
+    st = _structure(
+        name, urdf, chain.base_link, chain.tip_link, bool(data.dist), float(config.rank_tol)
+    )
+    if st.gauge is not None:
+        # the gauge row is defined in the structure's scaling; x_scaled = x * pscale
+        g = st.gauge * np.where(units == "rad", st.length, 1.0)
+        prob = _Problem(model, data, config, gauge=g / np.linalg.norm(g))
+    reasons = dict(st.held)
+    r_struct = len(st.kept)
+    nuis_rank = int(np.linalg.matrix_rank(Jn0))
+    rows_avail = prob.m - nuis_rank
+    if rows_avail < r_struct + 3:
+        need = math.ceil((r_struct + 3 - rows_avail) / 3)
+        raise CalibrationFailed(
+            f"model {name}: {N} usable touch-ups on {K} targets give {prob.m} equations; the "
+            f"targets and the pin take {nuis_rank}, leaving {rows_avail} for the {r_struct} "
+            f"kinematic parameters it identifies: add at least {need} more touch-ups"
+            + (" (or use --model offsets)" if name != "offsets" else "")
+        )
+    # what these touch-ups fail to excite among the structurally identifiable columns
+    A = project_out(J0[:, st.kept] * pscale[st.kept], Jn0)
+    k_loc, h_loc, _ = _select(A, config.data_tol)
+    kept = st.kept[k_loc]
+    for j in st.kept[h_loc]:
+        reasons[int(j)] = "not excited by these touch-ups (add poses that vary this joint)"
+    held = np.array(sorted(reasons), dtype=np.int64)
+    prob.free = kept
+
+    # -- solve
+    z0 = prob.join(x0, pin0, tg0)
+    xs = np.concatenate([1.0 / pscale[kept], np.ones(3 + 3 * K)])
+    linear = config.robust_loss == "linear"
+    sol = least_squares(
+        prob.fun,
+        z0,
+        jac=prob.jac,
+        method="lm" if linear and prob.m >= z0.size else "trf",
+        loss=config.robust_loss,
+        f_scale=config.f_scale,
+        x_scale=xs,
+        xtol=1e-12,
+        ftol=1e-12,
+        gtol=1e-12,
+        max_nfev=config.max_nfev,
+    )
+    x, pin, tg = prob.split(sol.x)
+    r, Jfull = prob.full_eval(x, pin, tg)
+    assert Jfull is not None
+
+    # -- uncertainty
+    cols = prob.columns()
+    Jz = Jfull[:, cols]
+    zscale = np.concatenate([pscale[kept], np.ones(3 + 3 * K)])
+    U, s, Vt = np.linalg.svd(Jz * zscale, full_matrices=False)
+    dof = prob.m - Jz.shape[1]
+    sigma2 = float(r @ r / dof) if dof > 0 else float("nan")
+    good = s > s[0] * 1e-12
+    Vs = Vt[good].T / s[good]
+    cov = (zscale[:, None] * (Vs @ Vs.T)) * zscale[None, :] * sigma2
+    std_z = np.sqrt(np.clip(np.diag(cov), 0, None))
+    ne = len(kept) + 3
+    cov_e = cov[:ne, :ne]
+    de = np.sqrt(np.clip(np.diag(cov_e), 0, None))
+    with np.errstate(invalid="ignore", divide="ignore"):
+        corr = cov_e / np.outer(de, de)
+    Ared = project_out(Jfull[:, :P][:, kept] * pscale[kept], Jfull[:, P:])
+    obs = indices_from_singular_values(np.linalg.svd(Ared, compute_uv=False), prob.m)
+
+    rng = np.random.default_rng(config.seed)
+    q_ws = workspace_poses(data.q, config.n_workspace, rng)
+    _, Rw, Jw = model.pin_and_jacobian(x, q_ws, pin, jac=True)
+    assert Jw is not None
+    Jwe = np.concatenate([Jw[:, :, kept], Rw], axis=2)
+    var_w = np.einsum("nij,jk,nik->n", Jwe, cov_e, Jwe)
+    pred = np.sqrt(np.clip(var_w, 0, None))
+
+    # -- tables
+    calibrated = model.chain(x)
+    e_used = r[: 3 * N].reshape(N, 3) / data.sw[:, None]
+    norms_used = np.linalg.norm(e_used, axis=1)
+    wsum = float(np.sum(data.sw**2))
+    rms = float(np.sqrt(np.sum(norms_used**2 * data.sw**2) / wsum))
+    est_index = -np.ones(P, dtype=np.int64)
+    est_index[kept] = np.arange(len(kept))
+    nominal_vals = np.asarray(getattr(model, "param_nominal", np.zeros(P)), dtype=float)
+    prow = []
+    for j in range(P):
+        i = int(est_index[j])
+        prow.append(
+            {
+                "model": name,
+                "name": model.param_names[j],
+                "kind": "kinematic",
+                "joint": model.param_joints[j],
+                "unit": model.param_units[j],
+                "nominal": float(nominal_vals[j]),
+                "value": float(x[j]),
+                "std": float(std_z[i]) if i >= 0 and dof > 0 else float("nan"),
+                "identifiable": i >= 0,
+                "held_reason": "" if i >= 0 else reasons.get(j, "not identifiable"),
+                "estimated_index": i,
+                "correlation": list(map(float, corr[i])) if i >= 0 else [],
+            }
+        )
+    for c, axis in enumerate("xyz"):
+        i = len(kept) + c
+        prow.append(
+            {
+                "model": name,
+                "name": f"pin.{axis}",
+                "kind": "pin",
+                "joint": "",
+                "unit": "m",
+                "nominal": float(pin0[c]),
+                "value": float(pin[c]),
+                "std": float(std_z[i]) if dof > 0 else float("nan"),
+                "identifiable": True,
+                "held_reason": "",
+                "estimated_index": i,
+                "correlation": list(map(float, corr[i])),
+            }
+        )
+    parameters = pd.DataFrame(prow)
+
+    rows = data.rows.copy()
+    M = len(rows)
+    res = np.full((M, 3), np.nan)
+    pos = np.full((M, 3), np.nan)
+    ok = np.all(np.isfinite(data.q_all), axis=1)
+    if ok.any():
+        pa, _, _ = model.pin_and_jacobian(x, data.q_all[ok], pin + data.d_all[ok], jac=False)
+        pos[ok] = pa
+        has_t = ok & (data.tk_all >= 0)
+        res[has_t] = pos[has_t] - tg[data.tk_all[has_t]]
+    residuals = pd.DataFrame(
+        {
+            "model": name,
+            "touchup_id": rows["touchup_id"],
+            "target_id": rows["target_id"],
+            "target_label": rows["target_label"],
+            "used": rows["used"],
+            "reason": rows["reason"],
+            "weight": rows["weight"],
+            "rx": res[:, 0],
+            "ry": res[:, 1],
+            "rz": res[:, 2],
+            "norm": np.linalg.norm(res, axis=1),
+            "px": pos[:, 0],
+            "py": pos[:, 1],
+            "pz": pos[:, 2],
+        }
+    )
+    tstd = std_z[len(kept) + 3 :].reshape(K, 3) if dof > 0 else np.full((K, 3), np.nan)
+    targets = pd.DataFrame(
+        {
+            "model": name,
+            "target_id": np.array(data.target_ids, dtype=np.int64),
+            "target_label": data.target_labels,
+            "x": tg[:, 0],
+            "y": tg[:, 1],
+            "z": tg[:, 2],
+            "std_x": tstd[:, 0],
+            "std_y": tstd[:, 1],
+            "std_z": tstd[:, 2],
+            "n_touchups": np.bincount(data.tk, minlength=K).astype(np.int64),
+        }
+    )
+    urdf_out = write_calibrated_urdf(urdf, model.origins(x), flange_link, pin)
+
+    scale_held = not data.dist
+    held_list = [
+        {"name": model.param_names[int(j)], "reason": reasons.get(int(j), "")} for j in held
+    ]
+    seconds = time.perf_counter() - t0
+    summary: dict[str, Any] = {
+        "model": name,
+        "model_description": model.description,
+        "n_rows": int(M),
+        "n_used": int(N),
+        "n_targets": int(K),
+        "n_params": int(P),
+        "n_identified": int(len(kept)),
+        "n_structural": int(r_struct),
+        "unidentifiable": [h["name"] for h in held_list],
+        "held": held_list,
+        "scale_held": scale_held,
+        "scale_note": (
+            "no known distance: the length scale was not identifiable and was held at the "
+            "nominal model's; only shape accuracy applies"
+            if scale_held
+            else f"length scale identified from {len(data.dist)} known distance(s)"
+        ),
+        "base_note": "the base frame against the targets is held at nominal (never identifiable)",
+        "distances": [
+            {
+                "a": data.target_labels[a],
+                "b": data.target_labels[b],
+                "metres": dm,
+                "fitted_metres": float(np.linalg.norm(tg[a] - tg[b])),
+            }
+            for a, b, dm in data.dist
+        ],
+        "distances_dropped": data.dropped_distances,
+        "cost": float(sol.cost),
+        "rms_mm": rms * 1e3,
+        "max_mm": float(norms_used.max() * 1e3),
+        "sigma_mm": math.sqrt(sigma2) * 1e3 if dof > 0 else float("nan"),
+        "dof": int(dof),
+        **{k: float(v) for k, v in obs.items()},
+        "predicted_rms_mm": float(np.sqrt(np.mean(pred**2)) * 1e3) if dof > 0 else float("nan"),
+        "predicted_max_mm": float(pred.max() * 1e3) if dof > 0 else float("nan"),
+        "predicted_note": (
+            "covariance-predicted pin position error over poses spread through the touched "
+            "volume; random error only (systematic input errors are invisible to it)"
+        ),
+        "p_flange_pin": [float(v) for v in pin],
+        "solver": {
+            "method": "lm" if linear and prob.m >= z0.size else "trf",
+            "loss": config.robust_loss,
+            "status": int(sol.status),
+            "message": str(sol.message),
+            "success": bool(sol.success),
+            "nfev": int(sol.nfev),
+            "njev": int(sol.njev or 0),
+            "initial_rms_mm": float(
+                np.sqrt(
+                    np.mean(
+                        np.sum(
+                            (prob.fun(z0)[: 3 * N].reshape(N, 3) / data.sw[:, None]) ** 2, axis=1
+                        )
+                    )
+                )
+                * 1e3
+            ),
+            "characteristic_length_m": Lc,
+        },
+        "seconds": seconds,
+    }
+    summary["headline"] = [
+        f"identify [{name}]: {N} touch-ups, {K} targets, {len(kept)}/{P} parameters identified; "
+        f"residual RMS {rms * 1e3:.4f} mm, predicted pin error RMS "
+        f"{summary['predicted_rms_mm']:.4f} mm, cond {obs['cond']:.3g}",
+        "scale: " + summary["scale_note"],
+    ]
+    return IdentifyResult(
+        model=name,
+        parameters=parameters,
+        residuals=residuals,
+        targets=targets,
+        calibrated_urdf=urdf_out,
+        summary=summary,
+        chain=calibrated,
+        p_flange_pin=pin,
+        x=x,
+    )
+
+
+# ----------------------------------------------------------------------------- output
+
+
+def best_result(results: IdentifyResult | dict[str, IdentifyResult]) -> IdentifyResult:
+    """The result whose ``calibrated.urdf`` a run ships: the default model if fitted, else
+    the one with the smallest residual RMS."""
+    if isinstance(results, IdentifyResult):
+        return results
+    if DEFAULT_MODEL in results:
+        return results[DEFAULT_MODEL]
+    return min(results.values(), key=lambda r: r.summary["rms_mm"])
+
+
+def write_outputs(
+    results: IdentifyResult | dict[str, IdentifyResult],
+    out_dir: str | Path,
+    *,
+    stage_config: dict[str, Any] | None = None,
+    inputs: dict[str, str] | None = None,
+) -> dict[str, Path]:
+    """Write parameters/residuals/targets artefacts, ``calibrated.urdf`` and ``identify.json``.
+
+    With several models every table holds all of them (``model`` column),
+    ``calibrated.urdf`` is the :func:`best_result`'s and each model also gets
+    ``calibrated_MODEL.urdf``.
+    """
+    from pipeline.artefacts import atomic_write_bytes, write_artefact
+
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    many = results if isinstance(results, dict) else {results.model: results}
+    best = best_result(results)
+    paths = {
+        "parameters": out / "parameters.parquet",
+        "residuals": out / "residuals.parquet",
+        "targets": out / "targets.parquet",
+        "calibrated_urdf": out / "calibrated.urdf",
+        "identify": out / "identify.json",
+    }
+    kw = {"stage": "identify", "config": stage_config or {}, "inputs": inputs or {}}
+    meta = {"scale_held": json.dumps(best.summary["scale_held"]), "model": best.model}
+    write_artefact(
+        paths["parameters"],
+        pd.concat([r.parameters for r in many.values()], ignore_index=True),
+        "parameters",
+        extra_meta=meta,
+        **kw,  # type: ignore[arg-type]
+    )
+    write_artefact(
+        paths["residuals"],
+        pd.concat([r.residuals for r in many.values()], ignore_index=True),
+        "residuals",
+        extra_meta=meta,
+        **kw,  # type: ignore[arg-type]
+    )
+    write_artefact(
+        paths["targets"],
+        pd.concat([r.targets for r in many.values()], ignore_index=True),
+        "targets",
+        extra_meta=meta,
+        **kw,  # type: ignore[arg-type]
+    )
+    atomic_write_bytes(paths["calibrated_urdf"], best.calibrated_urdf.encode())
+    if len(many) > 1:
+        for n, r in many.items():
+            p = out / f"calibrated_{n}.urdf"
+            atomic_write_bytes(p, r.calibrated_urdf.encode())
+            paths[f"calibrated_urdf_{n}"] = p
+    summary = dict(best.summary)
+    summary["models"] = {n: r.summary for n, r in many.items()}
+    summary["best_model"] = best.model
+    if len(many) > 1:
+        summary["headline"] = [
+            line for r in many.values() for line in r.summary["headline"][:1]
+        ] + [f"calibrated.urdf from model {best.model}", best.summary["headline"][-1]]
+    atomic_write_bytes(
+        paths["identify"], json.dumps(summary, indent=2, default=_json_default).encode()
+    )
+    return paths
+
+
+def _json_default(o: Any) -> Any:
+    if isinstance(o, np.generic):
+        return o.item()
+    if isinstance(o, np.ndarray):
+        return o.tolist()
+    return str(o)
