@@ -42,6 +42,7 @@ from pipeline.report.data import (
     crossval_summary,
     designated,
     detection_ellipse,
+    for_model,
     load_run,
     pin_positions,
     residual_groups,
@@ -64,6 +65,8 @@ def _fmt(x: Any, digits: int = 3) -> str:
         return "–"
     if isinstance(x, (bool, np.bool_)):
         return "yes" if x else "no"
+    if isinstance(x, str):
+        return x
     if isinstance(x, (int, np.integer)):
         return str(int(x))
     try:
@@ -187,7 +190,9 @@ def _targets_section(data: RunData) -> dict[str, Any]:
     df = data.targets
     if df is None or not len(df):
         return {"available": False}
-    cols = [str(c) for c in df.columns]
+    df = for_model(data, df)
+    assert df is not None
+    cols = [str(c) for c in df.columns if c != "model"]
 
     def in_mm(c: str) -> bool:
         return (c in ("x", "y", "z") or c.startswith(("sigma", "std", "se_"))) and bool(
