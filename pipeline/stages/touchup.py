@@ -295,11 +295,9 @@ def tilt_bias(
             resolved[idx[0]] = bool(tilt_deg[idx[0]] < 2.0)
             continue
         best, best_sc = None, -1.0
-        if len(idx) <= 12:
-            for code in range(1 << (len(idx) - 1)):
-                sg = np.array(
-                    [1.0] + [(-1.0 if (code >> j) & 1 else 1.0) for j in range(len(idx) - 1)]
-                )
+        if len(idx) <= 10:
+            for code in range(1 << len(idx)):
+                sg = np.array([(-1.0 if (code >> jj) & 1 else 1.0) for jj in range(len(idx))])
                 vecs = np.where(sg[:, None] > 0, n_base[idx], n_flip[idx])
                 sc = float(np.linalg.norm(vecs.sum(axis=0)))
                 if sc > best_sc:

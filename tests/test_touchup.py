@@ -1,0 +1,121 @@
+"""Touch-up extraction: segmentation, targets, convergence, Jacobian, tilt bias."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from pipeline.artefacts import read_artefact, write_artefact
+from pipeline.kinematics.se3 import matrix_from_rpy
+from pipeline.sim.camera import CameraModel
+from pipeline.sim.render import projected_ellipse
+from pipeline.stages.detect import DetectConfig
+from pipeline.stages.ingest import IngestConfig, ingest_recording
+from pipeline.stages.touchup import (
+    TouchupConfig,
+    camera_from_jacobian,
+    estimate_jacobian,
+    extract_touchups,
+    tilt_bias,
+)
+
+
+@pytest.fixture(scope="module")
+def sample_touchups(conformance_sample):
+    frames, dets, info = ingest_recording(conformance_sample, IngestConfig(), DetectConfig())
+    return extract_touchups(frames, dets, info, TouchupConfig()), info
+
+
+def test_conformance_touchups_match_truth(sample_touchups, conformance_truth, tmp_path):
+    tu, info = sample_touchups
+    truth = conformance_truth["touchups"]
+    assert len(tu) == len(truth)
+    for row, t in zip(tu.itertuples(), truth, strict=True):
+        assert row.last_frame == t["image_indices"][-1]
+        assert row.target_id == t["label"]
+        assert bool(row.converged) == bool(t["converged"])
+        assert bool(row.lost) == bool(t.get("lost", False))
+        if t["converged"]:
+            assert sorted(row.converged_frame_indices) == sorted(t["converged_image_indices"])
+    # the loop starts after the probing shifts
+    probes = conformance_truth["probes"]
+    starts = {p["image_indices"][0]: p for p in probes}
+    for row in tu.itertuples():
+        if row.first_frame in starts:
+            assert row.n_probe_frames == len(starts[row.first_frame]["image_indices"])
+    path = tmp_path / "touchups.parquet"
+    write_artefact(path, tu, "touchups", stage="touchup")
+    back = read_artefact(path, "touchups")
+    assert list(back.columns[:8]) == [
+        "touchup_id", "target_id", "dx_flange", "dy_flange", "dz_flange",
+        "weight", "converged", "stamp_ns",
+    ]  # fmt: skip
+    assert set(info.joint_names) <= set(back.columns)
+
+
+def test_correction_and_jacobian_on_sample(sample_touchups, conformance_truth):
+    tu, _ = sample_touchups
+    J = np.array(tu.attrs["image_jacobian"])
+    J_true = np.mean([p["jacobian"] for p in conformance_truth["probes"]], axis=0)
+    assert np.allclose(J, J_true, rtol=0.05, atol=0.05 * np.abs(J_true).max(axis=1, keepdims=True))
+    # the correction cancels e_T to first order: J d = -e_T (tilt bias included)
+    conv = tu[tu["converged"]]
+    for row in conv.itertuples():
+        d = np.array([row.dx_flange, row.dy_flange, row.dz_flange])
+        assert np.linalg.norm(d) < 1e-3
+    # pin estimate close to the truth's virtual pin (nominal model: within a few mm)
+    p = np.array(tu.attrs["pin_estimate_flange"])
+    assert np.linalg.norm(p - np.array(conformance_truth["p_vt_flange"])) < 0.005
+
+
+def test_estimate_jacobian_robust():
+    rng = np.random.default_rng(3)
+    J = np.array([[300.0, -5200.0, -250.0], [5200.0, 260.0, 290.0], [0.01, 0.005, -0.11]])
+    dF = rng.normal(0, 0.002, (30, 3))
+    dm = dF @ J.T + rng.normal(0, [0.01, 0.01, 2e-6], (30, 3))
+    dm[5] += [30.0, -20.0, 0.001]  # a capture with a wrong detection
+    J_hat = estimate_jacobian(dF, dm)
+    assert J_hat is not None
+    assert np.allclose(J_hat, J, atol=np.array([[5.0], [5.0], [2e-3]]))
+    assert estimate_jacobian(dF[:, :1] * np.ones((1, 3)), dm) is None  # one direction only
+
+
+def test_camera_from_jacobian():
+    R_fc = matrix_from_rpy([0.05, -0.04, 1.6])
+    f, z, D = 910.0, 0.17, 0.01
+    R_cf = R_fc.T
+    J = np.stack([-(f / z) * R_cf[0], -(f / z) * R_cf[1], R_cf[2] / (f * D)])
+    R_hat, f_hat, z_hat = camera_from_jacobian(J, f * D / z)
+    assert np.allclose(R_hat, R_fc, atol=1e-9)
+    assert abs(f_hat - f) < 1e-6 and abs(z_hat - z) < 1e-9
+
+
+def test_tilt_bias_matches_projection():
+    """The predicted offset of the ellipse centre from the imaged circle centre."""
+    f, z, D = 900.0, 0.17, 0.01
+    cam = CameraModel(fx=f, fy=f, cx=319.5, cy=255.5)
+    n_true = np.array([0.3, -0.2, -0.93])  # faces the camera (looking along +z)
+    n_true /= np.linalg.norm(n_true)
+    shapes, Ts, truth_offsets = [], [], []
+    rng = np.random.default_rng(1)
+    for _ in range(4):
+        R_bf = matrix_from_rpy(rng.uniform(-0.6, 0.6, 3))
+        # target frame in the camera (= flange here): normal towards the camera
+        n_cam = R_bf.T @ n_true
+        zt = n_cam if n_cam[2] < 0 else -n_cam
+        x = np.cross([0.0, 1.0, 0.0], zt)
+        x /= np.linalg.norm(x)
+        T = np.eye(4)
+        T[:3, :3] = np.stack([x, np.cross(zt, x), zt], axis=1)
+        T[:3, 3] = [0.0, 0.0, z]
+        e = projected_ellipse(cam, T, D)
+        shapes.append([e[0], e[1], e[2], e[3], e[4]])
+        Tb = np.eye(4)
+        Tb[:3, :3] = R_bf
+        Ts.append(Tb)
+        truth_offsets.append([319.5 - e[0], 255.5 - e[1]])
+    s0 = f * D / z
+    J = np.stack([-(f / z) * np.eye(3)[0], -(f / z) * np.eye(3)[1], np.eye(3)[2] / (f * D)])
+    bias, tilt, resolved = tilt_bias(np.array(shapes), np.array(Ts), np.zeros(4, int), J, s0)
+    assert resolved.all() and np.all(tilt > 5)
+    assert np.allclose(bias[:, :2], truth_offsets, atol=0.01)
