@@ -1,0 +1,115 @@
+"""End to end: the shipped sample and the conformance sample through `vtcal run`."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pyarrow.parquet as pq
+import pytest
+
+from pipeline.artefacts import read_artefact
+from pipeline.cli import main
+from pipeline.evaluate import pin_accuracy, workspace_poses
+from pipeline.kinematics import load_chain, parse_urdf
+
+REPO = Path(__file__).resolve().parent.parent
+SAMPLE = REPO / "datasets" / "samples" / "sample_lrmate.mcap"
+
+STAGE_ARTEFACTS = {
+    "frames": "frames.parquet",
+    "detections": "detections.parquet",
+    "touchups": "touchups.parquet",
+    "inliers": "inliers.parquet",
+    "parameters": "parameters.parquet",
+    "residuals": "residuals.parquet",
+    "targets": "targets.parquet",
+}
+
+
+def vtcal(*args: str) -> None:
+    """Run the CLI in-process; fail on a non-zero exit."""
+    try:
+        main(list(args))
+    except SystemExit as exc:
+        assert exc.code in (0, None), f"vtcal {' '.join(args)} exited {exc.code}"
+
+
+@pytest.fixture(scope="module")
+def sample_run(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    out = tmp_path_factory.mktemp("run")
+    vtcal("run", str(SAMPLE), "--out", str(out), "--until", "identify", "-q")
+    return out
+
+
+def test_sample_calibrates_against_truth(sample_run: Path) -> None:
+    truth = json.loads(Path(str(SAMPLE) + ".truth.json").read_text())
+    urdf = (sample_run / "calibrated.urdf").read_text()
+    robot = parse_urdf(urdf)
+    assert "virtual_pin" in robot.links and "virtual_pin_joint" in robot.joints
+    calibrated = load_chain(urdf, truth["base_link"], "virtual_pin")
+    true_chain = load_chain(truth["true_urdf"], truth["base_link"], truth["flange_link"])
+    nominal = load_chain(truth["nominal_urdf"], truth["base_link"], truth["flange_link"])
+    inliers = read_artefact(sample_run / "inliers.parquet", "inliers")
+    q = workspace_poses(inliers[truth["joint_names"]].to_numpy(), 300, np.random.default_rng(0))
+    p_true = np.array(truth["p_vt_flange"])
+    after = pin_accuracy(calibrated, np.zeros(3), true_chain, p_true, q)
+    # the nominal robot with the true pin: what an uncalibrated cell gets at best
+    before = pin_accuracy(nominal, p_true, true_chain, p_true, q)
+    assert before["shape_rms_m"] > 0.5e-3
+    assert after["shape_rms_m"] < 0.1e-3, after
+    assert after["abs_rms_m"] < 0.125e-3, after
+
+
+def test_every_artefact_validates_and_records_its_inputs(sample_run: Path) -> None:
+    for schema, name in STAGE_ARTEFACTS.items():
+        df = read_artefact(sample_run / name, schema)
+        assert len(df) > 0, name
+        meta = pq.read_schema(sample_run / name).metadata
+        assert b"vtcal.inputs" in meta and b"vtcal.config_hash" in meta
+
+
+def test_second_run_is_cached_and_identical(sample_run: Path, tmp_path: Path) -> None:
+    before = {n: (sample_run / n).read_bytes() for n in STAGE_ARTEFACTS.values()}
+    vtcal("run", str(SAMPLE), "--out", str(sample_run), "--until", "identify", "-q")
+    run = json.loads((sample_run / "run.json").read_text())
+    assert {s["stage"]: s["status"] for s in run["stages"]} == {
+        "ingest": "cached",
+        "touchups": "cached",
+        "outliers": "cached",
+        "identify": "cached",
+    }
+    assert {n: (sample_run / n).read_bytes() for n in STAGE_ARTEFACTS.values()} == before
+
+
+def test_run_is_deterministic(sample_run: Path, tmp_path: Path) -> None:
+    vtcal("run", str(SAMPLE), "--out", str(tmp_path), "--until", "identify", "-q")
+    for name in STAGE_ARTEFACTS.values():
+        a = pq.read_table(sample_run / name)
+        b = pq.read_table(tmp_path / name)
+        assert a.equals(b), name
+
+
+def test_conformance_sample_runs(
+    conformance_sample: Path, conformance_truth: dict, tmp_path: Path
+) -> None:
+    """A recording written by an independent writer, every fault included."""
+    vtcal(
+        "run",
+        str(conformance_sample),
+        "--out",
+        str(tmp_path),
+        "--until",
+        "identify",
+        "--model",
+        "offsets",
+        "-q",
+    )
+    inl = read_artefact(tmp_path / "inliers.parquet", "inliers")
+    assert len(inl) == len(conformance_truth["touchups"])
+    truth_labels = [t["label"] for t in conformance_truth["touchups"]]
+    assert list(inl["source_target_id"]) == truth_labels
+    unconverged = [t["index"] for t in conformance_truth["touchups"] if not t["converged"]]
+    assert not inl.loc[inl["touchup_id"].isin(unconverged), "inlier"].any()
+    assert (tmp_path / "calibrated.urdf").exists()
