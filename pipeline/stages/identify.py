@@ -353,9 +353,10 @@ def _initial_pin_targets(model: ErrorModel, data: _Data, x: F64) -> tuple[F64, F
         A[rows[:, c], 3 + 3 * data.tk + c] = -1.0
     b = -p0.ravel()
     sw = np.repeat(data.sw, 3)
-    sol = np.linalg.lstsq(A * sw[:, None], b * sw, rcond=None)[0]
-    sol = np.asarray(sol, dtype=float)
-    return sol[:3], sol[3:].reshape(K, 3)
+    sol = np.asarray(np.linalg.lstsq(A * sw[:, None], b * sw, rcond=None)[0], dtype=np.float64)
+    pin: F64 = sol[:3]
+    targets: F64 = sol[3:].reshape(K, 3)
+    return pin, targets
 
 
 @dataclass(frozen=True)
@@ -458,6 +459,33 @@ def _held_reasons(
         deps = ", ".join(names[int(kept[t])] for t in top if abs(c[t]) > 1e-6)
         out[j] = f"redundant with identified parameters ({deps})" if deps else "not identifiable"
     return out
+
+
+def _predicted_errors(Jw: F64, cov: F64, p: F64, kind: str) -> F64:
+    """Per-pose standard pin error the covariance predicts after a registration.
+
+    The error field ``dp = J_w dz`` (``J_w`` (N, 3, p), ``dz ~ N(0, cov)``) minus its
+    best-fit rigid (``absolute``) or similarity (``shape``) motion: to first
+    order a projection ``Pr = I - Q Q^T`` onto the complement of the fields
+    ``[I, -[p_i]x]`` (and ``p_i - mean`` for a similarity). Returns
+    ``sqrt(trace_i(Pr J cov J^T Pr))`` per pose, (N,).
+    """
+    N = len(p)
+    G = Jw.reshape(3 * N, -1)
+    if kind != "raw":
+        c = p - p.mean(axis=0)
+        basis = [np.tile(np.eye(3), (N, 1))]
+        rot = np.zeros((N, 3, 3))
+        rot[:, 0, 1], rot[:, 0, 2] = c[:, 2], -c[:, 1]
+        rot[:, 1, 0], rot[:, 1, 2] = -c[:, 2], c[:, 0]
+        rot[:, 2, 0], rot[:, 2, 1] = c[:, 1], -c[:, 0]
+        basis.append(rot.reshape(3 * N, 3))
+        if kind == "shape":
+            basis.append(c.reshape(3 * N, 1))
+        Q, _ = np.linalg.qr(np.concatenate(basis, axis=1))
+        G = G - Q @ (Q.T @ G)
+    var = np.einsum("ij,jk,ik->i", G, cov, G).reshape(N, 3).sum(axis=1)
+    return np.asarray(np.sqrt(np.clip(var, 0.0, None)))
 
 
 # ----------------------------------------------------------------------------- main
@@ -609,8 +637,8 @@ def _identify_one(
     _, Rw, Jw = model.pin_and_jacobian(x, q_ws, pin, jac=True)
     assert Jw is not None
     Jwe = np.concatenate([Jw[:, :, kept], Rw], axis=2)
-    var_w = np.einsum("nij,jk,nik->n", Jwe, cov_e, Jwe)
-    pred = np.sqrt(np.clip(var_w, 0, None))
+    pw, _, _ = model.pin_and_jacobian(x, q_ws, pin, jac=False)
+    pred = {kind: _predicted_errors(Jwe, cov_e, pw, kind) for kind in ("shape", "absolute", "raw")}
 
     # -- tables
     calibrated = model.chain(x)
@@ -745,11 +773,16 @@ def _identify_one(
         "sigma_mm": math.sqrt(sigma2) * 1e3 if dof > 0 else float("nan"),
         "dof": int(dof),
         **{k: float(v) for k, v in obs.items()},
-        "predicted_rms_mm": float(np.sqrt(np.mean(pred**2)) * 1e3) if dof > 0 else float("nan"),
-        "predicted_max_mm": float(pred.max() * 1e3) if dof > 0 else float("nan"),
+        **{
+            f"predicted_{kind}_{stat}_mm": (float(fn(e) * 1e3) if dof > 0 else float("nan"))
+            for kind, e in pred.items()
+            for stat, fn in (("rms", lambda a: np.sqrt(np.mean(a**2))), ("max", np.max))
+        },
         "predicted_note": (
             "covariance-predicted pin position error over poses spread through the touched "
-            "volume; random error only (systematic input errors are invisible to it)"
+            "volume, after the same registration as the accuracy figures (shape: similarity, "
+            "absolute: rigid; raw: none); random error only (systematic input errors are "
+            "invisible to it)"
         ),
         "p_flange_pin": [float(v) for v in pin],
         "solver": {
@@ -776,8 +809,9 @@ def _identify_one(
     }
     summary["headline"] = [
         f"identify [{name}]: {N} touch-ups, {K} targets, {len(kept)}/{P} parameters identified; "
-        f"residual RMS {rms * 1e3:.4f} mm, predicted pin error RMS "
-        f"{summary['predicted_rms_mm']:.4f} mm, cond {obs['cond']:.3g}",
+        f"residual RMS {rms * 1e3:.4f} mm, covariance-predicted pin error RMS "
+        f"{summary['predicted_shape_rms_mm']:.4f} mm (shape), "
+        f"{summary['predicted_absolute_rms_mm']:.4f} mm (absolute); cond {obs['cond']:.3g}",
         "scale: " + summary["scale_note"],
     ]
     return IdentifyResult(
@@ -869,9 +903,21 @@ def write_outputs(
             line for r in many.values() for line in r.summary["headline"][:1]
         ] + [f"calibrated.urdf from model {best.model}", best.summary["headline"][-1]]
     atomic_write_bytes(
-        paths["identify"], json.dumps(summary, indent=2, default=_json_default).encode()
+        paths["identify"],
+        json.dumps(_finite(summary), indent=2, default=_json_default, allow_nan=False).encode(),
     )
     return paths
+
+
+def _finite(o: Any) -> Any:
+    """NaN/inf floats -> None, recursively (strict JSON)."""
+    if isinstance(o, float | np.floating):
+        return float(o) if math.isfinite(o) else None
+    if isinstance(o, dict):
+        return {k: _finite(v) for k, v in o.items()}
+    if isinstance(o, list | tuple):
+        return [_finite(v) for v in o]
+    return o
 
 
 def _json_default(o: Any) -> Any:

@@ -1,0 +1,144 @@
+"""``vtcal identify``: identify kinematics from a touch-up table (CSV or Parquet).
+
+    vtcal identify TABLE.{parquet,csv} --urdf ROBOT.urdf --out DIR
+        [--base-link L] [--flange-link L] [--distance A:B=METRES ...] [--model NAME|all]
+
+Writes ``parameters.parquet``, ``residuals.parquet``, ``targets.parquet``,
+``calibrated.urdf`` and ``identify.json`` into ``DIR`` (see
+``docs/identification.md``).
+"""
+
+from __future__ import annotations
+
+import xml.etree.ElementTree as ET
+from pathlib import Path
+
+import click
+import pandas as pd
+
+from pipeline.commands._common import distance_option
+from pipeline.errors import BadInput
+
+
+def read_table(path: Path) -> pd.DataFrame:
+    """A touch-up table from ``.csv`` or ``.parquet``.
+
+    Raises
+    ------
+    BadInput
+        Unknown suffix, unreadable file, or an empty table.
+    """
+    suffix = path.suffix.lower()
+    try:
+        if suffix == ".csv":
+            df = pd.read_csv(path)
+        elif suffix in (".parquet", ".pq"):
+            df = pd.read_parquet(path)
+        else:
+            raise BadInput(f"{path}: touch-up table must be .csv or .parquet, not {suffix!r}")
+    except BadInput:
+        raise
+    except Exception as exc:  # pandas/pyarrow raise many types for a bad file
+        raise BadInput(f"{path}: not a readable touch-up table: {exc}") from exc
+    if df.empty:
+        raise BadInput(f"{path}: the touch-up table has no rows")
+    return df
+
+
+def infer_links(urdf: str) -> tuple[str, str]:
+    """Root link and the end of its serial chain (a link named ``flange`` if on it)."""
+    try:
+        root = ET.fromstring(urdf)
+    except ET.ParseError as exc:
+        raise BadInput(f"URDF does not parse: {exc}") from exc
+    children: dict[str, list[tuple[str, str]]] = {}
+    child_links = set()
+    for j in root.findall("joint"):
+        p, c = j.find("parent"), j.find("child")
+        if p is None or c is None:
+            continue
+        children.setdefault(str(p.get("link")), []).append((str(c.get("link")), str(j.get("type"))))
+        child_links.add(str(c.get("link")))
+    roots = [
+        str(el.get("name")) for el in root.findall("link") if el.get("name") not in child_links
+    ]
+    if len(roots) != 1:
+        raise BadInput(f"URDF has {len(roots)} root links {roots}: give --base-link")
+    link, path = roots[0], [roots[0]]
+    while len(children.get(link, [])) == 1:
+        link = children[link][0][0]
+        path.append(link)
+    flange = "flange" if "flange" in path else path[-1]
+    return roots[0], flange
+
+
+@click.command("identify")
+@click.argument("table", type=click.Path(exists=True, dir_okay=False, path_type=Path))
+@click.option(
+    "--urdf",
+    "urdf_path",
+    required=True,
+    type=click.Path(exists=True, dir_okay=False, path_type=Path),
+    help="Nominal URDF of the robot (joint names = the table's joint columns).",
+)
+@click.option(
+    "--out", "out_dir", required=True, type=click.Path(path_type=Path), help="Output folder."
+)
+@click.option("--base-link", default=None, help="Robot base link (default: the URDF's root link).")
+@click.option(
+    "--flange-link",
+    default=None,
+    help="Link the virtual pin is fixed to (default: 'flange' or the end of the serial chain). "
+    "Name a tool link to start the pin from its fixed joint.",
+)
+@distance_option
+@click.option(
+    "--model",
+    default="full",
+    show_default=True,
+    help="Error model: full, mdh, poe, offsets, or 'all' to fit each.",
+)
+@click.option(
+    "--robust-loss",
+    default="linear",
+    show_default=True,
+    type=click.Choice(["linear", "soft_l1", "huber", "cauchy", "arctan"]),
+    help="Loss on the pin residuals (scipy least_squares).",
+)
+def command(
+    table: Path,
+    urdf_path: Path,
+    out_dir: Path,
+    base_link: str | None,
+    flange_link: str | None,
+    distance: tuple[str, ...],
+    model: str,
+    robust_loss: str,
+) -> None:
+    """Identify kinematics from a touch-up table (CSV or Parquet)."""
+    from pipeline.known_distances import parse_distances
+    from pipeline.stages.identify import IdentifyConfig, identify, write_outputs
+
+    df = read_table(table)
+    try:
+        urdf = urdf_path.read_text()
+    except (OSError, UnicodeDecodeError) as exc:
+        raise BadInput(f"{urdf_path}: cannot read the URDF: {exc}") from exc
+    if base_link is None or flange_link is None:
+        b, f = infer_links(urdf)
+        if base_link is None:
+            base_link = b
+            click.echo(f"base link: {b} (inferred: root of the URDF)")
+        if flange_link is None:
+            flange_link = f
+            click.echo(f"flange link: {f} (inferred: end of the serial chain)")
+    distances = [d for item in distance for d in parse_distances(item)]
+    cfg = IdentifyConfig(model=model, distances=distances, robust_loss=robust_loss)
+    result = identify(df, urdf, base_link, flange_link, cfg)
+    conf = {"model": model, "distances": distances, "robust_loss": robust_loss}
+    paths = write_outputs(result, out_dir, stage_config=conf, inputs={})
+    results = result if isinstance(result, dict) else {result.model: result}
+    for r in results.values():
+        for line in r.summary["headline"]:
+            click.echo(line)
+    click.echo(f"wrote {', '.join(p.name for p in paths.values())} to {out_dir}")
