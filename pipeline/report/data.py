@@ -272,7 +272,8 @@ def skeleton_points(chain: Chain, q: np.ndarray) -> np.ndarray:
 
 def chosen_model(data: RunData) -> str | None:
     """The error model the run reports (identify.json ``model``), if named."""
-    m = (data.identify or {}).get("model")
+    idf = data.identify or {}
+    m = idf.get("best_model") or idf.get("model")
     return str(m) if m else None
 
 
@@ -454,13 +455,23 @@ def accuracy_figures(data: RunData) -> list[Figure]:
             r_mm, m_mm = _mm(sub, "rms"), _mm(sub, "max")
             if r_mm is not None or m_mm is not None:
                 figs.append(Figure(f"identify: {stage}", r_mm, m_mm))
-    pred = idf.get("predicted") or idf.get("predicted_error")
+    scale_held = bool(idf.get("scale_held", True))
+    for kind, text in (
+        ("shape", "predicted shape accuracy (similarity registration)"),
+        ("absolute", "predicted absolute accuracy (rigid registration)"),
+        ("", "predicted pin error (from the parameter covariance)"),
+    ):
+        key = f"predicted_{kind}_" if kind else "predicted_"
+        rms, mx = _num(idf, key + "rms_mm"), _num(idf, key + "max_mm")
+        if rms is None and mx is None:
+            continue
+        note = ""
+        if kind == "absolute" and scale_held:
+            note = "not reachable: no known distance, the scale was held at nominal"
+        figs.append(Figure(text, rms, mx, note=note))
+    pred = idf.get("predicted")
     if isinstance(pred, dict):
-        figs.append(
-            Figure("predicted (from parameter covariance)", _mm(pred, "rms"), _mm(pred, "max"))
-        )
-    elif isinstance(pred, (int, float)) and not isinstance(pred, bool):
-        figs.append(Figure("predicted (from parameter covariance)", float(pred) * 1e3, None))
+        figs.append(Figure("predicted (from parameter covariance)", _mm(pred, "rms"), _mm(pred, "max")))
     cv = crossval_summary(data)
     for row in cv:
         figs.append(

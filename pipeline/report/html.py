@@ -22,6 +22,7 @@ Content-Security-Policy forbids any request, so the file opens offline.
 
 from __future__ import annotations
 
+import json
 import math
 from pathlib import Path
 from typing import Any
@@ -40,6 +41,7 @@ from pipeline.report.data import (
     artefact_hashes,
     convergence_traces,
     crossval_summary,
+    chosen_model,
     designated,
     detection_ellipse,
     for_model,
@@ -133,6 +135,7 @@ def _verdict(data: RunData) -> dict[str, Any]:
                 "rms": _fmt(f.rms_mm, 3),
                 "max": _fmt(f.max_mm, 3),
                 "n": "" if f.n is None else str(f.n),
+                "note": f.note,
             }
             for f in figs
         ],
@@ -230,7 +233,7 @@ PARAM_COLS = {
 def _parameters_section(data: RunData) -> dict[str, Any]:
     df = data.parameters
     idf = data.identify or {}
-    unid = idf.get("unidentifiable") or idf.get("unidentifiable_parameters") or []
+    unid = idf.get("held") or idf.get("unidentifiable") or idf.get("unidentifiable_parameters") or []
     out: dict[str, Any] = {"available": df is not None and len(df) > 0, "unidentifiable": []}
     if isinstance(unid, dict):
         out["unidentifiable"] = [{"name": str(k), "why": str(v)} for k, v in unid.items()]
@@ -292,21 +295,40 @@ def _parameters_section(data: RunData) -> dict[str, Any]:
     return out
 
 
+#: identify.json fields shown in the summary, with their labels (the rest is in the raw dump)
+SUMMARY_FIELDS = (
+    ("model_description", "error model"),
+    ("n_rows", "touch-ups in the table"),
+    ("n_used", "touch-ups used"),
+    ("n_targets", "targets"),
+    ("n_params", "kinematic parameters of the model"),
+    ("n_identified", "parameters identified"),
+    ("dof", "degrees of freedom (redundancy)"),
+    ("sigma_mm", "residual standard deviation (mm)"),
+    ("scale_note", "length scale"),
+    ("base_note", "base frame"),
+)
+
+
 def _conditioning_section(data: RunData) -> dict[str, Any]:
     idf = data.identify or {}
     if not idf:
         return {"available": False}
-    items = []
-    for key in ("condition_number", "cond", "rank", "n_parameters", "n_observations", "dof"):
+    facts = []
+    for key, label in (
+        ("cond", "condition number (scaled identification Jacobian)"),
+        ("condition_number", "condition number"),
+        ("rank", "rank"),
+    ):
         if key in idf and not isinstance(idf[key], (dict, list)):
-            items.append((key.replace("_", " "), _fmt(idf[key], 4)))
+            facts.append((label, _fmt(idf[key], 4)))
     obs = idf.get("observability") or {}
     obs_rows = []
     if isinstance(obs, dict):
         for k in sorted(obs):
             obs_rows.append((k, _fmt(obs[k], 4)))
     for k in ("O1", "O2", "O3", "O4", "O5"):
-        if k in idf and (k, _fmt(idf[k], 4)) not in obs_rows:
+        if k in idf and not any(r[0] == k for r in obs_rows):
             obs_rows.append((k, _fmt(idf[k], 4)))
     sv = idf.get("singular_values")
     svg = None
@@ -315,35 +337,65 @@ def _conditioning_section(data: RunData) -> dict[str, Any]:
             svg = plots.singular_values(np.asarray(sv, dtype=float))
         except (TypeError, ValueError):
             svg = None
-    other = []
-    shown = {"condition_number", "cond", "rank", "n_parameters", "n_observations", "dof"}
-    shown |= {"observability", "singular_values", "O1", "O2", "O3", "O4", "O5"}
-    shown |= {"unidentifiable", "unidentifiable_parameters", "model", "scale_held"}
-    for k in sorted(idf):
-        if k in shown:
-            continue
-        v = idf[k]
-        if isinstance(v, (str, int, float, bool)) or v is None:
-            other.append((k.replace("_", " "), _fmt(v, 4)))
-        elif isinstance(v, dict) and all(
-            isinstance(x, (str, int, float, bool)) or x is None for x in v.values()
-        ):
-            other.append(
-                (k.replace("_", " "), ", ".join(f"{a}: {_fmt(b, 4)}" for a, b in v.items()))
+    summary = [(label, _fmt(idf[k], 4)) for k, label in SUMMARY_FIELDS if k in idf]
+    pin = idf.get("p_flange_pin")
+    if isinstance(pin, list) and len(pin) == 3:
+        summary.append(
+            ("virtual pin in the flange frame (mm)", ", ".join(_fmt(float(v) * 1e3, 3) for v in pin))
+        )
+    for d in idf.get("distances") or []:
+        if isinstance(d, dict):
+            summary.append(
+                (
+                    f"known distance {d.get('a')}-{d.get('b')} (mm)",
+                    f"given {_fmt(float(d.get('metres', 'nan')) * 1e3, 3)}, "
+                    f"fitted {_fmt(float(d.get('fitted_metres', 'nan')) * 1e3, 3)}",
+                )
             )
-        elif (
-            isinstance(v, list)
-            and len(v) <= 12
-            and all(isinstance(x, (str, int, float)) for x in v)
-        ):
-            other.append((k.replace("_", " "), ", ".join(_fmt(x, 4) for x in v)))
+    solver = idf.get("solver")
+    if isinstance(solver, dict):
+        summary.append(
+            (
+                "solver",
+                f"{solver.get('method', '')}, {solver.get('message', '')} "
+                f"({solver.get('nfev', '?')} evaluations)",
+            )
+        )
+    raw = json.dumps(idf, indent=1, sort_keys=True, default=str)
     return {
         "available": True,
-        "facts": items,
+        "facts": facts,
         "observability": obs_rows,
         "svg": svg,
-        "other": other,
+        "summary": summary,
+        "raw": raw,
     }
+
+
+def _models_section(data: RunData) -> list[dict[str, str]]:
+    """Error-model comparison from identify.json ``models`` (fit and predicted figures)."""
+    idf = data.identify or {}
+    models = idf.get("models")
+    if not isinstance(models, dict):
+        return []
+    chosen = chosen_model(data)
+    rows = []
+    for name, m in models.items():
+        if not isinstance(m, dict):
+            continue
+        rows.append(
+            {
+                "model": str(name),
+                "chosen": "yes" if name == chosen else "",
+                "description": str(m.get("model_description", "")),
+                "identified": f"{m.get('n_identified', '?')}/{m.get('n_params', '?')}",
+                "rms": _fmt(m.get("rms_mm")),
+                "max": _fmt(m.get("max_mm")),
+                "pred": _fmt(m.get("predicted_shape_rms_mm", m.get("predicted_rms_mm"))),
+                "cond": _fmt(m.get("cond"), 4),
+            }
+        )
+    return rows
 
 
 def _touchup_section(data: RunData, images: dict[int, np.ndarray] | None) -> dict[str, Any]:
@@ -421,8 +473,9 @@ def _convergence_section(data: RunData) -> dict[str, Any]:
 
 def _crossval_section(data: RunData) -> dict[str, Any]:
     rows = crossval_summary(data)
+    models = _models_section(data)
     if not rows:
-        return {"available": False}
+        return {"available": False, "models": models}
     svg = plots.bars(
         [r["model"] for r in rows],
         {"held-out RMS": [r["rms_mm"] for r in rows], "held-out max": [r["max_mm"] for r in rows]},
@@ -446,6 +499,7 @@ def _crossval_section(data: RunData) -> dict[str, Any]:
             for r in rows
         ],
         "best": best["model"] if best else None,
+        "models": models,
     }
 
 
