@@ -152,13 +152,16 @@ def solve_ik(
     for it in range(max_iter):
         T = fk(chain, q)
         e = pose_error(T_goal, T)
-        if np.max(np.abs(e)) < tol:
+        err = float(np.max(np.abs(e)))
+        if err < tol:
             ok = True
             break
+        if it == 60 and err > 1e-4:
+            break  # not converging (out of reach or stuck on a limit): let the caller re-seed
         J = jacobian(chain, q)
         JJt = J @ J.T + (damping**2) * np.eye(6)
         dq = J.T @ np.linalg.solve(JJt, e)
-        if rest is not None and n > 6 and it < 40:
+        if rest is not None and n > 6 and it < 20:
             Jp = J.T @ np.linalg.inv(J @ J.T + 1e-9 * np.eye(6))
             dq += (np.eye(n) - Jp @ J) @ (0.3 * (rest - q))
         m = np.max(np.abs(dq))

@@ -261,11 +261,13 @@ def measuring_poses(sc: Scenario, cell: Cell, rng: np.random.Generator) -> list[
     cone = np.deg2rad(sc.poses.cone_half_angle_deg)
     roll_range = np.deg2rad(sc.poses.roll_range_deg)
     K = sc.poses.per_target
+    T_home = fk(chain, cell.home)
+    az_home = np.arctan2(T_home[1, 3], T_home[0, 3])
     for tg in cell.targets:
-        radial = np.array([tg.centre[0], tg.centre[1], 0.0])
-        radial /= max(np.linalg.norm(radial), 1e-9)
-        # reference: flange z down, flange x radial (away from the base)
-        R_ref = np.column_stack([radial, np.cross([0.0, 0.0, -1.0], radial), [0.0, 0.0, -1.0]])
+        # reference orientation: the home flange orientation turned about the base z axis
+        # towards the target (keeps the wrist near its home winding)
+        az = np.arctan2(tg.centre[1], tg.centre[0]) - az_home
+        R_ref = matrix_from_axis_angle([0.0, 0.0, 1.0], az) @ T_home[:3, :3]
         R_ref_cam = R_ref @ R_fc
         q_prev = cell.home.copy()
         phase = rng.uniform(0, 2 * np.pi)
