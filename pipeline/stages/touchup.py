@@ -24,8 +24,9 @@ joint vector interpolated at each image stamp):
    target (used when the target has enough well-spread pairs).
 4. **Targets.** The virtual-pin point ``p`` (flange frame) is unknown, but all
    touch-ups of one target satisfy ``R_i p + t_i = c``. RANSAC over triples of
-   touch-ups with distinct orientations solves ``(R_i - R_j) p = t_j - t_i``;
-   the ``p`` that makes most touch-ups coincide in pairs wins, is refined, and
+   two pairs of touch-ups (distinct orientations) each assumed to share a target
+   solves ``(R_i - R_j) p = t_j - t_i``, ``(R_k - R_m) p = t_m - t_k``; the ``p``
+   that makes most touch-ups coincide in pairs wins, is refined, and
    the points ``c_i = R_i p + t_i`` are grouped within ``group_radius_m``,
    labelled 0, 1, ... in first-touch order.
 5. **Convergence and correction.** ``e_T = (u - u0, v - v0, 1/s - 1/s0)`` of
@@ -141,23 +142,34 @@ def _group_targets(Ts: np.ndarray, config: TouchupConfig) -> tuple[np.ndarray, n
     best_p = np.zeros(3)
     best = (-1, np.inf)
     pairs = [(i, j) for i in range(n) for j in range(i + 1, n) if ang[i, j] > 0.05]
-    if pairs:
-        tries = config.ransac_samples
-        for _ in range(tries):
-            i, j = pairs[int(rng.integers(len(pairs)))]
-            # a third touch-up, paired with i
-            cands = [m for m in range(n) if m not in (i, j) and ang[i, m] > 0.05]
-            if not cands:
-                A = R[i] - R[j]
-                b = t[j] - t[i]
-            else:
-                m = cands[int(rng.integers(len(cands)))]
-                A = np.concatenate([R[i] - R[j], R[i] - R[m]])
-                b = np.concatenate([t[j] - t[i], t[m] - t[i]])
-            p, *_ = np.linalg.lstsq(A, b, rcond=None)
-            sc = score(p)
-            if sc[0] > best[0] or (sc[0] == best[0] and sc[1] < best[1]):
-                best, best_p = sc, p
+    # hypotheses: two pairs assumed to share a target each (6 equations, 3 unknowns);
+    # every combination of pairs of consecutive touch-ups first (runs usually touch
+    # one target several times in a row), then random combinations of any pairs
+    adjacent = [pq for pq in pairs if pq[1] == pq[0] + 1]
+    hyps: list[tuple[tuple[int, int], tuple[int, int]]] = [
+        (adjacent[x], adjacent[y])
+        for x in range(len(adjacent))
+        for y in range(x + 1, len(adjacent))
+    ][: 4 * config.ransac_samples]
+    if len(pairs) > 1:
+        n_pp = len(pairs) * (len(pairs) - 1) // 2
+        if n_pp <= config.ransac_samples:
+            hyps += [
+                (pairs[x], pairs[y]) for x in range(len(pairs)) for y in range(x + 1, len(pairs))
+            ]
+        else:
+            for _ in range(config.ransac_samples):
+                x, y = rng.choice(len(pairs), size=2, replace=False)
+                hyps.append((pairs[int(x)], pairs[int(y)]))
+    elif pairs:
+        hyps.append((pairs[0], pairs[0]))
+    for (i, j), (k, m) in hyps:
+        A = np.concatenate([R[i] - R[j], R[k] - R[m]])
+        b = np.concatenate([t[j] - t[i], t[m] - t[k]])
+        p, *_ = np.linalg.lstsq(A, b, rcond=None)
+        sc = score(p)
+        if sc[0] > best[0] or (sc[0] == best[0] and sc[1] < best[1]):
+            best, best_p = sc, p
     labels = _cluster(R @ best_p + t, config.group_radius_m)
     # refine p with the groups: R_i p + t_i = c_g for every member
     for _ in range(2):
