@@ -222,7 +222,7 @@ def build_cell(sc: Scenario, rng: np.random.Generator) -> Cell:
         R = _frame_from_normal(normal)
         targets.append(Target(i, pos, R[:, 2].copy(), R))
     return Cell(
-        robot_name=nominal_urdf and parse_urdf(nominal_urdf).name,
+        robot_name=parse_urdf(nominal_urdf).name,
         nominal_urdf=nominal_urdf,
         true_urdf=true_urdf,
         true_urdf_with_pin=urdf_with_pin(true_urdf, sc.robot.flange_link, p_vt_flange),
