@@ -121,9 +121,12 @@ class RunData:
         if not p:
             return None
         path = Path(p)
-        if not path.is_absolute():
-            path = (self.run_dir / path).resolve()
-        return path if path.is_file() else None
+        # a relative path is as given on the command line: try the working folder, then
+        # the run folder
+        for cand in (path, self.run_dir / path) if not path.is_absolute() else (path,):
+            if cand.is_file():
+                return cand.resolve()
+        return None
 
     # --------------------------------------------------------------- chains
     def nominal_chain(self) -> Chain | None:
@@ -462,16 +465,18 @@ def accuracy_figures(data: RunData) -> list[Figure]:
         ("", "predicted pin error (from the parameter covariance)"),
     ):
         key = f"predicted_{kind}_" if kind else "predicted_"
-        rms, mx = _num(idf, key + "rms_mm"), _num(idf, key + "max_mm")
-        if rms is None and mx is None:
+        p_rms, p_max = _num(idf, key + "rms_mm"), _num(idf, key + "max_mm")
+        if p_rms is None and p_max is None:
             continue
         note = ""
         if kind == "absolute" and scale_held:
             note = "not reachable: no known distance, the scale was held at nominal"
-        figs.append(Figure(text, rms, mx, note=note))
+        figs.append(Figure(text, p_rms, p_max, note=note))
     pred = idf.get("predicted")
     if isinstance(pred, dict):
-        figs.append(Figure("predicted (from parameter covariance)", _mm(pred, "rms"), _mm(pred, "max")))
+        figs.append(
+            Figure("predicted (from parameter covariance)", _mm(pred, "rms"), _mm(pred, "max"))
+        )
     cv = crossval_summary(data)
     for row in cv:
         figs.append(

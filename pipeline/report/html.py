@@ -39,9 +39,9 @@ from pipeline.report.data import (
     RunData,
     accuracy_figures,
     artefact_hashes,
+    chosen_model,
     convergence_traces,
     crossval_summary,
-    chosen_model,
     designated,
     detection_ellipse,
     for_model,
@@ -233,7 +233,9 @@ PARAM_COLS = {
 def _parameters_section(data: RunData) -> dict[str, Any]:
     df = data.parameters
     idf = data.identify or {}
-    unid = idf.get("held") or idf.get("unidentifiable") or idf.get("unidentifiable_parameters") or []
+    unid = (
+        idf.get("held") or idf.get("unidentifiable") or idf.get("unidentifiable_parameters") or []
+    )
     out: dict[str, Any] = {"available": df is not None and len(df) > 0, "unidentifiable": []}
     if isinstance(unid, dict):
         out["unidentifiable"] = [{"name": str(k), "why": str(v)} for k, v in unid.items()]
@@ -341,7 +343,10 @@ def _conditioning_section(data: RunData) -> dict[str, Any]:
     pin = idf.get("p_flange_pin")
     if isinstance(pin, list) and len(pin) == 3:
         summary.append(
-            ("virtual pin in the flange frame (mm)", ", ".join(_fmt(float(v) * 1e3, 3) for v in pin))
+            (
+                "virtual pin in the flange frame (mm)",
+                ", ".join(_fmt(float(v) * 1e3, 3) for v in pin),
+            )
         )
     for d in idf.get("distances") or []:
         if isinstance(d, dict):
