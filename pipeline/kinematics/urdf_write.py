@@ -14,6 +14,7 @@ sees the final ``4 x 4`` origins.
 
 from __future__ import annotations
 
+import re
 import xml.etree.ElementTree as ET
 from collections.abc import Mapping
 
@@ -122,4 +123,12 @@ def write_calibrated_urdf(
     ET.SubElement(j, "origin", {"xyz": _fmt(p), "rpy": "0 0 0"})
     comment.tail = link.tail = "\n  "
     j.tail = "\n"
-    return '<?xml version="1.0"?>\n' + ET.tostring(root, encoding="unicode") + "\n"
+    # ElementTree drops what surrounds the root element: keep the original prolog
+    # (XML declaration, comments) and epilog verbatim.
+    m = re.search(r"<robot[\s>]", urdf_xml)
+    prolog = urdf_xml[: m.start()] if m else ""
+    if not prolog.lstrip().startswith("<?xml"):
+        prolog = '<?xml version="1.0"?>\n' + prolog
+    end = urdf_xml.rfind("</robot>")
+    epilog = urdf_xml[end + len("</robot>") :] if end >= 0 else "\n"
+    return prolog + ET.tostring(root, encoding="unicode") + (epilog or "\n")

@@ -561,9 +561,6 @@ def _identify_one(
     Lc = float(max(np.sqrt(np.mean(np.sum(p_nom**2, axis=1))), 0.1))
     units = np.array(model.param_units)
     pscale = np.where(units == "rad", Lc, 1.0)  # column scale: J[:, j] * pscale[j]
-    _, J0 = prob.full_eval(x0, pin0, tg0)
-    assert J0 is not None
-    Jn0 = J0[:, P:]
     st = _structure(
         name, urdf, chain.base_link, chain.tip_link, bool(data.dist), float(config.rank_tol)
     )
@@ -571,6 +568,9 @@ def _identify_one(
         # the gauge row is defined in the structure's scaling; x_scaled = x * pscale
         g = st.gauge * np.where(units == "rad", st.length, 1.0)
         prob = _Problem(model, data, config, gauge=g / np.linalg.norm(g))
+    _, J0 = prob.full_eval(x0, pin0, tg0)
+    assert J0 is not None
+    Jn0 = J0[:, P:]
     reasons = dict(st.held)
     r_struct = len(st.kept)
     nuis_rank = int(np.linalg.matrix_rank(Jn0))
