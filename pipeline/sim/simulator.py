@@ -978,7 +978,7 @@ def _run(sess: Session) -> dict[str, Any]:
                 fh["_images"] = tu_imgs[:1]
             fh.setdefault("_images", tu_imgs)
             sess.faults.append(fh)
-        # finish the knocked-target bookkeeping lazily (images of its later touch-ups)
+        # (the knocked target's image indices are filled in below, once all are written)
 
     rob.advance(1.0)
     rec.flush(None)
