@@ -1,9 +1,10 @@
 """Outlier rejection: flag touch-ups that identification must not trust (never delete them).
 
-Rule-based rejection from what extraction recorded about each touch-up. Every
-rejected row keeps its data and gets a ``reason``; several reasons are joined
-by ``"; "``. Rules (a rule whose column is absent from the touch-up table is
-skipped):
+Two steps, each recording its reason on the row it flags (several reasons are
+joined by ``"; "``); every input row comes out, in the same order.
+
+**1. Rules** on what extraction recorded about each touch-up (a rule whose
+column is absent from the touch-up table is skipped):
 
 | reason | when |
 |---|---|
@@ -14,15 +15,62 @@ skipped):
 | ``ambiguous blob`` | ``ambiguous`` is true |
 | ``contour cut by the border`` | ``border_contact`` is true |
 | ``too few captures`` | ``n_converged_captures`` below ``min_captures`` |
+
+**2. Statistics** on the identification residuals of the rows the rules kept
+(needs ``info.urdf``; skipped with a note otherwise). The measurement model is
+linearised at the least-squares fit (:func:`pipeline.stages.identify.identify`)::
+
+    e = J dz + eps,    eps ~ N(0, sigma^2 I)
+
+with ``e`` the weighted pin-minus-target residuals (3 per touch-up, plus the
+known-distance rows) and ``J`` the identification Jacobian over the identified
+kinematic parameters, the pin and the targets. Each alternative is a
+*mean shift* of a group of rows, ``e = J dz + C delta + eps`` with ``C``
+three columns:
+
+* one touch-up is an outlier: ``C`` selects its three rows;
+* a target was knocked after its ``c``-th touch-up in time: ``C`` stacks the
+  identity on every row of that target from touch-up ``c + 1`` on (the part
+  after the knock sits at ``t + delta``).
+
+The score of a group is the drop in the residual sum of squares its columns
+buy (Cook & Weisberg 1982, *Residuals and Influence in Regression*, ch. 2.2,
+the mean-shift outlier model)::
+
+    S = (C^T e)^T (C^T (I - H) C)^+ (C^T e),   H = J (J^T J)^+ J^T
+
+so the leverage of every row (the hat matrix ``H``) is accounted for. With
+the scale estimated *without* the group, ``s2 = (|e|^2 - S) / (dof - r)``
+(``r = rank C^T (I - H) C``), ``F = S / (r s2)`` follows ``F(r, dof - r)``
+under "no outlier"; a single touch-up's ``sqrt(S / s2)`` is its externally
+studentized residual, reported as ``"residual 5.2 sigma"``. The most
+significant group, if its Bonferroni-corrected p-value (times the number of
+groups tested) is below ``alpha``, is flagged (an outlier) or split (a knock:
+the touch-ups after it get a new target label, ``max label + 1``; the part
+before keeps the label, so a known distance involving that target applies to
+the part before the knock only), the model is re-fitted and the search
+repeats. A shift confined to a target's last touch-up(s) is read as a knock,
+which keeps the row (it then only informs its own new target). Finally every
+statistically flagged row is re-tested against the final fit as a new
+observation (prediction variance ``s2 (I / w + J_i (J^T J)^+ J_i^T)``) and
+reinstated when it is consistent with it (guards against swamping).
+
+Which error model the statistics use: ``model="auto"`` takes the richest of
+:attr:`OutlierConfig.models` whose fit leaves at least ``min_dof`` degrees of
+freedom (a too-simple model leaves systematic residuals that look like outliers).
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+import dataclasses
+from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
 import pandas as pd
+from scipy import stats
+
+from pipeline.kinematics.se3 import F64
 
 INLIER_COLUMNS = (
     "touchup_id",
@@ -38,10 +86,34 @@ INLIER_COLUMNS = (
 
 @dataclass
 class OutlierConfig:
-    """Thresholds of the rejection rules."""
+    """Thresholds of the rejection rules and of the statistical step.
+
+    Attributes
+    ----------
+    max_fit_residual_px : contour-fit RMS above which a touch-up is rejected, px
+    min_captures : fewest good captures averaged at the final pose
+    statistical : run the residual statistics and the knock search after the rules
+    model : error model of the statistics, or ``"auto"`` (see :attr:`models`)
+    models : candidates of ``"auto"``, richest first
+    min_dof : degrees of freedom ``"auto"`` wants left after the fit
+    alpha : family-wise false-alarm probability per search step (Bonferroni)
+    split_targets : look for knocked targets (change point in time) and split them
+    min_before : fewest inlier touch-ups a target keeps before a knock
+    max_iterations : flag/split steps at most
+    reinclude : re-test flagged rows against the final fit and reinstate consistent ones
+    """
 
     max_fit_residual_px: float = 0.25
     min_captures: int = 1
+    statistical: bool = True
+    model: str = "auto"
+    models: list[str] = field(default_factory=lambda: ["full", "mdh", "offsets"])
+    min_dof: int = 10
+    alpha: float = 0.01
+    split_targets: bool = True
+    min_before: int = 2
+    max_iterations: int = 20
+    reinclude: bool = True
 
 
 def _rule_masks(table: pd.DataFrame, config: OutlierConfig) -> dict[str, np.ndarray]:
@@ -65,24 +137,343 @@ def _rule_masks(table: pd.DataFrame, config: OutlierConfig) -> dict[str, np.ndar
 
 
 def flag_outliers(table: pd.DataFrame, info: Any, config: OutlierConfig) -> pd.DataFrame:
-    """Flag rejected touch-ups with their reasons.
+    """Flag rejected touch-ups with their reasons; split knocked targets.
 
     Parameters
     ----------
-    table : touchups artefact (``schemas/touchups.json``)
-    info : RecordingInfo (for the joint names)
+    table : touchups artefact (``schemas/touchups.json``), or any touch-up table
+        (``../shared/spec/touchups.md``)
+    info : RecordingInfo: ``joint_names``; for the statistics also ``urdf``,
+        ``base_link``, ``flange_link`` and ``metadata["known_distances"]``
     config : OutlierConfig
 
     Returns
     -------
     DataFrame per ``schemas/inliers.json``: the spec's touch-up columns, the joint
-    columns, ``inlier`` and ``reason``; one row per input row, same order.
+    columns, ``source_target_id`` (label as extracted), ``target_id`` (after
+    knock splits), ``inlier``, ``reason``, ``studentized`` (sigma, NaN if not
+    tested), ``leverage`` and ``note``; one row per input row, same order.
     """
     joints = list(info.joint_names)
-    out = table[list(INLIER_COLUMNS) + joints].copy()
-    out.insert(2, "source_target_id", table["target_id"].to_numpy())
-    masks = _rule_masks(table, config)
-    reasons = ["; ".join(r for r, m in masks.items() if m[i]) for i in range(len(table))]
+    base = table.reset_index(drop=True)
+    cols = [c for c in INLIER_COLUMNS if c in base.columns]
+    out = base[cols + joints].copy()
+    for c, default in (
+        ("dx_flange", 0.0),
+        ("dy_flange", 0.0),
+        ("dz_flange", 0.0),
+        ("weight", 1.0),
+        ("converged", True),
+    ):
+        if c not in out.columns:
+            out[c] = default
+    if "stamp_ns" not in out.columns:
+        out["stamp_ns"] = np.arange(len(out), dtype=np.int64)
+    out = out[list(INLIER_COLUMNS) + joints]
+    out.insert(2, "source_target_id", base["target_id"].to_numpy())
+    masks = _rule_masks(base, config)
+    reasons = ["; ".join(r for r, m in masks.items() if m[i]) for i in range(len(base))]
     out["inlier"] = [r == "" for r in reasons]
     out["reason"] = reasons
+    out["studentized"] = np.nan
+    out["leverage"] = np.nan
+    out["note"] = ""
+    if config.statistical and getattr(info, "urdf", None):
+        out = _statistical(out, info, config)
     return out.reset_index(drop=True)
+
+
+# ----------------------------------------------------------------------------- statistics
+
+
+@dataclass
+class _Fit:
+    """A least-squares fit linearised for the mean-shift tests.
+
+    ``rows`` are positions (in the flagged table) of the touch-ups in the fit,
+    ``e`` (m,) the weighted residual, ``U`` (m, rank) an orthonormal basis of
+    the Jacobian's column space, ``dof = m - rank``, ``sigma2 = |e|^2 / dof``;
+    ``Vs`` (cols, rank) = ``V S^-1`` so ``(J^T J)^+ = Vs Vs^T``.
+    """
+
+    model: str
+    rows: np.ndarray
+    e: F64
+    U: F64
+    Vs: F64
+    dof: int
+    sigma2: float
+    x: F64
+    kept: np.ndarray
+    pin: F64
+    targets: dict[int, F64]
+    tcol: dict[int, int]
+
+
+def _distances(info: Any) -> list[tuple[int | str, int | str, float]]:
+    from pipeline.known_distances import parse_distances
+
+    meta = getattr(info, "metadata", None) or {}
+    return parse_distances(str(meta.get("known_distances", "") or ""))
+
+
+def _target_positions(targets: pd.DataFrame) -> dict[int, F64]:
+    """``{target_id: (3,) fitted position}`` from a targets table."""
+    ids = targets["target_id"].to_numpy(dtype=np.int64)
+    xyz = targets[["x", "y", "z"]].to_numpy(dtype=float)
+    return {int(t): xyz[i] for i, t in enumerate(ids)}
+
+
+def _fit(out: pd.DataFrame, info: Any, model: str, config: OutlierConfig) -> _Fit:
+    """Identify on the current inliers and build the linearised problem."""
+    from pipeline.kinematics.chain import load_chain
+    from pipeline.models import get_model
+    from pipeline.stages.identify import IdentifyConfig, IdentifyResult, identify
+
+    dist = _distances(info)
+    labels = set(out["target_id"].astype(int).tolist())
+    dist = [d for d in dist if int(d[0]) in labels and int(d[1]) in labels]
+    icfg = IdentifyConfig(model=model, distances=dist, n_workspace=4)
+    res = identify(out, info.urdf, info.base_link, info.flange_link, icfg)
+    assert isinstance(res, IdentifyResult)
+    chain = load_chain(info.urdf, info.base_link, info.flange_link)
+    em = get_model(model)(chain)
+    par = res.parameters
+    kin = par[par["kind"] == "kinematic"].reset_index(drop=True)
+    kept = np.flatnonzero(kin["identifiable"].to_numpy(dtype=bool))
+    tg = _target_positions(res.targets)
+    tcol = {t: i for i, t in enumerate(sorted(tg))}
+    rows = np.flatnonzero(res.residuals["used"].to_numpy(dtype=bool))
+    q = out.iloc[rows][list(chain.joint_names)].to_numpy(dtype=float)
+    d = out.iloc[rows][["dx_flange", "dy_flange", "dz_flange"]].to_numpy(dtype=float)
+    sw = np.sqrt(out.iloc[rows]["weight"].to_numpy(dtype=float))
+    tid = out.iloc[rows]["target_id"].to_numpy(dtype=int)
+    p, R, Jx = em.pin_and_jacobian(res.x, q, res.p_flange_pin + d, jac=True)
+    assert Jx is not None
+    N, K, nk = len(rows), len(tg), len(kept)
+    t_at = np.array([tg[int(t)] for t in tid])
+    e_rows = ((p - t_at) * sw[:, None]).ravel()
+    ncol = nk + 3 + 3 * K
+    J = np.zeros((3 * N, ncol))
+    J[:, :nk] = (Jx[:, :, kept] * sw[:, None, None]).reshape(3 * N, nk)
+    J[:, nk : nk + 3] = (R * sw[:, None, None]).reshape(3 * N, 3)
+    for i in range(N):
+        c0 = nk + 3 + 3 * tcol[int(tid[i])]
+        J[3 * i : 3 * i + 3, c0 : c0 + 3] = -sw[i] * np.eye(3)
+    # known-distance rows (their residuals are ~0 at the fit, weight as in identify)
+    wd = float(icfg.distance_weight)
+    extra_J, extra_e = [], []
+    for a, b, metres in dist:
+        ta, tb = tg.get(int(a)), tg.get(int(b))
+        if ta is None or tb is None:
+            continue
+        u = (ta - tb) / max(float(np.linalg.norm(ta - tb)), 1e-12)
+        row = np.zeros(ncol)
+        row[nk + 3 + 3 * tcol[int(a)] : nk + 6 + 3 * tcol[int(a)]] = wd * u
+        row[nk + 3 + 3 * tcol[int(b)] : nk + 6 + 3 * tcol[int(b)]] = -wd * u
+        extra_J.append(row)
+        extra_e.append(wd * (float(np.linalg.norm(ta - tb)) - metres))
+    if extra_J:
+        J = np.vstack([J, np.array(extra_J)])
+        e = np.concatenate([e_rows, np.array(extra_e)])
+    else:
+        e = e_rows
+    # column scaling does not change the column space; it keeps the SVD well conditioned
+    cn = np.linalg.norm(J, axis=0)
+    cn[cn == 0] = 1.0
+    Uf, s, Vt = np.linalg.svd(J / cn, full_matrices=False)
+    rank = int(np.sum(s > s[0] * 1e-10)) if s.size else 0
+    U = Uf[:, :rank]
+    Vs = (Vt[:rank].T / s[:rank]) / cn[:, None]
+    dof = J.shape[0] - rank
+    sigma2 = float(e @ e / dof) if dof > 0 else float("nan")
+    return _Fit(model, rows, e, U, Vs, dof, sigma2, res.x, kept, res.p_flange_pin, tg, tcol)
+
+
+def _group_test(f: _Fit, pos: np.ndarray, w: np.ndarray) -> tuple[float, float, int, F64]:
+    """Mean-shift test of the touch-ups at fit positions ``pos`` (see module docstring).
+
+    Returns ``(p-value, studentized sigma, rank, delta)``; p = 1 when untestable.
+    """
+    m = len(f.e)
+    C = np.zeros((m, 3))
+    for i, wi in zip(pos, w, strict=True):
+        C[3 * i : 3 * i + 3] = np.sqrt(wi) * np.eye(3)
+    UC = f.U.T @ C
+    M = C.T @ C - UC.T @ UC
+    ce = C.T @ f.e
+    ev = np.linalg.eigvalsh(M)
+    r = int(np.sum(ev > max(ev.max(), 1e-300) * 1e-8)) if ev.size else 0
+    if r == 0 or f.dof - r < 1:
+        return 1.0, 0.0, 0, np.zeros(3)
+    Mi = np.linalg.pinv(M, rcond=1e-8)
+    S = float(ce @ Mi @ ce)
+    rss = float(f.e @ f.e)
+    s2 = max(rss - S, 1e-300) / (f.dof - r)
+    F = S / (r * s2)
+    p = float(stats.f.sf(F, r, f.dof - r))
+    return p, float(np.sqrt(S / s2)), r, Mi @ ce
+
+
+def _prediction_test(f: _Fit, out: pd.DataFrame, i: int, info: Any) -> tuple[float, float]:
+    """Test row ``i`` (not in the fit) as a new observation of the fit.
+
+    ``e = p(q_i) - t_k``, ``Var e = s2 (I / w_i + J_i (J^T J)^+ J_i^T)``;
+    returns ``(p-value of F(3, dof), sigma)``.
+    """
+    from pipeline.kinematics.chain import load_chain
+    from pipeline.models import get_model
+
+    tid = int(out["target_id"].to_numpy(dtype=np.int64)[i])
+    if tid not in f.targets or not f.dof > 0:
+        return 1.0, 0.0
+    chain = load_chain(info.urdf, info.base_link, info.flange_link)
+    em = get_model(f.model)(chain)
+    q = out.iloc[[i]][list(chain.joint_names)].to_numpy(dtype=float)
+    d = out.iloc[[i]][["dx_flange", "dy_flange", "dz_flange"]].to_numpy(dtype=float)
+    w = float(out["weight"].iloc[i])
+    if not (np.all(np.isfinite(q)) and w > 0):
+        return 1.0, 0.0
+    p, R, Jx = em.pin_and_jacobian(f.x, q, f.pin + np.nan_to_num(d), jac=True)
+    assert Jx is not None
+    nk = len(f.kept)
+    Ji = np.zeros((3, f.Vs.shape[0]))
+    Ji[:, :nk] = Jx[0][:, f.kept]
+    Ji[:, nk : nk + 3] = R[0]
+    c0 = nk + 3 + 3 * f.tcol[tid]
+    Ji[:, c0 : c0 + 3] = -np.eye(3)
+    G = Ji @ f.Vs
+    V = np.eye(3) / w + G @ G.T
+    e = p[0] - f.targets[tid]
+    S = float(e @ np.linalg.solve(V, e)) / f.sigma2
+    return float(stats.f.sf(S / 3.0, 3, f.dof)), float(np.sqrt(S))
+
+
+def _leverage(f: _Fit) -> F64:
+    """Mean diagonal of the 3x3 hat-matrix block of each touch-up in the fit, (N,)."""
+    N = len(f.rows)
+    h = np.sum(f.U[: 3 * N] ** 2, axis=1).reshape(N, 3)
+    return np.asarray(h.mean(axis=1))
+
+
+def _choose_fit(out: pd.DataFrame, info: Any, config: OutlierConfig) -> _Fit | str:
+    """The fit of the configured (or richest adequate) model, or why there is none."""
+    from pipeline.errors import BadInput, CalibrationFailed
+
+    names = list(config.models) if config.model == "auto" else [config.model]
+    why = []
+    for name in names:
+        try:
+            f = _fit(out, info, name, config)
+        except (BadInput, CalibrationFailed) as exc:
+            why.append(f"{name}: {exc}")
+            continue
+        if config.model != "auto" or f.dof >= config.min_dof or name == names[-1]:
+            if f.dof < 4:
+                why.append(f"{name}: {f.dof} degrees of freedom left")
+                continue
+            return f
+        why.append(f"{name}: only {f.dof} degrees of freedom left")
+    return "statistical check skipped (" + " | ".join(why) + ")"
+
+
+def _statistical(out: pd.DataFrame, info: Any, config: OutlierConfig) -> pd.DataFrame:
+    """Step 2 of the module docstring on the rows the rules kept."""
+    out = out.copy()
+    out["target_id"] = out["target_id"].astype(np.int64)
+    stamps = out["stamp_ns"].to_numpy(dtype=np.int64)
+    notes: list[list[str]] = [[] for _ in range(len(out))]
+    flagged: list[int] = []
+    next_label = int(max(out["target_id"].max(), out["source_target_id"].max())) + 1
+    model_used = config.model
+    f: _Fit | None = None
+    for _ in range(config.max_iterations + 1):
+        got = _choose_fit(out, info, config if model_used == "auto" else _fixed(config, model_used))
+        if isinstance(got, str):
+            for i in np.flatnonzero(out["inlier"].to_numpy(dtype=bool)):
+                notes[i].append(got)
+            f = None
+            break
+        f = got
+        model_used = f.model
+        w = out["weight"].to_numpy(dtype=float)[f.rows]
+        cands: list[tuple[float, int, str, Any, float, F64]] = []
+        pos_of = {int(r): k for k, r in enumerate(f.rows)}
+        # single touch-ups
+        for k, r in enumerate(f.rows):
+            p, sig, rk, delta = _group_test(f, np.array([k]), w[[k]])
+            if rk:
+                cands.append((p, 1, "single", int(r), sig, delta))
+        # knocks: change point in time per target
+        if config.split_targets:
+            tids = out["target_id"].to_numpy(dtype=np.int64)
+            for t in sorted(set(tids[f.rows].tolist())):
+                rows_t = [int(r) for r in f.rows if tids[r] == t]
+                rows_t.sort(key=lambda r: (stamps[r], r))
+                for c in range(config.min_before, len(rows_t)):
+                    after = rows_t[c:]
+                    pos = np.array([pos_of[r] for r in after])
+                    p, sig, rk, delta = _group_test(f, pos, w[pos])
+                    if rk:
+                        cands.append((p, 0, "split", (t, rows_t[c - 1], after), sig, delta))
+        if not cands:
+            break
+        n_tests = len(cands)
+        # most significant first; a tie (same rows) goes to the knock (kind 0)
+        cands.sort(key=lambda c: (round(np.log(max(c[0], 1e-300)), 9), c[1]))
+        p, _, kind, what, sig, delta = cands[0]
+        if min(1.0, p * n_tests) >= config.alpha:
+            break
+        if kind == "single":
+            r_out = int(what)
+            out.loc[r_out, "inlier"] = False
+            out.loc[r_out, "reason"] = f"residual {sig:.1f} sigma"
+            out.loc[r_out, "studentized"] = sig
+            notes[r_out].append(
+                f"mean-shift test, model {f.model}: p = {p:.2g} over {n_tests} tests "
+                f"(shift {np.linalg.norm(delta) * 1e3:.3f} mm)"
+            )
+            flagged.append(r_out)
+        else:
+            t, last_before, after = what
+            t_first = stamps[after[0]]
+            src = out["target_id"].to_numpy(dtype=np.int64) == t
+            move = src & (stamps >= t_first)
+            new = next_label
+            next_label += 1
+            out.loc[move, "target_id"] = new
+            for r_mv in np.flatnonzero(move).tolist():
+                notes[r_mv].append(
+                    f"target {t} knocked between touch-ups {int(out['touchup_id'].iloc[last_before])}"
+                    f" and {int(out['touchup_id'].iloc[after[0]])}: the part after is target {new}"
+                    f" (shift {np.linalg.norm(delta) * 1e3:.3f} mm, {sig:.1f} sigma, model "
+                    f"{f.model})"
+                )
+    # re-test every statistically flagged row against the final fit
+    if f is not None and config.reinclude and flagged:
+        n_tests = len(flagged)
+        back = []
+        for r_fl in flagged:
+            p, sig = _prediction_test(f, out, r_fl, info)
+            if min(1.0, p * n_tests) >= config.alpha:
+                back.append(r_fl)
+        for r_bk in back:
+            out.loc[r_bk, "inlier"] = True
+            out.loc[r_bk, "reason"] = ""
+            notes[r_bk].append("reinstated: consistent with the final fit")
+        if back:
+            got = _choose_fit(out, info, _fixed(config, f.model))
+            f = got if isinstance(got, _Fit) else f
+    if f is not None:
+        lev = _leverage(f)
+        w = out["weight"].to_numpy(dtype=float)[f.rows]
+        for k, r in enumerate(f.rows):
+            _, sig, rk, _ = _group_test(f, np.array([k]), w[[k]])
+            out.loc[int(r), "leverage"] = float(lev[k])
+            out.loc[int(r), "studentized"] = sig if rk else np.nan
+    out["note"] = ["; ".join(n) for n in notes]
+    return out
+
+
+def _fixed(config: OutlierConfig, model: str) -> OutlierConfig:
+    return dataclasses.replace(config, model=model)

@@ -1,0 +1,339 @@
+"""Cross-validation: held-out error of each error model, and the choice of model by it.
+
+Training error always favours the richer model; what a user needs is how well
+a model predicts touch-ups it has not seen. Two schemes, per error model:
+
+* **k-fold over touch-ups** (stratified by target: each target's usable
+  touch-ups are shuffled and dealt round the ``k`` folds, so every target keeps
+  training data). The kinematics, the pin and every target are identified on
+  the other folds; a held-out touch-up ``i`` of target ``k`` scores
+
+      e_i = T_base_flange(q_i; x_train) (p_pin,train + d_i) - t_k,train        (1)
+
+  (``d_i`` its residual correction). A target with a single usable touch-up has
+  nothing left to train on and is not scored.
+* **leave one target out**: identification on every other target; the held-out
+  target's position is unknown to the fit, so its touch-ups score by the spread
+  of their predicted pin positions ``p_i`` (left side of (1)) about their mean,
+  ``e_i = (p_i - mean p) sqrt(n / (n - 1))`` (the factor undoes the shrinkage of
+  a spread about a fitted mean). Known distances involving that target drop out.
+
+Figures are RMS over the scored touch-ups of ``|e_i|`` in mm. The model a run
+ships is the one with the smallest k-fold RMS among those whose every fold
+could be fitted (training RMS is reported beside it, never used to choose).
+Ties within 1 % go to the model with fewer identified parameters.
+
+Reference: Hastie, Tibshirani & Friedman, *The Elements of Statistical
+Learning* (2nd ed.), section 7.10 (k-fold cross-validation).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+import pandas as pd
+
+from pipeline.errors import BadInput, CalibrationFailed
+from pipeline.kinematics.chain import fk, load_chain
+from pipeline.kinematics.se3 import F64
+from pipeline.stages.identify import IdentifyConfig, IdentifyResult, identify
+
+
+@dataclass
+class CrossvalConfig:
+    """Cross-validation settings.
+
+    Attributes
+    ----------
+    k : folds of the k-fold scheme (at most the largest target's touch-up count)
+    models : error models to compare; empty: the identify stage's model, or every
+        registered model when it is ``"all"``
+    seed : seed of the fold assignment
+    loto : also run leave-one-target-out
+    """
+
+    k: int = 5
+    models: list[str] = field(default_factory=list)
+    seed: int = 0
+    loto: bool = True
+
+
+@dataclass
+class CrossvalResult:
+    """Held-out residuals (``schemas/crossval.json``), the chosen model and a JSON summary."""
+
+    table: pd.DataFrame
+    chosen_model: str | None
+    summary: dict[str, Any]
+
+
+def usable_rows(table: pd.DataFrame, joint_names: list[str]) -> np.ndarray:
+    """Bool mask of the rows identification uses (inlier, converged, weight > 0, joints)."""
+    n = len(table)
+    ok = np.ones(n, dtype=bool)
+    for c in ("inlier", "converged"):
+        if c in table.columns:
+            ok &= table[c].fillna(False).to_numpy(dtype=bool)
+    if "weight" in table.columns:
+        ok &= table["weight"].to_numpy(dtype=float) > 0
+    ok &= np.all(np.isfinite(table[joint_names].to_numpy(dtype=float)), axis=1)
+    ok &= table["target_id"].notna().to_numpy()
+    return ok
+
+
+def fold_assignment(targets: np.ndarray, k: int, rng: np.random.Generator) -> np.ndarray:
+    """Fold index per row, stratified by target (see module docstring), (N,)."""
+    fold = np.zeros(len(targets), dtype=np.int64)
+    for t in sorted(set(targets.tolist())):
+        idx = np.flatnonzero(targets == t)
+        idx = idx[rng.permutation(len(idx))]
+        off = int(rng.integers(0, k))
+        fold[idx] = (off + np.arange(len(idx))) % k
+    return fold
+
+
+def _predict(res: IdentifyResult, q: F64, d: F64) -> F64:
+    """Pin positions of the fitted model, ``T(q_i) (pin + d_i)`` -> (N, 3)."""
+    T = fk(res.chain, q)
+    pts = res.p_flange_pin[None, :] + d
+    return np.asarray(np.einsum("nij,nj->ni", T[:, :3, :3], pts) + T[:, :3, 3])
+
+
+def _target_positions(targets: pd.DataFrame) -> dict[int, F64]:
+    """``{target_id: (3,) fitted position}`` from a targets table."""
+    ids = targets["target_id"].to_numpy(dtype=np.int64)
+    xyz = targets[["x", "y", "z"]].to_numpy(dtype=float)
+    return {int(t): xyz[i] for i, t in enumerate(ids)}
+
+
+def _fit(
+    table: pd.DataFrame, use: np.ndarray, urdf: str, base: str, flange: str, cfg: IdentifyConfig
+) -> IdentifyResult:
+    t = table.copy()
+    t["inlier"] = use
+    res = identify(t, urdf, base, flange, cfg)
+    assert isinstance(res, IdentifyResult)
+    return res
+
+
+def cross_validate(
+    table: pd.DataFrame,
+    urdf: str,
+    base_link: str,
+    flange_link: str,
+    identify_config: IdentifyConfig,
+    config: CrossvalConfig,
+) -> CrossvalResult:
+    """k-fold and leave-one-target-out held-out residuals per error model.
+
+    Parameters
+    ----------
+    table : inliers artefact (or any touch-up table; ``inlier``/``converged`` honoured)
+    urdf, base_link, flange_link : the nominal robot
+    identify_config : settings of the identify stage (distances, loss, ...);
+        its ``model`` picks the models when ``config.models`` is empty
+    config : CrossvalConfig
+
+    Returns
+    -------
+    CrossvalResult
+        ``table``: one row per scored (model, scheme, touch-up) with the error
+        vector (m) and its norm (mm), or why it was not scored; ``chosen_model``:
+        smallest k-fold RMS; ``summary``: figures per model and ``choice``, a
+        sentence saying the model was chosen by held-out error.
+    """
+    from pipeline.models import model_names
+
+    chain = load_chain(urdf, base_link, flange_link)
+    names = list(chain.joint_names)
+    df = table.reset_index(drop=True)
+    missing = [c for c in ("touchup_id", "target_id", *names) if c not in df.columns]
+    if missing:
+        raise BadInput(f"touch-up table: missing column(s) {missing} for cross-validation")
+    if config.models:
+        models = list(config.models)
+    elif identify_config.model == "all":
+        models = model_names()
+    else:
+        models = [identify_config.model]
+    use = usable_rows(df, names)
+    q_all = df[names].to_numpy(dtype=float)
+    d_all = np.zeros((len(df), 3))
+    for j, c in enumerate(("dx_flange", "dy_flange", "dz_flange")):
+        if c in df.columns:
+            d_all[:, j] = np.nan_to_num(df[c].to_numpy(dtype=float))
+    tid = df["target_id"].to_numpy()
+    tu = df["touchup_id"].to_numpy(dtype=np.int64)
+    counts = pd.Series(tid[use]).value_counts()
+    k = int(max(2, min(config.k, int(counts.to_numpy().max()) if len(counts) else 2)))
+    fold = np.full(len(df), -1, dtype=np.int64)
+    fold[use] = fold_assignment(tid[use], k, np.random.default_rng(config.seed))
+    base_cfg = dataclasses.replace(identify_config, n_workspace=4)
+
+    rows: list[dict[str, Any]] = []
+    summary_models: dict[str, Any] = {}
+
+    def add(model: str, scheme: str, f: int, i: int, n_train: int, e: F64 | None, why: str) -> None:
+        rows.append(
+            {
+                "model": model,
+                "scheme": scheme,
+                "fold": f,
+                "touchup_id": int(tu[i]),
+                "target_id": int(tid[i]),
+                "n_train": n_train,
+                "ex": float(e[0]) if e is not None else math.nan,
+                "ey": float(e[1]) if e is not None else math.nan,
+                "ez": float(e[2]) if e is not None else math.nan,
+                "error_mm": float(np.linalg.norm(e) * 1e3) if e is not None else math.nan,
+                "status": why,
+            }
+        )
+
+    for m in models:
+        mcfg = dataclasses.replace(base_cfg, model=m)
+        info: dict[str, Any] = {"k": k}
+        try:
+            full = _fit(df, use, urdf, base_link, flange_link, mcfg)
+            info["train_rms_mm"] = float(full.summary["rms_mm"])
+            info["n_identified"] = int(full.summary["n_identified"])
+        except (BadInput, CalibrationFailed) as exc:
+            info["train_rms_mm"] = math.nan
+            info["error"] = str(exc)
+        # -- k-fold
+        failed = 0
+        for f in range(k):
+            held = use & (fold == f)
+            train = use & (fold != f)
+            try:
+                res = _fit(df, train, urdf, base_link, flange_link, mcfg)
+            except (BadInput, CalibrationFailed) as exc:
+                failed += 1
+                for i in np.flatnonzero(held):
+                    add(m, "kfold", f, int(i), int(train.sum()), None, f"fold not fitted: {exc}")
+                continue
+            tg = _target_positions(res.targets)
+            hi = np.flatnonzero(held)
+            if len(hi) == 0:
+                continue
+            p = _predict(res, q_all[hi], d_all[hi])
+            for j, i in enumerate(hi):
+                t = tg.get(int(tid[i]))
+                if t is None:
+                    add(m, "kfold", f, int(i), int(train.sum()), None, "target not in training")
+                else:
+                    add(m, "kfold", f, int(i), int(train.sum()), p[j] - t, "")
+        info["kfold_failed_folds"] = failed
+        # -- leave one target out
+        loto_failed = 0
+        if config.loto:
+            for f, t in enumerate(sorted(set(tid[use].tolist()))):
+                held = use & (tid == t)
+                train = use & (tid != t)
+                hi = np.flatnonzero(held)
+                if len(hi) < 2:
+                    for i in hi:
+                        add(m, "loto", f, int(i), int(train.sum()), None, "single touch-up")
+                    continue
+                try:
+                    res = _fit(df, train, urdf, base_link, flange_link, mcfg)
+                except (BadInput, CalibrationFailed) as exc:
+                    loto_failed += 1
+                    for i in hi:
+                        add(m, "loto", f, int(i), int(train.sum()), None, f"not fitted: {exc}")
+                    continue
+                p = _predict(res, q_all[hi], d_all[hi])
+                dev = (p - p.mean(axis=0)) * math.sqrt(len(hi) / (len(hi) - 1))
+                for j, i in enumerate(hi):
+                    add(m, "loto", f, int(i), int(train.sum()), dev[j], "")
+        info["loto_failed_targets"] = loto_failed
+        summary_models[m] = info
+
+    out = pd.DataFrame(
+        rows,
+        columns=[
+            "model",
+            "scheme",
+            "fold",
+            "touchup_id",
+            "target_id",
+            "n_train",
+            "ex",
+            "ey",
+            "ez",
+            "error_mm",
+            "status",
+        ],
+    )
+    for m, info in summary_models.items():
+        for scheme in ("kfold", "loto"):
+            e = out[(out["model"] == m) & (out["scheme"] == scheme)]["error_mm"].dropna()
+            info[f"{scheme}_n"] = int(len(e))
+            info[f"{scheme}_rms_mm"] = float(np.sqrt(np.mean(e**2))) if len(e) else math.nan
+            info[f"{scheme}_max_mm"] = float(e.max()) if len(e) else math.nan
+    chosen, choice = _choose(summary_models)
+    summary = {
+        "k": k,
+        "seed": config.seed,
+        "models": summary_models,
+        "chosen_model": chosen,
+        "choice": choice,
+        "note": (
+            "held-out residual: pin position predicted by the kinematics and pin fitted "
+            "without the touch-up, against its target's position fitted on the other "
+            "touch-ups (k-fold); spread of a left-out target's predicted pin positions "
+            "about their mean (leave one target out)"
+        ),
+    }
+    return CrossvalResult(table=out, chosen_model=chosen, summary=_strict(summary))
+
+
+def _strict(obj: Any) -> Any:
+    """JSON-safe copy: NaN and infinities become None (strict JSON has no NaN)."""
+    if isinstance(obj, dict):
+        return {k: _strict(v) for k, v in obj.items()}
+    if isinstance(obj, list):
+        return [_strict(v) for v in obj]
+    if isinstance(obj, float) and not math.isfinite(obj):
+        return None
+    return obj
+
+
+def _choose(models: dict[str, dict[str, Any]]) -> tuple[str | None, str]:
+    """Smallest k-fold RMS among completely cross-validated models (ties: fewer parameters)."""
+    ok = {
+        m: v
+        for m, v in models.items()
+        if v.get("kfold_failed_folds", 1) == 0 and np.isfinite(v.get("kfold_rms_mm", math.nan))
+    }
+    if not ok:
+        return None, (
+            "no error model could be cross-validated on every fold: none chosen by held-out "
+            "error (calibrated.urdf stays the identify stage's)"
+        )
+    best = min(v["kfold_rms_mm"] for v in ok.values())
+    near = [m for m, v in ok.items() if v["kfold_rms_mm"] <= best * 1.01]
+    chosen = min(near, key=lambda m: (ok[m].get("n_identified", 0), ok[m]["kfold_rms_mm"]))
+    v = ok[chosen]
+    text = (
+        f"error model chosen by held-out (k-fold cross-validation) error, not training error: "
+        f"{chosen}, held-out RMS {v['kfold_rms_mm']:.4f} mm (training RMS "
+        f"{v.get('train_rms_mm', math.nan):.4f} mm)"
+    )
+    if len(models) > 1:
+        train = {m: v.get("train_rms_mm", math.nan) for m, v in models.items()}
+        finite = {m: t for m, t in train.items() if np.isfinite(t)}
+        if finite:
+            by_train = min(finite, key=lambda m: finite[m])
+            if by_train != chosen:
+                text += (
+                    f"; the smallest training RMS ({by_train}, {finite[by_train]:.4f} mm) "
+                    "would have chosen differently"
+                )
+    else:
+        text += "; only one model was cross-validated"
+    return chosen, text
