@@ -326,7 +326,11 @@ def _poses_from_plan(sc: Scenario, cell: Cell) -> list[tuple[int, F64]]:
     ids = {t.id for t in cell.targets}
     out = []
     for row in df.itertuples(index=False):
-        tid = int(getattr(row, "target_id"))  # noqa: B009
+        raw = getattr(row, "target_id")  # noqa: B009
+        try:
+            tid = int(raw)
+        except (TypeError, ValueError):
+            raise BadInput(f"{path}: target_id {raw!r} is not an integer target id") from None
         if tid not in ids:
             raise BadInput(f"{path}: target_id {tid} not in the scenario (0..{len(ids) - 1})")
         q = np.array([float(getattr(row, n)) for n in names])
