@@ -1,0 +1,810 @@
+"""Batch reprocessing: many recordings through the pipeline, fanned out over an executor.
+
+A batch is a list of :class:`BatchItem` (from paths or a dataset manifest, see
+:func:`load_manifest`). Each item is one task, :func:`run_recording`, which runs
+:func:`pipeline.orchestrator.run_pipeline` on the recording in a worker process,
+into ``OUT/<name>/``, and returns a small picklable :class:`RecordingOutcome`
+(status, one-line error, stage statuses, headline figures, peak RSS): no
+DataFrame ever crosses the executor, the artefacts stay on disk.
+
+Fan-out goes through the standard :class:`concurrent.futures.Executor`
+interface only, so one code path serves
+
+- a local process pool (:class:`~concurrent.futures.ProcessPoolExecutor`, the
+  default: no extra dependency, no server), and
+- Dask distributed (``pip install vtcal[dask]``): ``Client(address).get_executor()``
+  on a cluster, or a ``LocalCluster`` when no scheduler address is given.
+
+Caching is the orchestrator's: every stage's Parquet outputs record the hashes
+of their inputs, the stage configuration and the package version, and a fresh
+stage is skipped. A batch run again with nothing changed therefore only
+re-hashes, and an interrupted batch resumes where it stopped. ``force=True``
+re-runs every stage.
+
+A recording that fails (bad input, calibration that cannot be trusted, or an
+internal error, even a worker that dies) is recorded in the summary with its
+one-line error; the others carry on.
+
+Worker processes run single-threaded numerics (``OMP_NUM_THREADS=1`` and
+friends, OpenCV at one thread): the parallelism is one recording per worker,
+and N workers each spawning N BLAS threads would oversubscribe the cores.
+
+This module imports nothing heavy at module level (no numpy): the process pool's
+server process sets the thread limits in its environment before numpy loads.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import os
+import re
+import socket
+import sys
+import time
+from collections.abc import Callable, Iterator, Sequence
+from concurrent.futures import Executor, Future, as_completed
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+from pipeline.errors import BadInput, CalibrationFailed, VtcalError
+
+if TYPE_CHECKING:
+    import pandas as pd
+
+    from pipeline.orchestrator import RunConfig
+
+#: Executors ``vtcal batch --executor`` accepts.
+EXECUTORS = ("processes", "dask")
+
+#: Environment that keeps numeric libraries to one thread in a worker process.
+THREAD_ENV: dict[str, str] = {
+    "OMP_NUM_THREADS": "1",
+    "OPENBLAS_NUM_THREADS": "1",
+    "MKL_NUM_THREADS": "1",
+    "VECLIB_MAXIMUM_THREADS": "1",
+    "NUMEXPR_NUM_THREADS": "1",
+    "BLIS_NUM_THREADS": "1",
+}
+
+#: Modules the process pool's fork server imports once, so that workers start warm.
+_PRELOAD = (
+    "pipeline.batch",
+    "pipeline.orchestrator",
+    "pipeline.stages.ingest",
+    "pipeline.stages.detect",
+    "pipeline.stages.touchup",
+    "pipeline.stages.outliers",
+    "pipeline.stages.identify",
+)
+
+#: Headline figures copied from ``identify.json`` into the summary (same names there).
+_FIGURES_INT = ("n_rows", "n_used", "n_targets", "n_identified", "n_params")
+_FIGURES_FLOAT = (
+    "rms_mm",
+    "max_mm",
+    "predicted_shape_rms_mm",
+    "predicted_absolute_rms_mm",
+    "cond",
+)
+
+
+class BatchIncomplete(VtcalError):
+    """Some recordings of a batch failed (they are in the summary). Exit code 1."""
+
+    exit_code = 1
+
+
+# ---------------------------------------------------------------------------------------
+# what a batch is made of
+
+
+@dataclass(frozen=True)
+class BatchItem:
+    """One recording of a batch.
+
+    Attributes
+    ----------
+    name : run folder name under the batch output folder (unique within the batch)
+    recording : path of the MCAP recording (absolute once resolved)
+    robot : robot the manifest says recorded it ('' when not given)
+    notes : free text from the manifest
+    """
+
+    name: str
+    recording: Path
+    robot: str = ""
+    notes: str = ""
+
+
+@dataclass(frozen=True)
+class Manifest:
+    """A dataset manifest: ``datasets/NAME.toml``."""
+
+    path: Path
+    name: str
+    description: str
+    items: tuple[BatchItem, ...]
+
+
+_NAME_OK = re.compile(r"^[A-Za-z0-9][A-Za-z0-9._-]*$")
+
+
+def _unique_names(stems: Sequence[str]) -> list[str]:
+    """Make run folder names unique in order: ``a, a, b -> a, a-2, b``."""
+    seen: dict[str, int] = {}
+    used: set[str] = set()
+    out = []
+    for s in stems:
+        n = seen.get(s, 0) + 1
+        seen[s] = n
+        name = s if n == 1 else f"{s}-{n}"
+        while name in used:
+            n += 1
+            name = f"{s}-{n}"
+        seen[s] = n
+        used.add(name)
+        out.append(name)
+    return out
+
+
+def items_from_paths(paths: Sequence[str | os.PathLike[str]]) -> list[BatchItem]:
+    """Batch items for recordings given on the command line.
+
+    Each is named after the file stem (``cell3.mcap -> cell3``); repeated stems get
+    ``-2``, ``-3``... in the order given. Missing files are not an error here:
+    they fail in their own task and show in the summary.
+    """
+    ps = [Path(p).expanduser().absolute() for p in paths]
+    names = _unique_names([p.stem or "recording" for p in ps])
+    return [BatchItem(n, p) for n, p in zip(names, ps, strict=True)]
+
+
+def load_manifest(path: str | os.PathLike[str]) -> Manifest:
+    """Read a dataset manifest (TOML).
+
+    Format (paths relative to the manifest's folder)::
+
+        name = "fleet_demo"
+        description = "..."
+
+        [[recordings]]
+        path = "fleet_demo/cell1.mcap"   # required
+        name = "cell1"                   # optional run folder name (default: file stem)
+        robot = "lrmate"                 # optional
+        notes = "after the J2 gearbox swap"   # optional
+
+    Raises
+    ------
+    BadInput
+        One line naming the manifest and what is wrong (unreadable TOML, no
+        ``[[recordings]]``, an entry without ``path``, a bad or repeated ``name``).
+    """
+    import tomllib
+
+    p = Path(path)
+    if not p.is_file():
+        raise BadInput(f"{p}: no such manifest file")
+    try:
+        raw = tomllib.loads(p.read_text())
+    except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
+        raise BadInput(f"{p}: not a readable TOML manifest: {exc}") from exc
+    recs = raw.get("recordings")
+    if not isinstance(recs, list) or not recs:
+        raise BadInput(f"{p}: no [[recordings]] entries")
+    base = p.parent.absolute()
+    paths: list[Path] = []
+    given: list[str | None] = []
+    extra: list[tuple[str, str]] = []
+    for i, r in enumerate(recs):
+        where = f"{p}: recordings[{i}]"
+        if not isinstance(r, dict) or not isinstance(r.get("path"), str) or not r["path"]:
+            raise BadInput(f"{where}: needs a 'path' string")
+        unknown = set(r) - {"path", "name", "robot", "notes"}
+        if unknown:
+            raise BadInput(f"{where}: unknown key(s) {', '.join(sorted(unknown))}")
+        for key in ("name", "robot", "notes"):
+            if key in r and not isinstance(r[key], str):
+                raise BadInput(f"{where}: '{key}' must be a string, got {r[key]!r}")
+        if "name" in r and not _NAME_OK.match(r["name"]):
+            raise BadInput(f"{where}: name {r['name']!r} is not a plain folder name")
+        rp = Path(r["path"]).expanduser()
+        paths.append(rp if rp.is_absolute() else base / rp)
+        given.append(r.get("name"))
+        extra.append((r.get("robot", ""), r.get("notes", "")))
+    explicit = [g for g in given if g]
+    dup = sorted({g for g in explicit if explicit.count(g) > 1})
+    if dup:
+        raise BadInput(f"{p}: repeated recording name(s) {', '.join(dup)}")
+    names = _unique_names([g or q.stem for g, q in zip(given, paths, strict=True)])
+    items = tuple(
+        BatchItem(n, q, robot, notes)
+        for n, q, (robot, notes) in zip(names, paths, extra, strict=True)
+    )
+    return Manifest(
+        path=p,
+        name=str(raw.get("name", p.stem)),
+        description=str(raw.get("description", "")),
+        items=items,
+    )
+
+
+# ---------------------------------------------------------------------------------------
+# the worker task
+
+
+@dataclass
+class RecordingOutcome:
+    """What one task reports back: small and picklable (no tables).
+
+    ``status`` is ``"ok"``, ``"error"`` (the recording failed; ``error_kind`` is
+    ``bad_input``, ``calibration_failed``, ``error`` or ``internal``) or
+    ``"not_run"`` (the batch was interrupted before it finished).
+    """
+
+    name: str
+    recording: str
+    run_dir: str
+    robot: str = ""
+    notes: str = ""
+    status: str = "not_run"
+    error_kind: str = ""
+    error: str = ""
+    exit_code: int = 0
+    stages: list[tuple[str, str, float]] = field(default_factory=list)
+    seconds: float = 0.0
+    peak_rss_mb: float | None = None
+    worker: str = ""
+    robot_urdf: str = ""
+    figures: dict[str, Any] = field(default_factory=dict)
+    headline: list[str] = field(default_factory=list)
+
+
+def limit_threads() -> None:
+    """Keep this process's numeric libraries to one thread each.
+
+    The environment variables only act on libraries not yet loaded (they are set
+    before numpy loads in the process pool's server); OpenCV is told directly.
+    """
+    os.environ.update(THREAD_ENV)
+    with contextlib.suppress(Exception):
+        import cv2
+
+        cv2.setNumThreads(1)
+
+
+def peak_rss_mb() -> float | None:
+    """Peak resident set size of this process so far, MB (``getrusage``; None where absent)."""
+    try:
+        import resource
+    except ImportError:  # pragma: no cover - not on POSIX
+        return None
+    kb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+    return kb / (1024.0 * 1024.0) if sys.platform == "darwin" else kb / 1024.0
+
+
+def _one_line(text: str) -> str:
+    return " ".join(str(text).split())
+
+
+def internal_error_line(exc: BaseException) -> str:
+    """``Type: message (file:line)`` of the innermost frame, as the CLI reports bugs."""
+    where = exc.__traceback__
+    while where is not None and where.tb_next is not None:
+        where = where.tb_next
+    loc = f" ({where.tb_frame.f_code.co_filename}:{where.tb_lineno})" if where else ""
+    return _one_line(f"{type(exc).__name__}: {exc}{loc}")
+
+
+def _error_kind(exc: VtcalError) -> str:
+    if isinstance(exc, BadInput):
+        return "bad_input"
+    if isinstance(exc, CalibrationFailed):
+        return "calibration_failed"
+    return "error"
+
+
+def _robot_from_urdf(run_dir: Path) -> str:
+    """The ``<robot name=...>`` of the URDF the recording carried (from recording.json)."""
+    try:
+        urdf = json.loads((run_dir / "recording.json").read_text()).get("urdf", "")
+    except (OSError, ValueError):
+        return ""
+    m = re.search(r"<robot\b[^>]*\bname\s*=\s*[\"']([^\"']*)[\"']", urdf or "")
+    return m.group(1) if m else ""
+
+
+def run_recording(
+    item: BatchItem,
+    run_dir: str | os.PathLike[str],
+    config: RunConfig | None = None,
+    until: str | None = None,
+    force: bool = False,
+) -> RecordingOutcome:
+    """Run one recording through the pipeline; the task a batch sends to its workers.
+
+    Never raises for a failing recording: the error becomes the outcome's
+    ``status="error"`` with a one-line ``error`` (the :class:`VtcalError` message,
+    or ``Type: message (file:line)`` for an internal error).
+
+    Parameters
+    ----------
+    item : the recording and its manifest facts
+    run_dir : run folder for its artefacts (created)
+    config, until, force : passed to :func:`pipeline.orchestrator.run_pipeline`
+
+    Returns
+    -------
+    RecordingOutcome with the stage statuses, wall time, this worker's peak RSS so
+    far and, when identify ran or was cached, the headline figures of ``identify.json``.
+    """
+    limit_threads()
+    out = Path(run_dir)
+    rec = RecordingOutcome(
+        name=item.name,
+        recording=str(item.recording),
+        run_dir=str(out),
+        robot=item.robot,
+        notes=item.notes,
+        worker=f"{socket.gethostname()}:{os.getpid()}",
+    )
+    t0 = time.perf_counter()
+    try:
+        from pipeline.orchestrator import run_pipeline
+
+        result = run_pipeline(item.recording, out, config, until=until, force=force)
+    except VtcalError as exc:
+        rec.status, rec.error_kind = "error", _error_kind(exc)
+        rec.error, rec.exit_code = _one_line(str(exc)), exc.exit_code
+    except Exception as exc:  # a bug in a stage: reported, the batch goes on
+        rec.status, rec.error_kind = "error", "internal"
+        rec.error, rec.exit_code = internal_error_line(exc), 70
+    else:
+        rec.status = "ok"
+        rec.stages = [(s.stage, s.status, float(s.seconds)) for s in result.stages]
+        if any(s.stage == "identify" for s in result.stages):
+            summ = result.summary
+            rec.figures = {"model": summ.get("best_model") or summ.get("model")}
+            rec.figures["scale_identified"] = (
+                None if "scale_held" not in summ else not bool(summ["scale_held"])
+            )
+            for k in _FIGURES_INT + _FIGURES_FLOAT:
+                v = summ.get(k)
+                rec.figures[k] = v if isinstance(v, (int, float)) else None
+            rec.headline = [str(h) for h in summ.get("headline", [])]
+    rec.seconds = time.perf_counter() - t0
+    rec.robot_urdf = _robot_from_urdf(out)
+    rec.peak_rss_mb = peak_rss_mb()
+    return rec
+
+
+# ---------------------------------------------------------------------------------------
+# executors
+
+
+@contextlib.contextmanager
+def _env(values: dict[str, str]) -> Iterator[None]:
+    old = {k: os.environ.get(k) for k in values}
+    os.environ.update(values)
+    try:
+        yield
+    finally:
+        for k, v in old.items():
+            if v is None:
+                os.environ.pop(k, None)
+            else:
+                os.environ[k] = v
+
+
+def _process_context() -> Any:
+    """Multiprocessing context for the pool: a fork server, warm and single-threaded.
+
+    The fork server is a fresh interpreter started with :data:`THREAD_ENV` in its
+    environment; it imports the pipeline once (:data:`_PRELOAD`) and forks every
+    worker from itself, so workers start in milliseconds, share the imported code
+    pages, and are never forked from a multi-threaded parent. Falls back to
+    ``spawn`` where there is no fork server.
+    """
+    import multiprocessing as mp
+
+    try:
+        ctx = mp.get_context("forkserver")
+    except ValueError:  # pragma: no cover - Windows
+        return mp.get_context("spawn")
+    from multiprocessing import forkserver
+
+    ctx.set_forkserver_preload(list(_PRELOAD))
+    with _env(THREAD_ENV):
+        forkserver.ensure_running()
+    return ctx
+
+
+def default_workers() -> int:
+    """Cores this process may use."""
+    try:
+        return max(1, len(os.sched_getaffinity(0)))
+    except AttributeError:  # pragma: no cover - not Linux
+        return max(1, os.cpu_count() or 1)
+
+
+@contextlib.contextmanager
+def open_executor(
+    kind: str = "processes", workers: int | None = None, scheduler: str | None = None
+) -> Iterator[Executor]:
+    """An :class:`~concurrent.futures.Executor` for a batch, shut down on exit.
+
+    Parameters
+    ----------
+    kind : ``"processes"`` (local process pool) or ``"dask"`` (Dask distributed)
+    workers : worker processes (default: the usable cores); with Dask and a
+        ``scheduler`` the cluster's own workers are used and this is ignored
+    scheduler : Dask scheduler address (``tcp://host:8786``); without it a
+        ``LocalCluster`` of ``workers`` single-threaded processes is started on loopback
+
+    Raises
+    ------
+    BadInput
+        Unknown executor, ``workers < 1``, ``scheduler`` without Dask, Dask not
+        installed, or a scheduler that cannot be reached.
+    """
+    if kind not in EXECUTORS:
+        raise BadInput(f"--executor {kind!r}: not one of {', '.join(EXECUTORS)}")
+    if workers is not None and workers < 1:
+        raise BadInput(f"--workers {workers}: needs at least 1")
+    n = workers or default_workers()
+    if kind == "processes":
+        if scheduler:
+            raise BadInput("--scheduler is for --executor dask; the process pool needs no server")
+        from concurrent.futures import ProcessPoolExecutor
+
+        with ProcessPoolExecutor(max_workers=n, mp_context=_process_context()) as pool:
+            yield pool
+        return
+    try:
+        from distributed import Client, LocalCluster
+    except ImportError as exc:
+        raise BadInput("--executor dask needs Dask distributed: pip install 'vtcal[dask]'") from exc
+    with contextlib.ExitStack() as stack:
+        if scheduler:
+            try:
+                client = stack.enter_context(Client(scheduler, timeout="10s"))
+            except (OSError, TimeoutError) as exc:
+                raise BadInput(f"--scheduler {scheduler}: cannot connect: {exc}") from exc
+        else:
+            cluster = stack.enter_context(
+                LocalCluster(
+                    n_workers=n,
+                    threads_per_worker=1,
+                    processes=True,
+                    dashboard_address=None,
+                    host="127.0.0.1",
+                )
+            )
+            client = stack.enter_context(Client(cluster))
+        yield client.get_executor(pure=False)
+
+
+# ---------------------------------------------------------------------------------------
+# the batch
+
+
+#: Called as each recording finishes: ``(done, total, outcome)``.
+BatchProgress = Callable[[int, int, RecordingOutcome], None]
+
+
+@dataclass
+class BatchResult:
+    """A finished (or interrupted) batch."""
+
+    out_dir: Path
+    outcomes: list[RecordingOutcome]
+    summary: pd.DataFrame
+    summary_path: Path
+    seconds: float
+    interrupted: bool = False
+
+    @property
+    def n_ok(self) -> int:
+        return sum(o.status == "ok" for o in self.outcomes)
+
+    @property
+    def failed(self) -> list[RecordingOutcome]:
+        return [o for o in self.outcomes if o.status != "ok"]
+
+
+def _check_names(items: Sequence[BatchItem]) -> None:
+    names = [it.name for it in items]
+    dup = sorted({n for n in names if names.count(n) > 1})
+    if dup:
+        raise BadInput(f"batch: repeated run folder name(s) {', '.join(dup)}")
+    for n in names:
+        if not _NAME_OK.match(n):
+            raise BadInput(f"batch: run folder name {n!r} is not a plain folder name")
+
+
+def _worker_failure(item: BatchItem, run_dir: Path, exc: BaseException) -> RecordingOutcome:
+    """Outcome for a task whose worker did not return (died, not picklable, ...)."""
+    return RecordingOutcome(
+        name=item.name,
+        recording=str(item.recording),
+        run_dir=str(run_dir),
+        robot=item.robot,
+        notes=item.notes,
+        status="error",
+        error_kind="internal",
+        error=_one_line(f"worker failed: {type(exc).__name__}: {exc}"),
+        exit_code=70,
+    )
+
+
+def run_batch(
+    items: Sequence[BatchItem],
+    out: str | os.PathLike[str],
+    config: RunConfig | None = None,
+    *,
+    executor: Executor | None = None,
+    kind: str = "processes",
+    workers: int | None = None,
+    scheduler: str | None = None,
+    until: str | None = None,
+    force: bool = False,
+    progress: BatchProgress | None = None,
+) -> BatchResult:
+    """Run every recording through the pipeline into ``out/<item.name>/``, then summarise.
+
+    Parameters
+    ----------
+    items : the recordings (:func:`items_from_paths`, :func:`load_manifest`)
+    out : batch folder (created); ``out/summary.parquet`` is the summary
+    config : stage options for every recording (:class:`pipeline.orchestrator.RunConfig`)
+    executor : an open executor to use (left open); without it one is opened
+        with :func:`open_executor` from ``kind``, ``workers``, ``scheduler``
+    until, force : passed to every :func:`~pipeline.orchestrator.run_pipeline`
+    progress : called in this process as each recording finishes
+
+    Returns
+    -------
+    BatchResult; its outcomes are in the order of ``items``. On Ctrl-C the
+    summary of what finished is written (the rest ``not_run``) before
+    :class:`KeyboardInterrupt` propagates; finished recordings are cached for the next run.
+    """
+    _check_names(items)
+    if until is not None:
+        from pipeline.orchestrator import STAGES
+
+        if until not in STAGES:
+            raise BadInput(f"--until {until!r}: not a stage (stages: {', '.join(STAGES)})")
+    out_dir = Path(out).expanduser().absolute()
+    out_dir.mkdir(parents=True, exist_ok=True)
+    t0 = time.perf_counter()
+    items = [
+        BatchItem(it.name, Path(it.recording).expanduser().absolute(), it.robot, it.notes)
+        for it in items
+    ]
+    outcomes: dict[str, RecordingOutcome] = {}
+    interrupted = False
+    try:
+        with contextlib.ExitStack() as stack:
+            ex = executor or stack.enter_context(open_executor(kind, workers, scheduler))
+            own_pool = executor is None and kind == "processes"
+            args = (out_dir, config, until, force, outcomes, progress, len(items))
+            broken = _fan_out(ex, items, *args, retry_broken=own_pool)
+            if broken and own_pool:
+                # A worker died (crash, out of memory) and took the pool down with the
+                # tasks it held: each of those gets a pool of its own, so only the
+                # culprit fails.
+                stack.close()
+                for it in broken:
+                    with open_executor("processes", 1) as solo:
+                        _fan_out(solo, [it], *args, retry_broken=False)
+    except KeyboardInterrupt:
+        interrupted = True
+    ordered = [
+        outcomes.get(it.name)
+        or RecordingOutcome(
+            it.name,
+            str(it.recording),
+            str(out_dir / it.name),
+            it.robot,
+            it.notes,
+            error="interrupted before it finished",
+            error_kind="interrupted",
+        )
+        for it in items
+    ]
+    summary = summary_table(ordered)
+    path = write_summary(out_dir, summary, config=config, until=until, force=force)
+    result = BatchResult(out_dir, ordered, summary, path, time.perf_counter() - t0, interrupted)
+    if interrupted:
+        raise KeyboardInterrupt
+    return result
+
+
+def _fan_out(
+    ex: Executor,
+    items: Sequence[BatchItem],
+    out_dir: Path,
+    config: RunConfig | None,
+    until: str | None,
+    force: bool,
+    outcomes: dict[str, RecordingOutcome],
+    progress: BatchProgress | None,
+    total: int,
+    *,
+    retry_broken: bool,
+) -> list[BatchItem]:
+    """Submit one task per item and collect the outcomes as they finish.
+
+    Returns the items whose pool broke under them (a worker died); with
+    ``retry_broken`` those are left out of ``outcomes`` for the caller to retry.
+    """
+    from concurrent.futures import BrokenExecutor
+
+    futures: dict[Future[RecordingOutcome], BatchItem] = {}
+    broken: list[BatchItem] = []
+    try:
+        for it in items:
+            fut = ex.submit(run_recording, it, str(out_dir / it.name), config, until, force)
+            futures[fut] = it
+        for fut in as_completed(futures):
+            it = futures[fut]
+            try:
+                rec = fut.result()
+            except BrokenExecutor as exc:
+                broken.append(it)
+                if retry_broken:
+                    continue
+                rec = _worker_failure(it, out_dir / it.name, exc)
+            except Exception as exc:  # dask: KilledWorker, pickling, ...
+                rec = _worker_failure(it, out_dir / it.name, exc)
+            outcomes[it.name] = rec
+            if progress is not None:
+                progress(len(outcomes), total, rec)
+        return broken
+    except BaseException:
+        for fut in futures:
+            fut.cancel()
+        raise
+
+
+# ---------------------------------------------------------------------------------------
+# the summary
+
+
+_NULLABLE = (
+    "peak_rss_mb",
+    "model",
+    "n_touchups",
+    "n_used",
+    "n_targets",
+    "n_identified",
+    "n_params",
+    "rms_mm",
+    "max_mm",
+    "predicted_shape_rms_mm",
+    "predicted_absolute_rms_mm",
+    "cond",
+    "scale_identified",
+)
+_SUMMARY_COLUMNS = [
+    "name",
+    "recording",
+    "run_dir",
+    "robot",
+    "robot_urdf",
+    "notes",
+    "status",
+    "error_kind",
+    "error",
+    "exit_code",
+    "stages",
+    "stages_ran",
+    "stages_cached",
+    "seconds",
+    "peak_rss_mb",
+    "worker",
+    "model",
+    "n_touchups",
+    "n_used",
+    "n_targets",
+    "n_identified",
+    "n_params",
+    "rms_mm",
+    "max_mm",
+    "predicted_shape_rms_mm",
+    "predicted_absolute_rms_mm",
+    "cond",
+    "scale_identified",
+    "headline",
+]
+
+
+def summary_table(outcomes: Sequence[RecordingOutcome]) -> pd.DataFrame:
+    """One row per recording, columns of ``schemas/batch_summary.json``."""
+    import pandas as pd
+
+    rows = []
+    for o in outcomes:
+        f = o.figures
+        rows.append(
+            {
+                "name": o.name,
+                "recording": o.recording,
+                "run_dir": o.run_dir,
+                "robot": o.robot or o.robot_urdf,
+                "robot_urdf": o.robot_urdf,
+                "notes": o.notes,
+                "status": o.status,
+                "error_kind": o.error_kind,
+                "error": o.error,
+                "exit_code": int(o.exit_code),
+                "stages": " ".join(f"{s}:{st}" for s, st, _ in o.stages),
+                "stages_ran": sum(st == "ran" for _, st, _ in o.stages),
+                "stages_cached": sum(st == "cached" for _, st, _ in o.stages),
+                "seconds": float(o.seconds),
+                "peak_rss_mb": o.peak_rss_mb,
+                "worker": o.worker,
+                "model": f.get("model"),
+                "n_touchups": f.get("n_rows"),
+                "n_used": f.get("n_used"),
+                "n_targets": f.get("n_targets"),
+                "n_identified": f.get("n_identified"),
+                "n_params": f.get("n_params"),
+                "rms_mm": f.get("rms_mm"),
+                "max_mm": f.get("max_mm"),
+                "predicted_shape_rms_mm": f.get("predicted_shape_rms_mm"),
+                "predicted_absolute_rms_mm": f.get("predicted_absolute_rms_mm"),
+                "cond": f.get("cond"),
+                "scale_identified": f.get("scale_identified"),
+                "headline": " | ".join(o.headline),
+            }
+        )
+    df = pd.DataFrame(rows, columns=_SUMMARY_COLUMNS)
+    for c in _NULLABLE:  # keep None (not NaN) so ints stay ints and bools stay bools
+        df[c] = pd.Series([r[c] for r in rows], dtype=object)
+    return df
+
+
+def write_summary(
+    out_dir: Path,
+    summary: pd.DataFrame,
+    *,
+    config: RunConfig | None = None,
+    until: str | None = None,
+    force: bool = False,
+) -> Path:
+    """Write ``out_dir/summary.parquet`` (schema ``batch_summary``); return its path."""
+    from pipeline.artefacts import write_artefact
+    from pipeline.orchestrator import _jsonable
+
+    path = out_dir / "summary.parquet"
+    write_artefact(
+        path,
+        summary,
+        "batch_summary",
+        stage="batch",
+        config={"until": until, "force": force, "run": _jsonable(config)},
+        inputs={},
+        extra_meta={"recordings": json.dumps(list(summary["recording"]) if len(summary) else [])},
+    )
+    return path
+
+
+def compare_summary(result: BatchResult) -> Any | None:
+    """The cross-run comparison of the finished runs (``pipeline.compare``), if available.
+
+    Returns None when :mod:`pipeline.compare` is not installed, fewer than one run
+    finished, or the comparison itself fails (the batch summary stands alone).
+    """
+    runs = [Path(o.run_dir) for o in result.outcomes if o.status == "ok"]
+    if not runs:
+        return None
+    try:
+        from pipeline.compare import compare_runs  # type: ignore[import-not-found,unused-ignore]
+    except ImportError:
+        return None
+    try:
+        return compare_runs(runs)
+    except Exception:
+        return None

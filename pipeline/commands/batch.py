@@ -1,0 +1,263 @@
+"""``vtcal batch``: many recordings through the pipeline, cached, in parallel (docs/batch.md)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+import click
+
+from pipeline.batch import EXECUTORS, BatchIncomplete, BatchResult, RecordingOutcome
+from pipeline.commands._common import distance_option, set_option
+from pipeline.errors import BadInput
+
+
+@click.command(
+    "batch",
+    epilog="""\b
+Examples:
+  vtcal batch runs_in/*.mcap --out runs/fleet
+  vtcal batch --manifest datasets/fleet_demo.toml --out runs/fleet_demo --workers 2
+  vtcal batch --manifest datasets/fleet_demo.toml --out runs/fleet_demo --until identify
+  vtcal batch --manifest datasets/fleet_demo.toml --out runs/fleet_demo --executor dask
+  vtcal batch --manifest fleet.toml --out /shared/runs --executor dask --scheduler tcp://head:8786
+""",
+)
+@click.argument("recordings", nargs=-1, type=click.Path(dir_okay=False, path_type=Path))
+@click.option(
+    "--manifest",
+    "-m",
+    type=click.Path(dir_okay=False, path_type=Path),
+    default=None,
+    help="Dataset manifest (TOML, datasets/NAME.toml) listing the recordings.",
+)
+@click.option(
+    "--out",
+    "-o",
+    type=click.Path(file_okay=False, path_type=Path),
+    required=True,
+    help="Batch folder: one run folder per recording, and summary.parquet.",
+)
+@click.option(
+    "--executor",
+    type=click.Choice(EXECUTORS),
+    default="processes",
+    show_default=True,
+    help="Local process pool, or Dask distributed (pip install 'vtcal[dask]').",
+)
+@click.option(
+    "--scheduler",
+    default=None,
+    metavar="ADDRESS",
+    help="Dask scheduler (tcp://host:8786); without it Dask starts a local cluster.",
+)
+@click.option(
+    "--workers",
+    "-j",
+    type=int,
+    default=None,
+    help="Worker processes (default: the usable cores; ignored with --scheduler).",
+)
+@click.option(
+    "--until",
+    default=None,
+    metavar="STAGE",
+    help="Stop after this stage (ingest, touchups, outliers, identify, crossval, report).",
+)
+@click.option("--force", is_flag=True, help="Re-run every stage even if its outputs are fresh.")
+@click.option("--model", default=None, help="Error model to identify, or 'all' (as `vtcal run`).")
+@distance_option
+@set_option
+@click.option("--no-report", is_flag=True, help="Skip report.html and run.rrd.")
+@click.option("--quiet", "-q", is_flag=True, help="No progress bar, no per-recording lines.")
+def command(
+    recordings: tuple[Path, ...],
+    manifest: Path | None,
+    out: Path,
+    executor: str,
+    scheduler: str | None,
+    workers: int | None,
+    until: str | None,
+    force: bool,
+    model: str | None,
+    distance: tuple[str, ...],
+    overrides: dict[str, str],
+    no_report: bool,
+    quiet: bool,
+) -> None:
+    """Run every recording (RECORDINGS, or those of --manifest) through the pipeline.
+
+    Each recording gets its own run folder OUT/<name>/ (name: the file stem, or the
+    manifest's name), exactly as `vtcal run` would write it. Stages whose inputs,
+    options and code version are unchanged are skipped, so running a batch again
+    only redoes what changed, and an interrupted batch resumes where it stopped.
+    A recording that fails is reported with its error and does not stop the
+    others. At the end OUT/summary.parquet holds one row per recording and a
+    table is printed. Exit status 0 when every recording finished, 1 otherwise.
+    """
+    from pipeline.batch import items_from_paths, load_manifest, run_batch
+    from pipeline.orchestrator import RunConfig
+
+    if manifest is not None and recordings:
+        raise BadInput("give recordings or --manifest, not both")
+    if manifest is None and not recordings:
+        raise BadInput("no recordings: give RECORDINGS... or --manifest datasets/NAME.toml")
+    items = load_manifest(manifest).items if manifest else tuple(items_from_paths(recordings))
+
+    overrides = dict(overrides)
+    if distance:
+        overrides["known_distances"] = ";".join(distance)
+    stage_options: dict[str, dict[str, object]] = {}
+    if model:
+        stage_options["identify"] = {"model": model}
+    cfg = RunConfig(overrides=overrides, stage_options=stage_options, report=not no_report)
+
+    from rich.console import Console
+
+    console = Console(stderr=False)
+    where = f"scheduler {scheduler}" if scheduler else f"{workers or 'all'} worker(s)"
+    if not quiet:
+        console.print(f"batch: {len(items)} recording(s) -> {out} ({executor}, {where})")
+    if quiet:
+        result = run_batch(
+            items,
+            out,
+            cfg,
+            kind=executor,
+            workers=workers,
+            scheduler=scheduler,
+            until=until,
+            force=force,
+        )
+    else:
+        result = _run_with_progress(
+            console, items, out, cfg, executor, workers, scheduler, until, force
+        )
+    print_summary(console, result)
+    if result.failed:
+        raise BatchIncomplete(
+            f"{len(result.failed)} of {len(result.outcomes)} recording(s) failed "
+            f"(see {result.summary_path})"
+        )
+
+
+def _run_with_progress(
+    console: Any,
+    items: Any,
+    out: Path,
+    cfg: Any,
+    executor: str,
+    workers: int | None,
+    scheduler: str | None,
+    until: str | None,
+    force: bool,
+) -> BatchResult:
+    from rich.progress import (
+        BarColumn,
+        MofNCompleteColumn,
+        Progress,
+        TextColumn,
+        TimeElapsedColumn,
+        TimeRemainingColumn,
+    )
+
+    from pipeline.batch import run_batch
+
+    with Progress(
+        TextColumn("[bold]recordings"),
+        BarColumn(),
+        MofNCompleteColumn(),
+        TimeElapsedColumn(),
+        TextColumn("eta"),
+        TimeRemainingColumn(),
+        console=console,
+        transient=False,
+    ) as bars:
+        task = bars.add_task("recordings", total=len(items))
+
+        def update(done: int, total: int, rec: RecordingOutcome) -> None:
+            bars.update(task, completed=done, total=total)
+            bars.console.print(_line(rec), highlight=False, markup=False)
+
+        return run_batch(
+            items,
+            out,
+            cfg,
+            kind=executor,
+            workers=workers,
+            scheduler=scheduler,
+            until=until,
+            force=force,
+            progress=update,
+        )
+
+
+def _line(rec: RecordingOutcome) -> str:
+    """One line per finished recording."""
+    if rec.status != "ok":
+        return f"  FAIL {rec.name}: {rec.error}"
+    ran = sum(st == "ran" for _, st, _ in rec.stages)
+    cached = sum(st == "cached" for _, st, _ in rec.stages)
+    rms = rec.figures.get("rms_mm")
+    fig = f", residual RMS {rms:.4f} mm" if isinstance(rms, float) else ""
+    return f"  ok   {rec.name}: {ran} ran, {cached} cached, {rec.seconds:.1f} s{fig}"
+
+
+def _fmt(v: Any, spec: str) -> str:
+    if v is None or (isinstance(v, float) and v != v):
+        return "-"
+    return format(v, spec)
+
+
+def print_summary(console: Any, result: BatchResult) -> None:
+    """The batch table: one row per recording, then the cross-run comparison if available."""
+    from rich.table import Table
+
+    from pipeline.batch import compare_summary
+
+    table = Table(title=f"batch {result.out_dir}", title_justify="left")
+    table.add_column("recording", no_wrap=True)
+    for col in ("status", "ran/cached", "s", "MB", "model", "used", "RMS mm", "shape mm", "abs mm"):
+        table.add_column(col, justify="left" if col in ("status", "model") else "right")
+    for o in result.outcomes:
+        f = o.figures
+        ran = sum(st == "ran" for _, st, _ in o.stages)
+        cached = sum(st == "cached" for _, st, _ in o.stages)
+        table.add_row(
+            o.name,
+            o.status,
+            f"{ran}/{cached}" if o.status == "ok" else "-",
+            _fmt(o.seconds, ".1f"),
+            _fmt(o.peak_rss_mb, ".0f"),
+            f.get("model") or "-",
+            _fmt(f.get("n_used"), "d"),
+            _fmt(f.get("rms_mm"), ".4f"),
+            _fmt(f.get("predicted_shape_rms_mm"), ".3f"),
+            _fmt(f.get("predicted_absolute_rms_mm"), ".3f"),
+        )
+    console.print(table)
+    for o in result.failed:
+        console.print(f"{o.name}: {o.error_kind}: {o.error}", highlight=False, markup=False)
+    compared = compare_summary(result)
+    if compared is not None:
+        _print_compare(console, compared)
+    console.print(
+        f"{result.n_ok} of {len(result.outcomes)} recording(s) ok in {result.seconds:.1f} s; "
+        f"summary: {result.summary_path}",
+        highlight=False,
+    )
+
+
+def _print_compare(console: Any, compared: Any) -> None:
+    """Print a :class:`pipeline.compare.CompareResult` however it offers itself."""
+    for attr in ("to_text", "render", "format_table"):
+        fn = getattr(compared, attr, None)
+        if callable(fn):
+            try:
+                console.print(fn(), highlight=False, markup=False)
+                return
+            except Exception:
+                break
+    table = getattr(compared, "table", None)
+    if table is not None and hasattr(table, "to_string"):
+        console.print(table.to_string(index=False), highlight=False, markup=False)
