@@ -44,6 +44,7 @@ from typing import Any
 
 import cv2
 import numpy as np
+from scipy.special import ndtr
 
 POLARITIES = ("dark_on_light", "light_on_dark")
 
@@ -186,13 +187,20 @@ def conic_to_params(k: np.ndarray) -> tuple[float, float, float, float, float] |
     Returns None when the conic is not a real ellipse.
     """
     A, B, C, D, E, F = k
-    M2 = np.array([[2 * A, B], [B, 2 * C]])
     det = 4 * A * C - B * B
     if det <= 0:
         return None
-    x0, y0 = np.linalg.solve(M2, [-D, -E])
+    # centre: gradient zero, [[2A, B], [B, 2C]] (x0, y0) = (-D, -E)
+    x0 = (B * E - 2 * C * D) / det
+    y0 = (B * D - 2 * A * E) / det
     F0 = F + 0.5 * (D * x0 + E * y0)
-    lam, vec = np.linalg.eigh(np.array([[A, B / 2], [B / 2, C]]))
+    # eigen-decomposition of [[A, B/2], [B/2, C]] in closed form
+    half_diff = 0.5 * (A - C)
+    rad = float(np.hypot(half_diff, 0.5 * B))
+    mean_ac = 0.5 * (A + C)
+    lam = np.array([mean_ac - rad, mean_ac + rad])
+    phi = 0.5 * float(np.arctan2(B, A - C))  # direction of the larger eigenvalue
+    vec = np.array([[-np.sin(phi), np.cos(phi)], [np.cos(phi), np.sin(phi)]])
     if F0 > 0:
         lam, F0 = -lam, -F0
     if np.any(lam <= 0) or F0 >= 0:
@@ -369,8 +377,6 @@ def _unbias_crossings(
     recovered from the measured ``t`` by fixed-point iteration ``c <- c + t - t(c)``
     (``t(c)`` is close to the identity). Columns likewise with ``|sin alpha|``.
     """
-    from scipy.special import ndtr
-
     out = pts.copy()
     for col, mask in ((0, is_row), (1, ~is_row)):
         if not mask.any():
@@ -386,6 +392,19 @@ def _unbias_crossings(
             c = np.clip(c + (t - tc), 0.0, 1.0)
         out[mask, col] = base + c
     return out
+
+
+def _approx_distance(pts: np.ndarray, p: tuple[float, float, float, float, float]) -> np.ndarray:
+    """First-order signed distance to an ellipse, ``(rho - 1) / |grad rho|``."""
+    u0, v0, a, b, th = p
+    c, s = np.cos(th), np.sin(th)
+    du = pts[:, 0] - u0
+    dv = pts[:, 1] - v0
+    x = (c * du + s * dv) / a
+    y = (-s * du + c * dv) / b
+    rho = np.sqrt(x * x + y * y) + 1e-12
+    g = np.sqrt((x / a) ** 2 + (y / b) ** 2) / rho
+    return (rho - 1.0) / g
 
 
 def _completeness(t: np.ndarray, bins: int = 36) -> float:
@@ -493,18 +512,26 @@ def detect_target(
         return out
     thr = 0.5 * (bg + ext)
     mask = (small < thr) if dark else (small > thr)
-    n_lab, labels, stats, cents = cv2.connectedComponentsWithStats(
-        mask.view(np.uint8), connectivity=8
-    )
+    contours, _ = cv2.findContours(mask.view(np.uint8), cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_NONE)
     kk = float(k * k)
-    areas_all = stats[1:, cv2.CC_STAT_AREA] * kk
-    ok = (areas_all >= cfg.min_area_px) & (areas_all <= cfg.max_area_frac * H * W)
-    cand = np.nonzero(ok)[0] + 1
-    if cand.size == 0:
+    cand = []
+    for c in contours:
+        x0c, y0c, wc, hc = cv2.boundingRect(c)
+        # blob area ~ polygon area + half the boundary (pixel-centre contour)
+        area = (cv2.contourArea(c) + 0.5 * len(c) + 1.0) * kk
+        if area < cfg.min_area_px or area > cfg.max_area_frac * H * W:
+            continue
+        m = cv2.moments(c)
+        if m["m00"] > 0:
+            cx, cy = m["m10"] / m["m00"], m["m01"] / m["m00"]
+        else:
+            cx, cy = x0c + 0.5 * (wc - 1), y0c + 0.5 * (hc - 1)
+        cand.append((area, cx * k + k // 2, cy * k + k // 2, (x0c, y0c, wc, hc), c))
+    if not cand:
         return _empty("no_blob")
-    areas = stats[cand, cv2.CC_STAT_AREA] * kk
-    cu = cents[cand, 0] * k + k // 2
-    cv_ = cents[cand, 1] * k + k // 2
+    areas = np.array([c[0] for c in cand])
+    cu = np.array([c[1] for c in cand])
+    cv_ = np.array([c[2] for c in cand])
     use_exp = expected is not None and bool(np.all(np.isfinite(expected)))
     if use_exp:
         assert expected is not None
@@ -517,16 +544,16 @@ def detect_target(
     best = int(order[0])
     ambiguity = 0.0
     ambiguous = False
-    if cand.size > 1:
+    if len(cand) > 1:
         second = int(order[1])
         ambiguity = float(min(areas[second], areas[best]) / max(areas[best], areas[second]))
         if use_exp:
             ambiguous = bool(score[second] < score[best] + 0.5 and ambiguity > cfg.ambiguity_ratio)
         else:
             ambiguous = ambiguity > cfg.ambiguity_ratio
-    lab = int(cand[best])
-    n_blobs = int(cand.size)
-    x0s, y0s, ws, hs = (int(stats[lab, j]) for j in range(4))
+    n_blobs = len(cand)
+    x0s, y0s, ws, hs = cand[best][3]
+    contour = cand[best][4].reshape(-1, 2).astype(np.float64) * k + k // 2
     border = bool(x0s == 0 or y0s == 0 or x0s + ws >= Ws or y0s + hs >= Hs)
     mg = 6
     u0 = max(x0s * k - mg, 0)
@@ -549,74 +576,54 @@ def detect_target(
     g_out = c_out[0] + c_out[1] * ua[None, :] + c_out[2] * va[:, None]
     mid = 0.5 * (g_in + g_out)
     amp = np.abs(g_out - g_in)
-    contrast = float(
-        abs(
-            (c_out[0] - c_in[0])
-            + (c_out[1] - c_in[1]) * ua.mean()
-            + (c_out[2] - c_in[2]) * va.mean()
-        )
-    )
-    lvl = max(
-        abs(c_out[0] + c_out[1] * ua.mean() + c_out[2] * va.mean()),
-        abs(c_in[0] + c_in[1] * ua.mean() + c_in[2] * va.mean()),
-        1e-9,
-    )
-    if contrast / lvl < cfg.min_contrast_frac:
+    um, vm = float(ua.mean()), float(va.mean())
+    lvl_in = c_in[0] + c_in[1] * um + c_in[2] * vm
+    lvl_out = c_out[0] + c_out[1] * um + c_out[2] * vm
+    contrast = float(abs(lvl_out - lvl_in))
+    if contrast / max(abs(lvl_out), abs(lvl_in), 1e-9) < cfg.min_contrast_frac:
         out = _empty("low_contrast", n_blobs)
         out["contrast"] = contrast
         return out
     rows, cols = _crossings(roi, mid, amp, 0.15)
-    # keep the crossings next to the chosen blob (coarse labels, dilated by one cell)
-    lab_win = labels[max(y0s - 1, 0) : y0s + hs + 1, max(x0s - 1, 0) : x0s + ws + 1] == lab
-    lab_win = cv2.dilate(lab_win.view(np.uint8), ker, iterations=1).astype(bool)
-    ly0, lx0 = max(y0s - 1, 0), max(x0s - 1, 0)
-
-    def _in_blob(p: np.ndarray) -> np.ndarray:
-        ix = np.floor((p[:, 0] + u0) / k).astype(int) - lx0
-        iy = np.floor((p[:, 1] + v0) / k).astype(int) - ly0
-        okk = (ix >= 0) & (iy >= 0) & (ix < lab_win.shape[1]) & (iy < lab_win.shape[0])
-        res = np.zeros(len(p), bool)
-        res[okk] = lab_win[iy[okk], ix[okk]]
-        return res
-
-    rows = rows[_in_blob(rows)] + (u0, v0)
-    cols = cols[_in_blob(cols)] + (u0, v0)
+    rows = rows + (u0, v0)
+    cols = cols + (u0, v0)
     pts = np.concatenate([rows, cols])
-    if pts.shape[0] < 8:
-        return _empty("fit_failed", n_blobs)
-    k0 = fit_conic(pts)
-    p0 = conic_to_params(k0) if k0 is not None else None
-    if p0 is None:
-        return _empty("fit_failed", len(cand))
-    # choose crossings by the contour normal of the first fit, drop outliers
-    d0, t0, _ = ellipse_foot(pts, p0, newton=2)
-    n0 = ellipse_normals(p0, t0)
     nr = rows.shape[0]
+    # initial ellipse from the coarse contour; keep crossings near it (other edges out)
+    p0 = None
+    if len(contour) >= 6:
+        k0 = fit_conic(contour)
+        p0 = conic_to_params(k0) if k0 is not None else None
+    if p0 is not None:
+        near = np.abs(_approx_distance(pts, p0)) < 0.75 * k + 1.0
+        k0 = fit_conic(pts[near]) if near.sum() >= 8 else None
+        p0 = conic_to_params(k0) if k0 is not None else None
+    if p0 is None:
+        k0 = fit_conic(pts) if pts.shape[0] >= 8 else None
+        p0 = conic_to_params(k0) if k0 is not None else None
+    if p0 is None:
+        return _empty("fit_failed", n_blobs)
+    # choose crossings by the contour normal of the first fit, drop outliers
+    d0, t0, kap0 = ellipse_foot(pts, p0, newton=2)
+    n0 = ellipse_normals(p0, t0)
     keep = np.concatenate([np.abs(n0[:nr, 0]) >= 0.5, np.abs(n0[nr:, 1]) >= 0.5])
     scale_d = 1.25 * float(np.mean(np.abs(d0[keep]))) + 0.05 if keep.any() else 1.0
     keep &= np.abs(d0) < max(4 * scale_d, 0.5)
-    is_row = np.arange(len(pts)) < nr
-    pts = pts[keep]
-    is_row = is_row[keep]
-    k1 = fit_conic(pts) if pts.shape[0] >= 8 else None
-    p1 = conic_to_params(k1) if k1 is not None else None
-    if p1 is None:
-        return _empty("fit_failed", len(cand))
-    d1, t1, kap = ellipse_foot(pts, p1, newton=2)
-    completeness = _completeness(t1)
-    sigma, noise = _edge_width(roi, ua[None, :], va[:, None], g_in, g_out, outer, p1, completeness)
-    res = d1
+    is_row = (np.arange(len(pts)) < nr)[keep]
+    pts, t0, kap0, n0 = pts[keep], t0[keep], kap0[keep], n0[keep]
+    if pts.shape[0] < 8:
+        return _empty("fit_failed", n_blobs)
+    completeness = _completeness(t0)
+    sigma, noise = _edge_width(roi, ua[None, :], va[:, None], g_in, g_out, outer, p0, completeness)
     if cfg.curvature_correction and np.isfinite(sigma) and sigma > 0:
         sig_c = min(sigma, cfg.max_edge_sigma_px)
-        nrm = ellipse_normals(p1, t1)
-        pts = _unbias_crossings(pts, is_row, nrm, sig_c)
-        pts = pts + nrm * (0.5 * sig_c**2 * kap)[:, None]
-        k2 = fit_conic(pts)
-        p2 = conic_to_params(k2) if k2 is not None else None
-        if p2 is None:
-            return _empty("fit_failed", len(cand))
-        p1 = p2
-        res, _, _ = ellipse_foot(pts, p1, newton=2)
+        pts = _unbias_crossings(pts, is_row, n0, sig_c)
+        pts = pts + n0 * (0.5 * sig_c**2 * kap0)[:, None]
+    k1 = fit_conic(pts)
+    p1 = conic_to_params(k1) if k1 is not None else None
+    if p1 is None:
+        return _empty("fit_failed", n_blobs)
+    res, _, _ = ellipse_foot(pts, p1, newton=2)
     u, v, a, b, th = p1
     s = 2.0 * a
     reason = ""
@@ -640,7 +647,7 @@ def detect_target(
         "residual_px": float(np.sqrt(np.mean(res**2))),
         "completeness": completeness,
         "border_contact": border,
-        "n_blobs": len(cand),
+        "n_blobs": n_blobs,
         "ambiguity": ambiguity,
         "ambiguous": ambiguous,
         "contrast": contrast,
