@@ -477,31 +477,56 @@ def accuracy_figures(data: RunData) -> list[Figure]:
         figs.append(
             Figure("predicted (from parameter covariance)", _mm(pred, "rms"), _mm(pred, "max"))
         )
-    cv = crossval_summary(data)
-    for row in cv:
-        figs.append(
-            Figure(f"cross-validated, {row['model']}", row["rms_mm"], row["max_mm"], row["n"])
-        )
+    for row in crossval_summary(data):
+        for scheme, text in (("kfold", "k-fold"), ("loto", "leave one target out")):
+            if row[f"{scheme}_n"]:
+                figs.append(
+                    Figure(
+                        f"cross-validated ({text}), model {row['model']}",
+                        row[f"{scheme}_rms_mm"],
+                        row[f"{scheme}_max_mm"],
+                        row[f"{scheme}_n"],
+                    )
+                )
     return figs
 
 
 def crossval_summary(data: RunData) -> list[dict[str, Any]]:
-    """Held-out RMS/max (mm) per error model from crossval.parquet."""
+    """Held-out RMS/max (mm) per error model and scheme from crossval.parquet.
+
+    Returns one dict per model: ``model``, and for each scheme ``s`` in
+    (``kfold``, ``loto``) ``s_rms_mm``, ``s_max_mm``, ``s_n`` (scored touch-ups)
+    and ``s_unscored`` (rows with a status). Without a ``scheme`` column every
+    row counts as ``kfold``; residual lengths come from ``error_mm`` or from the
+    residual vector columns (m).
+    """
     df = data.crossval
     if df is None or not len(df):
         return []
     key = next((c for c in ("model", "error_model", "name") if c in df.columns), None)
-    groups = df.groupby(key, sort=False) if key else [("model", df)]
+    groups = list(df.groupby(key, sort=False)) if key else [("model", df)]
     out = []
     for name, g in groups:
-        n = residual_norms(g)
-        if n is None:
-            rms = _num(dict(g.iloc[0]), "rms_mm")
-            mx = _num(dict(g.iloc[0]), "max_mm")
-            out.append({"model": str(name), "rms_mm": rms, "max_mm": mx, "n": None})
-            continue
-        rms, mx = _stats_mm(n)
-        out.append({"model": str(name), "rms_mm": rms, "max_mm": mx, "n": int(len(n))})
+        row: dict[str, Any] = {"model": str(name)}
+        for scheme in ("kfold", "loto"):
+            if "scheme" in g.columns:
+                gs = g[g["scheme"] == scheme]
+            else:
+                gs = g if scheme == "kfold" else g.iloc[:0]
+            if "error_mm" in gs.columns:
+                e = gs["error_mm"].to_numpy(dtype=float) / 1e3
+            else:
+                n = residual_norms(gs)
+                e = n if n is not None else np.full(len(gs), np.nan)
+            ok = np.isfinite(e)
+            if "status" in gs.columns:
+                ok &= (gs["status"].fillna("").astype(str) == "").to_numpy()
+            rms, mx = _stats_mm(e[ok]) if ok.any() else (None, None)
+            row[f"{scheme}_rms_mm"] = rms
+            row[f"{scheme}_max_mm"] = mx
+            row[f"{scheme}_n"] = int(ok.sum())
+            row[f"{scheme}_unscored"] = int(len(gs) - ok.sum())
+        out.append(row)
     return out
 
 

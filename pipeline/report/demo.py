@@ -22,7 +22,7 @@ import pandas as pd
 import pyarrow as pa
 import pyarrow.parquet as pq
 
-from pipeline.artefacts import SCHEMA_DIR, write_artefact
+from pipeline.artefacts import SCHEMA_DIR, load_schema, write_artefact
 from pipeline.kinematics.chain import Chain, fk, jacobian, load_chain
 from pipeline.kinematics.se3 import matrix_from_rpy
 from pipeline.kinematics.urdf_write import write_calibrated_urdf
@@ -63,9 +63,30 @@ def _solve_touch(chain: Chain, q0: np.ndarray, target: np.ndarray, p_pin: np.nda
     return q
 
 
+_DEFAULTS: dict[str, Any] = {
+    "float64": float("nan"),
+    "int64": 0,
+    "int32": 0,
+    "bool": False,
+    "string": "",
+    "binary": b"",
+}
+
+
 def _write(path: Path, df: pd.DataFrame, schema: str) -> None:
-    """Through the declared schema when there is one, else as plain Parquet."""
+    """Through the declared schema when there is one, else as plain Parquet.
+
+    Declared columns the demo does not know (a schema grew) get a neutral value
+    (NaN, 0, False, '' or an empty list), so the demo keeps up with the schemas.
+    """
     if (SCHEMA_DIR / f"{schema}.json").exists():
+        df = df.copy()
+        for col in load_schema(schema).columns:
+            if col.name not in df.columns:
+                if col.type.startswith("list<"):
+                    df[col.name] = [[] for _ in range(len(df))]
+                else:
+                    df[col.name] = _DEFAULTS[col.type]
         write_artefact(path, df, schema, stage="demo")
     else:
         pq.write_table(pa.Table.from_pandas(df, preserve_index=False), path)
@@ -247,10 +268,15 @@ def make_demo_run(
         )  # fmt: skip
     _write(run_dir / "parameters.parquet", pd.DataFrame(par), "parameters")
     cv = [
-        {"model": m, "touchup_id": i, "norm": abs(rng.normal(0, sc))}
+        {"model": m, "scheme": scheme, "fold": i % 3, "touchup_id": i,
+         "target_id": int(touch["target_id"].iloc[i]), "n_train": 8,
+         "ex": e[0], "ey": e[1], "ez": e[2], "error_mm": float(np.linalg.norm(e) * 1e3),
+         "status": ""}
         for m, sc in (("offsets", 4e-4), ("full", 6e-5))
+        for scheme in ("kfold", "loto")
         for i in range(8)
-    ]
+        for e in [rng.normal(0, sc, 3)]
+    ]  # fmt: skip
     _write(run_dir / "crossval.parquet", pd.DataFrame(cv), "crossval")
     (run_dir / "calibrated.urdf").write_text(write_calibrated_urdf(urdf, origins, "flange", p_pin))
     identify: dict[str, Any] = {
@@ -264,6 +290,11 @@ def make_demo_run(
         "scale_held": not known_distance,
         "predicted": {"rms_mm": 0.04, "max_mm": 0.09},
         "singular_values": [float(x) for x in np.geomspace(10, 0.02, 12)],
+        "crossval": {
+            "chosen_model": "full",
+            "choice": "full: smallest k-fold RMS among completely cross-validated models",
+            "models": {"full": {"train_rms_mm": 0.03}, "offsets": {"train_rms_mm": 0.35}},
+        },
     }
     (run_dir / "identify.json").write_text(json.dumps(identify, indent=1, sort_keys=True))
     meta = {

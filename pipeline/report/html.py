@@ -479,31 +479,44 @@ def _convergence_section(data: RunData) -> dict[str, Any]:
 def _crossval_section(data: RunData) -> dict[str, Any]:
     rows = crossval_summary(data)
     models = _models_section(data)
+    cv = (data.identify or {}).get("crossval")
+    cv = cv if isinstance(cv, dict) else {}
+    chosen = cv.get("chosen_model") or chosen_model(data)
     if not rows:
         return {"available": False, "models": models}
-    svg = plots.bars(
-        [r["model"] for r in rows],
-        {"held-out RMS": [r["rms_mm"] for r in rows], "held-out max": [r["max_mm"] for r in rows]},
-        "mm",
-    )
-    best = min(
-        (r for r in rows if r["rms_mm"] is not None and math.isfinite(r["rms_mm"])),
-        key=lambda r: r["rms_mm"],
-        default=None,
-    )
+    labels = [r["model"] for r in rows]
+    series = {"k-fold RMS": [r["kfold_rms_mm"] for r in rows]}
+    if any(r["loto_n"] for r in rows):
+        series["leave-one-target-out RMS"] = [r["loto_rms_mm"] for r in rows]
+    svg = plots.bars(labels, series, "held-out error (mm)")
+    train = {}
+    for name, m in (cv.get("models") or {}).items():
+        if isinstance(m, dict):
+            train[str(name)] = m.get("train_rms_mm")
+
+    def scored(r: dict[str, Any], scheme: str) -> str:
+        extra = r[f"{scheme}_unscored"]
+        return f"{r[f'{scheme}_n']}" + (f" (+{extra} not scored)" if extra else "")
+
     return {
         "available": True,
         "svg": svg,
         "rows": [
             {
                 "model": r["model"],
-                "rms": _fmt(r["rms_mm"]),
-                "max": _fmt(r["max_mm"]),
-                "n": r["n"] or "",
+                "chosen": r["model"] == chosen,
+                "train": _fmt(train.get(r["model"])),
+                "kfold": f"{_fmt(r['kfold_rms_mm'])} / {_fmt(r['kfold_max_mm'])}",
+                "kfold_n": scored(r, "kfold"),
+                "loto": (
+                    f"{_fmt(r['loto_rms_mm'])} / {_fmt(r['loto_max_mm'])}" if r["loto_n"] else "–"
+                ),
+                "loto_n": scored(r, "loto"),
             }
             for r in rows
         ],
-        "best": best["model"] if best else None,
+        "choice": str(cv.get("choice", "")),
+        "note": str(cv.get("note", "")),
         "models": models,
     }
 

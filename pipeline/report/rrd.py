@@ -18,8 +18,10 @@ tree (base frame = ``world``, z up, metres)::
     notes                        TextDocument  what is shown and what is guessed
 
 Timelines: ``touchup`` (sequence: the touch-up id; poses, images, rejected
-marks) and ``capture`` (sequence: the frame index of each capture of a
-touch-up, for the convergence series). Nothing wall-clock is logged (the
+marks), ``stamp`` (the touch-up's last capture stamp, same rows) and
+``iteration`` (capture number within a touch-up, for the convergence
+series). A default blueprint shows the 3-D scene, the camera image and the
+convergence plots side by side. Nothing wall-clock is logged (the
 ``log_time`` timeline is disabled), and the recording id is
 :func:`pipeline.report.data.run_uuid` of the folder's artefacts, so the same
 folder gives the same recording.
@@ -38,6 +40,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 import rerun as rr
+import rerun.blueprint as rrb
 
 from pipeline.artefacts import atomic_write_bytes
 from pipeline.report.data import (
@@ -54,6 +57,7 @@ from pipeline.report.data import (
 )
 
 APP_ID = "vtcal"
+CAMERA = "world/robot/calibrated/flange/camera"
 #: residual arrows are drawn this many times their length
 RESIDUAL_SCALE = 100
 #: at most this many camera images are logged (one per touch-up: its last capture)
@@ -131,6 +135,7 @@ def build_rrd(run_dir: Path, out_path: Path | None = None, recording_id: str | N
 def log_run(rec: rr.RecordingStream, data: RunData) -> list[str]:
     """Log everything of a run into an open recording stream; return notes (what was skipped)."""
     notes: list[str] = []
+    rec.send_blueprint(_blueprint())
     rec.log("world", rr.ViewCoordinates.RIGHT_HAND_Z_UP, static=True)
     tu = data.touchup_table()
     nominal = data.nominal_chain()
@@ -248,10 +253,13 @@ def log_run(rec: rr.RecordingStream, data: RunData) -> list[str]:
                 rr.Points3D([p_pin], radii=0.003, colors=[ORANGE], labels=["virtual pin"]),
                 static=True,
             )
+        stamps = tu["stamp_ns"].to_numpy(dtype=np.int64) if "stamp_ns" in tu else None
         for i, (tid, target, reason) in enumerate(
             zip(tu["touchup_id"].astype(int), tu["target_id"], tu["reason"], strict=True)
         ):
             rec.set_time("touchup", sequence=tid)
+            if stamps is not None and stamps[i] > 0:
+                rec.set_time("stamp", timestamp=np.datetime64(int(stamps[i]), "ns"))
             status = "used" if inl[i] else f"rejected: {reason}"
             if sk_nom is not None:
                 rec.log(
@@ -312,20 +320,33 @@ def log_run(rec: rr.RecordingStream, data: RunData) -> list[str]:
     if traces:
         for tid in sorted(traces):
             tr = np.abs(traces[tid])
-            fr = frames.get(tid, list(range(len(tr))))
-            seq = np.asarray(
-                fr[-len(tr) :] if len(fr) >= len(tr) else range(len(tr)), dtype=np.int64
-            )
+            seq = np.arange(len(tr), dtype=np.int64)
             for k, name in enumerate(("du", "dv", "ds")):
                 rec.send_columns(
                     f"convergence/{name}/touchup_{tid:04d}",
-                    indexes=[rr.TimeColumn("capture", sequence=seq)],
+                    indexes=[rr.TimeColumn("iteration", sequence=seq)],
                     columns=rr.Scalars.columns(scalars=tr[:, k]),
                 )
     else:
         notes.append("e_T convergence: not available")
     _notes(rec, data, notes, cam)
     return notes
+
+
+def _blueprint() -> rrb.Blueprint:
+    """3-D scene left; camera image, convergence and notes right."""
+    return rrb.Blueprint(
+        rrb.Horizontal(
+            rrb.Spatial3DView(origin="world", name="robot, targets, residuals"),
+            rrb.Vertical(
+                rrb.Spatial2DView(origin=f"{CAMERA}/image", name="camera (last capture)"),
+                rrb.TimeSeriesView(origin="convergence", name="|e_T| per iteration (px)"),
+                rrb.TextDocumentView(origin="notes", name="notes"),
+            ),
+            column_shares=[3, 2],
+        ),
+        collapse_panels=False,
+    )
 
 
 def _images(
@@ -356,7 +377,8 @@ def _notes(
         f"* orange arrows `world/residuals_x{RESIDUAL_SCALE}`: target -> pin residuals drawn "
         f"{RESIDUAL_SCALE} times longer than they are",
         "* red points `world/rejected`: rejected touch-ups, labelled with the reason",
-        "* `convergence/*`: |e_T| per capture (px) on the `capture` timeline",
+        "* `convergence/*`: |e_T| per capture (px) on the `iteration` timeline",
+        "* timelines: `touchup` (id), `stamp` (the touch-up's capture time), `iteration`",
         "",
     ]
     if cam is not None:
