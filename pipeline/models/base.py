@@ -36,9 +36,11 @@ import numpy as np
 from numpy.typing import ArrayLike
 
 from pipeline.kinematics.chain import Chain
-from pipeline.kinematics.se3 import F64, matrix_from_axis_angle, skew
+from pipeline.kinematics.se3 import F64
 
 _REGISTRY: dict[str, type[ErrorModel]] = {}
+_I3 = np.eye(3)
+_I4 = np.eye(4)
 
 
 def register(cls: type[ErrorModel]) -> type[ErrorModel]:
@@ -190,10 +192,15 @@ def as_points(p_flange: ArrayLike, N: int) -> F64:
 def so3_exp(r: ArrayLike) -> F64:
     """``exp([r]_x)`` for one rotation vector ``r`` (3,) -> (3, 3)."""
     r = np.asarray(r, dtype=float)
-    th = float(np.linalg.norm(r))
+    K = _skew3(r)
+    th = float(np.sqrt(r @ r))
     if th < 1e-12:
-        return np.eye(3) + skew(r)
-    return matrix_from_axis_angle(r / th, th)
+        return _I3 + K
+    return _I3 + (np.sin(th) / th) * K + ((1.0 - np.cos(th)) / th**2) * (K @ K)
+
+
+def _skew3(r: F64) -> F64:
+    return np.array([[0.0, -r[2], r[1]], [r[2], 0.0, -r[0]], [-r[1], r[0], 0.0]])
 
 
 def so3_right_jacobian(r: ArrayLike) -> F64:
@@ -203,21 +210,21 @@ def so3_right_jacobian(r: ArrayLike) -> F64:
     eq. 10.86), with its series near ``t = 0``.
     """
     r = np.asarray(r, dtype=float)
-    t = float(np.linalg.norm(r))
-    K = skew(r)
+    t = float(np.sqrt(r @ r))
+    K = _skew3(r)
     if t < 1e-6:
-        return np.eye(3) - 0.5 * K + (1.0 / 6.0) * (K @ K)
-    return np.eye(3) - (1 - np.cos(t)) / t**2 * K + (t - np.sin(t)) / t**3 * (K @ K)
+        return _I3 - 0.5 * K + (1.0 / 6.0) * (K @ K)
+    return _I3 - (1 - np.cos(t)) / t**2 * K + (t - np.sin(t)) / t**3 * (K @ K)
 
 
 def translation(p: ArrayLike) -> F64:
-    T = np.eye(4)
+    T = _I4.copy()
     T[:3, 3] = np.asarray(p, dtype=float)
     return T
 
 
 def rotation(R: ArrayLike) -> F64:
-    T = np.eye(4)
+    T = _I4.copy()
     T[:3, :3] = np.asarray(R, dtype=float)
     return T
 

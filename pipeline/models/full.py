@@ -67,6 +67,8 @@ class FullOriginModel(ErrorModel):
                 self.param_units.append(unit)
         self._k_idx = np.array([k for (k, _c) in self._slot], dtype=np.int64)
         self._c_idx = np.array([COMPONENTS.index(c) for (_k, c) in self._slot], dtype=np.int64)
+        self._pre_is_eye = [bool(np.allclose(P, np.eye(4), atol=0)) for P in L.pre]
+        self._has_d = any(c in self.components for c in ("dx", "dy", "dz"))
         # among exactly dependent columns keep the zero offset (pivoting tie-break)
         self.param_priority = np.array(
             [1.05 if n.endswith(".dq0") else 1.0 for n in self.param_names]
@@ -100,11 +102,15 @@ class FullOriginModel(ErrorModel):
         pf = as_points(p_flange, N)
         d, r, dq0 = self._unpack(x)
         T = np.broadcast_to(np.eye(4), (N, 4, 4))
-        Xs, Ys = [], []
+        RXs, Ys = [], []
         for k in range(L.n):
-            X = T @ L.pre[k]
-            Y = X @ self._fixed_part(k, d[k], r[k])
-            Xs.append(X)
+            F = self._fixed_part(k, d[k], r[k])
+            if self._pre_is_eye[k]:
+                RXs.append(T[:, :3, :3])
+                Y = T @ F
+            else:
+                RXs.append(T[:, :3, :3] @ L.pre[k][:3, :3])
+                Y = T @ (L.pre[k] @ F)
             Ys.append(Y)
             T = Y @ motion(L.axis[k], bool(L.prismatic[k]), q[:, k] + dq0[k])
         T = T @ L.tail
@@ -113,25 +119,23 @@ class FullOriginModel(ErrorModel):
         if not jac:
             return p, R, None
         J = np.zeros((N, 3, self.n_params))
-        comps = set(self.components)
         for k in range(L.n):
-            if comps & {"dx", "dy", "dz"}:
-                RX = Xs[k][:, :3, :3]
+            if self._has_d:
                 for i, c in enumerate(("dx", "dy", "dz")):
-                    if (k, c) in self._slot:
-                        J[:, :, self._slot[(k, c)]] = RX[:, :, i]
-            if comps & {"rx", "ry", "rz"}:
-                tw = np.zeros((6, 3))
-                tw[3:] = so3_right_jacobian(r[k])
-                cols = point_motion(Ys[k], tw, p)
-                for i, c in enumerate(("rx", "ry", "rz")):
-                    if (k, c) in self._slot:
-                        J[:, :, self._slot[(k, c)]] = cols[:, :, i]
-            if (k, "dq0") in self._slot:
-                tw = np.zeros((6, 1))
-                if L.prismatic[k]:
-                    tw[:3, 0] = L.axis[k]
-                else:
-                    tw[3:, 0] = L.axis[k]
-                J[:, :, self._slot[(k, "dq0")]] = point_motion(Ys[k], tw, p)[:, :, 0]
+                    j = self._slot.get((k, c))
+                    if j is not None:
+                        J[:, :, j] = RXs[k][:, :, i]
+            # rotation-vector columns (J_r(r) at Y) and the zero offset, one call
+            tw = np.zeros((6, 4))
+            tw[3:, :3] = so3_right_jacobian(r[k])
+            tw[: 3 if L.prismatic[k] else 6, 3] = 0.0
+            if L.prismatic[k]:
+                tw[:3, 3] = L.axis[k]
+            else:
+                tw[3:, 3] = L.axis[k]
+            cols = point_motion(Ys[k], tw, p)
+            for i, c in enumerate(("rx", "ry", "rz", "dq0")):
+                j = self._slot.get((k, c))
+                if j is not None:
+                    J[:, :, j] = cols[:, :, i]
         return p, R, J

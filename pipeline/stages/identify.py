@@ -557,8 +557,7 @@ def _identify_one(
     P, K, N = model.n_params, data.K, len(data.q)
 
     # -- scaling and identifiability
-    p_nom, _, _ = model.pin_and_jacobian(x0, data.q, pin0 + data.d, jac=False)
-    Lc = float(max(np.sqrt(np.mean(np.sum(p_nom**2, axis=1))), 0.1))
+    Lc = float(max(np.sqrt(np.mean(np.sum(tg0**2, axis=1))), 0.1))
     units = np.array(model.param_units)
     pscale = np.where(units == "rad", Lc, 1.0)  # column scale: J[:, j] * pscale[j]
     st = _structure(
@@ -568,7 +567,9 @@ def _identify_one(
         # the gauge row is defined in the structure's scaling; x_scaled = x * pscale
         g = st.gauge * np.where(units == "rad", st.length, 1.0)
         prob = _Problem(model, data, config, gauge=g / np.linalg.norm(g))
-    _, J0 = prob.full_eval(x0, pin0, tg0)
+    r0, J0 = prob.full_eval(x0, pin0, tg0)
+    e0 = r0[: 3 * N].reshape(N, 3) / data.sw[:, None]
+    initial_rms = float(np.sqrt(np.mean(np.sum(e0**2, axis=1))))
     assert J0 is not None
     Jn0 = J0[:, P:]
     reasons = dict(st.held)
@@ -604,9 +605,9 @@ def _identify_one(
         loss=config.robust_loss,
         f_scale=config.f_scale,
         x_scale=xs,
-        xtol=1e-12,
-        ftol=1e-12,
-        gtol=1e-12,
+        xtol=1e-10,
+        ftol=1e-10,
+        gtol=1e-10,
         max_nfev=config.max_nfev,
     )
     x, pin, tg = prob.split(sol.x)
@@ -634,10 +635,9 @@ def _identify_one(
 
     rng = np.random.default_rng(config.seed)
     q_ws = workspace_poses(data.q, config.n_workspace, rng)
-    _, Rw, Jw = model.pin_and_jacobian(x, q_ws, pin, jac=True)
+    pw, Rw, Jw = model.pin_and_jacobian(x, q_ws, pin, jac=True)
     assert Jw is not None
     Jwe = np.concatenate([Jw[:, :, kept], Rw], axis=2)
-    pw, _, _ = model.pin_and_jacobian(x, q_ws, pin, jac=False)
     pred = {kind: _predicted_errors(Jwe, cov_e, pw, kind) for kind in ("shape", "absolute", "raw")}
 
     # -- tables
@@ -793,16 +793,7 @@ def _identify_one(
             "success": bool(sol.success),
             "nfev": int(sol.nfev),
             "njev": int(sol.njev or 0),
-            "initial_rms_mm": float(
-                np.sqrt(
-                    np.mean(
-                        np.sum(
-                            (prob.fun(z0)[: 3 * N].reshape(N, 3) / data.sw[:, None]) ** 2, axis=1
-                        )
-                    )
-                )
-                * 1e3
-            ),
+            "initial_rms_mm": initial_rms * 1e3,
             "characteristic_length_m": Lc,
         },
         "seconds": seconds,
