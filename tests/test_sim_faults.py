@@ -31,7 +31,11 @@ ALL = {
 @pytest.fixture(scope="module")
 def rec(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Any]:
     sc = load_scenario(SCEN / "faults.toml")
-    sc = dataclasses.replace(sc, poses=dataclasses.replace(sc.poses, per_target=3))
+    sc = dataclasses.replace(
+        sc,
+        poses=dataclasses.replace(sc.poses, per_target=3),
+        touchup=dataclasses.replace(sc.touchup, max_iterations=8),
+    )
     out = tmp_path_factory.mktemp("simf") / "faults.mcap"
     truth = write_recording(sc, 5, out)
     # read what survives of the truncated file by streaming
