@@ -202,6 +202,15 @@ def test_all_models_and_outputs(tmp_path):
     assert rms["offsets"] > 3 * rms["full"]
 
 
+def test_auto_falls_back_to_offsets_when_too_few():
+    urdf, nominal, true, table, _ = _case(seed=11, per_target=3)
+    r = identify(table, urdf, "base_link", "flange", IdentifyConfig())
+    assert r.model == "offsets"
+    assert "fell back" in r.summary["model_choice"] and "add at least" in r.summary["headline"][1]
+    more = identify(_case(seed=11, per_target=10)[3], urdf, "base_link", "flange", IdentifyConfig())
+    assert more.model == "full" and more.summary["model_choice"] == "auto: full"
+
+
 def test_robust_loss_downweights_a_bad_row():
     urdf, nominal, true, table, _ = _case(seed=9, per_target=14, noise_q=1e-6, noise_pin=1e-5)
     bad = table.copy()
@@ -260,6 +269,17 @@ def test_cli_end_to_end(tmp_path, capsys):
     assert "must be .csv or .parquet" in capsys.readouterr().err
     with pytest.raises(SystemExit) as e:  # too few touch-ups: exit 3, says what to add
         table.groupby("target_id").head(3).to_csv(csv, index=False)
-        main(["identify", str(csv), "--urdf", str(u), "--out", str(tmp_path / "p")])
+        main(
+            [
+                "identify",
+                str(csv),
+                "--urdf",
+                str(u),
+                "--out",
+                str(tmp_path / "p"),
+                "--model",
+                "full",
+            ]
+        )
     assert e.value.code == 3
     assert "add at least" in capsys.readouterr().err

@@ -94,9 +94,10 @@ def infer_links(urdf: str) -> tuple[str, str]:
 @distance_option
 @click.option(
     "--model",
-    default="full",
+    default="auto",
     show_default=True,
-    help="Error model: full, mdh, poe, offsets, or 'all' to fit each.",
+    help="Error model: full, mdh, poe, offsets; 'all' fits each; 'auto' takes full if the "
+    "touch-ups suffice, else offsets (and says so).",
 )
 @click.option(
     "--robust-loss",

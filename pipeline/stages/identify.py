@@ -61,6 +61,12 @@ from pipeline.models.base import ErrorModel
 from pipeline.models.observability import indices_from_singular_values, project_out
 
 DEFAULT_MODEL = "full"
+#: ``model="auto"`` tries these in order and keeps the first the touch-ups support
+AUTO_ORDER = ("full", "offsets")
+
+
+class TooFewTouchups(CalibrationFailed):
+    """The touch-ups leave no redundancy for the model's identifiable parameters."""
 
 
 @dataclass
@@ -69,7 +75,8 @@ class IdentifyConfig:
 
     Attributes
     ----------
-    model : error model name (``full``, ``mdh``, ``poe``, ``offsets``) or ``all``
+    model : error model name (``full``, ``mdh``, ``poe``, ``offsets``), ``all`` (fit each), or
+        ``auto`` (``full`` if the touch-ups suffice, else ``offsets``; the summary says which)
     distances : known distances ``(label A, label B, metres)`` between targets
     robust_loss : ``scipy.optimize.least_squares`` loss (``linear``, ``soft_l1``, ``huber``, ``cauchy``, ...)
     f_scale : soft threshold of a robust loss, metres of pin residual
@@ -81,7 +88,7 @@ class IdentifyConfig:
     seed : seed of those poses
     """
 
-    model: str = DEFAULT_MODEL
+    model: str = "auto"
     distances: list[tuple[int | str, int | str, float]] = field(default_factory=list)
     robust_loss: str = "linear"
     f_scale: float = 1e-4
@@ -540,6 +547,21 @@ def identify(
         for r in results.values():
             r.summary["other_models_failed"] = errors
         return results
+    if config.model == "auto":
+        refusals: list[str] = []
+        for name in AUTO_ORDER:
+            try:
+                res = _identify_one(name, chain, data, urdf, flange_link, config)
+            except TooFewTouchups as exc:
+                refusals.append(str(exc))
+                continue
+            res.summary["model_choice"] = f"auto: {name}" + (
+                f" (fell back: {'; '.join(refusals)})" if refusals else ""
+            )
+            if refusals:
+                res.summary["headline"].insert(1, f"model auto -> {name}: " + refusals[0])
+            return res
+        raise TooFewTouchups(" | ".join(refusals))
     return _identify_one(config.model, chain, data, urdf, flange_link, config)
 
 
@@ -578,10 +600,11 @@ def _identify_one(
     rows_avail = prob.m - nuis_rank
     if rows_avail < r_struct + 3:
         need = math.ceil((r_struct + 3 - rows_avail) / 3)
-        raise CalibrationFailed(
+        raise TooFewTouchups(
             f"model {name}: {N} usable touch-ups on {K} targets give {prob.m} equations; the "
             f"targets and the pin take {nuis_rank}, leaving {rows_avail} for the {r_struct} "
-            f"kinematic parameters it identifies: add at least {need} more touch-ups"
+            f"kinematic parameters it identifies: add at least {need} more touch-up"
+            + ("s" if need > 1 else "")
             + (" (or use --model offsets)" if name != "offsets" else "")
         )
     # what these touch-ups fail to excite among the structurally identifiable columns
