@@ -78,6 +78,8 @@ def evaluate(path: Path) -> dict[str, float]:
 
     raw = split(p_raw)
     cor = split(p_cor)
+    e_al = np.einsum("ni,ni->n", p_cor - c_true, z_cam)
+    al_c = float(np.std(e_al)) * 1e3
     print(
         f"{path.name}: {len(tu)} touch-ups found (truth {len(ttu)}), matched {found}, "
         f"right target {right_target}, right converged/lost {right_conv}; "
@@ -91,7 +93,11 @@ def evaluate(path: Path) -> dict[str, float]:
         f"    with correction:    total {cor[0]:.4f}  along-view {cor[1]:.4f}  lateral {cor[2]:.4f}"
     )
     print(f"    ratio corrected/uncorrected: {cor[0] / raw[0]:.3f}")
-    return {"raw": raw[0], "cor": cor[0], "along": cor[1], "lat": cor[2]}
+    print(
+        f"    along-view mean {np.mean(e_al) * 1e3:+.4f} mm (a constant the identified pin absorbs), "
+        f"scatter {al_c:.4f} mm"
+    )
+    return {"raw": raw[0], "cor": cor[0], "along": cor[1], "lat": cor[2], "scatter": al_c}
 
 
 def main() -> None:
@@ -100,7 +106,12 @@ def main() -> None:
     if len(res) > 1:
         cor = np.sqrt(np.mean([r["cor"] ** 2 for r in res]))
         raw = np.sqrt(np.mean([r["raw"] ** 2 for r in res]))
-        print(f"all recordings: corrected RMS {cor:.4f} mm, uncorrected {raw:.4f} mm")
+        al = np.sqrt(np.mean([r["along"] ** 2 for r in res]))
+        lat = np.sqrt(np.mean([r["lat"] ** 2 for r in res]))
+        print(
+            f"all recordings: corrected RMS {cor:.4f} mm (along-view {al:.4f}, lateral {lat:.4f}), "
+            f"uncorrected {raw:.4f} mm"
+        )
 
 
 if __name__ == "__main__":
