@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import base64
 from collections.abc import Iterable
+from dataclasses import dataclass
 from pathlib import Path
 
 import cv2
@@ -26,17 +27,34 @@ from pipeline.io_mcap import (
 )
 
 
-def load_frames(
-    path: Path, image_topic: str | None, indices: Iterable[int]
-) -> dict[int, np.ndarray]:
-    """Grey images ``{frame index: (H, W) uint8}`` of the wanted frames of a recording.
+@dataclass
+class Frame:
+    """One image read back from a recording.
 
-    One streaming pass, stopped as soon as every wanted frame is found. Frames
-    that cannot be decoded (or a file that ends early) are simply missing from
-    the result; nothing raises for a damaged recording.
+    Attributes
+    ----------
+    gray : (H, W) uint8
+    encoded : bytes or None
+        The message's own PNG/JPEG bytes for a compressed image (re-used as
+        they are by the Rerun recording), None for a raw image.
+    media_type : str
+        ``image/png`` or ``image/jpeg`` when ``encoded`` is set.
+    """
+
+    gray: np.ndarray
+    encoded: bytes | None = None
+    media_type: str = ""
+
+
+def load_images(path: Path, image_topic: str | None, indices: Iterable[int]) -> dict[int, Frame]:
+    """The wanted frames ``{frame index: Frame}`` of a recording, in one streaming pass.
+
+    The pass stops as soon as every wanted frame is found. Frames that cannot
+    be decoded (or a file that ends early) are simply missing from the result;
+    nothing raises for a damaged recording.
     """
     want = {int(i) for i in indices if int(i) >= 0}
-    out: dict[int, np.ndarray] = {}
+    out: dict[int, Frame] = {}
     if not want:
         return out
     state = StreamState(path=str(path))
@@ -58,15 +76,28 @@ def load_frames(
             if idx not in want:
                 continue
             try:
-                g = image_to_gray(decode_image_message(schema, enc, msg.data))
+                em = decode_image_message(schema, enc, msg.data)
+                g = _to_u8(image_to_gray(em))
             except Exception:  # noqa: BLE001 - an undecodable frame is just not shown
                 continue
-            out[idx] = _to_u8(g)
+            fmt = em.encoding.lower()
+            media = {"png": "image/png", "jpeg": "image/jpeg", "jpg": "image/jpeg"}.get(fmt, "")
+            if em.kind == "compressed" and media:
+                out[idx] = Frame(g, bytes(em.data), media)
+            else:
+                out[idx] = Frame(g)
             if len(out) == len(want) or count > max(want):
                 break
     except Exception:  # noqa: BLE001 - unreachable/damaged recording: no images
         return out
     return out
+
+
+def load_frames(
+    path: Path, image_topic: str | None, indices: Iterable[int]
+) -> dict[int, np.ndarray]:
+    """Grey images ``{frame index: (H, W) uint8}`` of the wanted frames (see :func:`load_images`)."""
+    return {k: f.gray for k, f in load_images(path, image_topic, indices).items()}
 
 
 def _to_u8(g: np.ndarray) -> np.ndarray:

@@ -55,6 +55,7 @@ from pipeline.report.data import (
     target_positions,
     touchup_frames,
 )
+from pipeline.report.images import Frame, load_images
 
 APP_ID = "vtcal"
 CAMERA = "world/robot/calibrated/flange/camera"
@@ -286,10 +287,12 @@ def log_run(rec: rr.RecordingStream, data: RunData) -> list[str]:
             if images is not None and fr and fr[-1] in images:
                 from pipeline.report.images import ellipse_polyline, png_bytes
 
-                rec.log(
-                    img_path,
-                    rr.EncodedImage(contents=png_bytes(images[fr[-1]]), media_type="image/png"),
-                )
+                im = images[fr[-1]]
+                if im.encoded is not None:
+                    blob, media = im.encoded, im.media_type
+                else:
+                    blob, media = png_bytes(im.gray), "image/png"
+                rec.log(img_path, rr.EncodedImage(contents=blob, media_type=media))
                 ell = detection_ellipse(data, fr[-1])
                 if ell is not None:
                     rec.log(
@@ -351,14 +354,12 @@ def _blueprint() -> rrb.Blueprint:
 
 def _images(
     data: RunData, tu: pd.DataFrame, frames: dict[int, list[int]]
-) -> dict[int, np.ndarray] | None:
+) -> dict[int, Frame] | None:
     path = data.recording_path()
     if path is None:
         return None
-    from pipeline.report.images import load_frames
-
     want = [frames[int(t)][-1] for t in tu["touchup_id"] if frames.get(int(t))]
-    return load_frames(path, (data.recording or {}).get("image_topic"), want[:MAX_IMAGES])
+    return load_images(path, (data.recording or {}).get("image_topic"), want[:MAX_IMAGES])
 
 
 def _notes(
