@@ -283,3 +283,20 @@ def test_cli_end_to_end(tmp_path, capsys):
         )
     assert e.value.code == 3
     assert "add at least" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("loss", ["soft_l1", "huber", "cauchy", "arctan"])
+def test_robust_losses_match_scipy_on_touchup_rows(loss):
+    try:  # scipy's own implementations (private): the reference
+        from scipy.optimize._lsq.least_squares import IMPLEMENTED_LOSSES
+    except ImportError:
+        pytest.skip("scipy's private loss table moved")
+
+    from pipeline.stages.identify import _partial_loss
+
+    z = np.linspace(0.0, 9.0, 40)
+    ours = _partial_loss(loss, 30)(z)
+    ref = np.empty((3, 40))
+    IMPLEMENTED_LOSSES[loss](z, ref, cost_only=False)
+    assert np.allclose(ours[:, :30], ref[:, :30])
+    assert np.allclose(ours[:, 30:], [z[30:], np.ones(10), np.zeros(10)])
