@@ -300,3 +300,56 @@ def test_robust_losses_match_scipy_on_touchup_rows(loss):
     IMPLEMENTED_LOSSES[loss](z, ref, cost_only=False)
     assert np.allclose(ours[:, :30], ref[:, :30])
     assert np.allclose(ours[:, 30:], [z[30:], np.ones(10), np.zeros(10)])
+
+
+def test_tool_link_as_flange():
+    """A URDF that carries a tool link: name it, the pin is found in its frame."""
+    urdf, nominal, true, table, targets = _case(seed=12, per_target=12)
+    tool = (
+        '<link name="tool0"/><joint name="tool_joint" type="fixed"><parent link="flange"/>'
+        '<child link="tool0"/><origin xyz="0 0 0.1" rpy="0 0 0.5"/></joint></robot>'
+    )
+    urdf_tool = urdf.replace("</robot>", tool)
+    d02 = float(np.linalg.norm(targets[0] - targets[2]))
+    r = identify(table, urdf_tool, "base_link", "tool0", IdentifyConfig(distances=[(0, 2, d02)]))
+    tool_chain = load_chain(urdf_tool, "base_link", "tool0")
+    # the pin in the tool frame: R_z(-0.5) (PIN - [0, 0, 0.1])
+    c, s = np.cos(0.5), np.sin(0.5)
+    want = np.array([[c, s, 0], [-s, c, 0], [0, 0, 1]]) @ (PIN - [0, 0, 0.1])
+    # (the pin itself trades with the last joint's slide along its axis: compare positions)
+    assert np.allclose(r.p_flange_pin, want, atol=2e-3)
+    back = load_chain(r.calibrated_urdf, "base_link", "virtual_pin")
+    assert back.joints[-1].parent == "tool0"
+    qw = workspace_poses(table[nominal.joint_names].to_numpy(), 200, np.random.default_rng(1))
+    true_tool = true.with_tip(tool_chain.joints[-1].T_parent_joint, "tool0")
+    assert pin_accuracy(r.chain, r.p_flange_pin, true_tool, want, qw)["abs_max_m"] < 1e-6
+
+
+def test_runs_on_the_conformance_touchups(conformance_truth):
+    """The independent writer's 12 touch-ups (10 converged): too few for the full model,
+    so ``auto`` falls back to zero offsets and says why; nothing crashes."""
+    t = conformance_truth
+    rows = [
+        {
+            "touchup_id": tu["index"],
+            "target_id": tu["label"],
+            "converged": bool(tu["converged"]) and not tu.get("lost", False),
+            **dict(zip(t["joint_names"], tu["q"], strict=True)),
+        }
+        for tu in t["touchups"]
+    ]
+    table = pd.DataFrame(rows)
+    kd = t["known_distances"][0]
+    r = identify(
+        table,
+        t["nominal_urdf"],
+        t["base_link"],
+        t["flange_link"],
+        IdentifyConfig(distances=[(kd["labels"][0], kd["labels"][1], kd["metres"])]),
+    )
+    assert r.model == "offsets" and "fell back" in r.summary["model_choice"]
+    assert r.summary["n_used"] == int(table.converged.sum())
+    with pytest.raises(CalibrationFailed, match="add at least"):
+        identify(
+            table, t["nominal_urdf"], t["base_link"], t["flange_link"], IdentifyConfig(model="full")
+        )

@@ -124,3 +124,35 @@ def test_observability_indices():
     dup = np.column_stack([J[:, :7], J[:, 6]])
     assert observability(dup[:, :7], dup[:, 7:])["O3"] < 1e-10
     assert indices_from_singular_values([1.0, 0.0], 5)["O1"] == 0.0
+
+
+PRISMATIC = """<robot name="p"><link name="base_link"/><link name="a"/><link name="b"/>
+<link name="flange"/>
+<joint name="s" type="prismatic"><parent link="base_link"/><child link="a"/>
+<origin xyz="0.1 0 0.2" rpy="0 0.2 0"/><axis xyz="0 0 1"/>
+<limit lower="0" upper="1" effort="1" velocity="1"/></joint>
+<joint name="r1" type="revolute"><parent link="a"/><child link="b"/><origin xyz="0 0.1 0.3"/>
+<axis xyz="1 0 0"/><limit lower="-1" upper="1" effort="1" velocity="1"/></joint>
+<joint name="r2" type="revolute"><parent link="b"/><child link="flange"/><origin xyz="0.2 0 0"/>
+<axis xyz="0 1 0"/><limit lower="-1" upper="1" effort="1" velocity="1"/></joint></robot>"""
+
+
+@pytest.mark.parametrize("name", ["full", "poe", "offsets"])
+def test_prismatic_joint_jacobian_and_writeback(name):
+    chain = load_chain(PRISMATIC, "base_link", "flange")
+    model = get_model(name)(chain)
+    rng = np.random.default_rng(5)
+    x = rng.normal(0, 0.01, model.n_params)
+    q = np.column_stack([rng.uniform(0, 1, 8), rng.uniform(-1, 1, (8, 2))])
+    pf = np.array([0.0, 0.05, 0.1])
+    p, _, J = model.pin_and_jacobian(x, q, pf)
+    h = 1e-6
+    for i in range(model.n_params):
+        e = np.zeros(model.n_params)
+        e[i] = h
+        fd = (
+            model.pin_and_jacobian(x + e, q, pf, jac=False)[0]
+            - model.pin_and_jacobian(x - e, q, pf, jac=False)[0]
+        ) / (2 * h)
+        assert np.abs(J[:, :, i] - fd).max() < 1e-7, model.param_names[i]
+    assert np.abs(p - pin_positions(model.chain(x), pf, q)).max() < 1e-13
