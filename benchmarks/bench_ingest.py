@@ -47,7 +47,7 @@ URDF = """<?xml version="1.0"?>
 T0 = 1_700_000_000_000_000_000
 
 
-def make_recording(path: Path, n_images: int) -> None:
+def make_recording(path: Path, n_images: int, encoding: str = "mono8") -> None:
     from pipeline.kinematics.se3 import matrix_from_rpy
     from pipeline.sim.camera import CameraModel
     from pipeline.sim.render import render_ideal
@@ -75,7 +75,7 @@ def make_recording(path: Path, n_images: int) -> None:
         joint_names=["j1", "j2"],
         joints=joints,
         images=images(),
-        encoding="mono8",
+        encoding=encoding,
         metadata={"polarity": "dark_on_light"},
     )
 
@@ -116,6 +116,9 @@ def floor_b(path: Path) -> tuple[float, int]:
             if ch.topic == "/camera/image_raw":
                 np.frombuffer(msg.data, np.uint8).reshape(msg.height, msg.step)
                 n += 1
+            elif ch.topic == "/camera/image_raw/compressed":
+                cv2.imdecode(np.frombuffer(msg.data, np.uint8), cv2.IMREAD_UNCHANGED)
+                n += 1
     return time.perf_counter() - t0, n
 
 
@@ -148,27 +151,33 @@ def child_rss(path: Path) -> dict[str, float]:
 def main() -> None:
     n = int(sys.argv[1]) if len(sys.argv) > 1 else 600
     with tempfile.TemporaryDirectory() as tmp:
-        p = Path(tmp) / "bench.mcap"
-        make_recording(p, n)
+        for enc in ("mono8", "png"):
+            p = Path(tmp) / f"bench_{enc}.mcap"
+            make_recording(p, n, enc)
+            size_mb = p.stat().st_size / 1e6
+            ingest(p)  # warm-up (imports, caches)
+            ta, na = floor_a(p)
+            tb, nb = floor_b(p)
+            ti, ni = ingest(p)
+            assert na == nb == ni == n
+            kind = "raw mono8" if enc == "mono8" else "PNG"
+            print(f"recording: {n} images 640x512 {kind}, joint states 100 Hz, {size_mb:.0f} MB")
+            print(
+                f"  floor A (vtcal decoders, read+decode only): {ta:.2f} s, {n / ta:.0f} images/s"
+            )
+            print(
+                f"  floor B (stock mcap_ros2 decoding):         {tb:.2f} s, {n / tb:.0f} images/s"
+            )
+            print(
+                f"  ingest + detection:                         {ti:.2f} s, {n / ti:.0f} images/s "
+                "(must be >= 300)"
+            )
+            print(
+                f"  ratio ingest / floor A: {ti / ta:.2f}   ingest / floor B: {ti / tb:.2f} "
+                "(must be <= 2)"
+            )
+        p = Path(tmp) / "bench_mono8.mcap"
         size_mb = p.stat().st_size / 1e6
-        ingest(p)  # warm-up (imports, caches)
-        ta, na = floor_a(p)
-        tb, nb = floor_b(p)
-        ti, ni = ingest(p)
-        assert na == nb == ni == n
-        print(
-            f"recording: {n} images 640x512 mono8 raw, joint states 100 Hz, {size_mb:.0f} MB zstd"
-        )
-        print(f"floor A (vtcal decoders, read+decode only): {ta:.2f} s, {n / ta:.0f} images/s")
-        print(f"floor B (stock mcap_ros2 decoding):         {tb:.2f} s, {n / tb:.0f} images/s")
-        print(
-            f"ingest + detection:                         {ti:.2f} s, {n / ti:.0f} images/s "
-            f"(must be >= 300)"
-        )
-        print(
-            f"ratio ingest / floor A: {ti / ta:.2f}   ingest / floor B: {ti / tb:.2f} "
-            f"(must be <= 2)"
-        )
         small = Path(tmp) / "small.mcap"
         make_recording(small, max(n // 4, 50))
         r_small = child_rss(small)
@@ -178,6 +187,7 @@ def main() -> None:
             f"({small.stat().st_size / 1e6:.0f} MB file), {r_big['rss_mb']:.0f} MB for {n} images "
             f"({size_mb:.0f} MB file)"
         )
+    print(f"cpu time of this process: {time.process_time():.1f} s")
 
 
 if __name__ == "__main__":
