@@ -166,7 +166,7 @@ def _build(cls: Any, options: Mapping[str, Any], **base: Any) -> Any:
     unknown = set(options) - names
     if unknown:
         raise BadInput(f"unknown option(s) for {cls.__name__}: {', '.join(sorted(unknown))}")
-    return cls(**{k: v for k, v in base.items() if k in names}, **dict(options))
+    return cls(**{**{k: v for k, v in base.items() if k in names}, **dict(options)})
 
 
 def run_pipeline(
@@ -311,6 +311,7 @@ def run_pipeline(
     id_cfg = _build(
         identify.IdentifyConfig,
         opts.get("identify", {}),
+        model="all",  # every model; cross-validation picks the one the run ships
         distances=parse_distances(info.metadata.get("known_distances", "")),
     )
     id_inputs = hashes({"inliers": P["inliers"]})
@@ -327,13 +328,106 @@ def run_pipeline(
         id_cfg,
         do_identify,
     )
+    if last < STAGES.index("crossval"):
+        return _finish(out, P, records)
+
+    # -- cross-validation and the choice of error model -----------------------------
+    from pipeline.stages import crossval
+
+    cv_cfg = _build(crossval.CrossvalConfig, opts.get("crossval", {}))
+    # identify.json is not an input: this stage adds its verdict to it
+    cv_inputs = hashes({"inliers": P["inliers"], "parameters": P["parameters"]})
+
+    def do_crossval(conf: dict[str, Any]) -> None:
+        table = read_artefact(P["inliers"], "inliers")
+        summary = json.loads(P["identify"].read_text())
+        result = crossval.cross_validate(
+            table, info.urdf, info.base_link, info.flange_link, id_cfg, cv_cfg
+        )
+        write_artefact(
+            P["crossval"],
+            result.table,
+            "crossval",
+            stage="crossval",
+            config=conf,
+            inputs=cv_inputs,
+        )
+        chosen = result.chosen_model
+        if (
+            chosen
+            and chosen != summary.get("best_model")
+            and (out / f"calibrated_{chosen}.urdf").exists()
+        ):
+            atomic_write_bytes(
+                P["calibrated_urdf"], (out / f"calibrated_{chosen}.urdf").read_bytes()
+            )
+        summary["crossval"] = result.summary
+        if chosen:
+            summary["best_model"] = chosen
+        if result.summary.get("choice"):
+            lines = [
+                line
+                for line in summary.get("headline", [])
+                if not line.startswith("calibrated.urdf from model")
+            ]
+            if chosen:
+                lines.append(f"calibrated.urdf from model {chosen}")
+            summary["headline"] = [*lines, result.summary["choice"]]
+        write_json(P["identify"], summary)
+
+    stage("crossval", [P["crossval"]], cv_inputs, cv_cfg, do_crossval)
+    if last < STAGES.index("report") or not cfg.report:
+        return _finish(out, P, records)
+
+    # -- report.html and run.rrd, from the artefacts alone ------------------------
+    report_inputs = hashes(
+        {
+            k: P[k]
+            for k in (
+                "recording",
+                "touchups",
+                "inliers",
+                "parameters",
+                "residuals",
+                "targets",
+                "crossval",
+                "identify",
+                "calibrated_urdf",
+            )
+        }
+    )
+    previous = json.loads(P["run"].read_text()) if P["run"].exists() else {}
+    if (
+        not force
+        and P["report"].exists()
+        and P["rrd"].exists()
+        and previous.get("report_inputs") == report_inputs
+        and previous.get("version") == __version__
+    ):
+        records.append(StageRecord("report", "cached", ["report.html", "run.rrd"]))
+    else:
+        from pipeline.report.html import build_report
+        from pipeline.report.rrd import build_rrd
+
+        t0 = time.perf_counter()
+        build_report(out)
+        build_rrd(out)
+        records.append(
+            StageRecord("report", "ran", ["report.html", "run.rrd"], time.perf_counter() - t0)
+        )
     del pd
-    return _finish(out, P, records)
+    return _finish(out, P, records, report_inputs)
 
 
-def _finish(out: Path, P: dict[str, Path], records: list[StageRecord]) -> RunResult:
+def _finish(
+    out: Path,
+    P: dict[str, Path],
+    records: list[StageRecord],
+    report_inputs: dict[str, str] | None = None,
+) -> RunResult:
     summary: dict[str, Any] = {}
     if P["identify"].exists():
         summary = json.loads(P["identify"].read_text())
-    write_json(P["run"], {"version": __version__, "stages": records})
+    run = {"version": __version__, "stages": records, "report_inputs": report_inputs}
+    write_json(P["run"], run)
     return RunResult(out, records, summary)

@@ -25,6 +25,7 @@ STAGE_ARTEFACTS = {
     "parameters": "parameters.parquet",
     "residuals": "residuals.parquet",
     "targets": "targets.parquet",
+    "crossval": "crossval.parquet",
 }
 
 
@@ -39,7 +40,7 @@ def vtcal(*args: str) -> None:
 @pytest.fixture(scope="module")
 def sample_run(tmp_path_factory: pytest.TempPathFactory) -> Path:
     out = tmp_path_factory.mktemp("run")
-    vtcal("run", str(SAMPLE), "--out", str(out), "--until", "identify", "-q")
+    vtcal("run", str(SAMPLE), "--out", str(out), "-q")
     return out
 
 
@@ -62,6 +63,20 @@ def test_sample_calibrates_against_truth(sample_run: Path) -> None:
     assert after["abs_rms_m"] < 0.125e-3, after
 
 
+def test_run_ships_the_model_with_the_smallest_held_out_error(sample_run: Path) -> None:
+    summary = json.loads((sample_run / "identify.json").read_text())
+    cv = summary["crossval"]["models"]
+    assert len(cv) >= 2, "the run fits several error models"
+    best = min(cv, key=lambda m: cv[m]["kfold_rms_mm"])
+    assert summary["best_model"] == best
+    assert (sample_run / "calibrated.urdf").read_bytes() == (
+        sample_run / f"calibrated_{best}.urdf"
+    ).read_bytes()
+    assert "held-out" in summary["headline"][-1]
+    assert (sample_run / "report.html").stat().st_size > 10_000
+    assert (sample_run / "run.rrd").stat().st_size > 10_000
+
+
 def test_every_artefact_validates_and_records_its_inputs(sample_run: Path) -> None:
     for schema, name in STAGE_ARTEFACTS.items():
         df = read_artefact(sample_run / name, schema)
@@ -72,19 +87,21 @@ def test_every_artefact_validates_and_records_its_inputs(sample_run: Path) -> No
 
 def test_second_run_is_cached_and_identical(sample_run: Path, tmp_path: Path) -> None:
     before = {n: (sample_run / n).read_bytes() for n in STAGE_ARTEFACTS.values()}
-    vtcal("run", str(SAMPLE), "--out", str(sample_run), "--until", "identify", "-q")
+    vtcal("run", str(SAMPLE), "--out", str(sample_run), "-q")
     run = json.loads((sample_run / "run.json").read_text())
     assert {s["stage"]: s["status"] for s in run["stages"]} == {
         "ingest": "cached",
         "touchups": "cached",
         "outliers": "cached",
         "identify": "cached",
+        "crossval": "cached",
+        "report": "cached",
     }
     assert {n: (sample_run / n).read_bytes() for n in STAGE_ARTEFACTS.values()} == before
 
 
 def test_run_is_deterministic(sample_run: Path, tmp_path: Path) -> None:
-    vtcal("run", str(SAMPLE), "--out", str(tmp_path), "--until", "identify", "-q")
+    vtcal("run", str(SAMPLE), "--out", str(tmp_path), "--until", "crossval", "-q")
     for name in STAGE_ARTEFACTS.values():
         a = pq.read_table(sample_run / name)
         b = pq.read_table(tmp_path / name)

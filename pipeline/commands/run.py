@@ -31,7 +31,9 @@ Examples:
 @click.option("--until", type=click.Choice(STAGES), default=None, help="Stop after this stage.")
 @click.option("--force", is_flag=True, help="Re-run every stage even if its outputs are fresh.")
 @click.option(
-    "--model", default=None, help="Error model to identify (see `vtcal identify --help`), or 'all'."
+    "--model",
+    default=None,
+    help="Error model to identify (see `vtcal identify --help`); default: all, the run ships the one with the smallest held-out error.",
 )
 @distance_option
 @set_option
