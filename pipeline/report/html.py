@@ -233,8 +233,13 @@ PARAM_COLS = {
 def _parameters_section(data: RunData) -> dict[str, Any]:
     df = data.parameters
     idf = data.identify or {}
+    chosen = chosen_model(data)
+    per_model = (
+        (idf.get("models") or {}).get(chosen) if isinstance(idf.get("models"), dict) else None
+    )
+    src = per_model if isinstance(per_model, dict) else idf
     unid = (
-        idf.get("held") or idf.get("unidentifiable") or idf.get("unidentifiable_parameters") or []
+        src.get("held") or src.get("unidentifiable") or src.get("unidentifiable_parameters") or []
     )
     out: dict[str, Any] = {"available": df is not None and len(df) > 0, "unidentifiable": []}
     if isinstance(unid, dict):
@@ -247,12 +252,15 @@ def _parameters_section(data: RunData) -> dict[str, Any]:
                 )
             else:
                 out["unidentifiable"].append({"name": str(u), "why": ""})
+    groups: dict[str, list[str]] = {}
+    for u in out["unidentifiable"]:
+        groups.setdefault(u["why"] or "held at nominal", []).append(u["name"])
+    out["unid_groups"] = [{"why": k, "names": v} for k, v in groups.items()]
     if df is None or not len(df):
         return out
     models = None
     mcol = next((c for c in ("model", "error_model") if c in df.columns), None)
     if mcol is not None:
-        chosen = idf.get("model")
         models = [str(m) for m in pd.unique(df[mcol])]
         if chosen in models:
             df = df[df[mcol] == chosen]
@@ -289,7 +297,8 @@ def _parameters_section(data: RunData) -> dict[str, Any]:
             }
         )
     out.update(
-        rows=rows,
+        rows=[r for r in rows if r["identifiable"]],
+        n_held=sum(1 for r in rows if not r["identifiable"]),
         has_nominal=pick["nominal"] is not None,
         models=models,
         shown_model=str(df[mcol].iloc[0]) if mcol else "",

@@ -137,8 +137,12 @@ def bars(labels: Sequence[str], series: Mapping[str, Sequence[float]], ylabel: s
             )
         ax.set_xticks(x, list(labels))
         ax.set_ylabel(ylabel)
+        allv = np.array([a for vals in series.values() for a in vals if a is not None], float)
+        top = float(np.nanmax(allv)) if allv.size and np.isfinite(allv).any() else 1.0
+        ax.set_ylim(0, top * 1.3 if top > 0 else 1.0)  # headroom for the legend
+        ax.set_xlim(-0.6, len(labels) - 0.4 + (0.6 if len(labels) == 1 else 0.0))
         if len(series) > 1:
-            ax.legend(frameon=False)
+            ax.legend(frameon=False, loc="upper right", ncols=len(series))
         return to_svg(fig)
 
 
