@@ -402,9 +402,18 @@ def _structure(
     lo = np.where(np.isfinite(chain.lower), chain.lower, -np.pi)
     hi = np.where(np.isfinite(chain.upper), chain.upper, np.pi)
     p_c = np.array([0.013, -0.009, 0.15])
-    table, tg = synthetic_touchups(
-        chain, p_c, 3, 15, rng, q_centre=np.clip(0.0, lo, hi), centre_spread_rad=0.8
-    )
+    # well-spread exact touch-ups: around the zero pose, else around mid-range
+    for centre in (np.clip(0.0, lo, hi), 0.5 * (lo + hi)):
+        table, tg = synthetic_touchups(
+            chain, p_c, 3, 15, rng, q_centre=centre, centre_spread_rad=0.8
+        )
+        if len(table) >= 36 and table["target_id"].nunique() == 3:
+            break
+    if len(table) < 12 or table["target_id"].nunique() < 2:
+        raise CalibrationFailed(
+            f"model {name}: cannot place exact touch-ups on the nominal robot "
+            f"{base_link} -> {flange_link} to rate identifiability (joint limits too tight?)"
+        )
     data = _prepare(table, chain, IdentifyConfig(distances=[(0, 1, 1.0)]))
     prob = _Problem(model, data, IdentifyConfig(distance_weight=1.0))
     P = model.n_params
