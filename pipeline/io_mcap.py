@@ -275,16 +275,14 @@ def _foxglove_object(schema_name: str, msg_encoding: str, data: bytes) -> dict[s
         out: dict[str, Any] = json.loads(bytes(data))
         return out
     if msg_encoding == "protobuf":
+        import importlib
+
+        name = "RawImage" if schema_name.endswith("RawImage") else "CompressedImage"
         try:
-            if schema_name.endswith("RawImage"):
-                from foxglove_schemas_protobuf.RawImage_pb2 import RawImage as Pb
-            else:
-                from foxglove_schemas_protobuf.CompressedImage_pb2 import (
-                    CompressedImage as Pb,  # type: ignore[assignment]
-                )
+            mod = importlib.import_module(f"foxglove_schemas_protobuf.{name}_pb2")
         except ImportError as exc:
             raise ValueError("protobuf images need foxglove-schemas-protobuf installed") from exc
-        m = Pb()
+        m: Any = getattr(mod, name)()
         m.ParseFromString(bytes(data))
         res: dict[str, Any] = {
             "timestamp": {"sec": m.timestamp.seconds, "nsec": m.timestamp.nanos},

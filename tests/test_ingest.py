@@ -105,6 +105,19 @@ def test_roundtrip_encodings(tmp_path, encoding, short):
     assert img.shape == (128, 160)
 
 
+@pytest.mark.parametrize(
+    "fox,encoding", [("json", "mono8"), ("json", "png"), ("protobuf", "mono8"), ("protobuf", "png")]
+)
+def test_foxglove_images(tmp_path, fox, encoding):
+    if fox == "protobuf":
+        pytest.importorskip("foxglove_schemas_protobuf")
+    p = tmp_path / "fox.mcap"
+    stamps = make(p, encoding=encoding, foxglove=fox)
+    frames, dets, info = ingest_recording(p, IngestConfig(), DetectConfig())
+    assert info.n_images == 5 and list(frames["stamp_ns"]) == stamps
+    assert np.allclose(dets["u"], 70.3 + np.arange(5), atol=0.02)
+
+
 def test_progress_and_metadata_overrides(tmp_path):
     p = tmp_path / "rec.mcap"
     make(p)

@@ -64,6 +64,7 @@ def write_recording(
     compression: CompressionType = CompressionType.ZSTD,
     image_latency_ns: int = 30_000_000,
     chunk_size: int = 1 << 20,
+    foxglove: str | None = None,
 ) -> None:
     """Write a recording; messages are interleaved in log-time order.
 
@@ -77,6 +78,9 @@ def write_recording(
         ``jpeg`` (CompressedImage), or any other string (written raw as is,
         for the unknown-encoding test)
     image_topic : default ``/camera/image_raw`` (raw) or ``.../compressed``
+    foxglove : None (ROS 2 images), ``"json"`` or ``"protobuf"``: images as
+        ``foxglove.RawImage`` (``mono8``) / ``foxglove.CompressedImage`` (``png``)
+        in that encoding (the schema data is a stub: vtcal does not read it)
     """
     compressed = encoding in ("png", "jpeg")
     topic = image_topic or ("/camera/image_raw/compressed" if compressed else "/camera/image_raw")
@@ -94,6 +98,16 @@ def write_recording(
         )
         img_type = "sensor_msgs/msg/CompressedImage" if compressed else "sensor_msgs/msg/Image"
         s_img = w.register_msgdef(img_type, msgdef(img_type, short_names))
+        fox_channel = None
+        if foxglove is not None:
+            fox_type = "foxglove.CompressedImage" if compressed else "foxglove.RawImage"
+            mw = w._writer  # the underlying mcap writer: a channel in another encoding
+            sid = mw.register_schema(
+                name=fox_type,
+                encoding="jsonschema" if foxglove == "json" else "protobuf",
+                data=b"{}" if foxglove == "json" else b"",
+            )
+            fox_channel = mw.register_channel(topic=topic, message_encoding=foxglove, schema_id=sid)
         t0 = events[0][0] - 1_000_000 if events else 0
         if urdf is not None:
             w.write_message(
@@ -115,6 +129,16 @@ def write_recording(
                 )
                 continue
             img = np.asarray(data)
+            if fox_channel is not None:
+                payload_b = _foxglove_payload(t, img, encoding, str(foxglove))
+                w._writer.add_message(
+                    channel_id=fox_channel,
+                    log_time=log_t,
+                    publish_time=log_t,
+                    data=payload_b,
+                    sequence=seq,
+                )
+                continue
             header = {"stamp": _stamp(t), "frame_id": "camera"}
             if compressed:
                 ok, buf = cv2.imencode(".png" if encoding == "png" else ".jpg", img)
@@ -143,3 +167,48 @@ def write_recording(
         if metadata is not None:
             w.add_metadata("touchup", dict(metadata))
         w.finish()
+
+
+def _foxglove_payload(t: int, img: np.ndarray, encoding: str, enc: str) -> bytes:
+    """A foxglove RawImage (mono8) or CompressedImage (png/jpeg) message, JSON or protobuf."""
+    compressed = encoding in ("png", "jpeg")
+    if compressed:
+        ok, buf = cv2.imencode(".png" if encoding == "png" else ".jpg", img)
+        assert ok
+        data = buf.tobytes()
+    else:
+        data = np.ascontiguousarray(img.astype(np.uint8)).tobytes()
+    sec, nsec = int(t // 1_000_000_000), int(t % 1_000_000_000)
+    if enc == "json":
+        import base64
+        import json
+
+        obj: dict[str, Any] = {
+            "timestamp": {"sec": sec, "nsec": nsec},
+            "frame_id": "camera",
+            "data": base64.b64encode(data).decode(),
+        }
+        if compressed:
+            obj["format"] = encoding
+        else:
+            obj.update(width=img.shape[1], height=img.shape[0], encoding="mono8", step=img.shape[1])
+        return json.dumps(obj).encode()
+    if compressed:
+        from foxglove_schemas_protobuf.CompressedImage_pb2 import CompressedImage
+
+        m = CompressedImage(frame_id="camera", data=data, format=encoding)
+    else:
+        from foxglove_schemas_protobuf.RawImage_pb2 import RawImage
+
+        m = RawImage(
+            frame_id="camera",
+            width=img.shape[1],
+            height=img.shape[0],
+            encoding="mono8",
+            step=img.shape[1],
+            data=data,
+        )
+    m.timestamp.seconds = sec
+    m.timestamp.nanos = nsec
+    out: bytes = m.SerializeToString()
+    return out
