@@ -115,3 +115,22 @@ def test_nominal_fit_recovers_exact_pin_and_targets(tmp_path: Path) -> None:
     # the real nominal robot leaves a clearly larger residual
     res_nom = nominal_fit(load_run(run))
     assert res_nom is not None and float(np.sqrt(np.mean(res_nom["norm"] ** 2))) > 1e-5
+
+
+def test_report_of_an_identify_only_folder(tmp_path: Path) -> None:
+    """What `vtcal identify` leaves (no recording.json, no touch-up tables) still reports."""
+    run = make_demo_run(tmp_path / "run", seed=4, with_recording=False)
+    for f in (
+        "recording.json",
+        "touchups.parquet",
+        "inliers.parquet",
+        "frames.parquet",
+        "detections.parquet",
+        "run.json",
+    ):
+        (run / f).unlink()
+    data = load_run(run)
+    assert data.base_link == "base_link" and data.flange_link == "flange"  # from calibrated.urdf
+    html = build_report(run).read_text()
+    assert "fit residual, model full" in html
+    assert "Touch-ups not available" in html

@@ -36,12 +36,9 @@ def command(
     """
     if not run_dir.is_dir():
         raise BadInput(f"{run_dir}: not a run folder (no such directory)")
-    if not any(
-        (run_dir / n).exists() for n in ("recording.json", "touchups.parquet", "inliers.parquet")
-    ):
-        raise BadInput(
-            f"{run_dir}: not a run folder (no recording.json, touchups.parquet or inliers.parquet)"
-        )
+    known = ("recording.json", "touchups.parquet", "inliers.parquet", "identify.json")
+    if not any((run_dir / n).exists() for n in known):
+        raise BadInput(f"{run_dir}: not a run folder (none of {', '.join(known)})")
     if not no_html:
         from pipeline.report.html import build_report
 

@@ -25,7 +25,7 @@ import pyarrow.parquet as pq
 
 from pipeline.artefacts import SCHEMA_DIR, file_hash, read_artefact
 from pipeline.kinematics.chain import Chain, fk_frames, load_chain
-from pipeline.kinematics.urdf import parse_urdf
+from pipeline.kinematics.urdf import RobotDescription, parse_urdf
 
 #: artefact name -> file name inside a run folder (as :func:`pipeline.orchestrator.run_paths`)
 PARQUET = {
@@ -93,18 +93,45 @@ class RunData:
         names = (self.recording or {}).get("joint_names")
         if names:
             return [str(n) for n in names]
-        chain = self.nominal_chain()
+        chain = self.nominal_chain() or self.calibrated_chain()
         return chain.joint_names if chain is not None else []
 
     @property
     def base_link(self) -> str | None:
+        """From recording.json, else the root link of calibrated.urdf."""
         r = self.recording or {}
-        return r.get("base_link") or self.meta.get("base_link") or None
+        name = r.get("base_link") or self.meta.get("base_link")
+        if name:
+            return str(name)
+        robot = self._calibrated_robot()
+        if robot is None:
+            return None
+        children = {j.child for j in robot.joints.values()}
+        roots = [j.parent for j in robot.joints.values() if j.parent not in children]
+        return roots[0] if roots else None
 
     @property
     def flange_link(self) -> str | None:
+        """From recording.json, else the link calibrated.urdf fixes the virtual pin to."""
         r = self.recording or {}
-        return r.get("flange_link") or self.meta.get("flange_link") or None
+        name = r.get("flange_link") or self.meta.get("flange_link")
+        if name:
+            return str(name)
+        robot = self._calibrated_robot()
+        if robot is None:
+            return None
+        for j in robot.joints.values():
+            if j.child == PIN_LINK:
+                return str(j.parent)
+        return None
+
+    def _calibrated_robot(self) -> RobotDescription | None:
+        if not self.calibrated_urdf:
+            return None
+        try:
+            return parse_urdf(self.calibrated_urdf)
+        except Exception:  # noqa: BLE001 - shown as "not available"
+            return None
 
     def robot_name(self) -> str:
         for xml in ((self.recording or {}).get("urdf"), self.calibrated_urdf):
