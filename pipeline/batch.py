@@ -37,6 +37,7 @@ from __future__ import annotations
 
 import contextlib
 import json
+import logging
 import os
 import re
 import socket
@@ -132,18 +133,19 @@ _NAME_OK = re.compile(r"^[A-Za-z0-9][A-Za-z0-9._-]*$")
 
 
 def _unique_names(stems: Sequence[str]) -> list[str]:
-    """Make run folder names unique in order: ``a, a, b -> a, a-2, b``."""
-    seen: dict[str, int] = {}
+    """Make run folder names unique in order: ``a, a, b -> a, a-2, b``.
+
+    The first occurrence keeps its stem; a repeat gets the smallest ``-k`` suffix
+    that is neither another stem nor already used.
+    """
+    taken = set(stems)
     used: set[str] = set()
     out = []
     for s in stems:
-        n = seen.get(s, 0) + 1
-        seen[s] = n
-        name = s if n == 1 else f"{s}-{n}"
-        while name in used:
-            n += 1
-            name = f"{s}-{n}"
-        seen[s] = n
+        name, k = s, 1
+        while name in used or (k > 1 and name in taken):
+            k += 1
+            name = f"{s}-{k}"
         used.add(name)
         out.append(name)
     return out
@@ -479,6 +481,9 @@ def open_executor(
                     processes=True,
                     dashboard_address=None,
                     host="127.0.0.1",
+                    # a throwaway cluster: its shutdown chatter (heartbeats to a
+                    # closed scheduler) is noise; task errors come back as outcomes
+                    silence_logs=logging.CRITICAL,
                 )
             )
             client = stack.enter_context(Client(cluster))

@@ -118,21 +118,29 @@ def command(
     where = f"scheduler {scheduler}" if scheduler else f"{workers or 'all'} worker(s)"
     if not quiet:
         console.print(f"batch: {len(items)} recording(s) -> {out} ({executor}, {where})")
-    if quiet:
-        result = run_batch(
-            items,
-            out,
-            cfg,
-            kind=executor,
-            workers=workers,
-            scheduler=scheduler,
-            until=until,
-            force=force,
+    try:
+        if quiet:
+            result = run_batch(
+                items,
+                out,
+                cfg,
+                kind=executor,
+                workers=workers,
+                scheduler=scheduler,
+                until=until,
+                force=force,
+            )
+        else:
+            result = _run_with_progress(
+                console, items, out, cfg, executor, workers, scheduler, until, force
+            )
+    except KeyboardInterrupt:
+        click.echo(
+            f"vtcal batch: interrupted; what finished is in {out / 'summary.parquet'} and "
+            "cached: run the same command again to resume",
+            err=True,
         )
-    else:
-        result = _run_with_progress(
-            console, items, out, cfg, executor, workers, scheduler, until, force
-        )
+        raise
     print_summary(console, result)
     if result.failed:
         raise BatchIncomplete(

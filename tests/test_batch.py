@@ -1,0 +1,298 @@
+"""vtcal batch: fan-out over an executor, per-recording errors, content caching, resume, Dask.
+
+Recordings: the shipped sample and a copy of it (two good ones), plus two corrupt
+ones (random bytes; a truncated copy cut before the robot description). Every
+batch stops after identify.
+"""
+
+from __future__ import annotations
+
+import os
+import shutil
+import signal
+import subprocess
+import sys
+from pathlib import Path
+
+import pyarrow.parquet as pq
+import pytest
+
+from pipeline.artefacts import read_artefact, read_meta
+from pipeline.batch import (
+    items_from_paths,
+    load_manifest,
+    open_executor,
+    run_batch,
+)
+from pipeline.errors import BadInput
+
+REPO = Path(__file__).resolve().parent.parent
+SAMPLE = REPO / "datasets" / "samples" / "sample_lrmate.mcap"
+UNTIL = "identify"
+PARQUETS = (
+    "frames",
+    "detections",
+    "touchups",
+    "inliers",
+    "parameters",
+    "residuals",
+    "targets",
+)
+#: the batch of the shared fixture: one good recording among two corrupt ones
+BATCH = ("good_a", "junk", "trunc")
+#: summary columns that depend on the run (time, process, whether it ran or was cached)
+VOLATILE = ("seconds", "peak_rss_mb", "worker", "run_dir", "stages", "stages_ran", "stages_cached")
+
+
+@pytest.fixture(scope="module")
+def recordings(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Path]:
+    if not SAMPLE.exists():
+        pytest.skip(f"shipped sample missing: {SAMPLE}")
+    d = tmp_path_factory.mktemp("recs")
+    good_a = d / "good_a.mcap"
+    good_b = d / "good_b.mcap"
+    shutil.copyfile(SAMPLE, good_a)
+    shutil.copyfile(SAMPLE, good_b)
+    junk = d / "junk.mcap"
+    junk.write_bytes(os.urandom(4096))
+    trunc = d / "trunc.mcap"
+    trunc.write_bytes(SAMPLE.read_bytes()[:50_000])
+    return {"good_a": good_a, "good_b": good_b, "junk": junk, "trunc": trunc}
+
+
+@pytest.fixture(scope="module")
+def pool_batch(recordings: dict[str, Path], tmp_path_factory: pytest.TempPathFactory):
+    out = tmp_path_factory.mktemp("batch_pool")
+    items = items_from_paths([recordings[k] for k in BATCH])
+    seen: list[tuple[int, int, str]] = []
+    result = run_batch(
+        items,
+        out,
+        kind="processes",
+        workers=2,
+        until=UNTIL,
+        progress=lambda done, total, rec: seen.append((done, total, rec.name)),
+    )
+    return result, seen, pq.read_table(result.summary_path)
+
+
+def _by_name(result):
+    return {o.name: o for o in result.outcomes}
+
+
+# -- manifests and names ---------------------------------------------------------------
+
+
+def test_manifest_paths_relative_to_manifest_and_names(tmp_path: Path) -> None:
+    sub = tmp_path / "datasets"
+    sub.mkdir()
+    m = sub / "fleet.toml"
+    m.write_text(
+        'name = "fleet"\ndescription = "two cells"\n'
+        '[[recordings]]\npath = "cells/rec.mcap"\nrobot = "lrmate"\nnotes = "cell 1"\n'
+        '[[recordings]]\npath = "other/rec.mcap"\n'
+        '[[recordings]]\npath = "/abs/x.mcap"\nname = "cell3"\n'
+    )
+    man = load_manifest(m)
+    assert man.name == "fleet" and man.description == "two cells"
+    assert [it.name for it in man.items] == ["rec", "rec-2", "cell3"]
+    assert man.items[0].recording == (sub / "cells" / "rec.mcap").absolute()
+    assert man.items[0].robot == "lrmate" and man.items[0].notes == "cell 1"
+    assert man.items[2].recording == Path("/abs/x.mcap")
+
+
+@pytest.mark.parametrize(
+    "text, words",
+    [
+        ("[[recordings]]\nname = 'x'\n", "needs a 'path'"),
+        ("name = 'empty'\n", "no [[recordings]]"),
+        ("[[recordings]\npath = 'a'\n", "not a readable TOML"),
+        ("[[recordings]]\npath = 'a.mcap'\nrobt = 'x'\n", "unknown key(s) robt"),
+        ("[[recordings]]\npath='a'\nname='x'\n[[recordings]]\npath='b'\nname='x'\n", "repeated"),
+        ("[[recordings]]\npath = 'a.mcap'\nname = '../up'\n", "not a plain folder name"),
+    ],
+)
+def test_bad_manifest_is_one_line_bad_input(tmp_path: Path, text: str, words: str) -> None:
+    m = tmp_path / "m.toml"
+    m.write_text(text)
+    with pytest.raises(BadInput) as err:
+        load_manifest(m)
+    msg = str(err.value)
+    assert "\n" not in msg and str(m) in msg and words in msg
+
+
+def test_repeated_stems_get_distinct_run_folders() -> None:
+    items = items_from_paths(["a/rec.mcap", "b/rec.mcap", "rec-2.mcap", "c/rec.mcap"])
+    names = [it.name for it in items]
+    assert len(set(names)) == 4 and names[0] == "rec" and names[2] == "rec-2"
+
+
+def test_bad_executor_options_are_bad_input() -> None:
+    with pytest.raises(BadInput, match="--scheduler"), open_executor("processes", 1, "tcp://x:1"):
+        pass
+    with pytest.raises(BadInput, match="--executor"), open_executor("threads"):
+        pass
+    with pytest.raises(BadInput, match="--workers"), open_executor("processes", 0):
+        pass
+
+
+# -- a batch with corrupt recordings among good ones ----------------------------------
+
+
+def test_corrupt_recordings_reported_good_ones_finish(pool_batch) -> None:
+    result, seen, _ = pool_batch
+    by = _by_name(result)
+    assert [o.name for o in result.outcomes] == list(BATCH)
+    for name in ("good_a",):
+        o = by[name]
+        assert o.status == "ok", o.error
+        assert [s for s, _, _ in o.stages] == ["ingest", "touchups", "outliers", "identify"]
+        assert all(st == "ran" for _, st, _ in o.stages)
+        assert (Path(o.run_dir) / "identify.json").exists()
+        assert o.figures["rms_mm"] is not None and o.figures["rms_mm"] < 0.1
+        assert o.robot_urdf  # read from the recording's URDF
+    for name in ("junk", "trunc"):
+        o = by[name]
+        assert o.status == "error" and o.error_kind == "bad_input" and o.exit_code == 2
+        assert "\n" not in o.error and f"{name}.mcap" in o.error
+    assert "not an MCAP file" in by["junk"].error
+    # progress saw every recording once, counting up to the total
+    assert sorted(n for _, _, n in seen) == sorted(by)
+    assert [d for d, _, _ in seen] == [1, 2, 3] and {t for _, t, _ in seen} == {3}
+
+
+def test_summary_parquet_follows_its_schema(pool_batch) -> None:
+    result, _, _ = pool_batch
+    df = read_artefact(result.summary_path, "batch_summary")
+    assert list(df["name"]) == list(BATCH)
+    assert list(df["status"]) == ["ok", "error", "error"]
+    assert list(df["exit_code"]) == [0, 2, 2]
+    ok = df[df["status"] == "ok"]
+    assert (ok["stages_ran"] == 4).all() and (ok["model"] == ok["model"].iloc[0]).all()
+    assert ok["n_used"].notna().all() and ok["rms_mm"].notna().all()
+    bad = df[df["status"] != "ok"]
+    assert bad["model"].isna().all() and (bad["error"].str.len() > 0).all()
+    # memory per worker is measured and bounded
+    assert df["peak_rss_mb"].notna().all() and (df["peak_rss_mb"] < 2000).all()
+    assert read_meta(result.summary_path)["stage"] == "batch"
+
+
+def test_second_batch_is_cached_and_force_reruns(pool_batch, recordings) -> None:
+    result, _, _ = pool_batch
+    files = {
+        o.name: {p.name: p.read_bytes() for p in Path(o.run_dir).glob("*.parquet")}
+        for o in result.outcomes
+        if o.status == "ok"
+    }
+    items = items_from_paths([recordings[k] for k in BATCH])
+    again = run_batch(items, result.out_dir, kind="processes", workers=2, until=UNTIL)
+    by = _by_name(again)
+    for name in ("good_a",):
+        assert [st for _, st, _ in by[name].stages] == ["cached"] * 4
+        now = {p.name: p.read_bytes() for p in Path(by[name].run_dir).glob("*.parquet")}
+        assert now == files[name]
+    assert by["junk"].status == "error" and by["trunc"].status == "error"
+    forced = run_batch(items[:1], result.out_dir, workers=1, until=UNTIL, force=True)
+    assert [st for _, st, _ in forced.outcomes[0].stages] == ["ran"] * 4
+
+
+def test_interrupted_batch_resumes_where_it_stopped(
+    recordings: dict[str, Path], tmp_path: Path
+) -> None:
+    """Ctrl-C (SIGINT to the process group) after the first recording; the rerun caches it."""
+    out = tmp_path / "batch"
+    recs = [str(recordings["good_a"]), str(recordings["good_b"])]
+    cmd = [sys.executable, "-m", "pipeline", "batch", *recs, "--out", str(out)]
+    cmd += ["--until", UNTIL, "--workers", "1"]
+    env = {**os.environ, "PYTHONUNBUFFERED": "1", "COLUMNS": "200"}
+    proc = subprocess.Popen(
+        cmd,
+        start_new_session=True,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        env=env,
+    )
+    assert proc.stdout is not None
+    lines = []
+    for line in proc.stdout:  # the per-recording line comes when its outcome is back
+        lines.append(line)
+        if line.strip().startswith("ok") and "good_a" in line:
+            break
+    else:
+        pytest.fail(f"good_a never reported: {''.join(lines)} {proc.communicate()}")
+    os.killpg(proc.pid, signal.SIGINT)
+    _, err = proc.communicate(timeout=120)
+    summary = read_artefact(out / "summary.parquet", "batch_summary")
+    status = dict(zip(summary["name"], summary["status"], strict=True))
+    assert status["good_a"] == "ok"
+    if status["good_b"] != "ok":  # the usual case: interrupted inside good_b
+        assert proc.returncode == 130 and "interrupted; what finished" in err
+        assert status["good_b"] in ("not_run", "error")
+    resumed = run_batch(items_from_paths(recs), out, workers=1, until=UNTIL)
+    by = _by_name(resumed)
+    assert [st for _, st, _ in by["good_a"].stages] == ["cached"] * 4
+    assert by["good_b"].status == "ok"
+
+
+# -- the CLI -------------------------------------------------------------------------------
+
+
+def test_cli_batch_from_manifest(pool_batch, recordings, capsys) -> None:
+    """Same run folders as the fixture (names from the manifest): everything cached."""
+    from pipeline.cli import main
+
+    result, _, _ = pool_batch
+    m = recordings["good_a"].parent / "m.toml"
+    m.write_text(
+        '[[recordings]]\npath = "good_a.mcap"\nrobot = "lrmate"\nnotes = "first"\n'
+        '[[recordings]]\npath = "junk.mcap"\n'
+    )
+    with pytest.raises(SystemExit) as ex:
+        main(["batch", "--manifest", str(m), "--out", str(result.out_dir), "--until", UNTIL])
+    assert ex.value.code == 1  # one recording failed
+    out, err = capsys.readouterr()
+    assert "good_a" in out and "junk" in out and "1 of 2 recording(s) ok" in out
+    assert "1 of 2 recording(s) failed" in err
+    df = read_artefact(result.summary_path, "batch_summary")
+    assert list(df["name"]) == ["good_a", "junk"]
+    assert df["robot"].iloc[0] == "lrmate" and df["notes"].iloc[0] == "first"
+    assert df["stages_cached"].iloc[0] == 4
+
+
+def test_cli_batch_needs_recordings(capsys) -> None:
+    from pipeline.cli import main
+
+    with pytest.raises(SystemExit) as ex:
+        main(["batch", "--out", "/tmp/never"])
+    assert ex.value.code == 2
+    assert "no recordings" in capsys.readouterr().err
+
+
+# -- Dask ----------------------------------------------------------------------------------
+
+
+def test_dask_gives_the_same_artefacts(pool_batch, recordings, tmp_path: Path) -> None:
+    """The fixture's batch again under ``kind="dask"``: a LocalCluster of two
+    single-threaded worker processes on loopback, no dashboard."""
+    pytest.importorskip("distributed")
+    result, _, pool_summary = pool_batch
+    items = items_from_paths([recordings[k] for k in BATCH])
+    dres = run_batch(items, tmp_path, kind="dask", workers=2, until=UNTIL)
+    assert [o.status for o in dres.outcomes] == [o.status for o in result.outcomes]
+    assert [o.error for o in dres.outcomes] == [o.error for o in result.outcomes]
+    pool_pids = {o.worker for o in result.outcomes}
+    assert all(o.worker and o.worker not in pool_pids for o in dres.outcomes)
+    n = 0
+    for o in dres.outcomes:
+        if o.status != "ok":
+            continue
+        for name in PARQUETS:
+            a = pq.read_table(Path(result.out_dir) / o.name / f"{name}.parquet")
+            b = pq.read_table(Path(o.run_dir) / f"{name}.parquet")
+            assert a.equals(b, check_metadata=True), f"{o.name}/{name}.parquet differs"
+            n += 1
+    assert n == len(PARQUETS)
+    sa = pool_summary.drop(list(VOLATILE))
+    sb = pq.read_table(dres.summary_path).drop(list(VOLATILE))
+    assert sa.equals(sb)
