@@ -68,7 +68,7 @@ class FullOriginModel(ErrorModel):
         self._k_idx = np.array([k for (k, _c) in self._slot], dtype=np.int64)
         self._c_idx = np.array([COMPONENTS.index(c) for (_k, c) in self._slot], dtype=np.int64)
         self._pre_is_eye = [bool(np.allclose(P, np.eye(4), atol=0)) for P in L.pre]
-        self._has_d = any(c in self.components for c in ("dx", "dy", "dz"))
+        self._gather = 7 * self._k_idx + self._c_idx
         # among exactly dependent columns keep the zero offset (pivoting tie-break)
         self.param_priority = np.array(
             [1.05 if n.endswith(".dq0") else 1.0 for n in self.param_names]
@@ -118,24 +118,16 @@ class FullOriginModel(ErrorModel):
         p = np.einsum("nij,nj->ni", R, pf) + T[:, :3, 3]
         if not jac:
             return p, R, None
-        J = np.zeros((N, 3, self.n_params))
+        # all seven columns of every joint, then the model's subset in one gather
+        blocks = np.empty((N, 3, L.n, 7))
         for k in range(L.n):
-            if self._has_d:
-                for i, c in enumerate(("dx", "dy", "dz")):
-                    j = self._slot.get((k, c))
-                    if j is not None:
-                        J[:, :, j] = RXs[k][:, :, i]
-            # rotation-vector columns (J_r(r) at Y) and the zero offset, one call
+            blocks[:, :, k, :3] = RXs[k]
             tw = np.zeros((6, 4))
             tw[3:, :3] = so3_right_jacobian(r[k])
-            tw[: 3 if L.prismatic[k] else 6, 3] = 0.0
             if L.prismatic[k]:
                 tw[:3, 3] = L.axis[k]
             else:
                 tw[3:, 3] = L.axis[k]
-            cols = point_motion(Ys[k], tw, p)
-            for i, c in enumerate(("rx", "ry", "rz", "dq0")):
-                j = self._slot.get((k, c))
-                if j is not None:
-                    J[:, :, j] = cols[:, :, i]
+            blocks[:, :, k, 3:] = point_motion(Ys[k], tw, p)
+        J = blocks.reshape(N, 3, 7 * L.n)[:, :, self._gather]
         return p, R, J
