@@ -119,3 +119,31 @@ def test_tilt_bias_matches_projection():
     bias, tilt, resolved = tilt_bias(np.array(shapes), np.array(Ts), np.zeros(4, int), J, s0)
     assert resolved.all() and np.all(tilt > 5)
     assert np.allclose(bias[:, :2], truth_offsets, atol=0.01)
+
+
+def test_simulated_recording_pin_accuracy(tmp_path):
+    """On a simulator recording: every touch-up, its target, and the corrected pin."""
+    from pipeline.kinematics.chain import fk, load_chain
+    from pipeline.sim.scenario import load_scenario
+    from pipeline.sim.simulator import simulate
+
+    from conftest import REPO
+
+    out = tmp_path / "small.mcap"
+    truth = simulate(load_scenario(REPO / "datasets" / "scenarios" / "small.toml"), 3, out)
+    frames, dets, info = ingest_recording(out, IngestConfig(), DetectConfig())
+    tu = extract_touchups(frames, dets, info, TouchupConfig())
+    assert len(tu) == len(truth["touchups"])
+    for row, t in zip(tu.itertuples(), truth["touchups"], strict=True):
+        assert row.target_id == t["label"] and bool(row.converged) == bool(t["converged"])
+    chain = load_chain(truth["true_urdf"], truth["base_link"], truth["flange_link"])
+    conv = tu[tu["converged"]]
+    T = fk(chain, conv[info.joint_names].to_numpy(float))
+    d = conv[["dx_flange", "dy_flange", "dz_flange"]].to_numpy(float)
+    p = np.array(truth["p_vt_flange"])
+    c = np.array([truth["touchups"][i]["target_centre"] for i in conv["touchup_id"]])
+    raw = np.einsum("nij,j->ni", T[:, :3, :3], p) + T[:, :3, 3] - c
+    cor = np.einsum("nij,nj->ni", T[:, :3, :3], p + d) + T[:, :3, 3] - c
+    rms_raw = np.sqrt(np.mean(np.sum(raw**2, 1)))
+    rms_cor = np.sqrt(np.mean(np.sum(cor**2, 1)))
+    assert rms_cor < 0.6 * rms_raw and rms_cor < 4e-5
