@@ -123,11 +123,11 @@ def test_tilt_bias_matches_projection():
 
 def test_simulated_recording_pin_accuracy(tmp_path):
     """On a simulator recording: every touch-up, its target, and the corrected pin."""
+    from conftest import REPO
+
     from pipeline.kinematics.chain import fk, load_chain
     from pipeline.sim.scenario import load_scenario
     from pipeline.sim.simulator import simulate
-
-    from conftest import REPO
 
     out = tmp_path / "small.mcap"
     truth = simulate(load_scenario(REPO / "datasets" / "scenarios" / "small.toml"), 3, out)
