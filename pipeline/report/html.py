@@ -627,4 +627,5 @@ def build_report(run_dir: Path, out_path: Path | None = None) -> Path:
     data = load_run(run_dir)
     html = render(report_context(data, _report_images(data)))
     atomic_write_bytes(out, html.encode("utf-8"))
+    out.chmod(0o644)  # a report is for sharing (the temporary file was private)
     return out

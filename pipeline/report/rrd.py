@@ -125,11 +125,14 @@ def build_rrd(run_dir: Path, out_path: Path | None = None, recording_id: str | N
     rec.set_log_time_enabled(False)
     rec.save(str(tmp))
     try:
-        log_run(rec, data)
+        try:
+            log_run(rec, data)
+        finally:
+            rec.disconnect()  # finalises the file (flush alone does not)
+        atomic_write_bytes(out, tmp.read_bytes())
     finally:
-        rec.disconnect()
-    atomic_write_bytes(out, tmp.read_bytes())
-    tmp.unlink(missing_ok=True)
+        tmp.unlink(missing_ok=True)
+    out.chmod(0o644)
     return out
 
 
