@@ -353,3 +353,30 @@ def test_runs_on_the_conformance_touchups(conformance_truth):
         identify(
             table, t["nominal_urdf"], t["base_link"], t["flange_link"], IdentifyConfig(model="full")
         )
+
+
+def test_design_jacobian_rates_pose_sets():
+    from pipeline.models.observability import observability
+    from pipeline.stages.identify import design_jacobian
+
+    urdf, nominal, true, table, targets = _case(seed=13, per_target=12)
+    q = table[nominal.joint_names].to_numpy()
+    tid = table["target_id"].to_numpy()
+    Jk, Jn, names = design_jacobian(urdf, "base_link", "flange", q, tid, PIN, known_distance=True)
+    assert Jk.shape == (3 * len(q) + 1, len(names)) and Jn.shape == (3 * len(q) + 1, 12)
+    assert "joint_1.dx" not in names  # absorbed by the targets
+    good = observability(Jk, Jn)
+    # the same number of touch-ups with little orientation variety rates worse
+    rng = np.random.default_rng(0)
+    narrow, _ = synthetic_touchups(true, PIN, 3, 12, rng, q_centre=LRMATE_CENTRE, spread_rad=0.05)
+    Jk2, Jn2, _ = design_jacobian(
+        urdf,
+        "base_link",
+        "flange",
+        narrow[nominal.joint_names].to_numpy(),
+        narrow["target_id"].to_numpy(),
+        PIN,
+        known_distance=True,
+    )
+    bad = observability(Jk2, Jn2)
+    assert bad["O1"] < good["O1"] and bad["O3"] < good["O3"]
