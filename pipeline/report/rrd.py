@@ -193,12 +193,13 @@ def log_run(rec: rr.RecordingStream, data: RunData) -> list[str]:
                 ),
                 static=True,
             )
-        if (~inl).any():
-            rej = tu[~inl]
+        rej_mask = ~inl & np.all(np.isfinite(pins), axis=1)
+        if rej_mask.any():
+            rej = tu[rej_mask]
             rec.log(
                 "world/rejected",
                 rr.Points3D(
-                    pins[~inl],
+                    pins[rej_mask],
                     radii=0.004,
                     colors=[RED] * len(rej),
                     labels=[
@@ -265,6 +266,15 @@ def log_run(rec: rr.RecordingStream, data: RunData) -> list[str]:
             if stamps is not None and stamps[i] > 0:
                 rec.set_time("stamp", timestamp=np.datetime64(int(stamps[i]), "ns"))
             status = "used" if inl[i] else f"rejected: {reason}"
+            if not inl[i]:
+                rec.log(
+                    "log/rejected",
+                    rr.TextLog(
+                        f"touch-up {tid} (target {target}) rejected: {reason}", level="WARN"
+                    ),
+                )
+            if not np.all(np.isfinite(q[i])):
+                continue  # no joint vector for this touch-up: nothing to draw
             if sk_nom is not None:
                 rec.log(
                     "world/robot/nominal",
@@ -311,13 +321,6 @@ def log_run(rec: rr.RecordingStream, data: RunData) -> list[str]:
                         f"{img_path}/designated",
                         rr.Points2D([d0[:2]], radii=2.0, colors=[RED], labels=["designated"]),
                     )
-            if not inl[i]:
-                rec.log(
-                    "log/rejected",
-                    rr.TextLog(
-                        f"touch-up {tid} (target {target}) rejected: {reason}", level="WARN"
-                    ),
-                )
     else:
         notes.append("robot poses: not available (no joint columns or no URDF)")
 
