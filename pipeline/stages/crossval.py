@@ -120,6 +120,106 @@ def _fit(
     return res
 
 
+def heldout_predictions(
+    table: pd.DataFrame,
+    use: np.ndarray,
+    fold: np.ndarray,
+    urdf: str,
+    base_link: str,
+    flange_link: str,
+    config: IdentifyConfig,
+    *,
+    every_row: bool = False,
+) -> pd.DataFrame:
+    """Fit without each fold; predict the pin at the fold's touch-ups (k-fold core).
+
+    Parameters
+    ----------
+    table : touch-up table
+    use : (M,) bool, usable rows
+    fold : (M,) fold index per row (-1 for unused rows)
+    urdf, base_link, flange_link : the nominal robot
+    config : identification settings (one model)
+    every_row : also predict at the fold fit's training rows (``held`` false), e.g. to
+        register a fold's model to a reference before judging its held-out rows
+
+    Returns
+    -------
+    DataFrame, one row per usable row (per fold with ``every_row``): ``row``
+    (position in ``table``), ``held``, ``fold``,
+    ``n_train``, predicted pin ``px, py, pz`` (left side of (1)), the training
+    fit's target ``tx, ty, tz`` (NaN if the target has no training data),
+    the training fit's per-axis ``sigma_m`` and ``status`` ('' or why not scored).
+    """
+    chain = load_chain(urdf, base_link, flange_link)
+    names = list(chain.joint_names)
+    q_all = table[names].to_numpy(dtype=float)
+    d_all = np.zeros((len(table), 3))
+    for j, c in enumerate(("dx_flange", "dy_flange", "dz_flange")):
+        if c in table.columns:
+            d_all[:, j] = np.nan_to_num(table[c].to_numpy(dtype=float))
+    tid = table["target_id"].to_numpy()
+    out: list[dict[str, Any]] = []
+    nan3 = (math.nan, math.nan, math.nan)
+    for f in sorted(set(fold[use].tolist())):
+        held = use & (fold == f)
+        train = use & (fold != f)
+        hi = np.flatnonzero(use if every_row else held)
+        try:
+            res = _fit(table, train, urdf, base_link, flange_link, config)
+        except (BadInput, CalibrationFailed) as exc:
+            for i in hi:
+                out.append(
+                    _pred_row(i, f, held, train, nan3, nan3, math.nan, f"fold not fitted: {exc}")
+                )
+            continue
+        tg = _target_positions(res.targets)
+        p = _predict(res, q_all[hi], d_all[hi])
+        sig = float(res.summary.get("sigma_mm", math.nan)) / 1e3
+        for j, i in enumerate(hi):
+            t = tg.get(int(tid[i]))
+            if t is None:
+                out.append(_pred_row(i, f, held, train, p[j], nan3, sig, "target not in training"))
+            else:
+                out.append(_pred_row(i, f, held, train, p[j], t, sig, ""))
+    return pd.DataFrame(
+        out,
+        columns=[
+            "row",
+            "held",
+            "fold",
+            "n_train",
+            "px",
+            "py",
+            "pz",
+            "tx",
+            "ty",
+            "tz",
+            "sigma_m",
+            "status",
+        ],
+    )
+
+
+def _pred_row(
+    i: Any, f: int, held: np.ndarray, train: np.ndarray, p: Any, t: Any, sig: float, status: str
+) -> dict[str, Any]:
+    return {
+        "row": int(i),
+        "held": bool(held[i]),
+        "fold": int(f),
+        "n_train": int(train.sum()),
+        "px": float(p[0]),
+        "py": float(p[1]),
+        "pz": float(p[2]),
+        "tx": float(t[0]),
+        "ty": float(t[1]),
+        "tz": float(t[2]),
+        "sigma_m": sig,
+        "status": status,
+    }
+
+
 def cross_validate(
     table: pd.DataFrame,
     urdf: str,
@@ -168,8 +268,8 @@ def cross_validate(
             d_all[:, j] = np.nan_to_num(df[c].to_numpy(dtype=float))
     tid = df["target_id"].to_numpy()
     tu = df["touchup_id"].to_numpy(dtype=np.int64)
-    counts = pd.Series(tid[use]).value_counts()
-    k = int(max(2, min(config.k, int(counts.to_numpy().max()) if len(counts) else 2)))
+    _, cnt = np.unique(tid[use].astype(str), return_counts=True)
+    k = int(max(2, min(config.k, int(cnt.max()) if cnt.size else 2)))
     fold = np.full(len(df), -1, dtype=np.int64)
     fold[use] = fold_assignment(tid[use], k, np.random.default_rng(config.seed))
     base_cfg = dataclasses.replace(identify_config, n_workspace=4)
@@ -205,28 +305,15 @@ def cross_validate(
             info["train_rms_mm"] = math.nan
             info["error"] = str(exc)
         # -- k-fold
-        failed = 0
-        for f in range(k):
-            held = use & (fold == f)
-            train = use & (fold != f)
-            try:
-                res = _fit(df, train, urdf, base_link, flange_link, mcfg)
-            except (BadInput, CalibrationFailed) as exc:
-                failed += 1
-                for i in np.flatnonzero(held):
-                    add(m, "kfold", f, int(i), int(train.sum()), None, f"fold not fitted: {exc}")
-                continue
-            tg = _target_positions(res.targets)
-            hi = np.flatnonzero(held)
-            if len(hi) == 0:
-                continue
-            p = _predict(res, q_all[hi], d_all[hi])
-            for j, i in enumerate(hi):
-                t = tg.get(int(tid[i]))
-                if t is None:
-                    add(m, "kfold", f, int(i), int(train.sum()), None, "target not in training")
-                else:
-                    add(m, "kfold", f, int(i), int(train.sum()), p[j] - t, "")
+        pred = heldout_predictions(df, use, fold, urdf, base_link, flange_link, mcfg)
+        failed = int(pred.loc[pred["status"].str.startswith("fold not fitted"), "fold"].nunique())
+        pv = pred[["px", "py", "pz"]].to_numpy(dtype=float)
+        tv = pred[["tx", "ty", "tz"]].to_numpy(dtype=float)
+        st = pred["status"].astype(str).tolist()
+        meta = pred[["fold", "row", "n_train"]].to_numpy(dtype=np.int64)
+        for j in range(len(pred)):
+            e = None if st[j] else pv[j] - tv[j]
+            add(m, "kfold", int(meta[j, 0]), int(meta[j, 1]), int(meta[j, 2]), e, st[j])
         info["kfold_failed_folds"] = failed
         # -- leave one target out
         loto_failed = 0

@@ -49,7 +49,9 @@ groups tested) is below ``alpha``, is flagged (an outlier) or split (a knock:
 the touch-ups after it get a new target label, ``max label + 1``; the part
 before keeps the label, so a known distance involving that target applies to
 the part before the knock only), the model is re-fitted and the search
-repeats. A shift confined to a target's last touch-up(s) is read as a knock,
+repeats. Groups whose estimated shift ``|delta|`` is below ``min_shift_m``
+are not candidates (statistically significant is not the same as worth
+rejecting: with a 0.01 mm fit a 0.05 mm slip is "6 sigma"). A shift confined to a target's last touch-up(s) is read as a knock,
 which keeps the row (it then only informs its own new target). Finally every
 statistically flagged row is re-tested against the final fit as a new
 observation (prediction variance ``s2 (I / w + J_i (J^T J)^+ J_i^T)``) and
@@ -101,6 +103,10 @@ class OutlierConfig:
     min_before : fewest inlier touch-ups a target keeps before a knock
     max_iterations : flag/split steps at most
     reinclude : re-test flagged rows against the final fit and reinstate consistent ones
+    min_shift_m : smallest shift (of a touch-up or of a knocked target) worth acting on,
+        metres: a significant but smaller one is not acted on (its studentized
+        residual stays in the table); it moves the calibration by less than a
+        touch-up's repeatability
     """
 
     max_fit_residual_px: float = 0.25
@@ -114,6 +120,7 @@ class OutlierConfig:
     min_before: int = 2
     max_iterations: int = 20
     reinclude: bool = True
+    min_shift_m: float = 1e-4
 
 
 def _rule_masks(table: pd.DataFrame, config: OutlierConfig) -> dict[str, np.ndarray]:
@@ -402,7 +409,7 @@ def _statistical(out: pd.DataFrame, info: Any, config: OutlierConfig) -> pd.Data
         # single touch-ups
         for k, r in enumerate(f.rows):
             p, sig, rk, delta = _group_test(f, np.array([k]), w[[k]])
-            if rk:
+            if rk and np.linalg.norm(delta) >= config.min_shift_m:
                 cands.append((p, 1, "single", int(r), sig, delta))
         # knocks: change point in time per target
         if config.split_targets:
@@ -414,7 +421,7 @@ def _statistical(out: pd.DataFrame, info: Any, config: OutlierConfig) -> pd.Data
                     after = rows_t[c:]
                     pos = np.array([pos_of[r] for r in after])
                     p, sig, rk, delta = _group_test(f, pos, w[pos])
-                    if rk:
+                    if rk and np.linalg.norm(delta) >= config.min_shift_m:
                         cands.append((p, 0, "split", (t, rows_t[c - 1], after), sig, delta))
         if not cands:
             break

@@ -1,0 +1,353 @@
+"""Outlier rejection, knock splitting and cross-validation against simulator truth.
+
+For each seed the standard cell (``datasets/scenarios/standard.toml``: 3 targets
+x 12 poses, calibration bar) is simulated twice with the same seed: once with
+every fault the simulator offers switched on (``[faults]`` all true) and once
+with none (the simulator draws faults from their own random stream, so the
+robot, camera, targets and poses are the same). Both go through ``vtcal run
+--until crossval --model all``. Printed, per seed and in total:
+
+* every injected fault and whether the pipeline flagged it with the right reason
+  (touch-up faults: the inliers ``reason``; a knock: the split at the right
+  touch-up; faults on images that were not averaged at the final pose: the
+  frames/detections artefacts flag the image and the touch-up rightly stays);
+* good touch-ups rejected (rows no injected fault touches, ``inlier`` false);
+* the knocked target's two fitted positions: their distance against the truth's
+  ``|shift_m|``;
+* final accuracy (absolute, rigid registration over 300 poses spread through the
+  touched volume) of ``calibrated.urdf`` with faults against without: ratio;
+* the chosen model's k-fold held-out RMS against its error measured against the
+  truth (same registration): ratio.
+
+    python benchmarks/bench_outliers.py [--seeds 1 2 3] [--work DIR] [--scenario TOML]
+
+Simulations and runs are cached in ``--work`` (default
+``/tmp/vtcal_bench_outliers``); delete it to start afresh. One core, about a
+minute per seed the first time.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import subprocess
+import sys
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pandas as pd
+import tomllib
+
+from pipeline.evaluate import pin_accuracy, register_points, workspace_poses
+from pipeline.kinematics.chain import fk, load_chain
+from pipeline.known_distances import parse_distances
+from pipeline.stages.crossval import fold_assignment, heldout_predictions, usable_rows
+from pipeline.stages.identify import IdentifyConfig
+
+ROOT = Path(__file__).resolve().parent.parent
+FAULTS = (
+    "capture_while_moving",
+    "second_blob",
+    "unconverged",
+    "knocked_target",
+    "joint_state_gap",
+    "lost_target",
+    "truncate",
+)
+
+
+def _toml(d: dict[str, Any]) -> str:
+    lines: list[str] = []
+    for k, v in d.items():
+        if not isinstance(v, dict):
+            lines.append(f"{k} = {json.dumps(v)}")
+    for k, v in d.items():
+        if isinstance(v, dict):
+            lines.append(f"\n[{k}]")
+            lines += [f"{kk} = {json.dumps(vv)}" for kk, vv in v.items()]
+    return "\n".join(lines) + "\n"
+
+
+def scenarios(src: Path, work: Path) -> tuple[Path, Path]:
+    """The scenario with every fault on and with every fault off."""
+    base = tomllib.loads(src.read_text())
+    out = []
+    for on in (True, False):
+        sc = dict(base)
+        sc["name"] = f"{base.get('name', 'bench')}_{'faults' if on else 'clean'}"
+        sc["faults"] = {f: on for f in FAULTS}
+        p = work / f"{sc['name']}.toml"
+        p.write_text(_toml(sc))
+        out.append(p)
+    return out[0], out[1]
+
+
+def sh(*args: str) -> None:
+    subprocess.run(
+        [sys.executable, "-m", "pipeline", *args], check=True, cwd=ROOT, stdout=subprocess.DEVNULL
+    )
+
+
+def simulate_and_run(scenario: Path, seed: int, work: Path) -> tuple[Path, dict[str, Any]]:
+    rec = work / f"{scenario.stem}_s{seed}.mcap"
+    if not Path(str(rec) + ".truth.json").exists():
+        sh(
+            "simulate",
+            "--scenario",
+            str(scenario),
+            "--seed",
+            str(seed),
+            "--out",
+            str(rec),
+            "--quiet",
+        )
+    run = work / f"run_{scenario.stem}_s{seed}"
+    sh("run", str(rec), "--out", str(run), "--until", "crossval", "--model", "all", "-q")
+    return run, json.loads(Path(str(rec) + ".truth.json").read_text())
+
+
+def _frames_of(tu: pd.DataFrame, img: int) -> tuple[int | None, bool]:
+    """(touch-up id holding image ``img``, whether it was averaged at the final pose)."""
+    ids = tu["touchup_id"].to_numpy(dtype=np.int64)
+    for i, (fr, conv) in enumerate(
+        zip(tu["frame_indices"].tolist(), tu["converged_frame_indices"].tolist(), strict=True)
+    ):
+        if img in [int(v) for v in fr]:
+            return int(ids[i]), img in [int(v) for v in conv]
+    return None, False
+
+
+def fault_recall(run: Path, truth: dict[str, Any]) -> tuple[list[dict[str, Any]], set[int]]:
+    """One verdict per injected fault, and the touch-up ids a fault made bad."""
+    inl = pd.read_parquet(run / "inliers.parquet")
+    tu = pd.read_parquet(run / "touchups.parquet")
+    frames = pd.read_parquet(run / "frames.parquet").set_index("frame_index")
+    det = pd.read_parquet(run / "detections.parquet").set_index("frame_index")
+    rec = json.loads((run / "recording.json").read_text())
+    reason = dict(zip(inl["touchup_id"], inl["reason"].astype(str), strict=True))
+    bad: set[int] = set()
+    out = []
+    for f in truth["faults"]:
+        typ = f["type"]
+        t = f.get("touchup")
+        ok: bool | None = False
+        how = ""
+        if typ == "unconverged":
+            ok = "not converged" in reason.get(t, "")
+            how = f"touch-up {t}: {reason.get(t, 'absent')!r}"
+            bad.add(t)
+        elif typ == "target_lost":
+            ok = "target lost" in reason.get(t, "")
+            how = f"touch-up {t}: {reason.get(t, 'absent')!r}"
+            bad.add(t)
+        elif typ == "target_knocked":
+            after = set(f["touchups_after"])
+            rows = inl[inl["source_target_id"] == f["label"]]
+            moved = rows[rows["target_id"] != rows["source_target_id"]]
+            usable_after = set(
+                rows[rows["touchup_id"].isin(after) & (rows["reason"] == "")]["touchup_id"]
+            )
+            got = set(moved["touchup_id"])
+            ok = usable_after <= got and got <= after
+            how = f"after-knock touch-ups {sorted(after)}, split off {sorted(got)}"
+        elif typ in ("capture_while_moving", "second_blob", "target_cut_by_border"):
+            verdicts = []
+            for img in f["image_indices"]:
+                tid, averaged = _frames_of(tu, img)
+                if img not in frames.index:
+                    verdicts.append(False)
+                    continue
+                if typ == "capture_while_moving":
+                    seen = bool(frames.loc[img, "moving"])
+                    rule = "captured while moving"
+                elif typ == "second_blob":
+                    seen = int(det.loc[img, "n_blobs"]) > 1 or bool(det.loc[img, "ambiguous"])
+                    rule = "ambiguous blob"
+                else:
+                    seen = bool(det.loc[img, "border_contact"])
+                    rule = "contour cut by the border"
+                wrong_blob = typ == "second_blob" and bool(det.loc[img, "ambiguous"])
+                if averaged and (typ != "second_blob" or wrong_blob):
+                    # the image entered the touch-up's result: it must be rejected
+                    verdicts.append(tid is not None and rule in reason.get(tid, ""))
+                    if tid is not None:
+                        bad.add(tid)
+                else:
+                    verdicts.append(seen)
+            ok = all(verdicts)
+            how = f"images {f['image_indices']}: frame-level flags {verdicts}"
+        elif typ == "joint_state_gap":
+            lo, hi = f["missing_stamps_ns"]
+            st = frames["stamp_ns"].to_numpy()
+            hit = frames.index[(st >= lo) & (st <= hi)].tolist()
+            warned = any("gap" in w.lower() for w in rec.get("warnings", []))
+            if hit:
+                ok = bool(frames.loc[hit, "joint_gap"].all()) and warned
+                how = f"images in the gap: {hit}; ingest warning: {warned}"
+            else:
+                ok = None  # nothing the gap touches: no verdict
+                how = "no image in the gap (it fell in a move): nothing to flag"
+        elif typ == "truncated_file":
+            ok = bool(rec.get("truncated"))
+            how = f"recording.json truncated={rec.get('truncated')}"
+        else:
+            how = "unknown fault type"
+        out.append({"type": typ, "touchup": t, "flagged": ok, "how": how})  # ok None: no effect
+    return out, bad
+
+
+def accuracy(run: Path, truth: dict[str, Any], model: str | None = None) -> dict[str, float]:
+    """Pin accuracy of the run's calibrated.urdf (or calibrated_MODEL.urdf) against the truth."""
+    name = f"calibrated_{model}.urdf" if model else "calibrated.urdf"
+    cal = load_chain((run / name).read_text(), truth["base_link"], "virtual_pin")
+    true_chain = load_chain(truth["true_urdf"], truth["base_link"], truth["flange_link"])
+    inl = pd.read_parquet(run / "inliers.parquet")
+    ok = inl["inlier"].to_numpy(dtype=bool)
+    q = workspace_poses(inl.loc[ok, truth["joint_names"]].to_numpy(), 300, np.random.default_rng(0))
+    return pin_accuracy(cal, np.zeros(3), true_chain, np.array(truth["p_vt_flange"]), q)
+
+
+def knock_distance(run: Path, truth: dict[str, Any]) -> tuple[float, float] | None:
+    knocks = [f for f in truth["faults"] if f["type"] == "target_knocked"]
+    if not knocks:
+        return None
+    f = knocks[0]
+    inl = pd.read_parquet(run / "inliers.parquet")
+    rows = inl[(inl["source_target_id"] == f["label"]) & (inl["target_id"] != f["label"])]
+    if not len(rows):
+        return float("nan"), float(np.linalg.norm(f["shift_m"]))
+    new = int(rows["target_id"].iloc[0])
+    summ = json.loads((run / "identify.json").read_text())
+    tg = pd.read_parquet(run / "targets.parquet")
+    tg = tg[tg["model"] == summ["best_model"]].set_index("target_id")
+    if new not in tg.index or f["label"] not in tg.index:
+        return float("nan"), float(np.linalg.norm(f["shift_m"]))
+    a = tg.loc[f["label"], ["x", "y", "z"]].to_numpy(dtype=float)
+    b = tg.loc[new, ["x", "y", "z"]].to_numpy(dtype=float)
+    return float(np.linalg.norm(a - b)), float(np.linalg.norm(f["shift_m"]))
+
+
+def heldout_truth(run: Path, truth: dict[str, Any], model: str, k: int, seed: int) -> float:
+    """RMS error against the truth of each k-fold model at its held-out touch-ups, m.
+
+    The same folds as the crossval stage; each fold's model is registered to the
+    truth (one rigid motion, over every usable touch-up pose: the accuracy
+    definition of ``../shared/spec/outputs.md``) and judged at its held-out
+    poses against the true pin (with the touch-up's correction ``d``).
+    """
+    rec = json.loads((run / "recording.json").read_text())
+    inl = pd.read_parquet(run / "inliers.parquet")
+    names = truth["joint_names"]
+    use = usable_rows(inl, names)
+    fold = np.full(len(inl), -1, dtype=np.int64)
+    fold[use] = fold_assignment(inl["target_id"].to_numpy()[use], k, np.random.default_rng(seed))
+    cfg = IdentifyConfig(
+        model=model, distances=parse_distances(rec["metadata"].get("known_distances", ""))
+    )
+    pr = heldout_predictions(
+        inl, use, fold, rec["urdf"], rec["base_link"], rec["flange_link"], cfg, every_row=True
+    )
+    pr = pr[pr["status"] == ""]
+    tc = load_chain(truth["true_urdf"], truth["base_link"], truth["flange_link"])
+    q_all = inl[names].to_numpy(dtype=float)
+    d_all = inl[["dx_flange", "dy_flange", "dz_flange"]].to_numpy(dtype=float)
+    pin = np.asarray(truth["p_vt_flange"], dtype=float)
+    errs: list[float] = []
+    for _, g in pr.groupby("fold"):
+        rows = g["row"].to_numpy(dtype=np.int64)
+        T = fk(tc, q_all[rows])
+        p_true = np.einsum("nij,nj->ni", T[:, :3, :3], pin[None] + d_all[rows]) + T[:, :3, 3]
+        p_model = g[["px", "py", "pz"]].to_numpy(dtype=float)
+        R, t, _ = register_points(p_model, p_true, scale=False)
+        e = np.linalg.norm(p_model @ R.T + t - p_true, axis=1)
+        errs += e[g["held"].to_numpy(dtype=bool)].tolist()
+    return float(np.sqrt(np.mean(np.square(errs))))
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--seeds", type=int, nargs="+", default=[1, 2, 3])
+    ap.add_argument("--work", type=Path, default=Path("/tmp/vtcal_bench_outliers"))
+    ap.add_argument("--scenario", type=Path, default=ROOT / "datasets/scenarios/standard.toml")
+    a = ap.parse_args()
+    a.work.mkdir(parents=True, exist_ok=True)
+    sc_on, sc_off = scenarios(a.scenario, a.work)
+    n_faults = n_flagged = n_good = n_good_rej = n_no_effect = 0
+    acc_ratios, cv_ratios, knock = [], [], []
+    for seed in a.seeds:
+        run_f, truth_f = simulate_and_run(sc_on, seed, a.work)
+        run_c, truth_c = simulate_and_run(sc_off, seed, a.work)
+        verdicts, bad = fault_recall(run_f, truth_f)
+        print(f"\n== seed {seed}: {run_f.name}")
+        for v in verdicts:
+            tag = {True: "FLAGGED", False: "MISSED ", None: "NO-EFFECT"}[v["flagged"]]
+            print(f"  {tag:9s} {v['type']:22s} {v['how']}")
+        n_faults += sum(v["flagged"] is not None for v in verdicts)
+        n_flagged += sum(v["flagged"] is True for v in verdicts)
+        n_no_effect += sum(v["flagged"] is None for v in verdicts)
+        inl = pd.read_parquet(run_f / "inliers.parquet")
+        good = inl[~inl["touchup_id"].isin(bad)]
+        rej = good[~good["inlier"]]
+        n_good += len(good)
+        n_good_rej += len(rej)
+        for r in rej.itertuples():
+            print(f"  good touch-up rejected: {r.touchup_id} ({r.reason})")
+        inl_c = pd.read_parquet(run_c / "inliers.parquet")
+        rej_c = inl_c[~inl_c["inlier"]]
+        n_good += len(inl_c)
+        n_good_rej += len(rej_c)
+        for r in rej_c.itertuples():
+            print(f"  clean recording, touch-up rejected: {r.touchup_id} ({r.reason})")
+        kd = knock_distance(run_f, truth_f)
+        if kd:
+            knock.append(kd)
+            print(
+                f"  knocked target: fitted distance {kd[0] * 1e3:.3f} mm, truth shift "
+                f"{kd[1] * 1e3:.3f} mm (error {abs(kd[0] - kd[1]) * 1e3:.3f} mm)"
+            )
+        af, ac = accuracy(run_f, truth_f), accuracy(run_c, truth_c)
+        ratio = af["abs_rms_m"] / ac["abs_rms_m"]
+        acc_ratios.append(ratio)
+        print(
+            f"  accuracy (absolute RMS over 300 poses): faults {af['abs_rms_m'] * 1e3:.4f} mm, "
+            f"clean {ac['abs_rms_m'] * 1e3:.4f} mm, ratio {ratio:.3f}"
+        )
+        for run, truth, label in ((run_f, truth_f, "faults"), (run_c, truth_c, "clean")):
+            summ = json.loads((run / "identify.json").read_text())
+            cv = summ.get("crossval", {})
+            m = cv.get("chosen_model") or summ["best_model"]
+            kf = cv["models"][m]["kfold_rms_mm"]
+            lo = cv["models"][m].get("loto_rms_mm")
+            tr = accuracy(run, truth, m)
+            ht = heldout_truth(run, truth, m, int(cv["k"]), int(cv["seed"]))
+            r = kf / (ht * 1e3)
+            cv_ratios.append(r)
+            print(
+                f"  [{label}] chosen model {m}: k-fold held-out RMS {kf:.4f} mm (leave-one-"
+                f"target-out {lo:.4f} mm, training {cv['models'][m]['train_rms_mm']:.4f} mm); "
+                f"truth at the held-out poses {ht * 1e3:.4f} mm -> ratio {r:.2f}; truth over "
+                f"the volume {tr['abs_rms_m'] * 1e3:.4f} mm -> ratio "
+                f"{kf / (tr['abs_rms_m'] * 1e3):.2f}"
+            )
+    print("\n== totals")
+    print(f"faults flagged with the right reason: {n_flagged}/{n_faults} "
+          f"({100 * n_flagged / max(n_faults, 1):.1f} %); {n_no_effect} had no effect "
+          "on any image (a joint-state gap inside a move)")  # fmt: skip
+    print(f"good touch-ups rejected: {n_good_rej}/{n_good} "
+          f"({100 * n_good_rej / max(n_good, 1):.2f} %)")  # fmt: skip
+    if knock:
+        err = [abs(a - b) / b for a, b in knock if np.isfinite(a)]
+        print(f"knock distance relative error: max {100 * max(err, default=np.nan):.1f} % "
+              f"over {len(err)}/{len(knock)} split targets")  # fmt: skip
+    print(f"accuracy with faults / without: {', '.join(f'{r:.3f}' for r in acc_ratios)} "
+          f"(max {max(acc_ratios):.3f})")  # fmt: skip
+    within = sum(abs(r - 1) <= 0.3 for r in cv_ratios)
+    print(
+        f"k-fold held-out RMS / truth at the held-out poses: "
+        f"{', '.join(f'{r:.2f}' for r in cv_ratios)} ({within}/{len(cv_ratios)} within 30 %)"
+    )
+
+
+if __name__ == "__main__":
+    main()
