@@ -75,6 +75,8 @@ def test_report_content(report: Path) -> None:
         "data:image/png;base64,",  # thumbnails: the recording is reachable
         "Touch-up convergence",
         "Cross-validation",
+        "inferred by the pipeline",  # what the metadata did not say, at the top
+        "dark_on_light (automatic",
     ):
         assert text in html, text
     # nothing that would fetch: no external src/href/url(), no script

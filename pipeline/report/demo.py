@@ -318,7 +318,7 @@ def make_demo_run(
         "path": str(rec_path) if with_recording else str(run_dir / "gone.mcap"),
         "urdf": urdf,
         "metadata": meta,
-        "inferred": {},
+        "inferred": {"polarity": "dark_on_light (automatic, from 50 images)"},
         "joint_names": names,
         "base_link": "base_link",
         "flange_link": "flange",
