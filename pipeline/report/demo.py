@@ -279,16 +279,35 @@ def make_demo_run(
     ]  # fmt: skip
     _write(run_dir / "crossval.parquet", pd.DataFrame(cv), "crossval")
     (run_dir / "calibrated.urdf").write_text(write_calibrated_urdf(urdf, origins, "flange", p_pin))
+    # the fields identify.json carries (pipeline/stages/identify.py), with made-up values
+    held = [{"name": "joint_1.z", "reason": "along the base frame's z: not observable"}]
     identify: dict[str, Any] = {
         "model": "full",
-        "condition_number": 412.5,
-        "observability": {"O1": 0.8, "O2": 0.0024, "O3": 0.12, "O4": 3e-4, "O5": 0.05},
-        "unidentifiable": [
-            {"name": "joint_1.dz", "reason": "parallel to the base-frame translation"}
-        ]
-        + ([] if known_distance else [{"name": "scale", "reason": "no known distance"}]),
+        "best_model": "full",
+        "model_description": "per-joint origin translations (demo)",
+        "n_rows": int(len(touch)),
+        "n_used": int(inl["inlier"].sum()),
+        "n_targets": n_targets,
+        "n_params": 18,
+        "n_identified": 17,
+        "dof": 10,
+        "unidentifiable": [h["name"] for h in held],
+        "held": held,
         "scale_held": not known_distance,
-        "predicted": {"rms_mm": 0.04, "max_mm": 0.09},
+        "scale_note": "no known distance" if not known_distance else "identified",
+        "cond": 412.5,
+        "O1": 0.8,
+        "O2": 0.0024,
+        "O3": 0.12,
+        "O4": 3e-4,
+        "O5": 0.05,
+        "rms_mm": 0.03,
+        "max_mm": 0.05,
+        "predicted_shape_rms_mm": 0.04,
+        "predicted_shape_max_mm": 0.09,
+        "predicted_absolute_rms_mm": 0.05,
+        "predicted_absolute_max_mm": 0.11,
+        "p_flange_pin": [float(v) for v in p_pin],
         "singular_values": [float(x) for x in np.geomspace(10, 0.02, 12)],
         "crossval": {
             "chosen_model": "full",
@@ -296,6 +315,7 @@ def make_demo_run(
             "models": {"full": {"train_rms_mm": 0.03}, "offsets": {"train_rms_mm": 0.35}},
         },
     }
+    identify["models"] = {"full": {k: v for k, v in identify.items() if k != "crossval"}}
     (run_dir / "identify.json").write_text(json.dumps(identify, indent=1, sort_keys=True))
     meta = {
         "base_link": "base_link",
