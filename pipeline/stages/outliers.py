@@ -297,10 +297,12 @@ def _fit(out: pd.DataFrame, info: Any, model: str, config: OutlierConfig) -> _Fi
     return _Fit(model, rows, e, U, Vs, dof, sigma2, res.x, kept, res.p_flange_pin, tg, tcol)
 
 
-def _group_test(f: _Fit, pos: np.ndarray, w: np.ndarray) -> tuple[float, float, int, F64]:
-    """Mean-shift test of the touch-ups at fit positions ``pos`` (see module docstring).
+def _mean_shift(f: _Fit, pos: np.ndarray, w: np.ndarray) -> tuple[float, int, F64]:
+    """``(S, r, delta)`` of the mean-shift model for the touch-ups at fit positions ``pos``.
 
-    Returns ``(p-value, studentized sigma, rank, delta)``; p = 1 when untestable.
+    ``S`` is the drop in the residual sum of squares that three shift columns
+    ``C`` on those rows buy, ``r`` the rank of ``C^T (I - H) C`` and ``delta``
+    the least-squares shift, metres (module docstring).
     """
     m = len(f.e)
     C = np.zeros((m, 3))
@@ -311,15 +313,25 @@ def _group_test(f: _Fit, pos: np.ndarray, w: np.ndarray) -> tuple[float, float, 
     ce = C.T @ f.e
     ev = np.linalg.eigvalsh(M)
     r = int(np.sum(ev > max(ev.max(), 1e-300) * 1e-8)) if ev.size else 0
+    if r == 0:
+        return 0.0, 0, np.zeros(3)
+    Mi = np.linalg.pinv(M, rcond=1e-8)
+    return float(ce @ Mi @ ce), r, Mi @ ce
+
+
+def _group_test(f: _Fit, pos: np.ndarray, w: np.ndarray) -> tuple[float, float, int, F64]:
+    """Mean-shift test of the touch-ups at fit positions ``pos`` (see module docstring).
+
+    Returns ``(p-value, studentized sigma, rank, delta)``; p = 1 when untestable.
+    """
+    S, r, delta = _mean_shift(f, pos, w)
     if r == 0 or f.dof - r < 1:
         return 1.0, 0.0, 0, np.zeros(3)
-    Mi = np.linalg.pinv(M, rcond=1e-8)
-    S = float(ce @ Mi @ ce)
     rss = float(f.e @ f.e)
     s2 = max(rss - S, 1e-300) / (f.dof - r)
     F = S / (r * s2)
     p = float(stats.f.sf(F, r, f.dof - r))
-    return p, float(np.sqrt(S / s2)), r, Mi @ ce
+    return p, float(np.sqrt(S / s2)), r, delta
 
 
 def _prediction_test(f: _Fit, out: pd.DataFrame, i: int, info: Any) -> tuple[float, float]:
