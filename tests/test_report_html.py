@@ -75,6 +75,10 @@ def test_report_content(report: Path) -> None:
         "data:image/png;base64,",  # thumbnails: the recording is reachable
         "Touch-up convergence",
         "Cross-validation",
+        "predicted shape accuracy",
+        "not reachable: no known distance",  # absolute accuracy needs a known distance
+        "held at their nominal value",
+        "along the base frame&#39;s z: not observable",  # why joint_1.z was held
         "inferred by the pipeline",  # what the metadata did not say, at the top
         "dark_on_light (automatic",
     ):
@@ -136,3 +140,11 @@ def test_report_of_an_identify_only_folder(tmp_path: Path) -> None:
     html = build_report(run).read_text()
     assert "fit residual, model full" in html
     assert "Touch-ups not available" in html
+
+
+def test_report_with_a_known_distance_says_the_scale_was_identified(tmp_path: Path) -> None:
+    run = make_demo_run(tmp_path / "run", seed=6, with_recording=False, known_distance=True)
+    html = build_report(run).read_text()
+    assert "length scale was identified" in html
+    assert "NOT identifiable" not in html
+    assert "not reachable: no known distance" not in html
