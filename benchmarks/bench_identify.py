@@ -19,6 +19,10 @@ volume). Prints:
    covariance-predicted error next to the measured one (their ratio);
 3. the no-modelling-loss check: exact touch-ups, every complete model.
 
+With ``--run RUN_DIR --recording REC.mcap`` it instead judges a finished
+``vtcal run`` of a simulated recording against its truth file (end to end:
+detection, touch-up extraction, outliers, identification), every model.
+
 pybotics is a test-only peer (its metadata pins numpy<2 although it runs on
 numpy 2): ``pip install --no-deps pybotics attrs``. Without it its row says
 unavailable.
@@ -140,11 +144,55 @@ def fmt(acc) -> str:
     )
 
 
+def evaluate_run(run_dir: Path, recording: Path) -> None:
+    """Accuracy of a finished ``vtcal run`` against the simulator's truth, every model."""
+    import json
+
+    import pandas as pd
+
+    from pipeline.known_distances import parse_distances
+
+    t = json.loads(Path(str(recording) + ".truth.json").read_text())
+    base, fl = t["base_link"], t["flange_link"]
+    true = load_chain(t["true_urdf"], base, fl)
+    pin_true = np.array(t["p_vt_flange"])
+    nominal = load_chain(t["nominal_urdf"], base, fl)
+    inl = pd.read_parquet(run_dir / "inliers.parquet")
+    q = inl[inl["inlier"]][true.joint_names].to_numpy()
+    qw = workspace_poses(q, 500, np.random.default_rng(0))
+    print(
+        f"== run {run_dir} ({int(inl['inlier'].sum())} inlier touch-ups of {len(inl)}) "
+        "vs truth, mm: shape RMS / max, abs RMS / max"
+    )
+    print(f"nominal    {fmt(pin_accuracy(nominal, pin_true, true, pin_true, qw))}")
+    urdf = (run_dir / "calibrated.urdf").read_text()
+    cal = load_chain(urdf, base, fl)
+    pin = load_chain(urdf, base, "virtual_pin").joints[-1].T_parent_joint[:3, 3]
+    print(f"shipped    {fmt(pin_accuracy(cal, pin, true, pin_true, qw))}")
+    dist = parse_distances(t["metadata"].get("known_distances", ""))
+    res = ident.identify(
+        inl, t["nominal_urdf"], base, fl, ident.IdentifyConfig(model="all", distances=dist)
+    )
+    assert isinstance(res, dict)
+    for name, r in res.items():
+        a = pin_accuracy(r.chain, r.p_flange_pin, true, pin_true, qw)
+        pred = r.summary["predicted_shape_rms_mm"]
+        print(
+            f"{name:9s}  {fmt(a)}   predicted shape RMS {pred:.4f}  "
+            f"measured/predicted {a['shape_rms_m'] * 1e3 / pred:.2f}"
+        )
+
+
 def main() -> None:
     ap = argparse.ArgumentParser()
     ap.add_argument("--seeds", type=int, default=5)
     ap.add_argument("--robot", default="lrmate", choices=sorted(CENTRES))
+    ap.add_argument("--run", type=Path, help="evaluate a finished vtcal run folder instead")
+    ap.add_argument("--recording", type=Path, help="the simulated recording of --run")
     args = ap.parse_args()
+    if args.run is not None:
+        evaluate_run(args.run, args.recording)
+        return
     robot = args.robot
 
     # 1. time, 36 touch-ups, full model, next to pybotics
