@@ -46,6 +46,11 @@ import cv2
 import numpy as np
 from scipy.special import ndtr
 
+try:  # the compiled fine stage (same steps, loops compiled by numba)
+    from pipeline.stages import _detect_jit as _jit
+except ImportError:  # pragma: no cover - numba missing: NumPy path
+    _jit = None  # type: ignore[assignment]
+
 POLARITIES = ("dark_on_light", "light_on_dark")
 
 
@@ -75,6 +80,9 @@ class DetectConfig:
     ambiguity_ratio : float
         A competing blob at least this fraction of the chosen one's area (and
         not clearly excluded by the expected position) flags ``ambiguous``.
+    compiled : bool
+        Run the fine stage compiled (:mod:`pipeline.stages._detect_jit`, numba)
+        when numba is installed; False: the NumPy reference path.
     """
 
     polarity: str | None = None
@@ -86,6 +94,7 @@ class DetectConfig:
     min_completeness: float = 0.9
     curvature_correction: bool = True
     ambiguity_ratio: float = 0.5
+    compiled: bool = True
 
     def to_dict(self) -> dict[str, Any]:
         return asdict(self)
@@ -568,6 +577,10 @@ def detect_target(
     core_b = core.astype(bool) if core.any() else inside.astype(bool)
     if not core_b.any() or int(outer.sum()) < 6:
         return _empty("fit_failed", n_blobs)
+    if cfg.compiled and _jit is not None:
+        return _finish_compiled(
+            roi, core_b, outer, u0, v0, contour, k, cfg, n_blobs, border, ambiguity, ambiguous
+        )
     ua = np.arange(u0, u1, dtype=np.float32)
     va = np.arange(v0, v1, dtype=np.float32)
     c_in = _plane_fit(roi, core_b, ua, va)
@@ -624,7 +637,88 @@ def detect_target(
     if p1 is None:
         return _empty("fit_failed", n_blobs)
     res, _, _ = ellipse_foot(pts, p1, newton=2)
-    u, v, a, b, th = p1
+    return _result(
+        p1,
+        float(np.sqrt(np.mean(res**2))),
+        completeness,
+        sigma,
+        int(pts.shape[0]),
+        contrast,
+        cfg,
+        n_blobs,
+        border,
+        ambiguity,
+        ambiguous,
+    )
+
+
+def _finish_compiled(
+    roi: np.ndarray,
+    core: np.ndarray,
+    outer: np.ndarray,
+    u0: int,
+    v0: int,
+    contour: np.ndarray,
+    k: int,
+    cfg: DetectConfig,
+    n_blobs: int,
+    border: bool,
+    ambiguity: float,
+    ambiguous: bool,
+) -> dict[str, Any]:
+    """Steps 2-5 through :func:`pipeline.stages._detect_jit.fine_stage`."""
+    assert _jit is not None
+    r = _jit.fine_stage(
+        roi.astype(np.float64),
+        core,
+        outer,
+        float(u0),
+        float(v0),
+        np.ascontiguousarray(contour[:, 0]),
+        np.ascontiguousarray(contour[:, 1]),
+        0.75 * k + 1.0,
+        bool(cfg.curvature_correction),
+        float(cfg.max_edge_sigma_px),
+        0.15,
+    )
+    lvl_in, lvl_out = float(r[10]), float(r[11])
+    contrast = abs(lvl_out - lvl_in)
+    if contrast / max(abs(lvl_out), abs(lvl_in), 1e-9) < cfg.min_contrast_frac:
+        out = _empty("low_contrast", n_blobs)
+        out["contrast"] = contrast
+        return out
+    if r[0] != 0:
+        return _empty("fit_failed", n_blobs)
+    return _result(
+        (r[1], r[2], r[3], r[4], r[5]),
+        float(r[6]),
+        float(r[7]),
+        float(r[8]),
+        int(r[9]),
+        contrast,
+        cfg,
+        n_blobs,
+        border,
+        ambiguity,
+        ambiguous,
+    )
+
+
+def _result(
+    p: tuple[float, float, float, float, float],
+    res_rms: float,
+    completeness: float,
+    sigma: float,
+    n_pts: int,
+    contrast: float,
+    cfg: DetectConfig,
+    n_blobs: int,
+    border: bool,
+    ambiguity: float,
+    ambiguous: bool,
+) -> dict[str, Any]:
+    """The result dict of :func:`detect_target` with the quality verdict."""
+    u, v, a, b, th = p
     s = 2.0 * a
     reason = ""
     quality = True
@@ -644,15 +738,15 @@ def detect_target(
         "s_minor": float(2.0 * b),
         "angle": float(th),
         "s_inv": float(1.0 / s),
-        "residual_px": float(np.sqrt(np.mean(res**2))),
-        "completeness": completeness,
+        "residual_px": float(res_rms),
+        "completeness": float(completeness),
         "border_contact": border,
         "n_blobs": n_blobs,
         "ambiguity": ambiguity,
         "ambiguous": ambiguous,
-        "contrast": contrast,
-        "edge_sigma_px": sigma,
-        "n_edge_points": int(pts.shape[0]),
+        "contrast": float(contrast),
+        "edge_sigma_px": float(sigma),
+        "n_edge_points": int(n_pts),
         "quality_ok": quality,
         "reason": reason,
     }
