@@ -68,6 +68,9 @@ BLUE = (31, 111, 235)
 RED = (209, 36, 47)
 GREEN = (45, 164, 78)
 ORANGE = (227, 98, 9)
+#: vtcal puts pixel centres at integers, Rerun's image space at half-integers
+#: (the image spans [0, W] x [0, H]): 2-D overlays are shifted by half a pixel
+PX = 0.5
 
 
 def camera_guess(
@@ -236,6 +239,8 @@ def log_run(rec: rr.RecordingStream, data: RunData) -> list[str]:
                 T_flange[:, :3, 3] -= np.einsum("nij,j->ni", T_pin[:, :3, :3], p_pin)
         if cam is not None:
             T_fc, f, (w, h) = cam
+            if images:  # the real image size when an image is at hand
+                h, w = next(iter(images.values())).gray.shape[:2]
             rec.log(
                 "world/robot/calibrated/flange/camera",
                 rr.Transform3D(translation=T_fc[:3, 3], mat3x3=T_fc[:3, :3]),
@@ -247,6 +252,8 @@ def log_run(rec: rr.RecordingStream, data: RunData) -> list[str]:
                     focal_length=f,
                     width=w,
                     height=h,
+                    # the pin is on the optical axis and shows at the designated pixel
+                    principal_point=[d0[0] + PX, d0[1] + PX] if d0 is not None else None,
                     camera_xyz=rr.ViewCoordinates.RDF,
                     image_plane_distance=float(np.linalg.norm(p_pin)) if p_pin is not None else 0.1,
                 ),
@@ -311,7 +318,7 @@ def log_run(rec: rr.RecordingStream, data: RunData) -> list[str]:
                     rec.log(
                         f"{img_path}/ellipse",
                         rr.LineStrips2D(
-                            [ellipse_polyline(*ell)], colors=[GREEN], labels=["fitted ellipse"]
+                            [ellipse_polyline(*ell) + PX], colors=[GREEN], labels=["fitted ellipse"]
                         ),
                     )
                 else:
@@ -319,7 +326,12 @@ def log_run(rec: rr.RecordingStream, data: RunData) -> list[str]:
                 if d0 is not None:
                     rec.log(
                         f"{img_path}/designated",
-                        rr.Points2D([d0[:2]], radii=2.0, colors=[RED], labels=["designated"]),
+                        rr.Points2D(
+                            [np.asarray(d0[:2]) + PX],
+                            radii=2.0,
+                            colors=[RED],
+                            labels=["designated"],
+                        ),
                     )
     else:
         notes.append("robot poses: not available (no joint columns or no URDF)")
