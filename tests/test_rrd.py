@@ -70,7 +70,14 @@ def test_rrd_entities(demo_run: Path) -> None:
     }
     for ent, comp in expected.items():
         assert ent in ents and comp in ents[ent], (ent, comp, sorted(ents))
-    assert "EncodedImage:blob" in ents["/world/robot/calibrated/flange/camera/image"]
+    cam = "/world/robot/calibrated/flange/camera/image"
+    assert "EncodedImage:blob" in ents[cam]
+    # 2-D overlays in Rerun's image space (pixel centres at half-integers)
+    d = column_values(ents[f"{cam}/designated"]["Points2D:positions"], "Points2D:positions")[0][0]
+    meta = load_run(demo_run).meta
+    assert d == pytest.approx(
+        [float(meta["designated_u"]) + 0.5, float(meta["designated_v"]) + 0.5]
+    )
     conv = [e for e in ents if e.startswith("/convergence/du/")]
     assert len(conv) == 12  # one series per touch-up
     # rejected touch-ups carry their reason
