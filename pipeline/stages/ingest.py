@@ -92,7 +92,22 @@ class IngestConfig:
 
 @dataclass
 class RecordingInfo:
-    """What ingest learnt about a recording (besides the per-image tables)."""
+    """What ingest learnt about a recording (besides the per-image tables).
+
+    Attributes
+    ----------
+    path : the recording
+    urdf : URDF text from the description topic (the nominal robot)
+    metadata : the ``touchup`` keys after command-line overrides, inferred keys filled
+    inferred : key -> how it was inferred (for the report)
+    joint_names : actuated joints of the base-flange chain (the frames' joint columns)
+    base_link, flange_link : chain ends
+    image_topic : topic the images were read from
+    n_images, n_joint_states : messages read
+    truncated : the file ended early (recorder killed)
+    warnings : one line each (truncation, joint-state gaps)
+    image_width, image_height : size of the images (px)
+    """
 
     path: str
     urdf: str
@@ -108,8 +123,6 @@ class RecordingInfo:
     warnings: list[str]
     image_width: int = 0
     image_height: int = 0
-    joint_stamps_ns: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64), repr=False)
-    joint_positions: np.ndarray = field(default_factory=lambda: np.zeros((0, 0)), repr=False)
 
 
 def _prescan(path: str) -> tuple[dict[str, tuple[str, str]], dict[str, dict[str, str]]]:
@@ -415,8 +428,6 @@ def ingest_recording(
         warnings=warnings,
         image_width=width,
         image_height=height,
-        joint_stamps_ns=J_t,
-        joint_positions=Q,
     )
     return frames, det_df, info
 
