@@ -41,7 +41,16 @@ PARQUETS = (
 #: the batch of the shared fixture: one good recording among two corrupt ones
 BATCH = ("good_a", "junk", "trunc")
 #: summary columns that depend on the run (time, process, whether it ran or was cached)
-VOLATILE = ("seconds", "peak_rss_mb", "worker", "run_dir", "stages", "stages_ran", "stages_cached")
+VOLATILE = (
+    "seconds",
+    "cpu_seconds",
+    "peak_rss_mb",
+    "worker",
+    "run_dir",
+    "stages",
+    "stages_ran",
+    "stages_cached",
+)
 
 
 @pytest.fixture(scope="module")

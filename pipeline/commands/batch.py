@@ -95,7 +95,9 @@ def command(
     others. At the end OUT/summary.parquet holds one row per recording and a
     table is printed. Exit status 0 when every recording finished, 1 otherwise.
     """
-    from pipeline.batch import items_from_paths, load_manifest, run_batch
+    from pipeline.batch import items_from_paths, load_manifest, prestart, run_batch
+
+    prestart(executor)  # the workers' fork server imports the pipeline meanwhile
     from pipeline.orchestrator import RunConfig
 
     if manifest is not None and recordings:

@@ -1,0 +1,184 @@
+"""Benchmark: batch reprocessing of 8 simulated recordings on 1 and 2 workers, then cached.
+
+Simulates 8 recordings of the small scenario (``datasets/scenarios/small.toml``,
+seeds 1..8) into a temporary folder (two simulations at a time), writes a
+manifest for them, then times, in this one run:
+
+1. the batch on 1 worker (process pool) into a fresh folder,
+2. the batch on 2 workers into another fresh folder: speed-up = (1) / (2),
+   target >= 1.7,
+   (each timed ``--repeat`` times, alternating 1 and 2 workers so both see the
+   same background load; the best of each is used),
+3. the same batch again with nothing changed (every stage cached) in this
+   process: ratio (3) / (2), target < 0.10,
+4. the same cached batch as a user runs it, a cold ``vtcal batch --manifest``
+   process (interpreter start, imports, fork server, summary): ratio (4) / (2),
+5. peak RSS (``getrusage`` ``ru_maxrss``) of every worker process after its first
+   and after its last recording: memory per worker is bounded when it does not
+   grow with the recordings a worker has processed.
+
+The process pool's fork server (one interpreter that imports the pipeline once,
+then forks every worker) is started before the timed runs and its start-up
+time printed apart: (1) and (2) then compare the work, not the imports; (4)
+includes every start-up cost.
+
+The identify stage uses the ``offsets`` error model: 3 targets x 2 poses are too
+few touch-ups for the full model (the batch would report them as
+calibration_failed, which is a valid batch but not the workload meant here).
+Wall times depend on what else runs on the machine: the load average is printed
+before and after.
+
+    python benchmarks/bench_batch.py [--until identify] [--workdir DIR] [--seeds 8]
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import subprocess
+import sys
+import tempfile
+import time
+from concurrent.futures import ThreadPoolExecutor
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+SCENARIO = ROOT / "datasets" / "scenarios" / "small.toml"
+
+
+def simulate(workdir: Path, seeds: int) -> list[Path]:
+    """Simulate the recordings that are not there yet, two at a time."""
+    paths = [workdir / f"small_s{s}.mcap" for s in range(1, seeds + 1)]
+    todo = [(s, p) for s, p in enumerate(paths, start=1) if not p.exists()]
+
+    def one(sp: tuple[int, Path]) -> None:
+        s, p = sp
+        cmd = ["vtcal", "simulate", "--scenario", str(SCENARIO), "--seed", str(s)]
+        subprocess.run([*cmd, "--out", str(p), "--quiet"], check=True)
+
+    t0 = time.perf_counter()
+    with ThreadPoolExecutor(2) as pool:
+        list(pool.map(one, todo))
+    if todo:
+        print(f"simulated {len(todo)} recording(s) in {time.perf_counter() - t0:.1f} s")
+    return paths
+
+
+def write_manifest(workdir: Path, paths: list[Path]) -> Path:
+    m = workdir / "bench.toml"
+    lines = ['name = "bench_batch"', 'description = "small scenario, seeds 1..N"', ""]
+    for p in paths:
+        lines += ["[[recordings]]", f'path = "{p.name}"', 'robot = "lrmate"', ""]
+    m.write_text("\n".join(lines))
+    return m
+
+
+def timed_batch(items, out: Path, workers: int, until: str, cfg) -> tuple[float, object]:
+    from pipeline.batch import run_batch
+
+    t0 = time.perf_counter()
+    res = run_batch(items, out, cfg, kind="processes", workers=workers, until=until)
+    return time.perf_counter() - t0, res
+
+
+def rss_by_worker(outcomes) -> dict[str, list[float]]:
+    """worker -> its peak RSS after each of its recordings, in the order it ran them.
+
+    Peak RSS only grows within a process, so sorting gives the order.
+    """
+    per: dict[str, list[float]] = {}
+    for o in outcomes:
+        if o.peak_rss_mb is not None:
+            per.setdefault(o.worker, []).append(o.peak_rss_mb)
+    return {w: sorted(v) for w, v in per.items()}
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--until", default="identify", help="last stage (default identify)")
+    ap.add_argument("--workdir", type=Path, default=None, help="keep recordings here")
+    ap.add_argument("--seeds", type=int, default=8, help="number of recordings (8)")
+    ap.add_argument("--repeat", type=int, default=2, help="timed 1/2-worker pairs (2)")
+    args = ap.parse_args()
+
+    from pipeline.batch import load_manifest, open_executor
+    from pipeline.orchestrator import RunConfig
+
+    tmp = tempfile.TemporaryDirectory(prefix="bench_batch_")
+    workdir = args.workdir or Path(tmp.name)
+    workdir.mkdir(parents=True, exist_ok=True)
+    paths = simulate(workdir, args.seeds)
+    size_mb = sum(p.stat().st_size for p in paths) / 1e6
+    manifest = write_manifest(workdir, paths)
+    items = list(load_manifest(manifest).items)
+    cfg = RunConfig(stage_options={"identify": {"model": "offsets"}})
+    print(
+        f"{len(items)} recordings ({size_mb:.0f} MB), until {args.until}, "
+        f"cores {os.cpu_count()}, load average before {os.getloadavg()[0]:.2f}"
+    )
+
+    t0 = time.perf_counter()
+    with open_executor("processes", 2) as pool:  # start the fork server, let it preload
+        [f.result() for f in [pool.submit(os.getpid) for _ in range(2)]]
+    print(f"fork server start (imports the pipeline once): {time.perf_counter() - t0:.2f} s")
+
+    stamp = time.strftime("%H%M%S")
+    t1s: list[float] = []
+    t2s: list[float] = []
+    for k in range(args.repeat):  # alternate, so both see the same background load
+        out1 = workdir / f"out_{stamp}_{k}_w1"
+        out2 = workdir / f"out_{stamp}_{k}_w2"
+        t1, r1 = timed_batch(items, out1, 1, args.until, cfg)
+        t2, r2 = timed_batch(items, out2, 2, args.until, cfg)
+        t1s.append(t1)
+        t2s.append(t2)
+        print(f"  repeat {k + 1}: 1 worker {t1:.2f} s, 2 workers {t2:.2f} s, x{t1 / t2:.2f}")
+    t1, t2 = min(t1s), min(t2s)
+    t3, r3 = timed_batch(items, out2, 2, args.until, cfg)
+    cli = ["vtcal", "batch", "--manifest", str(manifest), "--out", str(out2)]
+    cli += ["--until", args.until, "--workers", "2", "--model", "offsets", "-q"]
+    t0 = time.perf_counter()
+    proc = subprocess.run(cli, capture_output=True, text=True)
+    t4 = time.perf_counter() - t0
+
+    for name, r in (("1 worker", r1), ("2 workers", r2), ("cached", r3)):
+        ok = sum(o.status == "ok" for o in r.outcomes)
+        ran = sum(st == "ran" for o in r.outcomes for _, st, _ in o.stages)
+        cached = sum(st == "cached" for o in r.outcomes for _, st, _ in o.stages)
+        secs = [o.seconds for o in r.outcomes]
+        print(
+            f"  {name:<9}: {ok}/{len(r.outcomes)} ok, stages ran {ran}, cached {cached}; "
+            f"task wall times sum {sum(secs):.2f} s, max {max(secs):.2f} s, "
+            f"CPU {sum(o.cpu_seconds for o in r.outcomes):.2f} s"
+        )
+        for o in r.failed:
+            print(f"    {o.name}: {o.error_kind}: {o.error}")
+    if proc.returncode != 0:
+        print(f"  cli exit {proc.returncode}: {proc.stderr.strip()[-300:]}")
+
+    per_rec = sorted(o.seconds for o in r1.outcomes)
+    print(f"per recording on 1 worker: median {per_rec[len(per_rec) // 2]:.2f} s")
+    print(f"batch, 1 worker (best of {args.repeat}):  {t1:7.2f} s")
+    print(f"batch, 2 workers (best of {args.repeat}): {t2:7.2f} s")
+    print(f"speed-up 2 workers vs 1:         {t1 / t2:7.2f} x   (target >= 1.7)")
+    print(f"second run, nothing changed:     {t3:7.2f} s")
+    print(f"  ratio to the first (2 workers):  {t3 / t2:7.3f}     (target < 0.10)")
+    print(f"second run as a cold CLI process: {t4:6.2f} s")
+    print(f"  ratio to the first (2 workers):  {t4 / t2:7.3f}     (target < 0.10)")
+    print("peak RSS per worker (MB, getrusage ru_maxrss): after first / after last recording")
+    for label, r in (("1 worker", r1), ("2 workers", r2)):
+        for w, seq in rss_by_worker(r.outcomes).items():
+            print(
+                f"  {label:<9} {w:<16} {seq[0]:7.1f} / {seq[-1]:7.1f}  ({len(seq)} recordings, "
+                f"growth x{seq[-1] / seq[0]:.3f}; after each: {' '.join(f'{x:.0f}' for x in seq)})"
+            )
+    import resource
+
+    parent = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
+    print(f"  parent process (this benchmark): {parent:.1f} MB")
+    print(f"load average after: {os.getloadavg()[0]:.2f}")
+    tmp.cleanup()
+
+
+if __name__ == "__main__":
+    sys.exit(main())
