@@ -1,0 +1,62 @@
+"""``vtcal compare RUN_DIR ...``: one table across runs and error models, and drift flags."""
+
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+import click
+
+
+@click.command(
+    "compare",
+    epilog="""\b
+Examples:
+  vtcal compare runs/2024-05 runs/2024-11            # writes compare.parquet + compare.html
+  vtcal compare runs/* --out audit.parquet --html audit.html --sigma 4
+  vtcal compare runs/a runs/b --fail-on-drift        # exit status 1 when a parameter moved
+""",
+)
+@click.argument("run_dirs", nargs=-1, required=True, type=click.Path(path_type=Path))
+@click.option("--out", "out", type=click.Path(dir_okay=False, path_type=Path),
+              default=Path("compare.parquet"), show_default=True,
+              help="The comparison table (Parquet, schemas/compare.json).")  # fmt: skip
+@click.option("--html", "html_path", type=click.Path(dir_okay=False, path_type=Path),
+              default=None, help="The HTML page (default: --out with .html).")  # fmt: skip
+@click.option("--sigma", "k_sigma", type=float, default=3.0, show_default=True,
+              help="A parameter moved when |delta| > SIGMA * sqrt(std1^2 + std2^2).")  # fmt: skip
+@click.option("--fail-on-drift", is_flag=True, help="Exit with status 1 when a parameter moved.")
+def command(
+    run_dirs: tuple[Path, ...], out: Path, html_path: Path | None, k_sigma: float,
+    fail_on_drift: bool,
+) -> None:  # fmt: skip
+    """Compare calibration runs (folders of `vtcal run` or `vtcal identify`).
+
+    One table across datasets and error models: held-out error, parameter values
+    and standard errors, condition, rejected touch-ups. Runs of the same robot
+    (same nominal URDF) are compared with the first one given; a parameter that
+    moved by more than its uncertainty is flagged.
+    """
+    from pipeline.artefacts import atomic_write_bytes, write_artefact
+    from pipeline.compare import compare_runs, render_html
+    from pipeline.errors import BadInput
+
+    if not k_sigma > 0:
+        raise BadInput(f"--sigma {k_sigma}: must be > 0")
+    res = compare_runs(list(run_dirs), k_sigma=k_sigma)
+    write_artefact(out, res.table, "compare", stage="compare", config={"k_sigma": k_sigma},
+                   inputs={}, extra_meta={"runs": ",".join(res.summary["runs"])})  # fmt: skip
+    page = html_path or out.with_suffix(".html")
+    atomic_write_bytes(page, render_html(res).encode())
+    for r in res.runs.itertuples():
+        click.echo(
+            f"{r.run:24s} {r.model:8s} held-out {r.heldout_rms_mm:.4f} mm  training "
+            f"{r.train_rms_mm:.4f} mm  cond {r.cond:.3g}  rejected {r.n_rejected}"
+            + ("  (shipped)" if r.shipped else "")
+        )
+    click.echo(res.summary["verdict"])
+    for f in res.summary["flags"]:
+        click.echo("  " + f)
+    click.echo(f"table: {out}   page: {page}")
+    if fail_on_drift and res.summary["flags"]:
+        sys.exit(1)
