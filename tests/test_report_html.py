@@ -148,3 +148,14 @@ def test_report_with_a_known_distance_says_the_scale_was_identified(tmp_path: Pa
     assert "length scale was identified" in html
     assert "NOT identifiable" not in html
     assert "not reachable: no known distance" not in html
+
+
+def test_thumbnails_stay_within_their_byte_budget(
+    demo_run: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    import pipeline.report.html as report_html
+
+    monkeypatch.setattr(report_html, "THUMB_BUDGET", 1)
+    html = build_report(demo_run, tmp_path / "r.html").read_text()
+    assert "data:image/png" not in html
+    assert "left out to keep the file small" in html

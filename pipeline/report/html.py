@@ -58,6 +58,8 @@ TEMPLATE_DIR = Path(__file__).resolve().parent.parent.parent / "reports"
 TEMPLATE = "report.html.j2"
 #: at most this many thumbnails / convergence traces (keeps the file small)
 MAX_THUMBS = 40
+#: at most this many bytes of thumbnails in the page (keeps it well under 5 MB)
+THUMB_BUDGET = 2_500_000
 MAX_TRACES = 60
 NA = "not available"
 
@@ -423,13 +425,19 @@ def _touchup_section(data: RunData, images: dict[int, np.ndarray] | None) -> dic
     frames = touchup_frames(data)
     d0 = designated(data)
     rejected = []
+    budget = THUMB_BUDGET
+    n_over = 0
     for _, r in tu[~inl].iterrows():
         tid = int(r["touchup_id"])
         fr = frames.get(tid, [])
         thumb = None
         if images is not None and fr and fr[-1] in images:
             ell = detection_ellipse(data, fr[-1])
-            thumb = png_data_uri(annotate(images[fr[-1]], ell, d0[:2] if d0 else None))
+            uri = png_data_uri(annotate(images[fr[-1]], ell, d0[:2] if d0 else None))
+            if len(uri) <= budget:
+                thumb, budget = uri, budget - len(uri)
+            else:
+                n_over += 1
         rejected.append(
             {
                 "id": tid,
@@ -449,9 +457,9 @@ def _touchup_section(data: RunData, images: dict[int, np.ndarray] | None) -> dic
         "n_targets": int(tu["target_id"].nunique()) if "target_id" in tu else None,
         "rejected": rejected,
         "images_note": (
-            ""
-            if images is not None
-            else "Thumbnails are not shown: the recording named in recording.json is not reachable."
+            "Thumbnails are not shown: the recording named in recording.json is not reachable."
+            if images is None
+            else (f"{n_over} thumbnail(s) left out to keep the file small." if n_over else "")
         ),
     }
 
