@@ -207,3 +207,16 @@ def test_conformance_sample(conformance_sample, conformance_truth):
     # the occluded (lost) capture is not found; clean captures match the true circle centre
     lost = [im["index"] for im in truth["images"] if im["occluded"]]
     assert not dets.loc[lost, "found"].any()
+
+
+def test_cli_run_bad_input_exit_code(tmp_path, capsys):
+    """`vtcal run` on a recording whose joints do not match its URDF: one line, exit 2."""
+    from pipeline.cli import main
+
+    p = tmp_path / "bad.mcap"
+    make(p, joint_names=["shoulder", "elbow"])
+    with pytest.raises(SystemExit) as exc:
+        main(["run", str(p), "--out", str(tmp_path / "out")])
+    assert exc.value.code == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "shoulder" in err[0] and str(p) in err[0]
