@@ -6,7 +6,6 @@ import json
 from pathlib import Path
 
 import numpy as np
-import pandas as pd
 import pytest
 
 from pipeline.artefacts import read_artefact
@@ -106,4 +105,3 @@ def test_not_a_run_folder_is_one_line_bad_input(tmp_path: Path) -> None:
     with pytest.raises(BadInput) as exc:
         compare_runs([tmp_path / "empty"])
     assert "empty" in str(exc.value) and "\n" not in str(exc.value)
-    assert isinstance(pd.DataFrame(), pd.DataFrame)
