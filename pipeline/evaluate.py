@@ -231,6 +231,7 @@ def synthetic_touchups(
     *,
     noise_q_rad: float = 0.0,
     noise_pin_m: float = 0.0,
+    noise_flange_m: ArrayLike | None = None,
     spread_rad: float = 0.35,
     q_centre: ArrayLike | None = None,
     centre_spread_rad: float = 0.6,
@@ -241,7 +242,9 @@ def synthetic_touchups(
     each of its touch-ups starts from that configuration with every joint moved
     by up to ``spread_rad`` (orientation variety) and is pulled back onto the
     target by minimum-norm Gauss-Newton on the pin position. The pin then
-    misses the target by an isotropic normal ``noise_pin_m`` (per axis) and
+    misses the target by an isotropic normal ``noise_pin_m`` (per axis, base frame)
+    plus, if given, a normal miss with per-axis deviations ``noise_flange_m`` (3,)
+    in the flange frame (a touch-up is less precise along the camera view), and
     the recorded joints carry normal ``noise_q_rad`` encoder noise; the
     corrections ``d`` are zero.
 
@@ -268,6 +271,14 @@ def synthetic_touchups(
             miss = rng.normal(0.0, noise_pin_m, (m, 3)) if noise_pin_m > 0 else np.zeros((m, 3))
             seeds = qc + rng.uniform(-spread_rad, spread_rad, (m, n))
             q, ok = solve_pin_ik(chain_true, pf, targets[k] + miss, seeds)
+            if noise_flange_m is not None:
+                # a miss fixed in the flange frame (e.g. depth along the camera view)
+                e = rng.normal(0.0, 1.0, (m, 3)) * np.asarray(noise_flange_m, dtype=float)
+                Rf = fk(chain_true, q)[:, :3, :3]
+                q, ok2 = solve_pin_ik(
+                    chain_true, pf, targets[k] + miss + np.einsum("nij,nj->ni", Rf, e), q
+                )
+                ok &= ok2
             got.extend(q[ok][: per_target - len(got)])
             if len(got) >= per_target:
                 break

@@ -83,6 +83,9 @@ class IdentifyConfig:
     distance_weight : weight of a known-distance residual relative to a touch-up row
     rank_tol : relative pivot threshold below which a parameter is structurally unidentifiable
     data_tol : relative pivot threshold below which these touch-ups do not excite a parameter
+    noise_model : ``flange`` (estimate the pin error's 3x3 covariance in the flange frame from
+        the residuals and refit whitened: a touch-up is far less precise along the view than
+        across it) or ``isotropic``
     max_nfev : iteration budget of the solver
     n_workspace : poses over which the predicted error is evaluated
     seed : seed of those poses
@@ -95,6 +98,8 @@ class IdentifyConfig:
     distance_weight: float = 100.0
     rank_tol: float = 1e-8
     data_tol: float = 1e-6
+    noise_model: str = "flange"
+    reweight_passes: int = 1
     max_nfev: int = 200
     n_workspace: int = 200
     seed: int = 0
@@ -293,6 +298,8 @@ class _Problem:
         self.gauge = gauge  # (P,) row of the scale-gauge constraint gauge @ x = 0, or None
         self.m = 3 * self.N + len(data.dist) + (gauge is not None)
         self.free = np.arange(self.P)
+        # (3, 3) whitening of the pin residual in the flange frame, or None (isotropic)
+        self.W: F64 | None = None
 
     # z layout helpers
     def split(self, z: F64) -> tuple[F64, F64, F64]:
@@ -310,6 +317,10 @@ class _Problem:
         pts = pin + D.d
         p, R, Jx = self.model.pin_and_jacobian(x, D.q, pts, jac=jac)
         e = (p - targets[D.tk]) * D.sw[:, None]
+        M = None
+        if self.W is not None:  # whitened: W R_i^T (p_i - t_k)
+            M = np.einsum("ab,ncb->nac", self.W, R)
+            e = np.einsum("nab,nb->na", M, e)
         r = np.empty(self.m)
         r[: 3 * self.N] = e.ravel()
         for j, (a, b, dm) in enumerate(D.dist):
@@ -322,11 +333,18 @@ class _Problem:
         ncol = self.P + 3 + 3 * D.K
         J = np.zeros((self.m, ncol))
         sw = D.sw[:, None, None]
-        J[: 3 * self.N, : self.P] = (Jx * sw).reshape(3 * self.N, self.P)
-        J[: 3 * self.N, self.P : self.P + 3] = (R * sw).reshape(3 * self.N, 3)
         rows = np.arange(3 * self.N).reshape(self.N, 3)
-        for c in range(3):
-            J[rows[:, c], self.P + 3 + 3 * D.tk + c] = -D.sw
+        if M is None:
+            J[: 3 * self.N, : self.P] = (Jx * sw).reshape(3 * self.N, self.P)
+            J[: 3 * self.N, self.P : self.P + 3] = (R * sw).reshape(3 * self.N, 3)
+            for c in range(3):
+                J[rows[:, c], self.P + 3 + 3 * D.tk + c] = -D.sw
+        else:
+            Msw = M * sw
+            J[: 3 * self.N, : self.P] = (Msw @ Jx).reshape(3 * self.N, self.P)
+            J[: 3 * self.N, self.P : self.P + 3] = (Msw @ R).reshape(3 * self.N, 3)
+            for c in range(3):
+                J[rows, (self.P + 3 + 3 * D.tk + c)[:, None]] = -Msw[:, :, c]
         for j, (a, b, _) in enumerate(D.dist):
             u = targets[a] - targets[b]
             u = u / max(np.linalg.norm(u), 1e-12)
@@ -475,6 +493,41 @@ def _held_reasons(
         deps = ", ".join(names[int(kept[t])] for t in top if abs(c[t]) > 1e-6)
         out[j] = f"redundant with identified parameters ({deps})" if deps else "not identifiable"
     return out
+
+
+def _flange_whitening(prob: _Problem, z: F64, n_free: int) -> tuple[F64 | None, F64 | None]:
+    """Whitening matrix of the pin residual in the flange frame, from the current fit.
+
+    ``e_i = R_i^T (p_i - t_k)`` over the used rows; ``S = cov(e) m / (m - p)``
+    (weighted, centred: a constant flange-frame offset is the pin's). The returned
+    ``W = s S^(-1/2)`` (eigenvalues floored at 1e-4 of the largest) keeps residuals
+    in metres (``s^2`` is the mean variance). None when the residuals vanish
+    (exact data) or the fit has no redundancy.
+
+    Returns
+    -------
+    W : (3, 3) or None
+    sigma : (3,) standard deviations along the principal flange-frame axes, m
+    """
+    D = prob.data
+    x, pin, tg = prob.split(z)
+    p, R, _ = prob.model.pin_and_jacobian(x, D.q, pin + D.d, jac=False)
+    e = np.einsum("nji,nj->ni", R, p - tg[D.tk])
+    w = D.sw**2
+    mu = (w[:, None] * e).sum(axis=0) / w.sum()
+    c = e - mu
+    dof = 3 * len(e) - (n_free + 3 + 3 * D.K)
+    if dof <= 3:
+        return None, None
+    S = (w[:, None, None] * c[:, :, None] * c[:, None, :]).sum(axis=0) / w.sum()
+    S *= 3 * len(e) / dof
+    lam, V = np.linalg.eigh(S)
+    if lam.max() < (1e-9) ** 2:  # exact data: nothing to weigh
+        return None, None
+    lam = np.maximum(lam, lam.max() * 1e-4)
+    s = np.sqrt(lam.mean())
+    W = s * (V / np.sqrt(lam)) @ V.T
+    return W, np.sqrt(lam)
 
 
 def _partial_loss(name: str, n_robust: int) -> Any:
@@ -683,6 +736,35 @@ def _identify_one(
         gtol=1e-10,
         max_nfev=config.max_nfev,
     )
+    noise_note = "isotropic pin residuals in the base frame"
+    sigma_flange = None
+    if config.noise_model == "flange":
+        # feasible generalised least squares: the touch-up error lives in the flange
+        # (camera) frame, far larger along the view than across it; estimate its 3x3
+        # covariance from the residuals and refit with them whitened.
+        for _ in range(config.reweight_passes):
+            W, sigma_flange = _flange_whitening(prob, sol.x, len(kept))
+            if W is None:
+                break
+            prob.W = W
+            sol = least_squares(
+                prob.fun,
+                sol.x,
+                jac=prob.jac,
+                method="lm" if linear and prob.m >= z0.size else "trf",
+                loss=config.robust_loss if linear else _partial_loss(config.robust_loss, 3 * N),
+                f_scale=config.f_scale,
+                x_scale=xs,
+                xtol=1e-10,
+                ftol=1e-10,
+                gtol=1e-10,
+                max_nfev=config.max_nfev,
+            )
+        if prob.W is not None:
+            noise_note = (
+                "pin residuals whitened by their covariance in the flange frame, estimated from "
+                "the fit (feasible generalised least squares)"
+            )
     x, pin, tg = prob.split(sol.x)
     r, Jfull = prob.full_eval(x, pin, tg)
     assert Jfull is not None
@@ -830,6 +912,10 @@ def _identify_one(
             else f"length scale identified from {len(data.dist)} known distance(s)"
         ),
         "base_note": "the base frame against the targets is held at nominal (never identifiable)",
+        "noise_model": noise_note,
+        "flange_sigma_mm": (
+            [float(v) * 1e3 for v in sigma_flange] if sigma_flange is not None else None
+        ),
         "distances": [
             {
                 "a": data.target_labels[a],
