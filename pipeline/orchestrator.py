@@ -242,7 +242,7 @@ def run_pipeline(
                 progress("ingest", done, total)
 
         frames, detections, info = ingest.ingest_recording(
-            recording, ingest_cfg, detect_cfg, progress=cb
+            recording.resolve(), ingest_cfg, detect_cfg, progress=cb
         )
         joint_meta = {"joint_names": json.dumps(list(info.joint_names))}
         write_artefact(
@@ -408,6 +408,9 @@ def run_pipeline(
     else:
         from pipeline.report.html import build_report
         from pipeline.report.rrd import build_rrd
+
+        # the report shows the stage table: give it this run's, not the previous one
+        write_json(P["run"], {"version": __version__, "stages": records})
 
         t0 = time.perf_counter()
         build_report(out)
