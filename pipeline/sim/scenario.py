@@ -22,11 +22,10 @@ and keys (see ``docs/simulator.md`` for the meaning of each)::
 from __future__ import annotations
 
 import dataclasses
+import tomllib
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
-
-import tomllib
 
 from pipeline.errors import BadInput
 
