@@ -147,3 +147,19 @@ def test_simulated_recording_pin_accuracy(tmp_path):
     rms_raw = np.sqrt(np.mean(np.sum(raw**2, 1)))
     rms_cor = np.sqrt(np.mean(np.sum(cor**2, 1)))
     assert rms_cor < 0.6 * rms_raw and rms_cor < 4e-5
+
+
+def test_designated_values_inferred_without_metadata(conformance_sample, conformance_truth):
+    import dataclasses
+
+    frames, dets, info = ingest_recording(conformance_sample, IngestConfig(), DetectConfig())
+    meta = {k: v for k, v in info.metadata.items() if not k.startswith(("designated", "thresh"))}
+    bare = dataclasses.replace(
+        info, metadata=meta, inferred={"designated_u": "image centre", "designated_v": "-"}
+    )
+    tu = extract_touchups(frames, dets, bare, TouchupConfig())
+    d = tu.attrs["designated"]
+    assert abs(d["s"] - conformance_truth["designated"]["s0"]) < 0.1
+    assert abs(d["u"] - 319.5) < 0.3 and abs(d["v"] - 255.5) < 0.3
+    assert d["threshold_px"] == 0.5 and "designated_size_px" in bare.inferred
+    assert len(tu) == len(conformance_truth["touchups"])
