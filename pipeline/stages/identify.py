@@ -359,11 +359,20 @@ class _Problem:
         return np.concatenate([self.free, np.arange(self.P, self.P + 3 + 3 * self.data.K)])
 
     def fun(self, z: F64) -> F64:
-        return self.full_eval(*self.split(z), jac=False)[0]
+        # the Jacobian comes almost free with the residual and MINPACK asks for it at
+        # the point it just evaluated (accepted steps): compute both, keep the last
+        r, J = self.full_eval(*self.split(z))
+        assert J is not None
+        self._last = (z.tobytes(), J)
+        return r
 
     def jac(self, z: F64) -> F64:
-        J = self.full_eval(*self.split(z))[1]
-        assert J is not None
+        last = getattr(self, "_last", None)
+        if last is not None and last[0] == z.tobytes():
+            J = last[1]
+        else:
+            J = self.full_eval(*self.split(z))[1]
+            assert J is not None
         return J[:, self.columns()]
 
 
