@@ -89,7 +89,9 @@ def _summary_lines(s: dict[str, Any], out: Path) -> list[str]:
     show_default=True,
     help="O1 D-optimal, O3 min singular value, O4 noise amplification, A A-optimal.",
 )
-@click.option("--model", default="full", show_default=True, help="Error model (full, mdh, poe, offsets).")
+@click.option(
+    "--model", default="full", show_default=True, help="Error model (full, mdh, poe, offsets)."
+)
 @click.option(
     "--sigma-mm",
     type=float,

@@ -151,7 +151,9 @@ class Design:
         Se = Mee - Met @ np.linalg.solve(Mtt, Met.T)
         return np.asarray(sigma_m**2 * np.linalg.pinv(0.5 * (Se + Se.T), rcond=1e-12))
 
-    def predicted_error(self, idx: ArrayLike, sigma_m: float, q_eval: ArrayLike) -> dict[str, float]:
+    def predicted_error(
+        self, idx: ArrayLike, sigma_m: float, q_eval: ArrayLike
+    ) -> dict[str, float]:
         """Covariance-predicted pin error after calibrating from pose set ``idx``.
 
         ``dp(q) = [J_x(q) D V, R(q)] de`` with ``de ~ N(0, cov_e)``

@@ -198,7 +198,9 @@ def plan_poses(
     n_ok = len(cs.q)
     if n_ok == 0:
         why = ", ".join(f"{r} {int((cs.table['reason'] == r).sum())}" for r in REASONS)
-        raise BadInput(f"{where}: no usable measuring pose among {len(cs.table)} candidates ({why})")
+        raise BadInput(
+            f"{where}: no usable measuring pose among {len(cs.table)} candidates ({why})"
+        )
     _refuse_unreachable(cs, targets, where)
     if n_ok < config.n_poses:
         raise BadInput(
@@ -214,7 +216,7 @@ def plan_poses(
         raise BadInput(f"--model {config.model!r}: {exc.args[0]}") from None
     t_design = time.perf_counter() - t0
 
-    sel = select_poses(design, config.n_poses, config.criterion)
+    sel = select_poses(design, config.n_poses, config.criterion, seed=config.seed)
     chosen = _ensure_per_target(design, sel.chosen, config, K)
 
     rng = np.random.default_rng(config.seed + 7919)
@@ -254,9 +256,7 @@ def plan_poses(
     for name in chain.joint_names:
         table[name] = rows[name].to_numpy(dtype=float)
 
-    per_target = {
-        str(int(t)): int(np.sum(table["target_id"] == t)) for t in targets.ids.tolist()
-    }
+    per_target = {str(int(t)): int(np.sum(table["target_id"] == t)) for t in targets.ids.tolist()}
     summary: dict[str, Any] = {
         "robot_chain": f"{base_link} -> {flange_link}",
         "joint_names": chain.joint_names,
@@ -288,7 +288,7 @@ def plan_poses(
             "registration; random error only"
         ),
         "selection": {
-            "greedy_value": sel.greedy_value,
+            "start_value": sel.start_value,
             "value": sel.value,
             "exchanges": sel.exchanges,
             "seconds": sel.seconds,

@@ -1,4 +1,4 @@
-"""Choosing N measuring poses among the candidates: greedy start, then exchanges.
+"""Choosing N measuring poses among the candidates: random balanced starts, then exchanges.
 
 Criteria on the reduced information ``S`` of a pose set (:mod:`pipeline.plan.design`,
 eq. 2; its eigenvalues ``lambda_i = s_i^2`` are the squared singular values of the
@@ -12,19 +12,24 @@ projected, scaled identification Jacobian), all to be maximised:
 
 Algorithm (DETMAX, Mitchell 1974, with excursions of one pose):
 
-1. Greedy forward selection by ``O1`` with a tiny ridge ``delta I`` on ``S`` (the
-   D-optimal gain of a candidate is ``log det(I_3 + C Q)`` with ``C = (I + H)^-1``,
-   ``Q = At S^-1 At^T`` from the rank-3 update (3) of the design module, the
-   matrix determinant lemma); the greedy set is the start for every criterion
-   (E- and noise-amplification criteria are flat until ``S`` has full rank).
-2. Exchange: add the candidate that raises the criterion most, then remove the
-   pose of the enlarged set whose removal lowers it least; stop when the removed
-   pose is the one just added (no exchange improves) or after ``max_exchanges``.
-   Additions are rated with the rank-3 update: ``O1`` by the determinant lemma,
-   ``A`` by the Woodbury identity ``tr S'^-1 = tr S^-1 - tr((C^-1 + Q)^-1 At S^-2 At^T)``,
-   ``O3``/``O4`` exactly on a shortlist of the best candidates by the ``A`` and ``O1``
-   gains. Removals are rated exactly: ``M`` is additive over poses, so ``M - M_j``
-   and its Schur complement (2) are formed for every pose ``j`` of the set at once.
+1. Start: ``n_starts`` random sets with the poses spread evenly over the targets
+   (a greedy forward selection is a poor start here: a pose on a target without
+   poses tells nothing, its position absorbs it, so greedy never opens a second
+   target and the exchanges cannot leave that corner).
+2. Exchange by ``O1`` from each start: add the candidate that raises the
+   criterion most, then remove the pose of the enlarged set whose removal lowers
+   it least; stop when the removed pose is the one just added (no exchange
+   improves) or after ``max_exchanges``. The best run is kept; for ``O3``, ``O4``
+   and ``A`` the exchange continues from it by that criterion (they are flat
+   while ``S`` is rank deficient, so the D-optimal set is their start).
+
+Additions are rated with the rank-3 update (3) of :mod:`pipeline.plan.design`:
+``O1`` by the matrix determinant lemma, ``log det(I_3 + C Q)`` with ``C = (I + H)^-1``
+and ``Q = At S^-1 At^T``; ``A`` by the Woodbury identity ``tr S'^-1 = tr S^-1 -
+tr((C^-1 + Q)^-1 At S^-2 At^T)``; ``O3``/``O4`` exactly on a shortlist of the best
+candidates by the ``A`` and ``O1`` gains. Removals are rated exactly: ``M`` is
+additive over poses, so ``M - M_j`` and its Schur complement (2) are formed for
+every pose ``j`` of the set at once.
 """
 
 from __future__ import annotations
@@ -49,7 +54,7 @@ class Selection:
     chosen : (N,) candidate indices (into the design), in selection order
     criterion : criterion name
     value : criterion value of the final set (see module docstring)
-    greedy_value : criterion value after the greedy start
+    start_value : criterion value of the start the kept run began from
     exchanges : accepted exchanges
     seconds : wall time
     history : criterion value after each accepted exchange
@@ -58,7 +63,7 @@ class Selection:
     chosen: np.ndarray
     criterion: str
     value: float
-    greedy_value: float
+    start_value: float
     exchanges: int
     seconds: float
     history: list[float] = field(default_factory=list)
@@ -142,55 +147,36 @@ def _removal_values(design: Design, M: F64, chosen: np.ndarray, criterion: str) 
     return criterion_value(design.schur(Mj), criterion)
 
 
-def select_poses(
-    design: Design,
-    n_poses: int,
-    criterion: str = "O1",
-    *,
-    max_exchanges: int | None = None,
-    exclude: np.ndarray | None = None,
-) -> Selection:
-    """Choose ``n_poses`` candidates maximising ``criterion`` (see module docstring).
-
-    Parameters
-    ----------
-    design : candidate rows (:func:`pipeline.plan.design.build_design`)
-    n_poses : poses to choose (at most the number of candidates)
-    criterion : ``O1``, ``O3``, ``O4`` or ``A``
-    max_exchanges : cap on accepted exchanges (default ``10 n_poses``)
-    exclude : optional boolean mask of candidates never to choose
-
-    Returns
-    -------
-    Selection
-    """
-    import time
-
-    if criterion not in CRITERIA:
-        raise ValueError(f"unknown criterion {criterion!r} (known: {', '.join(CRITERIA)})")
-    t0 = time.perf_counter()
-    C = len(design)
-    n_poses = int(min(n_poses, C))
-    allowed = np.ones(C, dtype=bool) if exclude is None else ~np.asarray(exclude, dtype=bool)
-    scale = float(np.mean(np.einsum("cij,cij->c", design.Ax, design.Ax))) / max(design.r, 1)
-    delta = 1e-8 * max(scale, 1e-300)
-
-    # 1. greedy D-optimal start
+def _balanced_start(
+    design: Design, n: int, allowed: np.ndarray, rng: np.random.Generator
+) -> list[int]:
+    """A random start set with the poses spread evenly over the targets that have candidates."""
+    ks = [k for k in range(design.K) if np.any(allowed & (design.tk == k))]
+    want = np.full(len(ks), n // max(len(ks), 1))
+    want[: n - int(want.sum())] += 1
     chosen: list[int] = []
-    free = allowed.copy()
-    st = _State(design, chosen, delta)
-    for _ in range(n_poses):
-        idx = np.flatnonzero(free)
-        g = st.add_gains(idx, "O1")
-        best = int(idx[int(np.argmax(g))])
-        chosen.append(best)
-        free[best] = False
-        st = _State(design, chosen, delta)
-    greedy_value = float(criterion_value(design.schur(st.M), criterion))
+    for k, w in zip(ks, want, strict=True):
+        pool = np.flatnonzero(allowed & (design.tk == k))
+        chosen += rng.choice(pool, min(int(w), pool.size), replace=False).tolist()
+    rest = np.setdiff1d(np.flatnonzero(allowed), chosen)
+    if len(chosen) < n:
+        chosen += rng.choice(rest, n - len(chosen), replace=False).tolist()
+    return [int(c) for c in chosen]
 
-    # 2. exchanges
-    max_ex = 10 * n_poses if max_exchanges is None else max_exchanges
-    value = greedy_value
+
+def _exchange(
+    design: Design,
+    chosen: list[int],
+    allowed: np.ndarray,
+    criterion: str,
+    max_ex: int,
+    delta: float,
+) -> tuple[list[int], float, int, list[float]]:
+    """DETMAX exchanges of one pose from ``chosen`` until none improves ``criterion``."""
+    free = allowed.copy()
+    free[chosen] = False
+    st = _State(design, chosen, delta)
+    value = float(criterion_value(design.schur(st.M), criterion))
     history: list[float] = []
     n_ex = 0
     while n_ex < max_ex:
@@ -208,8 +194,7 @@ def select_poses(
             )
             a = int(short[int(np.argmax(st.added_values(short, criterion)))])
         plus = np.array(chosen + [a], dtype=np.int64)
-        M_plus = st.M + design.information([a])
-        rem = _removal_values(design, M_plus, plus, criterion)
+        rem = _removal_values(design, st.M + design.information([a]), plus, criterion)
         j = int(np.argmax(rem))
         if plus[j] == a or not rem[j] > value + 1e-12 * max(abs(value), 1.0):
             break
@@ -221,12 +206,68 @@ def select_poses(
         history.append(value)
         n_ex += 1
         st = _State(design, chosen, delta)
-    final = float(criterion_value(design.schur(st.M), criterion))
+    return chosen, value, n_ex, history
+
+
+def select_poses(
+    design: Design,
+    n_poses: int,
+    criterion: str = "O1",
+    *,
+    n_starts: int = 3,
+    seed: int = 0,
+    max_exchanges: int | None = None,
+    exclude: np.ndarray | None = None,
+) -> Selection:
+    """Choose ``n_poses`` candidates maximising ``criterion`` (see module docstring).
+
+    Parameters
+    ----------
+    design : candidate rows (:func:`pipeline.plan.design.build_design`)
+    n_poses : poses to choose (at most the number of candidates)
+    criterion : ``O1``, ``O3``, ``O4`` or ``A``
+    n_starts : random balanced starts of the D-optimal exchange (the best is kept)
+    seed : seed of the starts
+    max_exchanges : cap on accepted exchanges per run (default ``20 n_poses``)
+    exclude : optional boolean mask of candidates never to choose
+
+    Returns
+    -------
+    Selection
+    """
+    import time
+
+    if criterion not in CRITERIA:
+        raise ValueError(f"unknown criterion {criterion!r} (known: {', '.join(CRITERIA)})")
+    t0 = time.perf_counter()
+    C = len(design)
+    allowed = np.ones(C, dtype=bool) if exclude is None else ~np.asarray(exclude, dtype=bool)
+    n_poses = int(min(n_poses, int(allowed.sum())))
+    scale = float(np.mean(np.einsum("cij,cij->c", design.Ax, design.Ax))) / max(design.r, 1)
+    delta = 1e-10 * max(scale, 1e-300)
+    max_ex = 20 * n_poses if max_exchanges is None else max_exchanges
+    rng = np.random.default_rng(seed)
+
+    best: tuple[list[int], float, int, list[float]] | None = None
+    start_value = -np.inf
+    for _ in range(max(n_starts, 1)):
+        start = _balanced_start(design, n_poses, allowed, rng)
+        sv = float(criterion_value(design.schur(design.information(start)), criterion))
+        run = _exchange(design, start, allowed, "O1", max_ex, delta)
+        if best is None or run[1] > best[1]:
+            best, start_value = run, sv
+    assert best is not None
+    chosen, value, n_ex, history = best
+    if criterion != "O1":
+        start_value = float(criterion_value(design.schur(design.information(chosen)), criterion))
+        chosen, value, n2, history = _exchange(design, chosen, allowed, criterion, max_ex, delta)
+        n_ex += n2
+    final = float(criterion_value(design.schur(design.information(chosen)), criterion))
     return Selection(
         chosen=np.array(chosen, dtype=np.int64),
         criterion=criterion,
         value=final,
-        greedy_value=greedy_value,
+        start_value=start_value,
         exchanges=n_ex,
         seconds=time.perf_counter() - t0,
         history=history,
