@@ -921,6 +921,15 @@ def _identify_one(
             else f"length scale identified from {len(data.dist)} known distance(s)"
         ),
         "base_note": "the base frame against the targets is held at nominal (never identifiable)",
+        "unidentifiable_directions": [
+            "base frame against the targets (6 directions): held at nominal",
+            "virtual pin against the last joint's own motion: absorbed by the pin",
+        ]
+        + (
+            ["length scale (no known distance): held at the nominal model's by a gauge constraint"]
+            if scale_held
+            else []
+        ),
         "noise_model": noise_note,
         "flange_sigma_mm": (
             [float(v) * 1e3 for v in sigma_flange] if sigma_flange is not None else None
