@@ -220,3 +220,11 @@ def test_cli_run_bad_input_exit_code(tmp_path, capsys):
     assert exc.value.code == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "shoulder" in err[0] and str(p) in err[0]
+
+
+@pytest.mark.parametrize("compression", [CompressionType.LZ4, CompressionType.NONE])
+def test_chunk_compressions(tmp_path, compression):
+    p = tmp_path / "rec.mcap"
+    make(p, compression=compression, chunk_size=50_000)
+    frames, dets, info = ingest_recording(p, IngestConfig(), DetectConfig())
+    assert info.n_images == 5 and not info.truncated and dets["found"].all()
