@@ -518,6 +518,8 @@ class BatchResult:
     summary_path: Path
     seconds: float
     interrupted: bool = False
+    compare: Any = None
+    compare_note: str = ""
 
     @property
     def n_ok(self) -> int:
@@ -565,6 +567,7 @@ def run_batch(
     until: str | None = None,
     force: bool = False,
     progress: BatchProgress | None = None,
+    compare: bool = True,
 ) -> BatchResult:
     """Run every recording through the pipeline into ``out/<item.name>/``, then summarise.
 
@@ -577,10 +580,13 @@ def run_batch(
         with :func:`open_executor` from ``kind``, ``workers``, ``scheduler``
     until, force : passed to every :func:`~pipeline.orchestrator.run_pipeline`
     progress : called in this process as each recording finishes
+    compare : also write the cross-run comparison of the identified runs
+        (``compare.parquet``, ``compare.html``, see :func:`compare_batch`)
 
     Returns
     -------
-    BatchResult; its outcomes are in the order of ``items``. On Ctrl-C the
+    BatchResult; its outcomes are in the order of ``items``; ``compare`` holds the
+    :class:`pipeline.compare.CompareResult` (or None, ``compare_note`` says why). On Ctrl-C the
     summary of what finished is written (the rest ``not_run``) before
     :class:`KeyboardInterrupt` propagates; finished recordings are cached for the next run.
     """
@@ -630,10 +636,10 @@ def run_batch(
     ]
     summary = summary_table(ordered)
     path = write_summary(out_dir, summary, config=config, until=until, force=force)
-    result = BatchResult(out_dir, ordered, summary, path, time.perf_counter() - t0, interrupted)
     if interrupted:
         raise KeyboardInterrupt
-    return result
+    cmp, note = compare_batch(out_dir, ordered) if compare else (None, "not asked for")
+    return BatchResult(out_dir, ordered, summary, path, time.perf_counter() - t0, False, cmp, note)
 
 
 def _fan_out(
@@ -808,20 +814,43 @@ def write_summary(
     return path
 
 
-def compare_summary(result: BatchResult) -> Any | None:
-    """The cross-run comparison of the finished runs (``pipeline.compare``), if available.
+def compare_batch(out_dir: Path, outcomes: Sequence[RecordingOutcome]) -> tuple[Any, str]:
+    """The cross-run table (``vtcal compare``) of the identified runs of a batch.
 
-    Returns None when :mod:`pipeline.compare` is not installed, fewer than one run
-    finished, or the comparison itself fails (the batch summary stands alone).
+    Writes ``out_dir/compare.parquet`` (schema ``compare``) and
+    ``out_dir/compare.html`` as ``vtcal compare`` does, for the runs that finished
+    with identify (ran or cached), in batch order (the first run of each robot is
+    the drift baseline).
+
+    Returns
+    -------
+    (CompareResult or None, note): None with the reason when there is nothing to
+    compare or :mod:`pipeline.compare` is absent or fails (the batch summary stands
+    alone; a comparison failure never fails the batch).
     """
-    runs = [Path(o.run_dir) for o in result.outcomes if o.status == "ok"]
+    runs = [Path(o.run_dir) for o in outcomes if o.status == "ok" and o.figures]
     if not runs:
-        return None
+        return None, "no identified run to compare"
     try:
-        from pipeline.compare import compare_runs  # type: ignore[import-not-found,unused-ignore]
+        from pipeline.compare import compare_runs, render_html
     except ImportError:
-        return None
+        return None, "cross-run comparison not available (pipeline.compare missing)"
+    from pipeline.artefacts import atomic_write_bytes, write_artefact
+
     try:
-        return compare_runs(runs)
-    except Exception:
-        return None
+        res = compare_runs(runs)
+        write_artefact(
+            out_dir / "compare.parquet",
+            res.table,
+            "compare",
+            stage="compare",
+            config={"k_sigma": res.summary.get("k_sigma")},
+            inputs={},
+            extra_meta={"runs": ",".join(res.summary.get("runs", []))},
+        )
+        atomic_write_bytes(out_dir / "compare.html", render_html(res).encode())
+    except VtcalError as exc:
+        return None, f"comparison failed: {_one_line(str(exc))}"
+    except Exception as exc:  # a bug there must not cost the batch its summary
+        return None, f"comparison failed: internal error: {internal_error_line(exc)}"
+    return res, f"{out_dir / 'compare.parquet'}, {out_dir / 'compare.html'}"

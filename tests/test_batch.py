@@ -165,6 +165,11 @@ def test_corrupt_recordings_reported_good_ones_finish(pool_batch) -> None:
         assert o.status == "error" and o.error_kind == "bad_input" and o.exit_code == 2
         assert "\n" not in o.error and f"{name}.mcap" in o.error
     assert "not an MCAP file" in by["junk"].error
+    # the cross-run table of the identified runs (vtcal compare) beside the summary
+    assert result.compare is not None, result.compare_note
+    assert set(result.compare.runs["run"]) == {"good_a"}
+    assert (result.out_dir / "compare.parquet").exists()
+    assert (result.out_dir / "compare.html").exists()
     # progress saw every recording once, counting up to the total
     assert sorted(n for _, _, n in seen) == sorted(by)
     assert [d for d, _, _ in seen] == [1, 2, 3] and {t for _, t, _ in seen} == {3}

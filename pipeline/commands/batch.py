@@ -223,8 +223,6 @@ def print_summary(console: Any, result: BatchResult) -> None:
     """The batch table: one row per recording, then the cross-run comparison if available."""
     from rich.table import Table
 
-    from pipeline.batch import compare_summary
-
     table = Table(title=f"batch {result.out_dir}", title_justify="left")
     table.add_column("recording", no_wrap=True)
     for col in ("status", "ran/cached", "s", "MB", "model", "used", "RMS mm", "shape mm", "abs mm"):
@@ -248,9 +246,9 @@ def print_summary(console: Any, result: BatchResult) -> None:
     console.print(table)
     for o in result.failed:
         console.print(f"{o.name}: {o.error_kind}: {o.error}", highlight=False, markup=False)
-    compared = compare_summary(result)
-    if compared is not None:
-        _print_compare(console, compared)
+    if result.compare is not None:
+        _print_compare(console, result.compare)
+    console.print(f"comparison: {result.compare_note}", highlight=False, markup=False)
     console.print(
         f"{result.n_ok} of {len(result.outcomes)} recording(s) ok in {result.seconds:.1f} s; "
         f"summary: {result.summary_path}",
@@ -258,16 +256,20 @@ def print_summary(console: Any, result: BatchResult) -> None:
     )
 
 
-def _print_compare(console: Any, compared: Any) -> None:
-    """Print a :class:`pipeline.compare.CompareResult` however it offers itself."""
-    for attr in ("to_text", "render", "format_table"):
-        fn = getattr(compared, attr, None)
-        if callable(fn):
-            try:
-                console.print(fn(), highlight=False, markup=False)
-                return
-            except Exception:
-                break
-    table = getattr(compared, "table", None)
-    if table is not None and hasattr(table, "to_string"):
-        console.print(table.to_string(index=False), highlight=False, markup=False)
+def _print_compare(console: Any, res: Any) -> None:
+    """The shipped model's line per run, the verdict and the drift flags of a
+    :class:`pipeline.compare.CompareResult` (every model is in compare.html)."""
+    console.print("cross-run comparison (vtcal compare), shipped model:", highlight=False)
+    for r in res.runs.itertuples():
+        if not r.shipped:
+            continue
+        console.print(
+            f"  {r.run:<20} {r.model:<8} held-out {_fmt(r.heldout_rms_mm, '.4f')} mm  "
+            f"training {_fmt(r.train_rms_mm, '.4f')} mm  cond {_fmt(r.cond, '.3g')}  "
+            f"rejected {r.n_rejected}",
+            highlight=False,
+            markup=False,
+        )
+    console.print(f"  {res.summary.get('verdict', '')}", highlight=False, markup=False)
+    for f in res.summary.get("flags", []):
+        console.print(f"    {f}", highlight=False, markup=False)
