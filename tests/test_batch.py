@@ -130,6 +130,17 @@ def test_bad_manifest_is_one_line_bad_input(tmp_path: Path, text: str, words: st
     assert "\n" not in msg and str(m) in msg and words in msg
 
 
+@pytest.mark.parametrize("manifest", sorted((REPO / "datasets").glob("*.toml")), ids=str)
+def test_shipped_manifests_parse(manifest: Path) -> None:
+    man = load_manifest(manifest)
+    assert man.items and len({it.name for it in man.items}) == len(man.items)
+    for it in man.items:
+        assert it.recording.is_absolute() and it.robot and it.notes
+        assert it.recording.suffix == ".mcap"
+    shipped = [it for it in man.items if it.name == "sample_lrmate"]
+    assert not shipped or shipped[0].recording.samefile(SAMPLE)
+
+
 def test_repeated_stems_get_distinct_run_folders() -> None:
     items = items_from_paths(["a/rec.mcap", "b/rec.mcap", "rec-2.mcap", "c/rec.mcap"])
     names = [it.name for it in items]
