@@ -18,13 +18,23 @@ Radian parameters are scaled by the working radius ``L`` (``x_scale = 1/L``)
 so a radian and the metre it moves the pin by weigh alike. The pin and targets
 start from the exact linear least-squares solution of (1) at nominal kinematics.
 
-Identifiability: the scaled kinematic columns, with the pin and target columns
+Noise model: a touch-up's error is fixed in the flange (camera) frame and far
+larger along the view than across it. After an isotropic fit the residuals'
+3x3 covariance in the flange frame is estimated and the fit repeated with the
+residuals whitened, ``W R_i^T (p_i - t_k)`` (feasible generalised least
+squares; ``noise_model="isotropic"`` skips it).
+
+Identifiability: redundancies are exact only where residuals vanish, so they
+are found on exact synthetic touch-ups of the nominal robot (cached per robot
+and model): the scaled kinematic columns, with the pin and target columns
 projected out, go through a QR factorisation with column pivoting (Businger &
 Golub 1965; the base-parameter method of Gautier & Khalil 1990 / Hollerbach &
 Wampler 1996). Columns whose pivot is below ``rank_tol`` times the largest are
 held at nominal and named with a reason: absorbed by the targets or the pin
-(base frame, pin against the last joint), the length scale without a known
-distance, or redundant with named identified parameters.
+(base frame, pin against the last joint) or redundant with named identified
+parameters. Without a known distance the uniform scale is held by a gauge row
+``v . x = 0`` (``v`` the model direction of a uniform scale). A second pivoted
+QR on the actual touch-ups (``data_tol``) holds what these poses fail to excite.
 
 Uncertainty: ``cov = sigma^2 (J^T J)^-1`` over the estimated unknowns with
 ``sigma^2 = |r|^2 / (m - p)``; standard errors, the correlation matrix, and the
