@@ -521,7 +521,7 @@ def _flange_whitening(prob: _Problem, z: F64, n_free: int) -> tuple[F64 | None, 
     (weighted, centred: a constant flange-frame offset is the pin's). The returned
     ``W = s S^(-1/2)`` (eigenvalues floored at 1e-4 of the largest) keeps residuals
     in metres (``s^2`` is the mean variance). None when the residuals vanish
-    (exact data) or the fit has no redundancy.
+    (exact data) or fewer than 15 residual degrees of freedom remain.
 
     Returns
     -------
@@ -536,7 +536,7 @@ def _flange_whitening(prob: _Problem, z: F64, n_free: int) -> tuple[F64 | None, 
     mu = (w[:, None] * e).sum(axis=0) / w.sum()
     c = e - mu
     dof = 3 * len(e) - (n_free + 3 + 3 * D.K)
-    if dof <= 3:
+    if dof < 15:  # a 3x3 covariance from fewer residual degrees of freedom is noise
         return None, None
     S = (w[:, None, None] * c[:, :, None] * c[:, None, :]).sum(axis=0) / w.sum()
     S *= 3 * len(e) / dof
