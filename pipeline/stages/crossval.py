@@ -18,7 +18,12 @@ a model predicts touch-ups it has not seen. Two schemes, per error model:
   ``e_i = (p_i - mean p) sqrt(n / (n - 1))`` (the factor undoes the shrinkage of
   a spread about a fitted mean). Known distances involving that target drop out.
 
-Figures are RMS over the scored touch-ups of ``|e_i|`` in mm. The model a run
+Figures are RMS over the scored touch-ups of ``|e_i|`` in mm. A held-out
+residual also carries the held-out touch-up's own measurement noise; the
+training fits estimate it (``3 sigma^2``, ``sigma`` the per-axis residual
+scale ``sqrt(|r|^2 / dof)``), and ``kfold_model_rms_mm = sqrt(max(kfold^2 -
+3 sigma^2, 0))`` estimates the error of the predicted pin position itself
+(what a check against a laser tracker at touch-up-like poses would see). The model a run
 ships is the one with the smallest k-fold RMS among those whose every fold
 could be fitted (training RMS is reported beside it, never used to choose).
 Ties within 1 % go to the model with fewer identified parameters.
@@ -322,6 +327,9 @@ def cross_validate(
             e = None if st[j] else pv[j] - tv[j]
             add(m, "kfold", int(meta[j, 0]), int(meta[j, 1]), int(meta[j, 2]), e, st[j])
         info["kfold_failed_folds"] = failed
+        sig = pred.loc[pred["status"] == "", "sigma_m"].to_numpy(dtype=float)
+        sig = sig[np.isfinite(sig)]
+        info["kfold_noise_mm"] = float(np.sqrt(3 * np.mean(sig**2)) * 1e3) if sig.size else math.nan
         # -- leave one target out
         loto_failed = 0
         if config.loto:
@@ -369,6 +377,10 @@ def cross_validate(
             info[f"{scheme}_n"] = int(len(e))
             info[f"{scheme}_rms_mm"] = float(np.sqrt(np.mean(e**2))) if len(e) else math.nan
             info[f"{scheme}_max_mm"] = float(e.max()) if len(e) else math.nan
+        kf, nz = info["kfold_rms_mm"], info.get("kfold_noise_mm", math.nan)
+        info["kfold_model_rms_mm"] = (
+            float(np.sqrt(max(kf**2 - nz**2, 0.0))) if np.isfinite(kf) and np.isfinite(nz) else kf
+        )
     chosen, choice = _choose(summary_models)
     summary = {
         "k": k,
