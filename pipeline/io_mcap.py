@@ -28,8 +28,8 @@ from typing import Any
 
 import cv2
 import numpy as np
-from mcap.records import Channel, Message, Metadata, Schema
-from mcap.stream_reader import StreamReader
+from mcap.records import Channel, Chunk, Message, Metadata, Schema
+from mcap.stream_reader import StreamReader, breakup_chunk
 
 from pipeline.errors import BadInput
 
@@ -59,6 +59,8 @@ class StreamState:
     bytes_read: int = 0
     truncated: bool = False
     error: str = ""
+    #: one line per chunk skipped because its CRC failed or it did not decompress/parse
+    bad_chunks: list[str] = field(default_factory=list)
     schemas: dict[int, Schema] = field(default_factory=dict)
     channels: dict[int, Channel] = field(default_factory=dict)
     metadata: dict[str, dict[str, str]] = field(default_factory=dict)
@@ -110,20 +112,35 @@ def iter_messages(path: str | os.PathLike[str], state: StreamState) -> Iterator[
             raise BadInput(f"{path}: not an MCAP file (bad magic {head[:5]!r})")
         fh.seek(0)
         cf = _CountingFile(fh)
-        reader = StreamReader(cf, validate_crcs=False)  # type: ignore[arg-type]
+        # chunks are opened here, one at a time, so that one whose CRC fails (or that does
+        # not decompress) is skipped and reported instead of ending the stream
+        reader = StreamReader(cf, emit_chunks=True, validate_crcs=False)  # type: ignore[arg-type]
         seen_footer = False
         try:
-            for rec in reader.records:
-                if isinstance(rec, Message):
-                    yield rec
-                elif isinstance(rec, Schema):
-                    state.schemas[rec.id] = rec
-                elif isinstance(rec, Channel):
-                    state.channels[rec.id] = rec
-                elif isinstance(rec, Metadata):
-                    state.metadata[rec.name] = dict(rec.metadata)
-                elif type(rec).__name__ == "Footer":
-                    seen_footer = True
+            for outer in reader.records:
+                if isinstance(outer, Chunk):
+                    try:
+                        inner = breakup_chunk(outer, validate_crc=True)
+                    except Exception as exc:  # noqa: BLE001 - CRC, zstd/lz4, record parse
+                        state.bad_chunks.append(
+                            f"chunk ending at byte {cf.count} (log time {outer.message_start_time}"
+                            f"..{outer.message_end_time} ns, {len(outer.data)} bytes): "
+                            f"{type(exc).__name__}: {exc}"[:240]
+                        )
+                        continue
+                else:
+                    inner = [outer]
+                for rec in inner:
+                    if isinstance(rec, Message):
+                        yield rec
+                    elif isinstance(rec, Schema):
+                        state.schemas[rec.id] = rec
+                    elif isinstance(rec, Channel):
+                        state.channels[rec.id] = rec
+                    elif isinstance(rec, Metadata):
+                        state.metadata[rec.name] = dict(rec.metadata)
+                    elif type(rec).__name__ == "Footer":
+                        seen_footer = True
         except Exception as exc:  # noqa: BLE001 - any break in the stream is truncation
             state.truncated = True
             state.error = f"{type(exc).__name__}: {exc}"[:200]
@@ -323,8 +340,13 @@ def image_to_gray(img: EncodedImage) -> np.ndarray:
             step = w * {"mono16": 2, "16uc1": 2, "rgb8": 3, "bgr8": 3}.get(
                 enc, 4 if "a8" in enc else 1
             )
-        if h <= 0 or w <= 0 or buf.size < h * step:
-            raise ValueError(f"image {w}x{h} step {step} but {buf.size} bytes of data")
+        if h <= 0 or w <= 0 or buf.size != h * step:
+            raise ValueError(
+                f"image {w}x{h} step {step}: {buf.size} bytes of data, step*height = {h * step}"
+            )
+        bpp = {"mono16": 2, "16uc1": 2, "rgb8": 3, "bgr8": 3}.get(enc, 4 if "a8" in enc else 1)
+        if step < w * bpp:
+            raise ValueError(f"image {w}x{h} {img.encoding}: step {step} < width*{bpp}")
         rows = buf[: h * step].reshape(h, step)
         if enc in ("mono8", "8uc1"):
             return rows[:, :w]

@@ -262,6 +262,12 @@ def ingest_recording(
     n_joint_msgs = 0
     for msg in iter_messages(path, state):
         topic, sname, menc = state.topic_type(msg.channel_id)
+        if menc != "cdr" and sname.startswith(("sensor_msgs/", "std_msgs/")):
+            if topic in (image_topic, config.joint_topic, config.description_topic):
+                raise BadInput(
+                    f"{path}: topic {topic}: message encoding {menc!r} is not supported for "
+                    f"{sname} (ROS 2 messages are read as cdr)"
+                )
         if image_topic is None and sname in IMAGE_TYPES:
             image_topic = _choose_image_topic({topic: (sname, menc)}, None)
         if topic == image_topic:
@@ -270,7 +276,7 @@ def ingest_recording(
             k = len(rows)
             try:
                 enc = decode_image_message(sname, menc, msg.data)
-            except (ValueError, IndexError, KeyError) as exc:
+            except Exception as exc:  # noqa: BLE001 - struct/json/protobuf errors: bad bytes
                 raise BadInput(f"{path}: {topic} message {k}: undecodable: {exc}") from exc
             try:
                 grey = image_to_gray(enc)
@@ -299,7 +305,7 @@ def ingest_recording(
                 )
             try:
                 stamp, names, pos = decode_joint_state(msg.data)
-            except (ValueError, IndexError, UnicodeDecodeError) as exc:
+            except Exception as exc:  # noqa: BLE001 - struct errors etc.: bad bytes
                 raise BadInput(
                     f"{path}: {topic} message {n_joint_msgs}: undecodable: {exc}"
                 ) from exc
@@ -355,6 +361,39 @@ def ingest_recording(
         raise BadInput(f"{path}: no image messages on {image_topic or 'any image topic'}{extra}")
     if n_joint_msgs == 0:
         raise BadInput(f"{path}: no joint states on {config.joint_topic}")
+    if n_joint_msgs < 2:
+        raise BadInput(
+            f"{path}: only one joint state on {config.joint_topic}: at least two are needed to "
+            "interpolate the joints at the image stamps"
+        )
+    if state.bad_chunks:
+        warnings.append(
+            f"{path}: {len(state.bad_chunks)} chunk(s) failed their CRC or did not decompress "
+            f"and were skipped (their messages are lost); first: {state.bad_chunks[0]}"
+        )
+    n_undecoded = sum(1 for r in rows if str(r.get("reason", "")).startswith("decode_failed"))
+    if n_undecoded:
+        first = next(r["reason"] for r in rows if str(r["reason"]).startswith("decode_failed"))
+        warnings.append(
+            f"{path}: {n_undecoded} of {len(rows)} images on {image_topic} do not decode "
+            f"(kept, flagged); first: {first}"
+        )
+    js_t = np.asarray(j_stamp, dtype=np.int64)
+    n_back = int(np.sum(np.diff(js_t) < 0))
+    n_dup = int(np.sum(np.diff(np.sort(js_t)) == 0))
+    if n_back or n_dup:
+        warnings.append(
+            f"{path}: {config.joint_topic}: {n_back} header stamps go backwards and {n_dup} "
+            "repeat an earlier stamp (joint states are sorted by stamp)"
+        )
+    im_t = np.asarray(img_stamp, dtype=np.int64)[np.argsort(np.asarray(img_log), kind="stable")]
+    n_back_i = int(np.sum(np.diff(im_t) < 0))
+    n_dup_i = int(np.sum(np.diff(np.sort(im_t)) == 0))
+    if n_back_i or n_dup_i:
+        warnings.append(
+            f"{path}: {image_topic}: {n_back_i} image stamps go backwards in log-time order and "
+            f"{n_dup_i} repeat an earlier stamp"
+        )
     assert j_names is not None
     robot = _parse(path, urdf)
     arm = _arm_joint_names(path, urdf, j_names, config)
