@@ -262,6 +262,7 @@ class RecordingOutcome:
     robot_urdf: str = ""
     figures: dict[str, Any] = field(default_factory=dict)
     headline: list[str] = field(default_factory=list)
+    retried: bool = False
 
 
 def limit_threads() -> None:
@@ -619,6 +620,7 @@ def run_batch(
                 for it in broken:
                     with open_executor("processes", 1) as solo:
                         _fan_out(solo, [it], *args, retry_broken=False)
+                    outcomes[it.name].retried = True
     except KeyboardInterrupt:
         interrupted = True
     ordered = [
@@ -739,6 +741,7 @@ _SUMMARY_COLUMNS = [
     "cond",
     "scale_identified",
     "headline",
+    "retried",
 ]
 
 
@@ -781,6 +784,7 @@ def summary_table(outcomes: Sequence[RecordingOutcome]) -> pd.DataFrame:
                 "cond": f.get("cond"),
                 "scale_identified": f.get("scale_identified"),
                 "headline": " | ".join(o.headline),
+                "retried": bool(o.retried),
             }
         )
     df = pd.DataFrame(rows, columns=_SUMMARY_COLUMNS)

@@ -12,6 +12,7 @@ import shutil
 import signal
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import pyarrow.parquet as pq
@@ -258,6 +259,55 @@ def test_interrupted_batch_resumes_where_it_stopped(
     by = _by_name(resumed)
     assert [st for _, st, _ in by["good_a"].stages] == ["cached"] * 4
     assert by["good_b"].status == "ok"
+
+
+def _pool_workers() -> list[int]:
+    """Pids of this process's grandchildren under a multiprocessing fork server."""
+    me = os.getpid()
+    parent: dict[int, int] = {}
+    cmd: dict[int, str] = {}
+    for d in Path("/proc").iterdir():
+        if not d.name.isdigit():
+            continue
+        try:
+            stat = (d / "stat").read_text()
+            cmd[int(d.name)] = (d / "cmdline").read_bytes().decode(errors="replace")
+        except OSError:
+            continue
+        parent[int(d.name)] = int(stat.rsplit(")", 1)[1].split()[1])
+    servers = {p for p, pp in parent.items() if pp == me and "forkserver" in cmd.get(p, "")}
+    return [p for p, pp in parent.items() if pp in servers]
+
+
+@pytest.mark.skipif(not Path("/proc/self/stat").exists(), reason="needs /proc")
+def test_worker_killed_mid_task_is_retried_alone(recordings, tmp_path: Path) -> None:
+    """SIGKILL (as the OOM killer would) the worker while it ingests: the pool
+    breaks, the recording is run again in a fresh pool and finishes."""
+    import threading
+
+    items = items_from_paths([recordings["good_a"]])
+    done: dict[str, object] = {}
+
+    def go() -> None:
+        done["result"] = run_batch(items, tmp_path, workers=1, until="ingest", compare=False)
+
+    before = set(_pool_workers())
+    th = threading.Thread(target=go)
+    th.start()
+    killed = None
+    while th.is_alive() and killed is None:
+        new = [p for p in _pool_workers() if p not in before]
+        if new:
+            killed = new[0]
+            os.kill(killed, signal.SIGKILL)
+        time.sleep(0.01)
+    th.join(timeout=120)
+    assert killed is not None, "never saw the worker"
+    res = done["result"]
+    o = res.outcomes[0]  # type: ignore[attr-defined]
+    assert o.status == "ok" and o.retried, o.error
+    assert o.worker.split(":")[1] != str(killed)
+    assert read_artefact(res.summary_path, "batch_summary")["retried"].tolist() == [True]  # type: ignore[attr-defined]
 
 
 # -- the CLI -------------------------------------------------------------------------------

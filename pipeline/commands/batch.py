@@ -95,10 +95,15 @@ def command(
     others. At the end OUT/summary.parquet holds one row per recording and a
     table is printed. Exit status 0 when every recording finished, 1 otherwise.
     """
-    from pipeline.batch import items_from_paths, load_manifest, prestart, run_batch
+    from pipeline.batch import default_workers, items_from_paths, load_manifest, prestart, run_batch
 
     prestart(executor)  # the workers' fork server imports the pipeline meanwhile
-    from pipeline.orchestrator import RunConfig
+    from pipeline.orchestrator import STAGES, RunConfig
+
+    if until is not None and until not in STAGES:
+        raise BadInput(f"--until {until!r}: not a stage (stages: {', '.join(STAGES)})")
+    if workers is not None and workers < 1:
+        raise BadInput(f"--workers {workers}: needs at least 1")
 
     if manifest is not None and recordings:
         raise BadInput("give recordings or --manifest, not both")
@@ -117,7 +122,7 @@ def command(
     from rich.console import Console
 
     console = Console(stderr=False)
-    where = f"scheduler {scheduler}" if scheduler else f"{workers or 'all'} worker(s)"
+    where = f"scheduler {scheduler}" if scheduler else f"{workers or default_workers()} worker(s)"
     if not quiet:
         console.print(f"batch: {len(items)} recording(s) -> {out} ({executor}, {where})")
     try:
@@ -246,6 +251,13 @@ def print_summary(console: Any, result: BatchResult) -> None:
     console.print(table)
     for o in result.failed:
         console.print(f"{o.name}: {o.error_kind}: {o.error}", highlight=False, markup=False)
+    for o in result.outcomes:
+        if o.retried:
+            console.print(
+                f"{o.name}: a worker died while it was queued or running; run again alone",
+                highlight=False,
+                markup=False,
+            )
     if result.compare is not None:
         _print_compare(console, result.compare)
     console.print(f"comparison: {result.compare_note}", highlight=False, markup=False)
