@@ -633,6 +633,7 @@ def run_batch(
             it.notes,
             error="interrupted before it finished",
             error_kind="interrupted",
+            exit_code=130,
         )
         for it in items
     ]
