@@ -15,7 +15,8 @@ the background grey. Rendering is by area coverage:
    exactly (so distortion and perspective are exact inside the pixel), and
    its coverage is the fraction of sub-points inside the disc;
 3. layers are composited back to front, ``g <- g (1 - c) + g_layer c``;
-4. then Gaussian blur (optics), vignetting ``1 - v (r / r_corner)^2``,
+4. then Gaussian blur (optics; around the target evaluated on a finer grid
+   before pixel integration, see :func:`render_ideal`), vignetting ``1 - v (r / r_corner)^2``,
    exposure gain, sensor noise ``N(0, sigma^2)`` and quantisation to ``uint8``.
 
 A capture during motion averages step 1-3 over several poses of the exposure
@@ -102,15 +103,16 @@ def _coverage(
     centre: tuple[float, float],
     radius: float,
     subsamples: int,
+    cell: float = 1.0,
 ) -> F64:
-    """Area fraction of each ROI pixel inside one disc of the target plane."""
+    """Area fraction of each ROI cell (a pixel, or a ``cell``-px square) inside one disc."""
     rho = np.hypot(xy[..., 0] - centre[0], xy[..., 1] - centre[1])
     cov = ((rho <= radius) & ok).astype(float)
     band = np.abs(rho - radius) <= foot
     if not np.any(band):
         return cov
     n = max(int(subsamples), 1)
-    off = (np.arange(n) + 0.5) / n - 0.5
+    off = cell * ((np.arange(n) + 0.5) / n - 0.5)
     ou, ov = np.meshgrid(off, off)
     sub = np.stack([ou.ravel(), ov.ravel()], axis=-1)  # (n*n, 2)
     centres = uv_grid[band]  # (M, 2)
@@ -131,11 +133,24 @@ def render_ideal(
     background_grey: float | None = None,
     extra_discs: Sequence[ExtraDisc] = (),
     subsamples: int = 16,
+    blur_sigma_px: float = 0.0,
+    fine: int = 4,
 ) -> F64:
-    """Noise-free, blur-free grey image ``(H, W)`` float by area coverage (steps 1-3).
+    """Noise-free grey image ``(H, W)`` float by area coverage (steps 1-3), optionally blurred.
 
     ``T_camera_target`` may be ``(K, 4, 4)``: the mean over the K poses (motion
     during the exposure).
+
+    With ``blur_sigma_px > 0`` the optical blur is applied here, in the order the
+    physics has it: the scene is blurred first and each pixel then integrates the
+    blurred irradiance over its area, ``g = box * (G_sigma * scene)``. Around the
+    target this is computed on a ``fine x fine`` grid per pixel (area coverage of
+    each fine cell, Gaussian blur of ``sigma * fine`` fine cells, then the mean
+    over each pixel's cells), because blurring already pixel-integrated values
+    with a discrete ``sigma = 0.7 px`` kernel aliases: the blurred edge profile
+    would then shift with the target's sub-pixel position (a few thousandths of
+    a pixel of size, tens of micrometres of pin depth). Elsewhere (plate edge,
+    background) the discrete blur of pixel values is used.
     """
     T_all = np.asarray(T_camera_target, dtype=float)
     if T_all.ndim == 2:
@@ -173,7 +188,71 @@ def render_ideal(
                 roi = roi * (1.0 - cov) + g * cov
             img[v0:v1, u0:u1] = roi
         acc += img
-    return acc / len(T_all)
+    acc /= len(T_all)
+    if blur_sigma_px <= 0:
+        return acc
+    blurred = cv2.GaussianBlur(acc, (0, 0), blur_sigma_px, borderType=cv2.BORDER_REFLECT)
+    margin = int(np.ceil(4.0 * blur_sigma_px)) + 3
+    boxes = [_roi(camera, T, 0.5 * diameter_m) for T in T_all]
+    u0 = max(min(b[0] for b in boxes) - margin, 0)
+    u1 = min(max(b[1] for b in boxes) + margin, W)
+    v0 = max(min(b[2] for b in boxes) - margin, 0)
+    v1 = min(max(b[3] for b in boxes) + margin, H)
+    if u1 - u0 < W and v1 - v0 < H and u1 > u0 and v1 > v0:
+        fine_layers: list[tuple[tuple[float, float], float, float]] = [
+            ((0.0, 0.0), plate_radius_m, plate_grey)
+        ]
+        fine_layers += [
+            ((float(x), float(y)), 0.5 * float(d), float(g)) for x, y, d, g in extra_discs
+        ]
+        fine_layers.append(((0.0, 0.0), 0.5 * diameter_m, target_grey))
+        region = np.zeros((v1 - v0, u1 - u0))
+        for T in T_all:
+            region += _fine_blurred_region(
+                camera, T, (u0, u1, v0, v1), fine_layers, bg, blur_sigma_px, fine, subsamples
+            )
+        blurred[v0:v1, u0:u1] = region / len(T_all)
+    result: F64 = np.asarray(blurred, dtype=float)
+    return result
+
+
+def _fine_blurred_region(
+    camera: CameraModel,
+    T: F64,
+    box: tuple[int, int, int, int],
+    layers: Sequence[tuple[tuple[float, float], float, float]],
+    bg: float,
+    sigma_px: float,
+    fine: int,
+    subsamples: int,
+) -> F64:
+    """Pixels of ``box`` as ``box * (G_sigma * scene)``, evaluated on a ``fine``-times grid.
+
+    Each fine cell gets its area coverage of every disc (``subsamples / fine``
+    points per side in edge cells, at least 4), the fine image is blurred with
+    ``sigma_px * fine`` cells (replicated borders: the box has a margin of
+    uniform plate around the target) and averaged back to pixels.
+    """
+    u0, u1, v0, v1 = box
+    k = max(int(fine), 1)
+    off = (np.arange(k) + 0.5) / k - 0.5
+    us = (np.arange(u0, u1)[:, None] + off[None, :]).ravel()
+    vs = (np.arange(v0, v1)[:, None] + off[None, :]).ravel()
+    uu, vv = np.meshgrid(us, vs)
+    uv = np.stack([uu, vv], axis=-1)
+    xy, ok = _plane_coords(camera, T, camera.pixel_to_normalised(uv))
+    gu = np.linalg.norm(np.gradient(xy, axis=1), axis=-1)
+    gv = np.linalg.norm(np.gradient(xy, axis=0), axis=-1)
+    foot = np.minimum(np.where(ok, 0.75 * (gu + gv) + 1e-12, 0.0), 1.0)
+    img = np.full(xy.shape[:2], bg)
+    n_sub = max(4, int(np.ceil(subsamples / k)))
+    for c, r, g in layers:
+        cov = _coverage(camera, T, xy, ok, foot, uv, c, r, n_sub, cell=1.0 / k)
+        img = img * (1.0 - cov) + g * cov
+    img = cv2.GaussianBlur(img, (0, 0), sigma_px * k, borderType=cv2.BORDER_REPLICATE)
+    h, w = v1 - v0, u1 - u0
+    out: F64 = img.reshape(h, k, w, k).mean(axis=(1, 3))
+    return out
 
 
 def finish_image(
@@ -275,11 +354,12 @@ def render_target_image(
         background_grey=background_grey,
         extra_discs=extra_discs,
         subsamples=subsamples,
+        blur_sigma_px=blur_sigma_px,
     )
     return finish_image(
         ideal,
         camera,
-        blur_sigma_px=blur_sigma_px,
+        blur_sigma_px=0.0,
         noise_sigma=noise_sigma,
         vignetting=vignetting,
         exposure=exposure,

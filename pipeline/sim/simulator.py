@@ -518,11 +518,12 @@ class Session:
             background_grey=self.background,
             extra_discs=opts.extra_discs,
             subsamples=sc.camera.subsamples,
+            blur_sigma_px=sc.camera.blur_sigma_px,
         )
         img = finish_image(
             ideal,
             cam,
-            blur_sigma_px=sc.camera.blur_sigma_px,
+            blur_sigma_px=0.0,
             noise_sigma=sc.camera.noise_sigma,
             vignetting=sc.camera.vignetting,
             rng=self.rng_img,
