@@ -141,10 +141,12 @@ def iter_messages(path: str | os.PathLike[str], state: StreamState) -> Iterator[
                         state.metadata[rec.name] = dict(rec.metadata)
                     elif type(rec).__name__ == "Footer":
                         seen_footer = True
+                state.bytes_read = cf.count  # end of the last complete record
         except Exception as exc:  # noqa: BLE001 - any break in the stream is truncation
             state.truncated = True
             state.error = f"{type(exc).__name__}: {exc}"[:200]
-        state.bytes_read = cf.count
+        if not state.truncated:
+            state.bytes_read = cf.count
         if not seen_footer and not state.truncated:
             state.truncated = True
             state.error = "no footer"

@@ -10,6 +10,7 @@ Writes ``parameters.parquet``, ``residuals.parquet``, ``targets.parquet``,
 
 from __future__ import annotations
 
+import io
 import xml.etree.ElementTree as ET
 from pathlib import Path
 
@@ -31,7 +32,7 @@ def read_table(path: Path) -> pd.DataFrame:
     suffix = path.suffix.lower()
     try:
         if suffix == ".csv":
-            df = pd.read_csv(path)
+            df = _read_csv(path)
         elif suffix in (".parquet", ".pq"):
             df = pd.read_parquet(path)
         else:
@@ -43,6 +44,30 @@ def read_table(path: Path) -> pd.DataFrame:
     if df.empty:
         raise BadInput(f"{path}: the touch-up table has no rows")
     return df
+
+
+def _read_csv(path: Path) -> pd.DataFrame:
+    """A CSV in UTF-8 (BOM or not) or UTF-16 with a BOM; comma, semicolon or tab separated.
+
+    Raises BadInput naming the first byte that is not text.
+    """
+    raw = path.read_bytes()
+    if raw.startswith((b"\xff\xfe", b"\xfe\xff")):
+        encoding = "utf-16"
+    else:
+        encoding = "utf-8-sig"
+    try:
+        text = raw.decode(encoding)
+    except UnicodeDecodeError as exc:
+        raise BadInput(
+            f"{path}: not a text CSV: byte 0x{raw[exc.start]:02x} at offset {exc.start} is not "
+            f"{encoding.upper().replace('-SIG', '')} (save the table as UTF-8 CSV)"
+        ) from exc
+    if "\x00" in text:
+        raise BadInput(f"{path}: not a text CSV: it holds NUL characters (binary data?)")
+    first = text.split("\n", 1)[0]
+    sep = max((",", ";", "\t"), key=first.count)
+    return pd.read_csv(io.StringIO(text), sep=sep)
 
 
 def infer_links(urdf: str) -> tuple[str, str]:
@@ -126,7 +151,10 @@ def command(
     except (OSError, UnicodeDecodeError) as exc:
         raise BadInput(f"{urdf_path}: cannot read the URDF: {exc}") from exc
     if base_link is None or flange_link is None:
-        b, f = infer_links(urdf)
+        try:
+            b, f = infer_links(urdf)
+        except BadInput as exc:
+            raise BadInput(f"{urdf_path}: {exc}") from exc
         if base_link is None:
             base_link = b
             click.echo(f"base link: {b} (inferred: root of the URDF)")
@@ -135,7 +163,15 @@ def command(
             click.echo(f"flange link: {f} (inferred: end of the serial chain)")
     distances = [d for item in distance for d in parse_distances(item)]
     cfg = IdentifyConfig(model=model, distances=distances, robust_loss=robust_loss)
-    result = identify(df, urdf, base_link, flange_link, cfg)
+    try:
+        result = identify(df, urdf, base_link, flange_link, cfg)
+    except BadInput as exc:
+        msg = str(exc)
+        if msg.startswith("touch-up table"):  # name the file
+            raise BadInput(f"{table}{msg[len('touch-up table') :]}") from exc
+        if msg.startswith("URDF"):
+            raise BadInput(f"{urdf_path}: {msg}") from exc
+        raise
     conf = {"model": model, "distances": distances, "robust_loss": robust_loss}
     paths = write_outputs(result, out_dir, stage_config=conf, inputs={})
     results = result if isinstance(result, dict) else {result.model: result}

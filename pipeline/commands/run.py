@@ -88,3 +88,9 @@ def command(
     with progress_bars(enabled=not quiet) as progress:
         result = run_pipeline(recording, out, cfg, until=until, force=force, progress=progress)
     echo_summary(result)
+    rec_json = result.out_dir / "recording.json"
+    if rec_json.exists():  # ingest warnings (truncation, skipped chunks, ...): one line each
+        import json
+
+        for line in json.loads(rec_json.read_text()).get("warnings", []):
+            click.echo(f"vtcal: warning: {line}", err=True)

@@ -99,6 +99,9 @@ class IdentifyConfig:
     max_nfev : iteration budget of the solver
     n_workspace : poses over which the predicted error is evaluated
     seed : seed of those poses
+    strict_distances : a known distance naming a target absent from the table is bad input
+        (``vtcal identify``); False drops it with a note (``vtcal run``: the recording's
+        metadata names every target of the cell, a truncated run may not have reached them all)
     """
 
     model: str = "auto"
@@ -113,6 +116,7 @@ class IdentifyConfig:
     max_nfev: int = 200
     n_workspace: int = 200
     seed: int = 0
+    strict_distances: bool = True
 
 
 @dataclass
@@ -175,6 +179,7 @@ def _prepare(touchups: pd.DataFrame, chain: Chain, config: IdentifyConfig) -> _D
             f"touch-up table: missing column(s) {missing} (joints of the chain: {names}; "
             f"columns: {list(df.columns)})"
         )
+    df = _numeric_columns(df, names)
     M = len(df)
     q_all = df[names].to_numpy(dtype=float)
     d_all = np.zeros((M, 3))
@@ -193,10 +198,17 @@ def _prepare(touchups: pd.DataFrame, chain: Chain, config: IdentifyConfig) -> _D
             reason[i].append("rejected as outlier" + extra)
     for i in np.flatnonzero(~(w > 0)).tolist():
         reason[i].append("weight not positive")
+    for i in np.flatnonzero(w > MAX_WEIGHT).tolist():
+        reason[i].append(f"weight above {MAX_WEIGHT:g}")
     for i in np.flatnonzero(~np.all(np.isfinite(q_all), axis=1)).tolist():
         reason[i].append("joint position missing")
+    for i in np.flatnonzero(np.any(np.abs(q_all) > MAX_JOINT, axis=1)).tolist():
+        reason[i].append(f"joint position beyond {MAX_JOINT:g}")
     for i in np.flatnonzero(~np.all(np.isfinite(d_all), axis=1)).tolist():
         reason[i].append("correction missing")
+        d_all[i] = 0.0
+    for i in np.flatnonzero(np.any(np.abs(d_all) > MAX_CORRECTION_M, axis=1)).tolist():
+        reason[i].append(f"correction beyond {MAX_CORRECTION_M:g} m")
         d_all[i] = 0.0
     used = np.array([not r for r in reason], dtype=bool)
 
@@ -225,12 +237,15 @@ def _prepare(touchups: pd.DataFrame, chain: Chain, config: IdentifyConfig) -> _D
     dropped: list[str] = []
     for a, b, metres in config.distances:
         sa, sb = str(a), str(b)
-        for s in (sa, sb):
-            if s not in all_text:
-                raise BadInput(
-                    f"known distance {a}:{b}={metres}: no target {s!r} in the touch-up table "
-                    f"(targets: {sorted(all_text)})"
-                )
+        absent = [s for s in (sa, sb) if s not in all_text]
+        if absent and config.strict_distances:
+            raise BadInput(
+                f"known distance {a}:{b}={metres}: no target {absent[0]!r} in the touch-up table "
+                f"(targets: {sorted(all_text)})"
+            )
+        if absent:
+            dropped.append(f"{a}:{b}={metres} (no target {absent[0]!r} in the touch-ups)")
+            continue
         if sa == sb or not metres > 0:
             raise BadInput(f"known distance {a}:{b}={metres}: needs two targets and metres > 0")
         if sa in label_text and sb in label_text:
@@ -267,12 +282,62 @@ def _prepare(touchups: pd.DataFrame, chain: Chain, config: IdentifyConfig) -> _D
     )
 
 
+#: rows beyond these are flagged, not fitted: a joint at 1000 rad (or m), a residual correction
+#: of a metre or a relative weight of a million is a corrupt value, not a measurement
+MAX_JOINT = 1e3
+MAX_CORRECTION_M = 1.0
+MAX_WEIGHT = 1e6
+
+
+def _numeric_columns(df: pd.DataFrame, names: list[str]) -> pd.DataFrame:
+    """The table with its numeric columns as numbers; one-line BadInput for any that is not.
+
+    ``touchup_id`` must be unique integers; joint, correction and weight columns
+    floats (empty cells are NaN and flag their row later).
+    """
+    df = df.copy()
+    for c in [*names, "dx_flange", "dy_flange", "dz_flange", "weight", "touchup_id"]:
+        if c not in df.columns:
+            continue
+        col = df[c]
+        if not (pd.api.types.is_numeric_dtype(col) and not pd.api.types.is_bool_dtype(col)):
+            num = pd.to_numeric(col, errors="coerce")
+            bad = num.isna() & col.notna()
+            if bad.any():
+                i = int(np.flatnonzero(bad.to_numpy())[0])
+                raise BadInput(
+                    f"touch-up table: column {c!r} row {i}: {col.iloc[i]!r} is not a number"
+                )
+            col = num
+        df[c] = col.astype(float) if c != "touchup_id" else col
+    tid = df["touchup_id"].to_numpy(dtype=float)
+    bad_id = ~np.isfinite(tid) | (tid != np.round(tid))
+    if bad_id.any():
+        i = int(np.flatnonzero(bad_id)[0])
+        raise BadInput(
+            f"touch-up table: column 'touchup_id' row {i}: {df['touchup_id'].iloc[i]!r} is not "
+            "an integer"
+        )
+    df["touchup_id"] = tid.astype(np.int64)
+    dup = df["touchup_id"].duplicated()
+    if dup.any():
+        i = int(np.flatnonzero(dup.to_numpy())[0])
+        raise BadInput(
+            f"touch-up table: touchup_id {int(df['touchup_id'].iloc[i])} appears more than once "
+            f"(row {i}); it must be unique per row"
+        )
+    return df
+
+
 def _refuse_early(data: _Data, source_rows: int) -> None:
     N = len(data.q)
     if N == 0:
+        why = pd.Series(
+            [r for rs in data.rows["reason"] for r in str(rs).split("; ") if r], dtype=object
+        ).value_counts()
+        because = ", ".join(f"{n} {r}" for r, n in why.items()) or "none converged"
         raise CalibrationFailed(
-            f"no usable touch-ups ({source_rows} rows, none converged with weight > 0 and joint "
-            "positions): add converged touch-ups"
+            f"no usable touch-ups ({source_rows} rows; {because}): add converged touch-ups"
         )
     if data.K < 2 and not data.dist:
         raise CalibrationFailed(

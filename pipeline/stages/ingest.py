@@ -349,10 +349,15 @@ def ingest_recording(
     warnings: list[str] = []
     if state.truncated:
         pct = 100.0 * state.bytes_read / max(state.file_size, 1)
+        times = [*img_log[-1:], *j_stamp[-1:]]
+        t_first = min([*img_log[:1], *j_stamp[:1]], default=0)
+        span = f", {1e-9 * (max(times) - t_first):.1f} s of data" if times else ""
         warnings.append(
-            f"{path}: truncated recording ({state.error}); read {state.bytes_read} of "
-            f"{state.file_size} bytes ({pct:.1f} %), {len(rows)} images, "
-            f"{n_joint_msgs} joint states"
+            f"{path}: truncated recording (recorder killed? {state.error}): read "
+            f"{state.bytes_read} of {state.file_size} bytes ({pct:.1f} %); the last "
+            f"{state.file_size - state.bytes_read} bytes are an incomplete record, anything "
+            f"recorded after it is lost; kept {len(rows)} images, {n_joint_msgs} joint "
+            f"states{span}"
         )
     if urdf is None:
         raise BadInput(f"{path}: no URDF on {config.description_topic}")
