@@ -361,7 +361,7 @@ def run_recording(
     except VtcalError as exc:
         rec.status, rec.error_kind = "error", _error_kind(exc)
         rec.error, rec.exit_code = _one_line(str(exc)), exc.exit_code
-    except Exception as exc:  # a bug in a stage: reported, the batch goes on
+    except (Exception, SystemExit) as exc:  # a bug in a stage: reported, the batch goes on
         rec.status, rec.error_kind = "error", "internal"
         rec.error, rec.exit_code = internal_error_line(exc), 70
     else:
