@@ -74,6 +74,10 @@ def main(argv: list[str] | None = None) -> Any:
     except click.exceptions.Abort:
         click.echo("vtcal: aborted", err=True)
         sys.exit(130)
+    except click.UsageError as exc:  # bad option or argument: one line, like bad input
+        cmd = exc.ctx.command_path if exc.ctx is not None else "vtcal"
+        click.echo(f"vtcal: error: {exc.format_message()} (see '{cmd} --help')", err=True)
+        sys.exit(exc.exit_code)
     except click.ClickException as exc:
         exc.show()
         sys.exit(exc.exit_code)

@@ -107,7 +107,11 @@ def infer_links(urdf: str) -> tuple[str, str]:
     help="Nominal URDF of the robot (joint names = the table's joint columns).",
 )
 @click.option(
-    "--out", "out_dir", required=True, type=click.Path(path_type=Path), help="Output folder."
+    "--out",
+    "out_dir",
+    required=True,
+    type=click.Path(file_okay=False, path_type=Path),
+    help="Output folder.",
 )
 @click.option("--base-link", default=None, help="Robot base link (default: the URDF's root link).")
 @click.option(
