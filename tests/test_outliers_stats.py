@@ -129,26 +129,34 @@ def test_mean_shift_score_is_the_drop_in_residual_sum_of_squares() -> None:
     """The hat-matrix score S of one touch-up equals the cost drop of refitting without it.
 
     In the linear model deleting row i lowers the residual sum of squares by
-    exactly S; identification is nonlinear but nearly linear at the fit.
+    exactly S; identification is nonlinear but nearly linear at the fit. Without
+    the leverage term the score would be |e_i|^2, 30-100 % off.
     """
     tab, tg, true, info = make_cell(9, per_target=8)
     names = list(info.joint_names)
     move_to(tab, [5], true, (tg[0] + np.array([0.0003, 0.0, 0.0]))[None], names)
+    move_to(tab, [20], true, (tg[2] + np.array([0.0, -0.0002, 0.0001]))[None], names)
     out = flag_outliers(tab, info, OutlierConfig(statistical=False))
-    f = _fit(out, info, "full", OutlierConfig())
-    rss = float(f.e @ f.e)
+    iso = OutlierConfig(noise_model="isotropic")  # both sides weigh the rows alike
+    f = _fit(out, info, "full", iso)
     dist = [(0, 2, float(np.linalg.norm(tg[0] - tg[2])))]
-    for i in (5, 12, 20):
+    cfg = IdentifyConfig(model="full", distances=dist, noise_model="isotropic")
+    res_all = identify(out, URDF, "base_link", "flange", cfg)
+    assert isinstance(res_all, IdentifyResult)
+    rss = 2 * float(res_all.summary["cost"])
+    assert float(f.e @ f.e) == pytest.approx(rss, rel=1e-3)
+    # rows whose removal changes the cost well above the solver's tolerance on it
+    for i in (5, 20):
         S, rank, _ = _mean_shift(f, np.array([i]), np.ones(1))
         t2 = out.copy()
         t2.loc[i, "inlier"] = False
-        res = identify(
-            t2, URDF, "base_link", "flange", IdentifyConfig(model="full", distances=dist)
-        )
+        res = identify(t2, URDF, "base_link", "flange", cfg)
         assert isinstance(res, IdentifyResult)
         drop = rss - 2 * float(res.summary["cost"])
         assert rank == 3
         assert abs(S - drop) <= 0.02 * drop, (i, S, drop)
+        e_i = f.e[3 * i : 3 * i + 3]
+        assert abs(float(e_i @ e_i) - drop) > 0.2 * drop  # the leverage term matters here
 
 
 def test_rules_fire_on_the_conformance_sample(conformance_sample: Path, tmp_path: Path) -> None:

@@ -39,7 +39,10 @@ the mean-shift outlier model)::
 
     S = (C^T e)^T (C^T (I - H) C)^+ (C^T e),   H = J (J^T J)^+ J^T
 
-so the leverage of every row (the hat matrix ``H``) is accounted for. With
+so the leverage of every row (the hat matrix ``H``) is accounted for. Rows are
+whitened as identification whitens them (``sqrt(w_i) W R_i^T``, ``W`` from the
+residuals' covariance in the flange frame, identity when identification stayed
+isotropic), and ``e`` is the residual of that whitened linear fit. With
 the scale estimated *without* the group, ``s2 = (|e|^2 - S) / (dof - r)``
 (``r = rank C^T (I - H) C``), ``F = S / (r s2)`` follows ``F(r, dof - r)``
 under "no outlier"; a single touch-up's ``sqrt(S / s2)`` is its externally
@@ -107,6 +110,9 @@ class OutlierConfig:
         metres: a significant but smaller one is not acted on (its studentized
         residual stays in the table); it moves the calibration by less than a
         touch-up's repeatability
+    noise_model : identification's noise model for the statistics (``flange``:
+        residuals whitened in the flange frame, as identify does by default;
+        ``isotropic``)
     """
 
     max_fit_residual_px: float = 0.25
@@ -121,6 +127,7 @@ class OutlierConfig:
     max_iterations: int = 20
     reinclude: bool = True
     min_shift_m: float = 1e-4
+    noise_model: str = "flange"
 
 
 def _rule_masks(table: pd.DataFrame, config: OutlierConfig) -> dict[str, np.ndarray]:
@@ -198,13 +205,16 @@ class _Fit:
     """A least-squares fit linearised for the mean-shift tests.
 
     ``rows`` are positions (in the flagged table) of the touch-ups in the fit,
-    ``e`` (m,) the weighted residual, ``U`` (m, rank) an orthonormal basis of
+    ``e`` (m,) the weighted, whitened residual (projected onto the orthogonal
+    complement of the Jacobian's columns: the linearised least-squares residual), ``U`` (m, rank) an orthonormal basis of
     the Jacobian's column space, ``dof = m - rank``, ``sigma2 = |e|^2 / dof``;
     ``Vs`` (cols, rank) = ``V S^-1`` so ``(J^T J)^+ = Vs Vs^T``.
     """
 
     model: str
     rows: np.ndarray
+    B: F64  # (N, 3, 3) whitening block of each touch-up: sqrt(w_i) W R_i^T (or sqrt(w_i) I)
+    W: F64  # (3, 3) flange-frame whitening (identity: isotropic)
     e: F64
     U: F64
     Vs: F64
@@ -240,7 +250,9 @@ def _fit(out: pd.DataFrame, info: Any, model: str, config: OutlierConfig) -> _Fi
     dist = _distances(info)
     labels = set(out["target_id"].astype(int).tolist())
     dist = [d for d in dist if int(d[0]) in labels and int(d[1]) in labels]
-    icfg = IdentifyConfig(model=model, distances=dist, n_workspace=4)
+    icfg = IdentifyConfig(
+        model=model, distances=dist, n_workspace=4, noise_model=config.noise_model
+    )
     res = identify(out, info.urdf, info.base_link, info.flange_link, icfg)
     assert isinstance(res, IdentifyResult)
     chain = load_chain(info.urdf, info.base_link, info.flange_link)
@@ -259,14 +271,16 @@ def _fit(out: pd.DataFrame, info: Any, model: str, config: OutlierConfig) -> _Fi
     assert Jx is not None
     N, K, nk = len(rows), len(tg), len(kept)
     t_at = np.array([tg[int(t)] for t in tid])
-    e_rows = ((p - t_at) * sw[:, None]).ravel()
+    W = _whitening(R, p - t_at, sw**2, nk + 3 + 3 * K, bool(res.summary.get("flange_sigma_mm")))
+    B = np.einsum("ab,ncb->nac", W, R) * sw[:, None, None]  # sqrt(w) W R^T
+    e_rows = np.einsum("nab,nb->na", B, p - t_at).ravel()
     ncol = nk + 3 + 3 * K
     J = np.zeros((3 * N, ncol))
-    J[:, :nk] = (Jx[:, :, kept] * sw[:, None, None]).reshape(3 * N, nk)
-    J[:, nk : nk + 3] = (R * sw[:, None, None]).reshape(3 * N, 3)
+    J[:, :nk] = np.einsum("nab,nbk->nak", B, Jx[:, :, kept]).reshape(3 * N, nk)
+    J[:, nk : nk + 3] = np.einsum("nab,nbk->nak", B, R).reshape(3 * N, 3)
     for i in range(N):
         c0 = nk + 3 + 3 * tcol[int(tid[i])]
-        J[3 * i : 3 * i + 3, c0 : c0 + 3] = -sw[i] * np.eye(3)
+        J[3 * i : 3 * i + 3, c0 : c0 + 3] = -B[i]
     # known-distance rows (their residuals are ~0 at the fit, weight as in identify)
     wd = float(icfg.distance_weight)
     extra_J, extra_e = [], []
@@ -292,9 +306,44 @@ def _fit(out: pd.DataFrame, info: Any, model: str, config: OutlierConfig) -> _Fi
     rank = int(np.sum(s > s[0] * 1e-10)) if s.size else 0
     U = Uf[:, :rank]
     Vs = (Vt[:rank].T / s[:rank]) / cn[:, None]
+    e = e - U @ (U.T @ e)  # one Gauss-Newton step: the residual of the whitened linear fit
     dof = J.shape[0] - rank
     sigma2 = float(e @ e / dof) if dof > 0 else float("nan")
-    return _Fit(model, rows, e, U, Vs, dof, sigma2, res.x, kept, res.p_flange_pin, tg, tcol)
+    return _Fit(model, rows, B, W, e, U, Vs, dof, sigma2, res.x, kept, res.p_flange_pin, tg, tcol)
+
+
+def _whitening(R: F64, r: F64, w: F64, n_est: int, flange: bool) -> F64:
+    """Flange-frame whitening ``W`` of the pin residuals, as identification estimates it.
+
+    A touch-up's error is fixed in the camera (flange) frame and larger along the
+    view: ``S = cov(R_i^T r_i)`` (weighted), ``W = s V diag(lam^-1/2) V^T`` with
+    ``S = V diag(lam) V^T``, ``s^2 = mean lam`` (so ``W`` only reshapes, it does not
+    rescale). Unlike identification's, the covariance is estimated robustly (the
+    touch-ups whose Mahalanobis distance exceeds the chi-square(3) 97.5 % point
+    are left out, twice), so an outlier does not whiten itself away. Identity when
+    identification used isotropic residuals (``flange`` false) or too few degrees
+    of freedom are left (< 15).
+    """
+    if not flange or 3 * len(r) - n_est < 15:
+        return np.eye(3)
+    ef = np.einsum("nji,nj->ni", R, r)
+    keep = np.ones(len(ef), dtype=bool)
+    cut = float(stats.chi2.ppf(0.975, 3))
+    for _ in range(3):
+        wk = w * keep
+        mu = (wk[:, None] * ef).sum(axis=0) / wk.sum()
+        c = ef - mu
+        S = (wk[:, None, None] * c[:, :, None] * c[:, None, :]).sum(axis=0) / wk.sum()
+        d2 = np.einsum("ni,ij,nj->n", c, np.linalg.pinv(S), c)
+        new = d2 <= cut
+        if new.sum() < max(6, len(ef) // 2) or np.array_equal(new, keep):
+            break
+        keep = new
+    lam, V = np.linalg.eigh(S)
+    if lam.max() < (1e-9) ** 2:
+        return np.eye(3)
+    lam = np.maximum(lam, lam.max() * 1e-4)
+    return np.asarray(np.sqrt(lam.mean()) * (V / np.sqrt(lam)) @ V.T)
 
 
 def _mean_shift(f: _Fit, pos: np.ndarray, w: np.ndarray) -> tuple[float, int, F64]:
@@ -304,10 +353,11 @@ def _mean_shift(f: _Fit, pos: np.ndarray, w: np.ndarray) -> tuple[float, int, F6
     ``C`` on those rows buy, ``r`` the rank of ``C^T (I - H) C`` and ``delta``
     the least-squares shift, metres (module docstring).
     """
+    del w  # the weights are in the whitening blocks
     m = len(f.e)
     C = np.zeros((m, 3))
-    for i, wi in zip(pos, w, strict=True):
-        C[3 * i : 3 * i + 3] = np.sqrt(wi) * np.eye(3)
+    for i in pos:
+        C[3 * i : 3 * i + 3] = f.B[i]
     UC = f.U.T @ C
     M = C.T @ C - UC.T @ UC
     ce = C.T @ f.e
@@ -337,7 +387,8 @@ def _group_test(f: _Fit, pos: np.ndarray, w: np.ndarray) -> tuple[float, float, 
 def _prediction_test(f: _Fit, out: pd.DataFrame, i: int, info: Any) -> tuple[float, float]:
     """Test row ``i`` (not in the fit) as a new observation of the fit.
 
-    ``e = p(q_i) - t_k``, ``Var e = s2 (I / w_i + J_i (J^T J)^+ J_i^T)``;
+    ``e = B_i (p(q_i) - t_k)`` whitened as the fit's rows (``B_i = sqrt(w_i) W R_i^T``),
+    ``Var e = s2 (I + J_i (J^T J)^+ J_i^T)`` with ``J_i`` its whitened Jacobian rows;
     returns ``(p-value of F(3, dof), sigma)``.
     """
     from pipeline.kinematics.chain import load_chain
@@ -356,14 +407,15 @@ def _prediction_test(f: _Fit, out: pd.DataFrame, i: int, info: Any) -> tuple[flo
     p, R, Jx = em.pin_and_jacobian(f.x, q, f.pin + np.nan_to_num(d), jac=True)
     assert Jx is not None
     nk = len(f.kept)
+    Bi = np.sqrt(w) * f.W @ R[0].T
     Ji = np.zeros((3, f.Vs.shape[0]))
-    Ji[:, :nk] = Jx[0][:, f.kept]
-    Ji[:, nk : nk + 3] = R[0]
+    Ji[:, :nk] = Bi @ Jx[0][:, f.kept]
+    Ji[:, nk : nk + 3] = Bi @ R[0]
     c0 = nk + 3 + 3 * f.tcol[tid]
-    Ji[:, c0 : c0 + 3] = -np.eye(3)
+    Ji[:, c0 : c0 + 3] = -Bi
     G = Ji @ f.Vs
-    V = np.eye(3) / w + G @ G.T
-    e = p[0] - f.targets[tid]
+    V = np.eye(3) + G @ G.T
+    e = Bi @ (p[0] - f.targets[tid])
     S = float(e @ np.linalg.solve(V, e)) / f.sigma2
     return float(stats.f.sf(S / 3.0, 3, f.dof)), float(np.sqrt(S))
 
