@@ -21,9 +21,9 @@ robot, camera, targets and poses are the same). Both go through ``vtcal run
 
     python benchmarks/bench_outliers.py [--seeds 1 2 3] [--work DIR] [--scenario TOML]
 
-Simulations and runs are cached in ``--work`` (default
-``/tmp/vtcal_bench_outliers``); delete it to start afresh. One core, about a
-minute per seed the first time.
+Simulations are cached in ``--work`` (default
+``/tmp/vtcal_bench_outliers``; delete it to start afresh); the runs are redone
+(``--force``) every time. One core, about a minute per seed the first time.
 """
 
 from __future__ import annotations
@@ -103,7 +103,8 @@ def simulate_and_run(scenario: Path, seed: int, work: Path) -> tuple[Path, dict[
             "--quiet",
         )
     run = work / f"run_{scenario.stem}_s{seed}"
-    sh("run", str(rec), "--out", str(run), "--until", "crossval", "--model", "all", "-q")
+    args = ("--until", "crossval", "--model", "all", "-q", "--force")
+    sh("run", str(rec), "--out", str(run), *args)
     return run, json.loads(Path(str(rec) + ".truth.json").read_text())
 
 
