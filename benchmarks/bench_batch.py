@@ -95,7 +95,7 @@ def rss_by_worker(outcomes) -> dict[str, list[float]]:
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--until", default="identify", help="last stage (default identify)")
+    ap.add_argument("--until", default="report", help="last stage (default: report, all)")
     ap.add_argument("--workdir", type=Path, default=None, help="keep recordings here")
     ap.add_argument("--seeds", type=int, default=8, help="number of recordings (8)")
     ap.add_argument("--repeat", type=int, default=2, help="timed 1/2-worker pairs (2)")
@@ -132,7 +132,12 @@ def main() -> None:
         t2, r2 = timed_batch(items, out2, 2, args.until, cfg)
         t1s.append(t1)
         t2s.append(t2)
-        print(f"  repeat {k + 1}: 1 worker {t1:.2f} s, 2 workers {t2:.2f} s, x{t1 / t2:.2f}")
+        f1, f2 = r1.timings["fan_out"], r2.timings["fan_out"]
+        print(
+            f"  repeat {k + 1}: 1 worker {t1:.2f} s, 2 workers {t2:.2f} s, x{t1 / t2:.2f}; "
+            f"fan-out alone {f1:.2f} s vs {f2:.2f} s, x{f1 / f2:.2f}; "
+            f"summary + compare {t2 - f2:.2f} s"
+        )
     t1, t2 = min(t1s), min(t2s)
     t3, r3 = timed_batch(items, out2, 2, args.until, cfg)
     cli = ["vtcal", "batch", "--manifest", str(manifest), "--out", str(out2)]

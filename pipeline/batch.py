@@ -511,7 +511,12 @@ BatchProgress = Callable[[int, int, RecordingOutcome], None]
 
 @dataclass
 class BatchResult:
-    """A finished (or interrupted) batch."""
+    """A finished batch.
+
+    ``timings`` (s): ``fan_out`` (executor start to the last outcome, pool
+    shutdown included), ``summary`` (summary.parquet), ``compare`` (compare.parquet
+    and compare.html); ``seconds`` is the whole batch.
+    """
 
     out_dir: Path
     outcomes: list[RecordingOutcome]
@@ -521,6 +526,7 @@ class BatchResult:
     interrupted: bool = False
     compare: Any = None
     compare_note: str = ""
+    timings: dict[str, float] = field(default_factory=dict)
 
     @property
     def n_ok(self) -> int:
@@ -606,6 +612,7 @@ def run_batch(
     ]
     outcomes: dict[str, RecordingOutcome] = {}
     interrupted = False
+    timings: dict[str, float] = {}
     try:
         with contextlib.ExitStack() as stack:
             ex = executor or stack.enter_context(open_executor(kind, workers, scheduler))
@@ -623,6 +630,7 @@ def run_batch(
                     outcomes[it.name].retried = True
     except KeyboardInterrupt:
         interrupted = True
+    timings["fan_out"] = time.perf_counter() - t0
     ordered = [
         outcomes.get(it.name)
         or RecordingOutcome(
@@ -639,10 +647,14 @@ def run_batch(
     ]
     summary = summary_table(ordered)
     path = write_summary(out_dir, summary, config=config, until=until, force=force)
+    timings["summary"] = time.perf_counter() - t0 - timings["fan_out"]
     if interrupted:
         raise KeyboardInterrupt
+    t1 = time.perf_counter()
     cmp, note = compare_batch(out_dir, ordered) if compare else (None, "not asked for")
-    return BatchResult(out_dir, ordered, summary, path, time.perf_counter() - t0, False, cmp, note)
+    timings["compare"] = time.perf_counter() - t1
+    seconds = time.perf_counter() - t0
+    return BatchResult(out_dir, ordered, summary, path, seconds, False, cmp, note, timings)
 
 
 def _fan_out(
