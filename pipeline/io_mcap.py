@@ -61,6 +61,8 @@ class StreamState:
     error: str = ""
     #: one line per chunk skipped because its CRC failed or it did not decompress/parse
     bad_chunks: list[str] = field(default_factory=list)
+    #: messages skipped because no Channel record for them was seen (lost with a damaged chunk)
+    orphan_messages: int = 0
     schemas: dict[int, Schema] = field(default_factory=dict)
     channels: dict[int, Channel] = field(default_factory=dict)
     metadata: dict[str, dict[str, str]] = field(default_factory=dict)
@@ -132,7 +134,10 @@ def iter_messages(path: str | os.PathLike[str], state: StreamState) -> Iterator[
                     inner = [outer]
                 for rec in inner:
                     if isinstance(rec, Message):
-                        yield rec
+                        if rec.channel_id in state.channels:
+                            yield rec
+                        else:
+                            state.orphan_messages += 1
                     elif isinstance(rec, Schema):
                         state.schemas[rec.id] = rec
                     elif isinstance(rec, Channel):

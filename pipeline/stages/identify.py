@@ -295,6 +295,9 @@ def _numeric_columns(df: pd.DataFrame, names: list[str]) -> pd.DataFrame:
     ``touchup_id`` must be unique integers; joint, correction and weight columns
     floats (empty cells are NaN and flag their row later).
     """
+    dup_cols = sorted({str(c) for c in df.columns[df.columns.duplicated()]})
+    if dup_cols:
+        raise BadInput(f"touch-up table: column(s) {dup_cols} appear more than once")
     df = df.copy()
     for c in [*names, "dx_flange", "dy_flange", "dz_flange", "weight", "touchup_id"]:
         if c not in df.columns:

@@ -376,6 +376,11 @@ def ingest_recording(
             f"{path}: {len(state.bad_chunks)} chunk(s) failed their CRC or did not decompress "
             f"and were skipped (their messages are lost); first: {state.bad_chunks[0]}"
         )
+    if state.orphan_messages:
+        warnings.append(
+            f"{path}: {state.orphan_messages} messages name a channel whose Channel record is "
+            "missing (damaged file) and were skipped"
+        )
     n_undecoded = sum(1 for r in rows if str(r.get("reason", "")).startswith("decode_failed"))
     if n_undecoded:
         first = next(r["reason"] for r in rows if str(r["reason"]).startswith("decode_failed"))
