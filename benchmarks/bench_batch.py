@@ -81,16 +81,17 @@ def timed_batch(items, out: Path, workers: int, until: str, cfg) -> tuple[float,
     return time.perf_counter() - t0, res
 
 
-def rss_by_worker(outcomes) -> dict[str, list[float]]:
-    """worker -> its peak RSS after each of its recordings, in the order it ran them.
+def rss_by_worker(outcomes) -> dict[str, list[tuple[float, float]]]:
+    """worker -> (peak RSS, RSS now) after each of its recordings, in the order it ran them.
 
-    Peak RSS only grows within a process, so sorting gives the order.
+    Peak RSS only grows within a process, so sorting by it (then by the item
+    order, stable) gives the order.
     """
-    per: dict[str, list[float]] = {}
+    per: dict[str, list[tuple[float, float]]] = {}
     for o in outcomes:
         if o.peak_rss_mb is not None:
-            per.setdefault(o.worker, []).append(o.peak_rss_mb)
-    return {w: sorted(v) for w, v in per.items()}
+            per.setdefault(o.worker, []).append((o.peak_rss_mb, o.rss_mb or float("nan")))
+    return {w: sorted(v, key=lambda x: x[0]) for w, v in per.items()}
 
 
 def main() -> None:
@@ -170,12 +171,14 @@ def main() -> None:
     print(f"  ratio to the first (2 workers):  {t3 / t2:7.3f}     (target < 0.10)")
     print(f"second run as a cold CLI process: {t4:6.2f} s")
     print(f"  ratio to the first (2 workers):  {t4 / t2:7.3f}     (target < 0.10)")
-    print("peak RSS per worker (MB, getrusage ru_maxrss): after first / after last recording")
+    print("memory per worker (MB): peak RSS (getrusage ru_maxrss) first -> last recording;")
+    print("  then RSS at the end of each recording (/proc/self/statm)")
     for label, r in (("1 worker", r1), ("2 workers", r2)):
         for w, seq in rss_by_worker(r.outcomes).items():
             print(
-                f"  {label:<9} {w:<16} {seq[0]:7.1f} / {seq[-1]:7.1f}  ({len(seq)} recordings, "
-                f"growth x{seq[-1] / seq[0]:.3f}; after each: {' '.join(f'{x:.0f}' for x in seq)})"
+                f"  {label:<9} {w:<16} peak {seq[0][0]:6.1f} -> {seq[-1][0]:6.1f} "
+                f"(x{seq[-1][0] / seq[0][0]:.3f}, {len(seq)} recordings); "
+                f"RSS after each: {' '.join(f'{x[1]:.0f}' for x in seq)}"
             )
     import resource
 

@@ -258,6 +258,7 @@ class RecordingOutcome:
     seconds: float = 0.0
     cpu_seconds: float = 0.0
     peak_rss_mb: float | None = None
+    rss_mb: float | None = None
     worker: str = ""
     robot_urdf: str = ""
     figures: dict[str, Any] = field(default_factory=dict)
@@ -286,6 +287,15 @@ def peak_rss_mb() -> float | None:
         return None
     kb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
     return kb / (1024.0 * 1024.0) if sys.platform == "darwin" else kb / 1024.0
+
+
+def rss_mb() -> float | None:
+    """Resident set size of this process now, MB (``/proc/self/statm``; None elsewhere)."""
+    try:
+        pages = int(Path("/proc/self/statm").read_text().split()[1])
+    except (OSError, ValueError, IndexError):
+        return None
+    return pages * os.sysconf("SC_PAGE_SIZE") / (1024.0 * 1024.0)
 
 
 def _one_line(text: str) -> str:
@@ -381,6 +391,7 @@ def run_recording(
     rec.cpu_seconds = time.process_time() - c0
     rec.robot_urdf = _robot_from_urdf(out)
     rec.peak_rss_mb = peak_rss_mb()
+    rec.rss_mb = rss_mb()
     return rec
 
 

@@ -283,5 +283,17 @@ def _print_compare(console: Any, res: Any) -> None:
             markup=False,
         )
     console.print(f"  {res.summary.get('verdict', '')}", highlight=False, markup=False)
-    for f in res.summary.get("flags", []):
-        console.print(f"    {f}", highlight=False, markup=False)
+    moved = res.moved
+    if len(moved):
+        shipped = {(r.run, r.model) for r in res.runs.itertuples() if r.shipped}
+        for (run, model), g in moved.groupby(["run", "model"], sort=False):
+            if (run, model) not in shipped:
+                continue
+            top = g.reindex(g["delta_sigma"].abs().sort_values(ascending=False).index)
+            names = ", ".join(str(p) for p in top["parameter"].head(3))
+            console.print(
+                f"    {run} [{model}] against {g['baseline_run'].iloc[0]}: {len(g)} parameter(s) "
+                f"moved (largest: {names})",
+                highlight=False,
+                markup=False,
+            )
