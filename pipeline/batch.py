@@ -69,7 +69,9 @@ THREAD_ENV: dict[str, str] = {
     "BLIS_NUM_THREADS": "1",
 }
 
-#: Modules the process pool's fork server imports once, so that workers start warm.
+#: Modules the process pool's fork server imports once, so that workers start warm
+#: (what ``run_pipeline`` imports even when every stage is cached; the report's
+#: rendering libraries load in a worker only when it renders a report).
 _PRELOAD = (
     "pipeline.batch",
     "pipeline.orchestrator",
@@ -78,6 +80,7 @@ _PRELOAD = (
     "pipeline.stages.touchup",
     "pipeline.stages.outliers",
     "pipeline.stages.identify",
+    "pipeline.stages.crossval",
 )
 
 #: Headline figures copied from ``identify.json`` into the summary (same names there).

@@ -92,8 +92,10 @@ def command(
     options and code version are unchanged are skipped, so running a batch again
     only redoes what changed, and an interrupted batch resumes where it stopped.
     A recording that fails is reported with its error and does not stop the
-    others. At the end OUT/summary.parquet holds one row per recording and a
-    table is printed. Exit status 0 when every recording finished, 1 otherwise.
+    others. At the end OUT/summary.parquet holds one row per recording, a table
+    is printed, and the identified runs are compared (OUT/compare.parquet and
+    compare.html, as `vtcal compare`). Exit status 0 when every recording
+    finished, 1 otherwise. See docs/batch.md.
     """
     from pipeline.batch import default_workers, items_from_paths, load_manifest, prestart, run_batch
 
