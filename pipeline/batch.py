@@ -694,8 +694,15 @@ def _fan_out(
     futures: dict[Future[RecordingOutcome], BatchItem] = {}
     broken: list[BatchItem] = []
     try:
-        for it in items:
-            fut = ex.submit(run_recording, it, str(out_dir / it.name), config, until, force)
+        for i, it in enumerate(items):
+            try:
+                fut = ex.submit(run_recording, it, str(out_dir / it.name), config, until, force)
+            except BrokenExecutor as exc:  # a worker died while we were still submitting
+                for rest in items[i:]:
+                    broken.append(rest)
+                    if not retry_broken:
+                        outcomes[rest.name] = _worker_failure(rest, out_dir / rest.name, exc)
+                break
             futures[fut] = it
         for fut in as_completed(futures):
             it = futures[fut]
