@@ -173,3 +173,13 @@ def test_rules_fire_on_the_conformance_sample(conformance_sample: Path, tmp_path
             assert "target lost" in reason[f["touchup"]]
     assert len(inl) == len(pd.read_parquet(tmp_path / "touchups.parquet"))
     assert {"studentized", "leverage", "note"} <= set(inl.columns)
+
+
+def test_too_small_for_statistics_says_so_and_rejects_nothing_more() -> None:
+    tab, _, _, info = make_cell(15, per_target=2)  # 6 touch-ups: no model leaves a test
+    tab.loc[0, "converged"] = False
+    out = flag_outliers(tab, info, OutlierConfig())
+    assert list(out["inlier"]) == [False] + [True] * 5
+    assert out.loc[0, "reason"] == "not converged"
+    assert out.loc[1:, "note"].str.startswith("statistical check skipped").all()
+    assert out["studentized"].isna().all()

@@ -192,8 +192,12 @@ def flag_outliers(table: pd.DataFrame, info: Any, config: OutlierConfig) -> pd.D
     out["studentized"] = np.nan
     out["leverage"] = np.nan
     out["note"] = ""
+    labels = pd.to_numeric(out["target_id"], errors="coerce")
     if config.statistical and getattr(info, "urdf", None):
-        out = _statistical(out, info, config)
+        if labels.notna().all() and (labels == labels.round()).all():
+            out = _statistical(out, info, config)
+        else:
+            out["note"] = "statistical check skipped (target labels are not integers)"
     return out.reset_index(drop=True)
 
 
