@@ -71,8 +71,8 @@ def main(argv: list[str] | None = None) -> Any:
     """Entry point: run the CLI, mapping vtcal errors to one line and an exit code."""
     try:
         return cli.main(args=argv, prog_name="vtcal", standalone_mode=False)
-    except click.exceptions.Abort:
-        click.echo("vtcal: aborted", err=True)
+    except click.exceptions.Abort:  # click turns Ctrl-C (KeyboardInterrupt) into Abort
+        click.echo("vtcal: interrupted; finished artefacts are intact", err=True)
         sys.exit(130)
     except click.UsageError as exc:  # bad option or argument: one line, like bad input
         cmd = exc.ctx.command_path if exc.ctx is not None else "vtcal"

@@ -209,6 +209,10 @@ def run_pipeline(
     from pipeline.stages import detect, identify, ingest, outliers, touchup
 
     out.mkdir(parents=True, exist_ok=True)
+    # temporaries a killed run left behind (atomic writes, the .rrd's partial save): never
+    # artefacts; a run folder has one run at a time, so they are stale
+    for stale in [*out.glob(".*.tmp"), *out.glob(".*.partial")]:
+        stale.unlink(missing_ok=True)
     P = run_paths(out)
     records: list[StageRecord] = []
     opts = cfg.stage_options
