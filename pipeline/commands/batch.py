@@ -99,19 +99,19 @@ def command(
     """
     from pipeline.batch import default_workers, items_from_paths, load_manifest, prestart, run_batch
 
+    if manifest is not None and recordings:
+        raise BadInput("give recordings or --manifest, not both")
+    if manifest is None and not recordings:
+        raise BadInput("no recordings: give RECORDINGS... or --manifest datasets/NAME.toml")
+    if workers is not None and workers < 1:
+        raise BadInput(f"--workers {workers}: needs at least 1")
+    items = load_manifest(manifest).items if manifest else tuple(items_from_paths(recordings))
+
     prestart(executor)  # the workers' fork server imports the pipeline meanwhile
     from pipeline.orchestrator import STAGES, RunConfig
 
     if until is not None and until not in STAGES:
         raise BadInput(f"--until {until!r}: not a stage (stages: {', '.join(STAGES)})")
-    if workers is not None and workers < 1:
-        raise BadInput(f"--workers {workers}: needs at least 1")
-
-    if manifest is not None and recordings:
-        raise BadInput("give recordings or --manifest, not both")
-    if manifest is None and not recordings:
-        raise BadInput("no recordings: give RECORDINGS... or --manifest datasets/NAME.toml")
-    items = load_manifest(manifest).items if manifest else tuple(items_from_paths(recordings))
 
     overrides = dict(overrides)
     if distance:
