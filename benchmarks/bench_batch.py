@@ -26,7 +26,9 @@ The identify stage uses the ``offsets`` error model: 3 targets x 2 poses are too
 few touch-ups for the full model (the batch would report them as
 calibration_failed, which is a valid batch but not the workload meant here).
 Wall times depend on what else runs on the machine: the load average is printed
-before and after.
+before and after, and for every timed batch the CPU other processes took
+meanwhile (``/proc/stat`` busy time minus our tasks' CPU time): a speed-up
+can only show when the second core is not busy with someone else's work.
 
     python benchmarks/bench_batch.py [--until identify] [--workdir DIR] [--seeds 8]
 """
@@ -73,12 +75,30 @@ def write_manifest(workdir: Path, paths: list[Path]) -> Path:
     return m
 
 
+def cpu_busy_seconds() -> float:
+    """Core-seconds the whole machine spent busy so far (``/proc/stat``; 0 elsewhere)."""
+    try:
+        f = [int(x) for x in Path("/proc/stat").read_text().split("\n", 1)[0].split()[1:]]
+    except (OSError, ValueError):
+        return 0.0
+    idle = f[3] + (f[4] if len(f) > 4 else 0)
+    return (sum(f[:8]) - idle) / os.sysconf("SC_CLK_TCK")
+
+
 def timed_batch(items, out: Path, workers: int, until: str, cfg) -> tuple[float, object]:
+    """Run a batch; also print how much CPU other processes took meanwhile."""
     from pipeline.batch import run_batch
 
-    t0 = time.perf_counter()
+    b0, t0 = cpu_busy_seconds(), time.perf_counter()
     res = run_batch(items, out, cfg, kind="processes", workers=workers, until=until)
-    return time.perf_counter() - t0, res
+    dt, busy = time.perf_counter() - t0, cpu_busy_seconds() - b0
+    ours = sum(o.cpu_seconds for o in res.outcomes)
+    others = max(0.0, busy - ours)
+    print(
+        f"    {workers} worker(s): {dt:.2f} s; our tasks {ours:.1f} CPU-s, other processes "
+        f"on the machine {others:.1f} CPU-s ({others / dt:.2f} cores busy with them)"
+    )
+    return dt, res
 
 
 def rss_by_worker(outcomes) -> dict[str, list[tuple[float, float]]]:
