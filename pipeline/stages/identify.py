@@ -298,11 +298,13 @@ def _numeric_columns(df: pd.DataFrame, names: list[str]) -> pd.DataFrame:
     dup_cols = sorted({str(c) for c in df.columns[df.columns.duplicated()]})
     if dup_cols:
         raise BadInput(f"touch-up table: column(s) {dup_cols} appear more than once")
-    df = df.copy()
+    converted: dict[str, pd.Series] = {}
     for c in [*names, "dx_flange", "dy_flange", "dz_flange", "weight", "touchup_id"]:
         if c not in df.columns:
             continue
         col = df[c]
+        if c != "touchup_id" and col.dtype == np.float64:
+            continue  # already what is needed: no copy (this runs on every identify call)
         if not (pd.api.types.is_numeric_dtype(col) and not pd.api.types.is_bool_dtype(col)):
             num = pd.to_numeric(col, errors="coerce")
             bad = num.isna() & col.notna()
@@ -312,8 +314,11 @@ def _numeric_columns(df: pd.DataFrame, names: list[str]) -> pd.DataFrame:
                     f"touch-up table: column {c!r} row {i}: {col.iloc[i]!r} is not a number"
                 )
             col = num
-        df[c] = col.astype(float) if c != "touchup_id" else col
-    tid = df["touchup_id"].to_numpy(dtype=float)
+        if c != "touchup_id":
+            converted[c] = col.astype(float)
+    if converted:
+        df = df.assign(**converted)
+    tid = pd.to_numeric(df["touchup_id"], errors="coerce").to_numpy(dtype=float)
     bad_id = ~np.isfinite(tid) | (tid != np.round(tid))
     if bad_id.any():
         i = int(np.flatnonzero(bad_id)[0])
@@ -321,7 +326,8 @@ def _numeric_columns(df: pd.DataFrame, names: list[str]) -> pd.DataFrame:
             f"touch-up table: column 'touchup_id' row {i}: {df['touchup_id'].iloc[i]!r} is not "
             "an integer"
         )
-    df["touchup_id"] = tid.astype(np.int64)
+    if df["touchup_id"].dtype != np.int64:
+        df = df.assign(touchup_id=tid.astype(np.int64))
     dup = df["touchup_id"].duplicated()
     if dup.any():
         i = int(np.flatnonzero(dup.to_numpy())[0])
