@@ -245,6 +245,11 @@ def ingest_recording(
     polarity = (
         detect_config.polarity or config.overrides.get("polarity") or metadata.get("polarity")
     )
+    if polarity and polarity not in ("dark_on_light", "light_on_dark"):
+        raise BadInput(
+            f"{path}: polarity {polarity!r} (touchup metadata or --set) is not dark_on_light "
+            "or light_on_dark"
+        )
     dcfg = DetectConfig(**{**detect_config.to_dict(), "polarity": polarity or None})
 
     state = StreamState(path)

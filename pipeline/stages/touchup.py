@@ -337,9 +337,14 @@ def _meta_float(meta: dict[str, str], key: str) -> float | None:
     if v is None or str(v).strip() == "":
         return None
     try:
-        return float(v)
+        x = float(v)
     except ValueError as exc:
         raise BadInput(f"touchup metadata {key}={v!r} is not a number") from exc
+    if not np.isfinite(x):
+        raise BadInput(f"touchup metadata {key}={v!r} is not a finite number")
+    if key not in ("designated_u", "designated_v") and x <= 0:
+        raise BadInput(f"touchup metadata {key}={v!r} must be > 0")
+    return x
 
 
 def extract_touchups(
