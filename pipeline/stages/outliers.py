@@ -462,9 +462,11 @@ def _statistical(out: pd.DataFrame, info: Any, config: OutlierConfig) -> pd.Data
     next_label = int(max(out["target_id"].max(), out["source_target_id"].max())) + 1
     model_used = config.model
     f: _Fit | None = None
-    for _ in range(config.max_iterations + 1):
+    for it in range(config.max_iterations + 1):
         got = _choose_fit(out, info, config if model_used == "auto" else _fixed(config, model_used))
         if isinstance(got, str):
+            if it > 0:  # an earlier step left too little to test further
+                got = got.replace("statistical check skipped", "statistical search stopped", 1)
             for i in np.flatnonzero(out["inlier"].to_numpy(dtype=bool)):
                 notes[i].append(got)
             f = None
@@ -498,6 +500,10 @@ def _statistical(out: pd.DataFrame, info: Any, config: OutlierConfig) -> pd.Data
         cands.sort(key=lambda c: (round(np.log(max(c[0], 1e-300)), 9), c[1]))
         p, _, kind, what, sig, delta = cands[0]
         if min(1.0, p * n_tests) >= config.alpha:
+            break
+        if it == config.max_iterations:
+            for i in f.rows:
+                notes[int(i)].append(f"statistical search stopped after {it} steps")
             break
         if kind == "single":
             r_out = int(what)
