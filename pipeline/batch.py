@@ -67,6 +67,7 @@ THREAD_ENV: dict[str, str] = {
     "VECLIB_MAXIMUM_THREADS": "1",
     "NUMEXPR_NUM_THREADS": "1",
     "BLIS_NUM_THREADS": "1",
+    "NUMBA_NUM_THREADS": "1",
 }
 
 #: Modules the process pool's fork server imports once, so that workers start warm
