@@ -1,8 +1,9 @@
 """vtcal batch: fan-out over an executor, per-recording errors, content caching, resume, Dask.
 
-Recordings: the shipped sample and a copy of it (two good ones), plus two corrupt
-ones (random bytes; a truncated copy cut before the robot description). Every
-batch stops after identify.
+Recordings: the shipped sample (good_a) and a copy of it (good_b, for the resume
+test), plus two corrupt ones (random bytes; a copy cut after 50 kB, before the
+robot description). Every batch stops after identify; the shared batch is
+good_a among the two corrupt ones.
 """
 
 from __future__ import annotations
