@@ -206,6 +206,7 @@ def run_pipeline(
     recording = Path(recording)
     if not recording.is_file():
         raise BadInput(f"{recording}: no such recording file")
+    parse_distances(cfg.overrides.get("known_distances", ""))  # before the long ingest
     from pipeline.stages import detect, identify, ingest, outliers, touchup
 
     out.mkdir(parents=True, exist_ok=True)
@@ -279,6 +280,7 @@ def run_pipeline(
         return _finish(out, P, records)
 
     info = ingest.RecordingInfo(**json.loads(P["recording"].read_text()))
+    parse_distances(info.metadata.get("known_distances", ""))  # bad values fail now, not late
 
     # -- touch-up extraction ---------------------------------------------------
     touchup_cfg = _build(touchup.TouchupConfig, opts.get("touchups", {}))

@@ -434,3 +434,33 @@ def test_usage_errors_are_one_line_exit_2(tmp_path, capsys):
     ]:
         code, err = run_cli(args, capsys)
         _one_error(code, err, 2, needle, "--help")
+
+
+def test_compressed_images_unknown_format_or_corrupt(tmp_path, capsys):
+    import cv2
+    from test_robustness_data import compressed_recording
+
+    png = cv2.imencode(".png", disc(30.0, 22.0))[1].tobytes()
+    rec = compressed_recording(tmp_path / "gif.mcap", "gif", [png, png])
+    code, err = _run(rec, tmp_path / "o1", capsys)
+    _one_error(code, err, 2, str(rec), "unknown compressed image format 'gif'")
+    # a PNG cut short does not decode: flagged (kept), one warning
+    rec = compressed_recording(tmp_path / "cut.mcap", "png", [png, png[: len(png) // 2], png])
+    code, err = _run(rec, tmp_path / "o2", capsys, "--until", "ingest")
+    assert code == 0 and len(err) == 1 and "1 of 3 images" in err[0], err
+
+
+@pytest.mark.parametrize(
+    "setting,needle",
+    [
+        ("polarity=purple", "polarity 'purple'"),
+        ("designated_u=nan", "designated_u='nan' is not a finite number"),
+        ("designated_size_px=abc", "designated_size_px='abc' is not a number"),
+        ("threshold_px=-1", "threshold_px='-1' must be > 0"),
+        ("known_distances=0:1=abc", "known distance '0:1=abc'"),
+    ],
+)
+def test_bad_metadata_values_are_one_line_exit_2(tmp_path, capsys, setting, needle):
+    rec = tiny_recording(tmp_path / "rec.mcap")
+    code, err = _run(rec, tmp_path / "out", capsys, "--set", setting)
+    _one_error(code, err, 2, needle)

@@ -179,6 +179,40 @@ def raw_image_recording(path: Path, images: list[dict[str, Any]]) -> Path:
     return path
 
 
+def compressed_recording(path: Path, fmt: str, payloads: list[bytes]) -> Path:
+    """A recording of ``sensor_msgs/CompressedImage`` messages with this ``format`` and data."""
+    with open(path, "wb") as f:
+        w = RosWriter(f, compression=CompressionType.NONE)
+        s_str = w.register_msgdef("std_msgs/msg/String", msgdef("std_msgs/msg/String", False))
+        s_js = w.register_msgdef(
+            "sensor_msgs/msg/JointState", msgdef("sensor_msgs/msg/JointState", False)
+        )
+        s_img = w.register_msgdef(
+            "sensor_msgs/msg/CompressedImage", msgdef("sensor_msgs/msg/CompressedImage", False)
+        )
+        w.write_message("/robot_description", s_str, {"data": URDF}, log_time=T0 - MS)
+        for k in range(60):
+            t = T0 + k * 10 * MS
+            js = {
+                "header": {"stamp": _stamp(t), "frame_id": ""},
+                "name": NAMES,
+                "position": [float(x) for x in q_of_t(t)],
+                "velocity": [],
+                "effort": [],
+            }
+            w.write_message("/joint_states", s_js, js, log_time=t)
+        for i, data in enumerate(payloads):
+            t = T0 + (100 + 100 * i) * MS
+            msg = {
+                "header": {"stamp": _stamp(t), "frame_id": "camera"},
+                "format": fmt,
+                "data": data,
+            }
+            w.write_message("/camera/image_raw/compressed", s_img, msg, log_time=t + 30 * MS)
+        w.finish()
+    return path
+
+
 def _stamp(ns: int) -> dict[str, int]:
     return {"sec": int(ns // 1_000_000_000), "nanosec": int(ns % 1_000_000_000)}
 
