@@ -99,6 +99,12 @@ def is_fresh(outputs: list[Path], inputs: Mapping[str, str], config: Mapping[str
     parquet = [p for p in outputs if p.suffix == ".parquet"]
     if not all(p.exists() for p in outputs) or not parquet:
         return False
+    for p in outputs:  # a damaged (hand-edited, copied half) JSON side file: redo the stage
+        if p.suffix == ".json":
+            try:
+                json.loads(p.read_text())
+            except (OSError, ValueError):
+                return False
     for p in parquet:
         try:
             meta = read_meta(p)

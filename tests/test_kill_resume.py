@@ -134,3 +134,20 @@ def test_stale_temporaries_of_a_killed_write_are_removed(tmp_path: Path) -> None
     assert [r.status for r in res.stages] == ["cached"]
     assert not any(s.exists() for s in stale)
     assert (out / "frames.parquet").read_bytes() == before
+
+
+def test_damaged_artefacts_in_the_run_folder_are_redone(tmp_path: Path) -> None:
+    """A truncated Parquet artefact or a broken JSON side file is not 'fresh': redone."""
+    from test_robustness_data import tiny_recording
+
+    from pipeline.orchestrator import run_pipeline
+
+    rec = tiny_recording(tmp_path / "rec.mcap")
+    out = tmp_path / "run"
+    run_pipeline(rec, out, until="ingest")
+    good = {n: (out / n).read_bytes() for n in ("frames.parquet", "recording.json")}
+    for name, data in good.items():
+        (out / name).write_bytes(data[: len(data) // 3])
+        res = run_pipeline(rec, out, until="ingest")
+        assert [r.status for r in res.stages] == ["ran"], name
+        assert (out / name).read_bytes() == data, name
