@@ -32,3 +32,22 @@ def test_rules_flag_with_reasons_and_keep_rows() -> None:
     assert out.loc[2, "reason"] == "captured while moving"
     assert out.loc[0, "reason"] == ""
     assert list(out["j1"]) == [0.1, 0.2, 0.3, 0.4]
+
+
+def test_a_final_blob_far_off_the_designated_size_is_a_lost_target() -> None:
+    """An occluder taken for the target (302 px against 53 px designated) is 'target lost'."""
+    table = pd.DataFrame(
+        {
+            "touchup_id": [0, 1, 2],
+            "target_id": [0, 0, 0],
+            "converged": [True, False, True],
+            "stamp_ns": [1, 2, 3],
+            "j1": [0.1, 0.2, 0.3],
+            "lost": [False, False, False],
+            "s": [53.3, 302.1, float("nan")],
+            "e_s_px": [0.04, 248.8, float("nan")],
+        }
+    )
+    out = flag_outliers(table, SimpleNamespace(joint_names=["j1"]), OutlierConfig())
+    assert list(out["inlier"]) == [True, False, True]
+    assert out.loc[1, "reason"] == "not converged; target lost"

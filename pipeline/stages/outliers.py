@@ -9,7 +9,8 @@ column is absent from the touch-up table is skipped):
 | reason | when |
 |---|---|
 | ``not converged`` | ``converged`` is false |
-| ``target lost`` | ``lost`` is true |
+| ``target lost`` | ``lost`` is true, or the blob at the final pose is not the target: its long
+  axis is off the designated one (``s - e_s_px``) by more than ``lost_size_frac`` of it |
 | ``captured while moving`` | ``moving`` is true |
 | ``poor contour fit`` | ``fit_residual_px`` above ``max_fit_residual_px`` |
 | ``ambiguous blob`` | ``ambiguous`` is true |
@@ -97,6 +98,8 @@ class OutlierConfig:
     ----------
     max_fit_residual_px : contour-fit RMS above which a touch-up is rejected, px
     min_captures : fewest good captures averaged at the final pose
+    lost_size_frac : a final blob whose long axis is off the designated one by more than this
+        fraction of it is not the target (an occluder, a reflection): ``target lost``
     statistical : run the residual statistics and the knock search after the rules
     model : error model of the statistics, or ``"auto"`` (see :attr:`models`)
     models : candidates of ``"auto"``, richest first
@@ -117,6 +120,7 @@ class OutlierConfig:
 
     max_fit_residual_px: float = 0.25
     min_captures: int = 1
+    lost_size_frac: float = 0.3
     statistical: bool = True
     model: str = "auto"
     models: list[str] = field(default_factory=lambda: ["full", "mdh", "offsets"])
@@ -138,9 +142,13 @@ def _rule_masks(table: pd.DataFrame, config: OutlierConfig) -> dict[str, np.ndar
             return table[name].fillna(default).to_numpy()
         return np.full(n, default)
 
+    s_final = col("s", np.nan).astype(float)
+    e_s = col("e_s_px", np.nan).astype(float)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        not_target = np.abs(e_s) > config.lost_size_frac * np.abs(s_final - e_s)
     return {
         "not converged": ~col("converged", True).astype(bool),
-        "target lost": col("lost", False).astype(bool),
+        "target lost": col("lost", False).astype(bool) | not_target,  # NaN compares False
         "captured while moving": col("moving", False).astype(bool),
         "poor contour fit": col("fit_residual_px", 0.0).astype(float) > config.max_fit_residual_px,
         "ambiguous blob": col("ambiguous", False).astype(bool),
