@@ -149,7 +149,7 @@ def iter_messages(path: str | os.PathLike[str], state: StreamState) -> Iterator[
                 state.bytes_read = cf.count  # end of the last complete record
         except Exception as exc:  # noqa: BLE001 - any break in the stream is truncation
             state.truncated = True
-            state.error = f"{type(exc).__name__}: {exc}"[:200]
+            state.error = (f"{type(exc).__name__}: {exc}" if str(exc) else type(exc).__name__)[:200]
         if not state.truncated:
             state.bytes_read = cf.count
         if not seen_footer and not state.truncated:
