@@ -28,7 +28,10 @@ calibration_failed, which is a valid batch but not the workload meant here).
 Wall times depend on what else runs on the machine: the load average is printed
 before and after, and for every timed batch the CPU other processes took
 meanwhile (``/proc/stat`` busy time minus our tasks' CPU time): a speed-up
-can only show when the second core is not busy with someone else's work.
+can only show when the second core is not busy with someone else's work. As a
+yardstick, the throughput of two concurrent busy-loop processes relative to one
+is measured before and after (2.0 on two free cores), and the batch speed-up
+is also printed relative to it.
 
     python benchmarks/bench_batch.py [--until identify] [--workdir DIR] [--seeds 8]
 """
@@ -73,6 +76,28 @@ def write_manifest(workdir: Path, paths: list[Path]) -> Path:
         lines += ["[[recordings]]", f'path = "{p.name}"', 'robot = "lrmate"', ""]
     m.write_text("\n".join(lines))
     return m
+
+
+BURN = "x = 0\nfor i in range(20_000_000):\n    x += i\n"
+
+
+def machine_parallelism() -> float:
+    """Throughput of 2 concurrent pure-Python busy loops relative to 1 (2.0 on 2 free cores).
+
+    The yardstick for the batch speed-up: what this machine delivers right now to
+    two independent CPU-bound processes, whatever else runs on it.
+    """
+
+    def burn(n: int) -> float:
+        t0 = time.perf_counter()
+        procs = [subprocess.Popen([sys.executable, "-c", BURN]) for _ in range(n)]
+        for p in procs:
+            p.wait()
+        return time.perf_counter() - t0
+
+    one = burn(1)
+    two = burn(2)
+    return 2.0 * one / two
 
 
 def cpu_busy_seconds() -> float:
@@ -143,6 +168,8 @@ def main() -> None:
         [f.result() for f in [pool.submit(os.getpid) for _ in range(2)]]
     print(f"fork server start (imports the pipeline once): {time.perf_counter() - t0:.2f} s")
 
+    cap_before = machine_parallelism()
+    print(f"machine: 2 busy loops at once ran x{cap_before:.2f} the throughput of 1 (2.00 if free)")
     stamp = time.strftime("%H%M%S")
     t1s: list[float] = []
     t2s: list[float] = []
@@ -187,6 +214,12 @@ def main() -> None:
     print(f"batch, 1 worker (best of {args.repeat}):  {t1:7.2f} s")
     print(f"batch, 2 workers (best of {args.repeat}): {t2:7.2f} s")
     print(f"speed-up 2 workers vs 1:         {t1 / t2:7.2f} x   (target >= 1.7)")
+    cap_after = machine_parallelism()
+    cap = 0.5 * (cap_before + cap_after)
+    print(
+        f"  the machine's own 2-process throughput: x{cap_before:.2f} before, x{cap_after:.2f} "
+        f"after; batch speed-up / machine's = {t1 / t2 / cap:.2f}"
+    )
     print(f"second run, nothing changed:     {t3:7.2f} s")
     print(f"  ratio to the first (2 workers):  {t3 / t2:7.3f}     (target < 0.10)")
     print(f"second run as a cold CLI process: {t4:6.2f} s")
