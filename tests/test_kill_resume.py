@@ -35,7 +35,7 @@ SCHEMA_OF = {
     "targets.parquet": "targets",
     "crossval.parquet": "crossval",
 }
-N_KILLS = 6
+N_KILLS = 8
 
 
 def _vtcal(out: Path, *extra: str) -> subprocess.Popen[bytes]:
@@ -80,11 +80,12 @@ def test_killed_runs_leave_no_partial_artefact_and_resume(tmp_path: Path) -> Non
     out = tmp_path / "killed"
     leftovers: list[str] = []
     log = []
-    for i in range(N_KILLS):
+    for i in rng.permutation(N_KILLS).tolist():
         sig = signal.SIGKILL if i % 2 == 0 else signal.SIGINT
         # half the runs --force: a kill then also hits the overwrite of existing artefacts
         force = i % 4 < 2
-        when = float(rng.uniform(0.8, t_full))
+        # stratified over the run: one random moment in each 1/N of a clean run's duration
+        when = float(t_full * (i + rng.uniform()) / N_KILLS)
         p = _vtcal(out, *(["--force"] if force else []))
         try:
             p.wait(timeout=when)
