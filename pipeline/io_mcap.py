@@ -33,6 +33,10 @@ from mcap.stream_reader import StreamReader, breakup_chunk
 
 from pipeline.errors import BadInput
 
+# an image that does not decode is reported by vtcal (frame flagged, one warning line):
+# OpenCV's own warnings on stderr would only repeat it
+cv2.utils.logging.setLogLevel(cv2.utils.logging.LOG_LEVEL_ERROR)
+
 IMAGE_TYPES = {
     "sensor_msgs/Image": "ros_image",
     "sensor_msgs/msg/Image": "ros_image",
