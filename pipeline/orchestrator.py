@@ -145,25 +145,28 @@ class RunConfig:
     report: bool = True
 
 
+#: artefact name -> file name inside a run folder (``../shared/spec/outputs.md``)
+RUN_FILES = {
+    "recording": "recording.json",
+    "frames": "frames.parquet",
+    "detections": "detections.parquet",
+    "touchups": "touchups.parquet",
+    "inliers": "inliers.parquet",
+    "parameters": "parameters.parquet",
+    "residuals": "residuals.parquet",
+    "targets": "targets.parquet",
+    "calibrated_urdf": "calibrated.urdf",
+    "identify": "identify.json",
+    "crossval": "crossval.parquet",
+    "report": "report.html",
+    "rrd": "run.rrd",
+    "run": "run.json",
+}
+
+
 def run_paths(out: Path) -> dict[str, Path]:
-    """The files a run folder holds (see ``../shared/spec/outputs.md``)."""
-    names = {
-        "recording": "recording.json",
-        "frames": "frames.parquet",
-        "detections": "detections.parquet",
-        "touchups": "touchups.parquet",
-        "inliers": "inliers.parquet",
-        "parameters": "parameters.parquet",
-        "residuals": "residuals.parquet",
-        "targets": "targets.parquet",
-        "calibrated_urdf": "calibrated.urdf",
-        "identify": "identify.json",
-        "crossval": "crossval.parquet",
-        "report": "report.html",
-        "rrd": "run.rrd",
-        "run": "run.json",
-    }
-    return {k: out / v for k, v in names.items()}
+    """The files a run folder holds, as paths under ``out``."""
+    return {k: out / v for k, v in RUN_FILES.items()}
 
 
 def _build(cls: Any, options: Mapping[str, Any], **base: Any) -> Any:

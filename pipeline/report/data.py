@@ -26,20 +26,12 @@ import pyarrow.parquet as pq
 from pipeline.artefacts import SCHEMA_DIR, file_hash, read_artefact
 from pipeline.kinematics.chain import Chain, fk_frames, load_chain
 from pipeline.kinematics.urdf import RobotDescription, parse_urdf
+from pipeline.orchestrator import RUN_FILES
 
-#: artefact name -> file name inside a run folder (as :func:`pipeline.orchestrator.run_paths`)
-PARQUET = {
-    "frames": "frames.parquet",
-    "detections": "detections.parquet",
-    "touchups": "touchups.parquet",
-    "inliers": "inliers.parquet",
-    "parameters": "parameters.parquet",
-    "residuals": "residuals.parquet",
-    "targets": "targets.parquet",
-    "crossval": "crossval.parquet",
-}
-JSONS = {"recording": "recording.json", "identify": "identify.json", "run": "run.json"}
-TEXTS = {"calibrated_urdf": "calibrated.urdf"}
+#: artefact name -> file name inside a run folder, by kind (names from the orchestrator)
+PARQUET = {k: v for k, v in RUN_FILES.items() if v.endswith(".parquet")}
+JSONS = {k: v for k, v in RUN_FILES.items() if v.endswith(".json")}
+TEXTS = {"calibrated_urdf": RUN_FILES["calibrated_urdf"]}
 #: files whose content the outputs show: their hashes make the deterministic recording id
 #: (run.json is left out: it holds wall-clock timings, not results)
 INPUT_FILES = tuple(
