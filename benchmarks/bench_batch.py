@@ -209,6 +209,9 @@ def main() -> None:
     if proc.returncode != 0:
         print(f"  cli exit {proc.returncode}: {proc.stderr.strip()[-300:]}")
 
+    failed = sum(len(r.failed) for r in (r1, r2, r3))
+    if failed:
+        print(f"WARNING: {failed} recording run(s) failed: the timings below are not the workload")
     per_rec = sorted(o.seconds for o in r1.outcomes)
     print(f"per recording on 1 worker: median {per_rec[len(per_rec) // 2]:.2f} s")
     print(f"batch, 1 worker (best of {args.repeat}):  {t1:7.2f} s")
