@@ -44,7 +44,7 @@ import socket
 import sys
 import time
 from collections.abc import Callable, Iterator, Sequence
-from concurrent.futures import Executor, Future, as_completed
+from concurrent.futures import Executor, Future
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -577,6 +577,57 @@ def _worker_failure(item: BatchItem, run_dir: Path, exc: BaseException) -> Recor
     )
 
 
+class _Slot:
+    """Somewhere to submit tasks: an executor, how many tasks it may hold at once,
+    and (for our own one-worker process pools) when to replace it.
+
+    ``make`` builds a fresh executor (None for an executor we were given, which is
+    never replaced nor shut down here). A slot of capacity 1 with its own
+    one-process pool isolates its task: a worker that dies takes down that task
+    only, and replacing the pool after ``recycle_after`` tasks bounds the memory a
+    long-lived worker could accumulate.
+    """
+
+    def __init__(
+        self,
+        executor: Executor | None,
+        capacity: int,
+        make: Callable[[], Executor] | None = None,
+        recycle_after: int = 0,
+    ) -> None:
+        self.executor = executor
+        self.capacity = capacity
+        self.make = make
+        self.recycle_after = recycle_after
+        self.in_flight = 0
+        self.used = 0
+
+    def free(self) -> bool:
+        return self.in_flight < self.capacity
+
+    def submit(self, *args: Any) -> Future[RecordingOutcome]:
+        if self.make is not None and (
+            self.executor is None or (self.recycle_after and self.used >= self.recycle_after)
+        ):
+            self.close(wait=True)
+            self.executor = self.make()
+            self.used = 0
+        assert self.executor is not None
+        fut = self.executor.submit(run_recording, *args)
+        self.in_flight += 1
+        self.used += 1
+        return fut
+
+    def broken(self) -> None:
+        """Its pool broke (a worker died): start afresh at the next submit."""
+        self.close(wait=False)
+
+    def close(self, wait: bool = True) -> None:
+        if self.make is not None and self.executor is not None:
+            self.executor.shutdown(wait=wait, cancel_futures=True)
+            self.executor = None
+
+
 def run_batch(
     items: Sequence[BatchItem],
     out: str | os.PathLike[str],
@@ -590,6 +641,7 @@ def run_batch(
     force: bool = False,
     progress: BatchProgress | None = None,
     compare: bool = True,
+    recycle_after: int = 10,
 ) -> BatchResult:
     """Run every recording through the pipeline into ``out/<item.name>/``, then summarise.
 
@@ -598,18 +650,25 @@ def run_batch(
     items : the recordings (:func:`items_from_paths`, :func:`load_manifest`)
     out : batch folder (created); ``out/summary.parquet`` is the summary
     config : stage options for every recording (:class:`pipeline.orchestrator.RunConfig`)
-    executor : an open executor to use (left open); without it one is opened
-        with :func:`open_executor` from ``kind``, ``workers``, ``scheduler``
+    executor : an open executor to use (left open; every task is submitted to it at
+        once); without it one is opened from ``kind``, ``workers``, ``scheduler``:
+        for ``"processes"``, ``workers`` one-process pools fed one recording at a
+        time, for ``"dask"`` :func:`open_executor`
     until, force : passed to every :func:`~pipeline.orchestrator.run_pipeline`
     progress : called in this process as each recording finishes
     compare : also write the cross-run comparison of the identified runs
         (``compare.parquet``, ``compare.html``, see :func:`compare_batch`)
+    recycle_after : with ``"processes"``, replace a worker process after this
+        many recordings (0: never), so that memory a stage leaves behind cannot
+        accumulate over hundreds of recordings. A worker that dies (crash, out of
+        memory) costs only its own recording, which is run once more in a fresh
+        worker (``retried``).
 
     Returns
     -------
     BatchResult; its outcomes are in the order of ``items``; ``compare`` holds the
-    :class:`pipeline.compare.CompareResult` (or None, ``compare_note`` says why). On Ctrl-C the
-    summary of what finished is written (the rest ``not_run``) before
+    :class:`pipeline.compare.CompareResult` (or None, ``compare_note`` says why). On
+    Ctrl-C the summary of what finished is written (the rest ``not_run``) before
     :class:`KeyboardInterrupt` propagates; finished recordings are cached for the next run.
     """
     _check_names(items)
@@ -618,6 +677,8 @@ def run_batch(
 
         if until not in STAGES:
             raise BadInput(f"--until {until!r}: not a stage (stages: {', '.join(STAGES)})")
+    if recycle_after < 0:
+        raise BadInput(f"--recycle {recycle_after}: must be >= 0")
     out_dir = Path(out).expanduser().absolute()
     out_dir.mkdir(parents=True, exist_ok=True)
     t0 = time.perf_counter()
@@ -630,19 +691,30 @@ def run_batch(
     timings: dict[str, float] = {}
     try:
         with contextlib.ExitStack() as stack:
-            ex = executor or stack.enter_context(open_executor(kind, workers, scheduler))
-            own_pool = executor is None and kind == "processes"
-            args = (out_dir, config, until, force, outcomes, progress, len(items))
-            broken = _fan_out(ex, items, *args, retry_broken=own_pool)
-            if broken and own_pool:
-                # A worker died (crash, out of memory) and took the pool down with the
-                # tasks it held: each of those gets a pool of its own, so only the
-                # culprit fails.
-                stack.close()
-                for it in broken:
-                    with open_executor("processes", 1) as solo:
-                        _fan_out(solo, [it], *args, retry_broken=False)
-                    outcomes[it.name].retried = True
+            if executor is not None:
+                slots = [_Slot(executor, max(1, len(items)))]
+            elif kind == "processes":
+                if scheduler:
+                    raise BadInput(
+                        "--scheduler is for --executor dask; the process pool needs no server"
+                    )
+                if workers is not None and workers < 1:
+                    raise BadInput(f"--workers {workers}: needs at least 1")
+                ctx = _process_context()
+                n = min(workers or default_workers(), max(1, len(items)))
+
+                def make() -> Executor:
+                    from concurrent.futures import ProcessPoolExecutor
+
+                    return ProcessPoolExecutor(max_workers=1, mp_context=ctx)
+
+                slots = [_Slot(None, 1, make, recycle_after) for _ in range(n)]
+                for slot in slots:
+                    stack.callback(slot.close)
+            else:
+                ex = stack.enter_context(open_executor(kind, workers, scheduler))
+                slots = [_Slot(ex, max(1, len(items)))]
+            _fan_out(slots, items, out_dir, config, until, force, outcomes, progress)
     except KeyboardInterrupt:
         interrupted = True
     timings["fan_out"] = time.perf_counter() - t0
@@ -673,7 +745,7 @@ def run_batch(
 
 
 def _fan_out(
-    ex: Executor,
+    slots: list[_Slot],
     items: Sequence[BatchItem],
     out_dir: Path,
     config: RunConfig | None,
@@ -681,47 +753,63 @@ def _fan_out(
     force: bool,
     outcomes: dict[str, RecordingOutcome],
     progress: BatchProgress | None,
-    total: int,
-    *,
-    retry_broken: bool,
-) -> list[BatchItem]:
-    """Submit one task per item and collect the outcomes as they finish.
+) -> None:
+    """Feed the items to the slots as they free up; collect outcomes as tasks finish.
 
-    Returns the items whose pool broke under them (a worker died); with
-    ``retry_broken`` those are left out of ``outcomes`` for the caller to retry.
+    A task whose worker died (:class:`~concurrent.futures.BrokenExecutor`) is run
+    once more in a fresh worker when its slot can make one, else recorded as an
+    internal error; any other failure to return is recorded as such.
     """
-    from concurrent.futures import BrokenExecutor
+    from collections import deque
+    from concurrent.futures import FIRST_COMPLETED, BrokenExecutor, wait
 
-    futures: dict[Future[RecordingOutcome], BatchItem] = {}
-    broken: list[BatchItem] = []
+    queue = deque(items)
+    attempts: dict[str, int] = {}
+    in_flight: dict[Future[RecordingOutcome], tuple[_Slot, BatchItem]] = {}
+
+    def finish(it: BatchItem, rec: RecordingOutcome) -> None:
+        rec.retried = attempts.get(it.name, 1) > 1
+        outcomes[it.name] = rec
+        if progress is not None:
+            progress(len(outcomes), len(items), rec)
+
+    def died(slot: _Slot, it: BatchItem, exc: BaseException) -> None:
+        slot.broken()
+        if slot.make is not None and attempts[it.name] < 2:
+            queue.appendleft(it)
+        else:
+            finish(it, _worker_failure(it, out_dir / it.name, exc))
+
     try:
-        for i, it in enumerate(items):
-            try:
-                fut = ex.submit(run_recording, it, str(out_dir / it.name), config, until, force)
-            except BrokenExecutor as exc:  # a worker died while we were still submitting
-                for rest in items[i:]:
-                    broken.append(rest)
-                    if not retry_broken:
-                        outcomes[rest.name] = _worker_failure(rest, out_dir / rest.name, exc)
-                break
-            futures[fut] = it
-        for fut in as_completed(futures):
-            it = futures[fut]
-            try:
-                rec = fut.result()
-            except BrokenExecutor as exc:
-                broken.append(it)
-                if retry_broken:
+        while queue or in_flight:
+            for slot in slots:
+                while queue and slot.free():
+                    it = queue.popleft()
+                    attempts[it.name] = attempts.get(it.name, 0) + 1
+                    try:
+                        fut = slot.submit(it, str(out_dir / it.name), config, until, force)
+                    except BrokenExecutor as exc:
+                        died(slot, it, exc)
+                        if slot.make is None:
+                            continue
+                        break
+                    in_flight[fut] = (slot, it)
+            if not in_flight:
+                continue
+            done, _ = wait(list(in_flight), return_when=FIRST_COMPLETED)
+            for fut in done:
+                slot, it = in_flight.pop(fut)
+                slot.in_flight -= 1
+                try:
+                    rec = fut.result()
+                except BrokenExecutor as exc:
+                    died(slot, it, exc)
                     continue
-                rec = _worker_failure(it, out_dir / it.name, exc)
-            except Exception as exc:  # dask: KilledWorker, pickling, ...
-                rec = _worker_failure(it, out_dir / it.name, exc)
-            outcomes[it.name] = rec
-            if progress is not None:
-                progress(len(outcomes), total, rec)
-        return broken
+                except Exception as exc:  # dask: KilledWorker, pickling, ...
+                    rec = _worker_failure(it, out_dir / it.name, exc)
+                finish(it, rec)
     except BaseException:
-        for fut in futures:
+        for fut in in_flight:
             fut.cancel()
         raise
 

@@ -311,6 +311,18 @@ def test_worker_killed_mid_task_is_retried_alone(recordings, tmp_path: Path) -> 
     assert read_artefact(res.summary_path, "batch_summary")["retried"].tolist() == [True]  # type: ignore[attr-defined]
 
 
+def test_workers_are_recycled_after_n_recordings(recordings, tmp_path: Path) -> None:
+    """--recycle bounds a worker's lifetime: a fresh process after N recordings."""
+    items = items_from_paths([recordings["junk"], recordings["trunc"], recordings["junk"]])
+    once = run_batch(items, tmp_path / "a", workers=1, until="ingest", recycle_after=1)
+    assert len({o.worker for o in once.outcomes}) == 3
+    never = run_batch(items, tmp_path / "b", workers=1, until="ingest", recycle_after=0)
+    assert len({o.worker for o in never.outcomes}) == 1
+    assert [o.error_kind for o in never.outcomes] == ["bad_input"] * 3
+    with pytest.raises(BadInput, match="--recycle"):
+        run_batch(items, tmp_path / "c", recycle_after=-1)
+
+
 # -- the CLI -------------------------------------------------------------------------------
 
 

@@ -64,6 +64,15 @@ Examples:
     metavar="STAGE",
     help="Stop after this stage (ingest, touchups, outliers, identify, crossval, report).",
 )
+@click.option(
+    "--recycle",
+    type=int,
+    default=10,
+    show_default=True,
+    metavar="N",
+    help="Process pool: replace each worker process after N recordings (bounds its memory; "
+    "0 = never).",
+)
 @click.option("--force", is_flag=True, help="Re-run every stage even if its outputs are fresh.")
 @click.option("--model", default=None, help="Error model to identify, or 'all' (as `vtcal run`).")
 @distance_option
@@ -78,6 +87,7 @@ def command(
     scheduler: str | None,
     workers: int | None,
     until: str | None,
+    recycle: int,
     force: bool,
     model: str | None,
     distance: tuple[str, ...],
@@ -138,10 +148,11 @@ def command(
                 scheduler=scheduler,
                 until=until,
                 force=force,
+                recycle_after=recycle,
             )
         else:
             result = _run_with_progress(
-                console, items, out, cfg, executor, workers, scheduler, until, force
+                console, items, out, cfg, executor, workers, scheduler, until, force, recycle
             )
     except KeyboardInterrupt:
         click.echo(
@@ -168,6 +179,7 @@ def _run_with_progress(
     scheduler: str | None,
     until: str | None,
     force: bool,
+    recycle: int,
 ) -> BatchResult:
     from rich.progress import (
         BarColumn,
@@ -206,6 +218,7 @@ def _run_with_progress(
             until=until,
             force=force,
             progress=update,
+            recycle_after=recycle,
         )
 
 
