@@ -269,7 +269,7 @@ def print_summary(console: Any, result: BatchResult) -> None:
     for o in result.outcomes:
         if o.retried:
             console.print(
-                f"{o.name}: a worker died while it was queued or running; run again alone",
+                f"{o.name}: its worker died; it was run once more in a fresh worker",
                 highlight=False,
                 markup=False,
             )
