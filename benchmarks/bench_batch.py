@@ -110,12 +110,17 @@ def cpu_busy_seconds() -> float:
     return (sum(f[:8]) - idle) / os.sysconf("SC_CLK_TCK")
 
 
+RECYCLE = 10
+
+
 def timed_batch(items, out: Path, workers: int, until: str, cfg) -> tuple[float, object]:
     """Run a batch; also print how much CPU other processes took meanwhile."""
     from pipeline.batch import run_batch
 
     b0, t0 = cpu_busy_seconds(), time.perf_counter()
-    res = run_batch(items, out, cfg, kind="processes", workers=workers, until=until)
+    res = run_batch(
+        items, out, cfg, kind="processes", workers=workers, until=until, recycle_after=RECYCLE
+    )
     dt, busy = time.perf_counter() - t0, cpu_busy_seconds() - b0
     ours = sum(o.cpu_seconds for o in res.outcomes)
     others = max(0.0, busy - ours)
@@ -145,7 +150,10 @@ def main() -> None:
     ap.add_argument("--workdir", type=Path, default=None, help="keep recordings here")
     ap.add_argument("--seeds", type=int, default=8, help="number of recordings (8)")
     ap.add_argument("--repeat", type=int, default=2, help="timed 1/2-worker pairs (2)")
+    ap.add_argument("--recycle", type=int, default=10, help="worker replaced after N (10)")
     args = ap.parse_args()
+    global RECYCLE
+    RECYCLE = args.recycle
 
     from pipeline.batch import load_manifest, open_executor
     from pipeline.orchestrator import RunConfig
@@ -190,6 +198,7 @@ def main() -> None:
     t3, r3 = timed_batch(items, out2, 2, args.until, cfg)
     cli = ["vtcal", "batch", "--manifest", str(manifest), "--out", str(out2)]
     cli += ["--until", args.until, "--workers", "2", "--model", "offsets", "-q"]
+    cli += ["--recycle", str(args.recycle)]
     t0 = time.perf_counter()
     proc = subprocess.run(cli, capture_output=True, text=True)
     t4 = time.perf_counter() - t0
