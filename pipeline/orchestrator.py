@@ -356,40 +356,17 @@ def run_pipeline(
 
     def do_crossval(conf: dict[str, Any]) -> None:
         table = read_artefact(P["inliers"], "inliers")
-        summary = json.loads(P["identify"].read_text())
-        result = crossval.cross_validate(
-            table, info.urdf, info.base_link, info.flange_link, id_cfg, cv_cfg
-        )
-        write_artefact(
-            P["crossval"],
-            result.table,
-            "crossval",
-            stage="crossval",
-            config=conf,
+        crossval_and_choose(
+            out,
+            table,
+            info.urdf,
+            info.base_link,
+            info.flange_link,
+            id_cfg,
+            cv_cfg,
+            stage_config=conf,
             inputs=cv_inputs,
         )
-        chosen = result.chosen_model
-        if (
-            chosen
-            and chosen != summary.get("best_model")
-            and (out / f"calibrated_{chosen}.urdf").exists()
-        ):
-            atomic_write_bytes(
-                P["calibrated_urdf"], (out / f"calibrated_{chosen}.urdf").read_bytes()
-            )
-        summary["crossval"] = result.summary
-        if chosen:
-            summary["best_model"] = chosen
-        if result.summary.get("choice"):
-            lines = [
-                line
-                for line in summary.get("headline", [])
-                if not line.startswith("calibrated.urdf from model")
-            ]
-            if chosen:
-                lines.append(f"calibrated.urdf from model {chosen}")
-            summary["headline"] = [*lines, result.summary["choice"]]
-        write_json(P["identify"], summary)
 
     stage("crossval", [P["crossval"]], cv_inputs, cv_cfg, do_crossval)
     if last < STAGES.index("report") or not cfg.report:
@@ -436,6 +413,70 @@ def run_pipeline(
         )
     del pd
     return _finish(out, P, records, report_inputs)
+
+
+def crossval_and_choose(
+    out: Path,
+    table: Any,
+    urdf: str,
+    base_link: str,
+    flange_link: str,
+    identify_config: Any,
+    crossval_config: Any,
+    *,
+    stage_config: Mapping[str, Any],
+    inputs: Mapping[str, str],
+) -> Any:
+    """Cross-validate, write ``crossval.parquet`` and ship the model with the least held-out error.
+
+    When several error models were identified (``calibrated_MODEL.urdf`` beside
+    ``calibrated.urdf``), the one with the smallest held-out error becomes
+    ``calibrated.urdf``; ``identify.json`` records the choice and says it was made
+    on held-out, not training, error. Used by ``vtcal run`` and ``vtcal identify``.
+    """
+    from pipeline.artefacts import write_artefact
+    from pipeline.stages import crossval
+
+    P = run_paths(out)
+    summary = json.loads(P["identify"].read_text())
+    result = crossval.cross_validate(
+        table, urdf, base_link, flange_link, identify_config, crossval_config
+    )
+    write_artefact(
+        P["crossval"],
+        result.table,
+        "crossval",
+        stage="crossval",
+        config=stage_config,
+        inputs=inputs,
+    )
+    chosen = result.chosen_model
+    candidate = out / f"calibrated_{chosen}.urdf"
+    if chosen and chosen != summary.get("best_model") and candidate.exists():
+        atomic_write_bytes(P["calibrated_urdf"], candidate.read_bytes())
+    summary["crossval"] = result.summary
+    if chosen:
+        summary["best_model"] = chosen
+    if result.summary.get("choice"):
+        lines = [
+            line
+            for line in summary.get("headline", [])
+            if not line.startswith("calibrated.urdf from model")
+        ]
+        if chosen:
+            lines.append(f"calibrated.urdf from model {chosen}")
+        summary["headline"] = [*lines, result.summary["choice"]]
+    write_json(P["identify"], summary)
+    return result
+
+
+def render_outputs(out: Path) -> None:
+    """``report.html`` and ``run.rrd`` from the artefacts in ``out`` alone."""
+    from pipeline.report.html import build_report
+    from pipeline.report.rrd import build_rrd
+
+    build_report(out)
+    build_rrd(out)
 
 
 def _finish(

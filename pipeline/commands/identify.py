@@ -10,9 +10,12 @@ Writes ``parameters.parquet``, ``residuals.parquet``, ``targets.parquet``,
 
 from __future__ import annotations
 
+import dataclasses
 import io
+import json
 import xml.etree.ElementTree as ET
 from pathlib import Path
+from typing import Any
 
 import click
 import pandas as pd
@@ -97,6 +100,25 @@ def infer_links(urdf: str) -> tuple[str, str]:
     return roots[0], flange
 
 
+def _integer_target_ids(df: pd.DataFrame, cfg: Any) -> tuple[pd.DataFrame, Any]:
+    """Table and config with target labels as integers 0, 1, ... in first-appearance order.
+
+    The spec lets ``target_id`` be a string; cross-validation's artefact keys
+    targets by integer, so string labels (and the known distances naming them)
+    are numbered in the order the table first names them.
+    """
+    if pd.api.types.is_integer_dtype(df["target_id"]):
+        return df, cfg
+    labels = list(dict.fromkeys(df["target_id"].astype(str)))
+    code = {lab: i for i, lab in enumerate(labels)}
+    out = df.copy()
+    out["target_id"] = df["target_id"].astype(str).map(code).astype("int64")
+    distances = [
+        (code.get(str(a), a), code.get(str(b), b), metres) for a, b, metres in cfg.distances
+    ]
+    return out, dataclasses.replace(cfg, distances=distances)
+
+
 @click.command("identify")
 @click.argument("table", type=click.Path(exists=True, dir_okay=False, path_type=Path))
 @click.option(
@@ -123,11 +145,14 @@ def infer_links(urdf: str) -> tuple[str, str]:
 @distance_option
 @click.option(
     "--model",
-    default="auto",
+    default="all",
     show_default=True,
-    help="Error model: full, mdh, poe, offsets; 'all' fits each; 'auto' takes full if the "
-    "touch-ups suffice, else offsets (and says so).",
+    help="Error model: full, mdh, poe, offsets; 'all' fits each and ships the one with the "
+    "smallest held-out (cross-validated) error; 'auto' takes full if the touch-ups suffice, "
+    "else offsets (and says so).",
 )
+@click.option("--no-crossval", is_flag=True, help="Skip cross-validation (crossval.parquet).")
+@click.option("--no-report", is_flag=True, help="Skip report.html and run.rrd.")
 @click.option(
     "--robust-loss",
     default="linear",
@@ -143,9 +168,16 @@ def command(
     flange_link: str | None,
     distance: tuple[str, ...],
     model: str,
+    no_crossval: bool,
+    no_report: bool,
     robust_loss: str,
 ) -> None:
-    """Identify kinematics from a touch-up table (CSV or Parquet)."""
+    """Identify kinematics from a touch-up table (CSV or Parquet).
+
+    Writes into --out what `vtcal run` writes from identification on:
+    parameters.parquet, residuals.parquet, targets.parquet, calibrated.urdf (with
+    virtual_pin), identify.json, crossval.parquet, report.html and run.rrd.
+    """
     from pipeline.known_distances import parse_distances
     from pipeline.stages.identify import IdentifyConfig, identify, write_outputs
 
@@ -178,8 +210,30 @@ def command(
         raise
     conf = {"model": model, "distances": distances, "robust_loss": robust_loss}
     paths = write_outputs(result, out_dir, stage_config=conf, inputs={})
-    results = result if isinstance(result, dict) else {result.model: result}
-    for r in results.values():
-        for line in r.summary["headline"]:
-            click.echo(line)
-    click.echo(f"wrote {', '.join(p.name for p in paths.values())} to {out_dir}")
+    written = [p.name for p in paths.values()]
+    if not no_crossval:
+        from pipeline.orchestrator import crossval_and_choose
+        from pipeline.stages.crossval import CrossvalConfig
+
+        df_cv, cfg_cv = _integer_target_ids(df, cfg)
+        crossval_and_choose(
+            out_dir,
+            df_cv,
+            urdf,
+            base_link,
+            flange_link,
+            cfg_cv,
+            CrossvalConfig(),
+            stage_config=conf,
+            inputs={},
+        )
+        written.append("crossval.parquet")
+    if not no_report:
+        from pipeline.orchestrator import render_outputs
+
+        render_outputs(out_dir)
+        written += ["report.html", "run.rrd"]
+    summary = json.loads((out_dir / "identify.json").read_text())
+    for line in summary.get("headline", []):
+        click.echo(line)
+    click.echo(f"wrote {', '.join(written)} to {out_dir}")
