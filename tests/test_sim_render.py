@@ -99,3 +99,23 @@ def test_rendered_image_noise_and_polarity() -> None:
     a = render_target_image(CAMD, T, 0.010, rng=np.random.default_rng(9))
     b = render_target_image(CAMD, T, 0.010, rng=np.random.default_rng(9))
     assert np.array_equal(a, b)
+
+
+def test_virtual_pin_is_where_a_perfect_touch_up_puts_an_untilted_target() -> None:
+    """The true pin: the untilted circle centred there images at exactly (u0, v0, s0)."""
+    from pipeline.kinematics.se3 import transform_from
+    from pipeline.sim.simulator import R_CAMERA_UNTILTED, virtual_pin_camera
+
+    D, s0, u0, v0 = 0.01, 53.31, 319.5, 255.5
+    # no distortion: fx D / s0 on the ray of the designated pixel
+    p0 = virtual_pin_camera(CAM0, u0, v0, s0, D)
+    xu, yu = CAM0.pixel_to_normalised(np.array([u0, v0]))
+    assert np.allclose(p0, CAM0.fx * D / s0 * np.array([xu, yu, 1.0]), atol=1e-10)
+    # barrel distortion shrinks the disc's image: the target must come nearer
+    cam = CameraModel(900.0, 900.0, 321.2, 250.7, -0.07, 0.007, 640, 512)
+    p = virtual_pin_camera(cam, u0, v0, s0, D)
+    e = projected_ellipse(cam, transform_from(R_CAMERA_UNTILTED, p), D)
+    assert abs(e[0] - u0) < 1e-7 and abs(e[1] - v0) < 1e-7 and abs(e[2] - s0) < 1e-7
+    z_pinhole = cam.fx * D / s0
+    r2 = (D / 2 / z_pinhole) ** 2
+    assert p[2] - z_pinhole == pytest.approx(z_pinhole * cam.k1 * r2, rel=0.1)  # ~ -11 um

@@ -24,43 +24,66 @@ def _phi(x: float) -> float:
 
 
 @njit(cache=True)
-def _plane(roi, mask, u0, v0):  # type: ignore[no-untyped-def]
-    """Least-squares plane g = c0 + c1 u + c2 v over mask (centred coordinates)."""
+def _noise_bias(mu: float, eps: float) -> float:
+    """``E[c (1 - c)] - mu (1 - mu)``, ``c = clip(mu + eps Z, 0, 1)`` (detect.noise_bias_pq)."""
+    if eps <= 0.0:
+        return 0.0
+    a = -mu / eps
+    b = (1.0 - mu) / eps
+    k = 1.0 / math.sqrt(2.0 * math.pi)
+    pa = k * math.exp(-0.5 * a * a)
+    pb = k * math.exp(-0.5 * b * b)
+    P = _phi(b) - _phi(a)
+    m1 = mu * P + eps * (pa - pb)
+    m2 = mu * mu * P + 2.0 * mu * eps * (pa - pb) + eps * eps * (P + a * pa - b * pb)
+    return m1 - m2 - mu * (1.0 - mu)
+
+
+@njit(cache=True)
+def _levels(roi, mask, u0, v0):  # type: ignore[no-untyped-def]
+    """Surface g = c0 + c1 du + c2 dv + c3 (du^2 + dv^2) over mask (detect._level_fit).
+
+    Returns the (H, W) surface and its value c0 at the window centre.
+    """
     H, W = roi.shape
     uc = u0 + 0.5 * (W - 1)
     vc = v0 + 0.5 * (H - 1)
-    A = np.zeros((3, 3))
-    b = np.zeros(3)
+    A = np.zeros((4, 4))
+    b = np.zeros(4)
+    f = np.zeros(4)
     for y in range(H):
         dv = v0 + y - vc
         for x in range(W):
             if mask[y, x]:
                 du = u0 + x - uc
                 g = roi[y, x]
-                A[0, 0] += 1.0
-                A[0, 1] += du
-                A[0, 2] += dv
-                A[1, 1] += du * du
-                A[1, 2] += du * dv
-                A[2, 2] += dv * dv
-                b[0] += g
-                b[1] += g * du
-                b[2] += g * dv
-    A[1, 0] = A[0, 1]
-    A[2, 0] = A[0, 2]
-    A[2, 1] = A[1, 2]
-    out = np.zeros(3)
-    if A[0, 0] < 6:
-        if A[0, 0] > 0:
-            out[0] = b[0] / A[0, 0]
-        return out
-    for i in range(3):
-        A[i, i] += 1e-9
-    c = np.linalg.solve(A, b)
-    out[0] = c[0] - c[1] * uc - c[2] * vc
-    out[1] = c[1]
-    out[2] = c[2]
-    return out
+                f[0] = 1.0
+                f[1] = du
+                f[2] = dv
+                f[3] = du * du + dv * dv
+                for i in range(4):
+                    b[i] += g * f[i]
+                    for j in range(4):
+                        A[i, j] += f[i] * f[j]
+    G = np.zeros((H, W))
+    n = A[0, 0]
+    if n < 6:
+        lvl = b[0] / n if n > 0 else 0.0
+        G[:, :] = lvl
+        return G, lvl
+    k = 4 if n >= 30 else 3
+    As = A[:k, :k].copy()
+    for i in range(k):
+        As[i, i] += 1e-9
+    cs = np.linalg.solve(As, b[:k].copy())
+    c = np.zeros(4)
+    c[:k] = cs
+    for y in range(H):
+        dv = v0 + y - vc
+        for x in range(W):
+            du = u0 + x - uc
+            G[y, x] = c[0] + c[1] * du + c[2] * dv + c[3] * (du * du + dv * dv)
+    return G, c[0]
 
 
 @njit(cache=True)
@@ -182,12 +205,8 @@ def fine_stage(roi, core, outer, u0, v0, cont_x, cont_y, near_tol, correct, max_
     """
     out = np.zeros(12)
     H, W = roi.shape
-    c_in = _plane(roi, core, u0, v0)
-    c_out = _plane(roi, outer, u0, v0)
-    um = u0 + 0.5 * (W - 1)
-    vm = v0 + 0.5 * (H - 1)
-    out[10] = c_in[0] + c_in[1] * um + c_in[2] * vm
-    out[11] = c_out[0] + c_out[1] * um + c_out[2] * vm
+    GI, out[10] = _levels(roi, core, u0, v0)
+    GO, out[11] = _levels(roi, outer, u0, v0)
     out[0] = 1.0
     # halfway crossings along rows and columns
     cap = 2 * H * W
@@ -199,10 +218,10 @@ def fine_stage(roi, core, outer, u0, v0, cont_x, cont_y, near_tol, correct, max_
         vv = v0 + y
         for x in range(W - 1):
             uu = u0 + x
-            gi0 = c_in[0] + c_in[1] * uu + c_in[2] * vv
-            go0 = c_out[0] + c_out[1] * uu + c_out[2] * vv
-            gi1 = gi0 + c_in[1]
-            go1 = go0 + c_out[1]
+            gi0 = GI[y, x]
+            go0 = GO[y, x]
+            gi1 = GI[y, x + 1]
+            go1 = GO[y, x + 1]
             h0 = roi[y, x] - 0.5 * (gi0 + go0)
             h1 = roi[y, x + 1] - 0.5 * (gi1 + go1)
             if (h0 * h1 < 0 or (h0 == 0 and h1 != 0)) and abs(h1 - h0) > min_step * 0.5 * (
@@ -216,10 +235,10 @@ def fine_stage(roi, core, outer, u0, v0, cont_x, cont_y, near_tol, correct, max_
         vv = v0 + y
         for x in range(W):
             uu = u0 + x
-            gi0 = c_in[0] + c_in[1] * uu + c_in[2] * vv
-            go0 = c_out[0] + c_out[1] * uu + c_out[2] * vv
-            gi1 = gi0 + c_in[2]
-            go1 = go0 + c_out[2]
+            gi0 = GI[y, x]
+            go0 = GO[y, x]
+            gi1 = GI[y + 1, x]
+            go1 = GO[y + 1, x]
             h0 = roi[y, x] - 0.5 * (gi0 + go0)
             h1 = roi[y + 1, x] - 0.5 * (gi1 + go1)
             if (h0 * h1 < 0 or (h0 == 0 and h1 != 0)) and abs(h1 - h0) > min_step * 0.5 * (
@@ -312,8 +331,8 @@ def fine_stage(roi, core, outer, u0, v0, cont_x, cont_y, near_tol, correct, max_
         vv = v0 + y
         for x in range(W):
             uu = u0 + x
-            gi = c_in[0] + c_in[1] * uu + c_in[2] * vv
-            go = c_out[0] + c_out[1] * uu + c_out[2] * vv
+            gi = GI[y, x]
+            go = GO[y, x]
             if outer[y, x]:
                 r = roi[y, x] - go
                 s1 += r
@@ -340,8 +359,25 @@ def fine_stage(roi, core, outer, u0, v0, cont_x, cont_y, near_tol, correct, max_
     perim = (
         math.pi * (a_ + b_) * (1 + 3 * h / (10 + math.sqrt(4 - 3 * h))) * max(completeness, 1e-3)
     )
-    edge_sum -= eps / math.sqrt(2 * math.pi) * max(n_band - 2.0 * perim, 0.0)
+    # remove the expected noise bias of each band pixel (detect.noise_bias_pq), two passes
     sigma = math.sqrt(math.pi) * max(edge_sum, 0.0) / perim
+    for _pass in range(2):
+        sg_b = max(sigma, 0.05)
+        bias_sum = 0.0
+        for y in range(H):
+            vv = v0 + y
+            for x in range(W):
+                uu = u0 + x
+                du = uu - u_
+                dv = vv - v_
+                xx = (c * du + s * dv) / a_
+                yy = (-s * du + c * dv) / b_
+                rho = math.sqrt(xx * xx + yy * yy) + 1e-12
+                g = math.sqrt((xx / a_) ** 2 + (yy / b_) ** 2) / rho
+                d = (rho - 1.0) / g
+                if abs(d) < 3.0:
+                    bias_sum += _noise_bias(_phi(d / sg_b), eps)
+        sigma = math.sqrt(math.pi) * max(edge_sum - bias_sum, 0.0) / perim
     if correct and sigma > 0:
         sg = min(sigma, max_sigma)
         for i in range(m):
@@ -349,16 +385,22 @@ def fine_stage(roi, core, outer, u0, v0, cont_x, cont_y, near_tol, correct, max_
             if isrow[i]:
                 base = math.floor(px[i])
                 t = px[i] - base
-                na = max(abs(nx0[i]), 0.3)
+                nc = nx0[i]
             else:
                 base = math.floor(py[i])
                 t = py[i] - base
-                na = max(abs(ny0[i]), 0.3)
-            sp = sg / na
+                nc = ny0[i]
+            na = max(abs(nc), 0.3)
+            # contour curvature: distance of a point delta along the row/column
+            # is delta n + kappa delta^2 (1 - n^2) / 2 (detect._unbias_crossings)
+            q = 0.5 * k0[i] * max(1.0 - nc * nc, 0.0)
+            if nc < 0.0:
+                q = -q
             cc = t
             for _ in range(4):
-                lo = _phi(-cc / sp)
-                den = max(_phi((1.0 - cc) / sp) - lo, 1e-12)
+                lo = _phi((-cc * na + q * cc * cc) / sg)
+                hi = _phi(((1.0 - cc) * na + q * (1.0 - cc) * (1.0 - cc)) / sg)
+                den = max(hi - lo, 1e-12)
                 tc = (0.5 - lo) / den
                 cc = min(max(cc + (t - tc), 0.0), 1.0)
             if isrow[i]:
