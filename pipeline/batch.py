@@ -10,8 +10,11 @@ DataFrame ever crosses the executor, the artefacts stay on disk.
 Fan-out goes through the standard :class:`concurrent.futures.Executor`
 interface only, so one code path serves
 
-- a local process pool (:class:`~concurrent.futures.ProcessPoolExecutor`, the
-  default: no extra dependency, no server), and
+- local worker processes (the default: no extra dependency, no server), each a
+  one-process :class:`~concurrent.futures.ProcessPoolExecutor` handed the next
+  recording when it finishes one and replaced after ``recycle_after``
+  recordings (a worker that dies costs only its own recording; memory a stage
+  leaves behind cannot accumulate), and
 - Dask distributed (``pip install vtcal[dask]``): ``Client(address).get_executor()``
   on a cluster, or a ``LocalCluster`` when no scheduler address is given.
 
@@ -461,6 +464,10 @@ def open_executor(
     kind: str = "processes", workers: int | None = None, scheduler: str | None = None
 ) -> Iterator[Executor]:
     """An :class:`~concurrent.futures.Executor` for a batch, shut down on exit.
+
+    :func:`run_batch` uses it for Dask; for ``"processes"`` it builds its own
+    one-process pools (see there) and this gives a plain pool of ``workers``
+    processes for callers who pass their own ``executor``.
 
     Parameters
     ----------
