@@ -311,6 +311,21 @@ def test_worker_killed_mid_task_is_retried_alone(recordings, tmp_path: Path) -> 
     assert read_artefact(res.summary_path, "batch_summary")["retried"].tolist() == [True]  # type: ignore[attr-defined]
 
 
+def test_workers_run_single_threaded_numerics() -> None:
+    """Workers come from a fork server started with OMP_NUM_THREADS=1 and friends
+    (set before numpy loads there); this process's environment is left as it was."""
+    from pipeline.batch import THREAD_ENV
+
+    before = {k: os.environ.get(k) for k in THREAD_ENV}
+    with open_executor("processes", 1) as pool:
+        got = {k: pool.submit(os.getenv, k).result() for k in THREAD_ENV}
+        probe = "'pipeline.orchestrator' in __import__('sys').modules"
+        preloaded = pool.submit(eval, probe).result()
+    assert got == THREAD_ENV
+    assert preloaded  # the pipeline is imported once in the fork server, not per worker
+    assert {k: os.environ.get(k) for k in THREAD_ENV} == before
+
+
 def test_workers_are_recycled_after_n_recordings(recordings, tmp_path: Path) -> None:
     """--recycle bounds a worker's lifetime: a fresh process after N recordings."""
     items = items_from_paths([recordings["junk"], recordings["trunc"], recordings["junk"]])
