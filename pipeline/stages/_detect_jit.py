@@ -40,50 +40,101 @@ def _noise_bias(mu: float, eps: float) -> float:
 
 
 @njit(cache=True)
-def _levels(roi, mask, u0, v0):  # type: ignore[no-untyped-def]
-    """Surface g = c0 + c1 du + c2 dv + c3 (du^2 + dv^2) over mask (detect._level_fit).
-
-    Returns the (H, W) surface and its value c0 at the window centre.
-    """
+def _plane3(roi, mask, u0, v0):  # type: ignore[no-untyped-def]
+    """Plane g = c0 + c1 du + c2 dv over mask (du, dv from the window centre); count."""
     H, W = roi.shape
     uc = u0 + 0.5 * (W - 1)
     vc = v0 + 0.5 * (H - 1)
-    A = np.zeros((4, 4))
-    b = np.zeros(4)
-    f = np.zeros(4)
+    A = np.zeros((3, 3))
+    b = np.zeros(3)
     for y in range(H):
         dv = v0 + y - vc
         for x in range(W):
             if mask[y, x]:
                 du = u0 + x - uc
                 g = roi[y, x]
-                f[0] = 1.0
-                f[1] = du
-                f[2] = dv
-                f[3] = du * du + dv * dv
-                for i in range(4):
-                    b[i] += g * f[i]
-                    for j in range(4):
-                        A[i, j] += f[i] * f[j]
-    G = np.zeros((H, W))
+                A[0, 0] += 1.0
+                A[0, 1] += du
+                A[0, 2] += dv
+                A[1, 1] += du * du
+                A[1, 2] += du * dv
+                A[2, 2] += dv * dv
+                b[0] += g
+                b[1] += g * du
+                b[2] += g * dv
+    A[1, 0] = A[0, 1]
+    A[2, 0] = A[0, 2]
+    A[2, 1] = A[1, 2]
+    out = np.zeros(3)
     n = A[0, 0]
     if n < 6:
-        lvl = b[0] / n if n > 0 else 0.0
-        G[:, :] = lvl
-        return G, lvl
-    k = 4 if n >= 30 else 3
-    As = A[:k, :k].copy()
-    for i in range(k):
-        As[i, i] += 1e-9
-    cs = np.linalg.solve(As, b[:k].copy())
-    c = np.zeros(4)
-    c[:k] = cs
+        if n > 0:
+            out[0] = b[0] / n
+        return out, n
+    for i in range(3):
+        A[i, i] += 1e-9
+    out[:] = np.linalg.solve(A, b)
+    return out, n
+
+
+@njit(cache=True)
+def _level_surfaces(roi, core, outer, u0, v0):  # type: ignore[no-untyped-def]
+    """Target and plate level surfaces with one shared vignetting term (detect._level_surfaces).
+
+    Returns (GI, level_in, GO, level_out): (H, W) surfaces and their values at
+    the window centre.
+    """
+    H, W = roi.shape
+    uc = u0 + 0.5 * (W - 1)
+    vc = v0 + 0.5 * (H - 1)
+    a, n_a = _plane3(roi, core, u0, v0)
+    b, n_b = _plane3(roi, outer, u0, v0)
+    lv_a = a[0]
+    lv_b = b[0]
+    k = 0.0
+    if n_a >= 30 and n_b >= 30:
+        A = np.zeros((7, 7))
+        r = np.zeros(7)
+        f = np.zeros(7)
+        for y in range(H):
+            dv = v0 + y - vc
+            for x in range(W):
+                du = u0 + x - uc
+                if core[y, x]:
+                    f[:] = 0.0
+                    f[0] = 1.0
+                    f[1] = du
+                    f[2] = dv
+                    f[6] = lv_a * (du * du + dv * dv)
+                elif outer[y, x]:
+                    f[:] = 0.0
+                    f[3] = 1.0
+                    f[4] = du
+                    f[5] = dv
+                    f[6] = lv_b * (du * du + dv * dv)
+                else:
+                    continue
+                g = roi[y, x]
+                for i in range(7):
+                    r[i] += g * f[i]
+                    for j in range(7):
+                        A[i, j] += f[i] * f[j]
+        for i in range(7):
+            A[i, i] += 1e-9
+        c = np.linalg.solve(A, r)
+        a[:] = c[0:3]
+        b[:] = c[3:6]
+        k = c[6]
+    GI = np.zeros((H, W))
+    GO = np.zeros((H, W))
     for y in range(H):
         dv = v0 + y - vc
         for x in range(W):
             du = u0 + x - uc
-            G[y, x] = c[0] + c[1] * du + c[2] * dv + c[3] * (du * du + dv * dv)
-    return G, c[0]
+            q = du * du + dv * dv
+            GI[y, x] = a[0] + a[1] * du + a[2] * dv + k * lv_a * q
+            GO[y, x] = b[0] + b[1] * du + b[2] * dv + k * lv_b * q
+    return GI, a[0], GO, b[0]
 
 
 @njit(cache=True)
@@ -205,8 +256,9 @@ def fine_stage(roi, core, outer, u0, v0, cont_x, cont_y, near_tol, correct, max_
     """
     out = np.zeros(12)
     H, W = roi.shape
-    GI, out[10] = _levels(roi, core, u0, v0)
-    GO, out[11] = _levels(roi, outer, u0, v0)
+    GI, lvl_in, GO, lvl_out = _level_surfaces(roi, core, outer, u0, v0)
+    out[10] = lvl_in
+    out[11] = lvl_out
     out[0] = 1.0
     # halfway crossings along rows and columns
     cap = 2 * H * W

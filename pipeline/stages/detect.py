@@ -11,9 +11,9 @@ target and plate. :func:`detect_target` estimates them in four steps:
    ``(u, v, s)`` is given, by distance to it. Competing blobs are counted and
    an ambiguity ratio reported.
 2. **Local levels** in a full-resolution window around the blob: surfaces
-   ``g_in(u, v)``, ``g_out(u, v)`` (plane plus an isotropic quadratic term,
-   :func:`_level_fit`) fitted to the pixels well inside and well outside the
-   blob (absorbs shading and vignetting), giving the halfway level
+   ``g_in(u, v)``, ``g_out(u, v)`` (planes plus one shared vignetting
+   curvature, :func:`_level_surfaces`) fitted to the pixels well inside and
+   well outside the blob (absorbs shading and vignetting), giving the halfway level
    ``g_mid = (g_in + g_out) / 2`` at every pixel.
 3. **Sub-pixel edge points**: the zero crossings of ``g - g_mid`` along every
    row and column of the window, by linear interpolation between the two
@@ -316,48 +316,77 @@ def refine_geometric(
 # ----------------------------------------------------------------- detection
 
 
-def _level_fit(
-    roi: np.ndarray, m: np.ndarray, ua: np.ndarray, va: np.ndarray
-) -> tuple[np.ndarray, float]:
-    """Grey-level surface ``g = c0 + c1 du + c2 dv + c3 (du^2 + dv^2)`` fitted over ``m``.
+def _level_surfaces(
+    roi: np.ndarray, core: np.ndarray, outer: np.ndarray, ua: np.ndarray, va: np.ndarray
+) -> tuple[np.ndarray, float, np.ndarray, float]:
+    """Grey levels of the target and of the plate over the window, with vignetting.
 
-    ``du, dv`` are taken from the window centre. The plane absorbs shading; the
-    isotropic quadratic term absorbs vignetting, which falls off as ``r^2``
-    about the principal point to second order (cos^4 law), i.e. locally a plane
-    plus ``c3 (du^2 + dv^2)`` about any centre. A plane alone, fitted to the
-    plate ring around the target and to the target's core, misses the level at
-    the contour in between by the curvature of the fall-off: the halfway level
-    there is too low (for 15 % corner vignetting 0.04 grey, 0.001 px of size).
-    Fewer than 30 pixels: the plane only; fewer than 6: the mean.
+    Model (``du, dv`` from the window centre, ``r^2 = du^2 + dv^2``)::
+
+        g_in  = a0 + a1 du + a2 dv + k A r^2     (core pixels)
+        g_out = b0 + b1 du + b2 dv + k B r^2     (outer pixels)
+
+    The planes absorb shading. Vignetting multiplies the irradiance by a
+    fall-off that is ``1 - c r'^2`` about the principal point to second order
+    (cos^4 law), i.e. locally ``(1 + k r^2)`` times a plane about any centre,
+    the same factor for target and plate: hence one ``k``, weighted by each
+    region's level (``A``, ``B``: the levels of plain plane fits, which makes
+    the model linear). Planes alone, fitted to the plate ring around the target
+    and to its core, miss the level at the contour in between by the curvature
+    of the fall-off: the halfway level came out 0.04 grey low for 15 % corner
+    vignetting, -0.001 px of size. One shared ``k`` (7 unknowns) instead of a
+    quadratic term per surface keeps the variance down on small targets, whose
+    core is too small to fix a curvature of its own. Fewer than 30 pixels in
+    either region: planes only (fewer than 6: the mean).
 
     Returns
     -------
-    (H, W) fitted surface over the window, and its value at the window centre.
+    g_in (H, W), level_in at the window centre, g_out (H, W), level_out.
     """
     uc, vc = float(ua.mean()), float(va.mean())
     du = (ua - uc).astype(np.float64).reshape(1, -1)
     dv = (va - vc).astype(np.float64).reshape(-1, 1)
-    du_f = np.broadcast_to(du, roi.shape)[m]
-    dv_f = np.broadcast_to(dv, roi.shape)[m]
-    g = roi[m].astype(np.float64)
-    n = g.size
-    if n < 6:
-        lvl = float(g.mean()) if n else 0.0
-        return np.full(roi.shape, lvl), lvl
-    cols = [np.ones(n), du_f, dv_f]
-    if n >= 30:
-        cols.append(du_f * du_f + dv_f * dv_f)
-    X = np.stack(cols, axis=1)
-    A = X.T @ X + np.eye(X.shape[1]) * 1e-9
-    try:
-        c = np.linalg.solve(A, X.T @ g)
-    except np.linalg.LinAlgError:
-        lvl = float(g.mean())
-        return np.full(roi.shape, lvl), lvl
-    G = c[0] + c[1] * du + c[2] * dv
-    if len(c) == 4:
-        G = G + c[3] * (du * du + dv * dv)
-    return np.asarray(G, dtype=np.float64), float(c[0])
+    r2 = du * du + dv * dv
+    roi64 = roi.astype(np.float64)
+
+    def cols(m: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        return (
+            np.broadcast_to(du, roi.shape)[m],
+            np.broadcast_to(dv, roi.shape)[m],
+            np.broadcast_to(r2, roi.shape)[m],
+            roi64[m],
+        )
+
+    def plane(m: np.ndarray) -> np.ndarray:
+        x, y, _, g = cols(m)
+        if g.size < 6:
+            return np.array([float(g.mean()) if g.size else 0.0, 0.0, 0.0])
+        X = np.stack([np.ones(g.size), x, y], axis=1)
+        try:
+            return np.asarray(np.linalg.solve(X.T @ X + np.eye(3) * 1e-9, X.T @ g))
+        except np.linalg.LinAlgError:
+            return np.array([float(g.mean()), 0.0, 0.0])
+
+    a = plane(core)
+    b = plane(outer)
+    lv_a, lv_b = float(a[0]), float(b[0])
+    k = 0.0
+    xi, yi, ri, gi = cols(core)
+    xo, yo, ro, go = cols(outer)
+    if gi.size >= 30 and go.size >= 30:
+        n_i = gi.size
+        X = np.zeros((n_i + go.size, 7))
+        X[:n_i, 0], X[:n_i, 1], X[:n_i, 2], X[:n_i, 6] = 1.0, xi, yi, lv_a * ri
+        X[n_i:, 3], X[n_i:, 4], X[n_i:, 5], X[n_i:, 6] = 1.0, xo, yo, lv_b * ro
+        y = np.concatenate([gi, go])
+        try:
+            c = np.linalg.solve(X.T @ X + np.eye(7) * 1e-9, X.T @ y)
+            a, b, k = c[:3], c[3:6], float(c[6])
+        except np.linalg.LinAlgError:
+            k = 0.0
+    g_in = a[0] + a[1] * du + a[2] * dv + k * lv_a * r2
+    g_out = b[0] + b[1] * du + b[2] * dv + k * lv_b * r2
+    return g_in, float(a[0]), g_out, float(b[0])
 
 
 def _crossings(
@@ -658,8 +687,7 @@ def detect_target(
         )
     ua = np.arange(u0, u1, dtype=np.float32)
     va = np.arange(v0, v1, dtype=np.float32)
-    g_in, lvl_in = _level_fit(roi, core_b, ua, va)
-    g_out, lvl_out = _level_fit(roi, outer, ua, va)
+    g_in, lvl_in, g_out, lvl_out = _level_surfaces(roi, core_b, outer, ua, va)
     mid = 0.5 * (g_in + g_out)
     amp = np.abs(g_out - g_in)
     contrast = float(abs(lvl_out - lvl_in))
