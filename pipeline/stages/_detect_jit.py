@@ -31,40 +31,83 @@ def _noise_bias(mu: float, eps: float) -> float:
     a = -mu / eps
     b = (1.0 - mu) / eps
     k = 1.0 / math.sqrt(2.0 * math.pi)
-    pa = k * math.exp(-0.5 * a * a)
-    pb = k * math.exp(-0.5 * b * b)
-    P = _phi(b) - _phi(a)
+    # beyond 9 noise sigmas the density (< 1e-18) and the normal tail (< 1e-19)
+    # are below the rounding of the other terms (~1e-17): skip those calls
+    if a < -9.0:
+        pa = 0.0
+        phi_a = 0.0
+    else:
+        pa = k * math.exp(-0.5 * a * a)
+        phi_a = _phi(a)
+    if b > 9.0:
+        pb = 0.0
+        phi_b = 1.0
+    else:
+        pb = k * math.exp(-0.5 * b * b)
+        phi_b = _phi(b)
+    P = phi_b - phi_a
     m1 = mu * P + eps * (pa - pb)
     m2 = mu * mu * P + 2.0 * mu * eps * (pa - pb) + eps * eps * (P + a * pa - b * pb)
     return m1 - m2 - mu * (1.0 - mu)
 
 
 @njit(cache=True)
-def _plane3(roi, mask, u0, v0):  # type: ignore[no-untyped-def]
-    """Plane g = c0 + c1 du + c2 dv over mask (du, dv from the window centre); count."""
+def _moments(roi, core, outer, u0, v0):  # type: ignore[no-untyped-def]
+    """Sums over the core (row 0) and outer (row 1) pixels, one pass over the window.
+
+    Columns: ``n, du, dv, du^2, du dv, dv^2, g, g du, g dv, q, du q, dv q, q^2, g q``
+    with ``du, dv`` from the window centre and ``q = du^2 + dv^2``.
+    """
     H, W = roi.shape
     uc = u0 + 0.5 * (W - 1)
     vc = v0 + 0.5 * (H - 1)
-    A = np.zeros((3, 3))
-    b = np.zeros(3)
+    M = np.zeros((2, 14))
     for y in range(H):
         dv = v0 + y - vc
         for x in range(W):
-            if mask[y, x]:
-                du = u0 + x - uc
-                g = roi[y, x]
-                A[0, 0] += 1.0
-                A[0, 1] += du
-                A[0, 2] += dv
-                A[1, 1] += du * du
-                A[1, 2] += du * dv
-                A[2, 2] += dv * dv
-                b[0] += g
-                b[1] += g * du
-                b[2] += g * dv
+            if core[y, x]:
+                r = 0
+            elif outer[y, x]:
+                r = 1
+            else:
+                continue
+            du = u0 + x - uc
+            g = roi[y, x]
+            q = du * du + dv * dv
+            M[r, 0] += 1.0
+            M[r, 1] += du
+            M[r, 2] += dv
+            M[r, 3] += du * du
+            M[r, 4] += du * dv
+            M[r, 5] += dv * dv
+            M[r, 6] += g
+            M[r, 7] += g * du
+            M[r, 8] += g * dv
+            M[r, 9] += q
+            M[r, 10] += du * q
+            M[r, 11] += dv * q
+            M[r, 12] += q * q
+            M[r, 13] += g * q
+    return M
+
+
+@njit(cache=True)
+def _plane3(m):  # type: ignore[no-untyped-def]
+    """Plane ``g = c0 + c1 du + c2 dv`` from one row of :func:`_moments`; count."""
+    A = np.empty((3, 3))
+    A[0, 0] = m[0]
+    A[0, 1] = m[1]
+    A[0, 2] = m[2]
+    A[1, 1] = m[3]
+    A[1, 2] = m[4]
+    A[2, 2] = m[5]
     A[1, 0] = A[0, 1]
     A[2, 0] = A[0, 2]
     A[2, 1] = A[1, 2]
+    b = np.empty(3)
+    b[0] = m[6]
+    b[1] = m[7]
+    b[2] = m[8]
     out = np.zeros(3)
     n = A[0, 0]
     if n < 6:
@@ -81,44 +124,47 @@ def _plane3(roi, mask, u0, v0):  # type: ignore[no-untyped-def]
 def _level_surfaces(roi, core, outer, u0, v0):  # type: ignore[no-untyped-def]
     """Target and plate level surfaces with one shared vignetting term (detect._level_surfaces).
 
+    The normal equations of both fits are assembled from the window's moment
+    sums (:func:`_moments`, one pass), not pixel by pixel.
+
     Returns (GI, level_in, GO, level_out): (H, W) surfaces and their values at
     the window centre.
     """
     H, W = roi.shape
     uc = u0 + 0.5 * (W - 1)
     vc = v0 + 0.5 * (H - 1)
-    a, n_a = _plane3(roi, core, u0, v0)
-    b, n_b = _plane3(roi, outer, u0, v0)
+    M = _moments(roi, core, outer, u0, v0)
+    a, n_a = _plane3(M[0])
+    b, n_b = _plane3(M[1])
     lv_a = a[0]
     lv_b = b[0]
     k = 0.0
     if n_a >= 30 and n_b >= 30:
+        # regressors: core (1, du, dv) in columns 0-2, outer (1, du, dv) in 3-5,
+        # the shared vignetting term level * q in column 6
         A = np.zeros((7, 7))
         r = np.zeros(7)
-        f = np.zeros(7)
-        for y in range(H):
-            dv = v0 + y - vc
-            for x in range(W):
-                du = u0 + x - uc
-                if core[y, x]:
-                    f[:] = 0.0
-                    f[0] = 1.0
-                    f[1] = du
-                    f[2] = dv
-                    f[6] = lv_a * (du * du + dv * dv)
-                elif outer[y, x]:
-                    f[:] = 0.0
-                    f[3] = 1.0
-                    f[4] = du
-                    f[5] = dv
-                    f[6] = lv_b * (du * du + dv * dv)
-                else:
-                    continue
-                g = roi[y, x]
-                for i in range(7):
-                    r[i] += g * f[i]
-                    for j in range(7):
-                        A[i, j] += f[i] * f[j]
+        for reg in range(2):
+            m = M[reg]
+            o = 3 * reg
+            lv = lv_a if reg == 0 else lv_b
+            A[o, o] = m[0]
+            A[o, o + 1] = m[1]
+            A[o, o + 2] = m[2]
+            A[o + 1, o + 1] = m[3]
+            A[o + 1, o + 2] = m[4]
+            A[o + 2, o + 2] = m[5]
+            A[o, 6] = lv * m[9]
+            A[o + 1, 6] = lv * m[10]
+            A[o + 2, 6] = lv * m[11]
+            A[6, 6] += lv * lv * m[12]
+            r[o] = m[6]
+            r[o + 1] = m[7]
+            r[o + 2] = m[8]
+            r[6] += lv * m[13]
+        for i in range(7):
+            for j in range(i):
+                A[i, j] = A[j, i]
         for i in range(7):
             A[i, i] += 1e-9
         c = np.linalg.solve(A, r)
@@ -260,7 +306,16 @@ def fine_stage(roi, core, outer, u0, v0, cont_x, cont_y, near_tol, correct, max_
     out[10] = lvl_in
     out[11] = lvl_out
     out[0] = 1.0
-    # halfway crossings along rows and columns
+    # halfway crossings along rows and columns: h = g - g_mid and the local
+    # contrast |g_out - g_in|, computed once per pixel
+    hh = np.empty((H, W))
+    am = np.empty((H, W))
+    for y in range(H):
+        for x in range(W):
+            gi0 = GI[y, x]
+            go0 = GO[y, x]
+            hh[y, x] = roi[y, x] - 0.5 * (gi0 + go0)
+            am[y, x] = abs(go0 - gi0)
     cap = 2 * H * W
     px = np.empty(cap)
     py = np.empty(cap)
@@ -269,34 +324,24 @@ def fine_stage(roi, core, outer, u0, v0, cont_x, cont_y, near_tol, correct, max_
     for y in range(H):
         vv = v0 + y
         for x in range(W - 1):
-            uu = u0 + x
-            gi0 = GI[y, x]
-            go0 = GO[y, x]
-            gi1 = GI[y, x + 1]
-            go1 = GO[y, x + 1]
-            h0 = roi[y, x] - 0.5 * (gi0 + go0)
-            h1 = roi[y, x + 1] - 0.5 * (gi1 + go1)
+            h0 = hh[y, x]
+            h1 = hh[y, x + 1]
             if (h0 * h1 < 0 or (h0 == 0 and h1 != 0)) and abs(h1 - h0) > min_step * 0.5 * (
-                abs(go0 - gi0) + abs(go1 - gi1)
+                am[y, x] + am[y, x + 1]
             ):
-                px[n] = uu + h0 / (h0 - h1)
+                px[n] = u0 + x + h0 / (h0 - h1)
                 py[n] = vv
                 isrow[n] = True
                 n += 1
     for y in range(H - 1):
         vv = v0 + y
         for x in range(W):
-            uu = u0 + x
-            gi0 = GI[y, x]
-            go0 = GO[y, x]
-            gi1 = GI[y + 1, x]
-            go1 = GO[y + 1, x]
-            h0 = roi[y, x] - 0.5 * (gi0 + go0)
-            h1 = roi[y + 1, x] - 0.5 * (gi1 + go1)
+            h0 = hh[y, x]
+            h1 = hh[y + 1, x]
             if (h0 * h1 < 0 or (h0 == 0 and h1 != 0)) and abs(h1 - h0) > min_step * 0.5 * (
-                abs(go0 - gi0) + abs(go1 - gi1)
+                am[y, x] + am[y + 1, x]
             ):
-                px[n] = uu
+                px[n] = u0 + x
                 py[n] = vv + h0 / (h0 - h1)
                 isrow[n] = False
                 n += 1
@@ -379,6 +424,7 @@ def fine_stage(roi, core, outer, u0, v0, cont_x, cont_y, near_tol, correct, max_
     s2 = 0.0
     n_out = 0.0
     csum = 0.0
+    band_d = np.empty(H * W)  # distances of the band pixels, in pixel order
     for y in range(H):
         vv = v0 + y
         for x in range(W):
@@ -396,7 +442,9 @@ def fine_stage(roi, core, outer, u0, v0, cont_x, cont_y, near_tol, correct, max_
             yy = (-s * du + c * dv) / b_
             rho = math.sqrt(xx * xx + yy * yy) + 1e-12
             g = math.sqrt((xx / a_) ** 2 + (yy / b_) ** 2) / rho
-            if abs((rho - 1.0) / g) < 3.0:
+            dd = (rho - 1.0) / g
+            if abs(dd) < 3.0:
+                band_d[int(n_band)] = dd
                 diff = go - gi
                 if abs(diff) < 1e-9:
                     diff = 1e-9
@@ -416,19 +464,18 @@ def fine_stage(roi, core, outer, u0, v0, cont_x, cont_y, near_tol, correct, max_
     for _pass in range(2):
         sg_b = max(sigma, 0.05)
         bias_sum = 0.0
-        for y in range(H):
-            vv = v0 + y
-            for x in range(W):
-                uu = u0 + x
-                du = uu - u_
-                dv = vv - v_
-                xx = (c * du + s * dv) / a_
-                yy = (-s * du + c * dv) / b_
-                rho = math.sqrt(xx * xx + yy * yy) + 1e-12
-                g = math.sqrt((xx / a_) ** 2 + (yy / b_) ** 2) / rho
-                d = (rho - 1.0) / g
-                if abs(d) < 3.0:
-                    bias_sum += _noise_bias(_phi(d / sg_b), eps)
+        # beyond 9 edge widths the normalised level is 1 to the last bit (inside
+        # the plate side) or below 1e-19 (target side): one value each
+        bias_hi = _noise_bias(1.0, eps)
+        bias_lo = _noise_bias(0.0, eps)
+        for i in range(int(n_band)):
+            tb = band_d[i] / sg_b
+            if tb > 9.0:
+                bias_sum += bias_hi
+            elif tb < -9.0:
+                bias_sum += bias_lo
+            else:
+                bias_sum += _noise_bias(_phi(tb), eps)
         sigma = math.sqrt(math.pi) * max(edge_sum - bias_sum, 0.0) / perim
     if correct and sigma > 0:
         sg = min(sigma, max_sigma)
