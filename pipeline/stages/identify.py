@@ -816,19 +816,23 @@ def _identify_one(
     z0 = prob.join(x0, pin0, tg0)
     xs = np.concatenate([1.0 / pscale[kept], np.ones(3 + 3 * K)])
     linear = config.robust_loss == "linear"
-    sol = least_squares(
-        prob.fun,
-        z0,
-        jac=prob.jac,
-        method="lm" if linear and prob.m >= z0.size else "trf",
-        loss=config.robust_loss if linear else _partial_loss(config.robust_loss, 3 * N),
-        f_scale=config.f_scale,
-        x_scale=xs,
-        xtol=1e-10,
-        ftol=1e-10,
-        gtol=1e-10,
-        max_nfev=config.max_nfev,
-    )
+
+    def solve(z_start: F64) -> Any:
+        return least_squares(
+            prob.fun,
+            z_start,
+            jac=prob.jac,
+            method="lm" if linear and prob.m >= z0.size else "trf",
+            loss=config.robust_loss if linear else _partial_loss(config.robust_loss, 3 * N),
+            f_scale=config.f_scale,
+            x_scale=xs,
+            xtol=1e-10,
+            ftol=1e-10,
+            gtol=1e-10,
+            max_nfev=config.max_nfev,
+        )
+
+    sol = solve(z0)
     noise_note = "isotropic pin residuals in the base frame"
     sigma_flange = None
     if config.noise_model == "flange":
@@ -840,19 +844,7 @@ def _identify_one(
             if W is None:
                 break
             prob.W = W
-            sol = least_squares(
-                prob.fun,
-                sol.x,
-                jac=prob.jac,
-                method="lm" if linear and prob.m >= z0.size else "trf",
-                loss=config.robust_loss if linear else _partial_loss(config.robust_loss, 3 * N),
-                f_scale=config.f_scale,
-                x_scale=xs,
-                xtol=1e-10,
-                ftol=1e-10,
-                gtol=1e-10,
-                max_nfev=config.max_nfev,
-            )
+            sol = solve(sol.x)
         if prob.W is not None:
             noise_note = (
                 "pin residuals whitened by their covariance in the flange frame, estimated from "
