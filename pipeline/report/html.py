@@ -127,7 +127,7 @@ def _verdict(data: RunData) -> dict[str, Any]:
         "recording_path": str(rpath) if rpath else "",
         "recording_reachable": data.recording_path() is not None,
         "date": data.date(),
-        "model": idf.get("model") or idf.get("error_model") or "",
+        "model": chosen_model(data) or idf.get("error_model") or "",
         "before": before,
         "after": after,
         "ratio": (before[0] / after[0]) if before and after and after[0] > 0 else None,
