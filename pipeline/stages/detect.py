@@ -40,6 +40,7 @@ competing blobs, ambiguity ratio, contrast, and the measured edge width.
 
 from __future__ import annotations
 
+import math
 from dataclasses import asdict, dataclass
 from typing import Any
 
@@ -53,6 +54,7 @@ except ImportError:  # pragma: no cover - numba missing: NumPy path
     _jit = None  # type: ignore[assignment]
 
 POLARITIES = ("dark_on_light", "light_on_dark")
+_KER3 = np.ones((3, 3), np.uint8)  # 3x3 structuring element of the core / plate masks
 
 
 @dataclass
@@ -610,10 +612,14 @@ def detect_target(
     Ws, Hs = W // k, H // k
     # plain subsampling: the coarse search only needs the blob, and a threshold
     # halfway between the levels is many noise sigmas from both
-    small = np.ascontiguousarray(img[k // 2 : Hs * k : k, k // 2 : Ws * k : k])
-    sub = small[::2, ::2].ravel()
-    bg = float(np.partition(sub, sub.size // 2)[sub.size // 2])
-    lo, hi, _, _ = cv2.minMaxLoc(small)
+    if img.dtype == np.uint8 and cfg.compiled and _jit is not None and Hs > 0 and Ws > 0:
+        # one compiled pass: the same subsample, median and extremes
+        small, bg, lo, hi = _jit.coarse_uint8(img, k)
+    else:
+        small = np.ascontiguousarray(img[k // 2 : Hs * k : k, k // 2 : Ws * k : k])
+        sub = small[::2, ::2].ravel()
+        bg = float(np.partition(sub, sub.size // 2)[sub.size // 2])
+        lo, hi, _, _ = cv2.minMaxLoc(small)
     pol = cfg.polarity or _auto_polarity(bg, lo, hi)
     if pol not in POLARITIES:
         raise ValueError(f"unknown polarity {pol!r}")
@@ -642,23 +648,27 @@ def detect_target(
         cand.append((area, cx * k + k // 2, cy * k + k // 2, (x0c, y0c, wc, hc), c))
     if not cand:
         return _empty("no_blob")
-    areas = np.array([c[0] for c in cand])
-    cu = np.array([c[1] for c in cand])
-    cv_ = np.array([c[2] for c in cand])
-    use_exp = expected is not None and bool(np.all(np.isfinite(expected)))
+    # a handful of candidates: plain floats (NumPy calls on 1-element arrays cost more)
+    areas = [c[0] for c in cand]
+    use_exp = expected is not None and all(math.isfinite(float(e)) for e in expected)
+    score: list[float] = []
     if use_exp:
         assert expected is not None
         eu, ev, es = expected
         es = max(float(es), 1.0)
-        score = np.hypot(cu - eu, cv_ - ev) / es + np.abs(np.log(np.sqrt(areas * 4 / np.pi) / es))
-        order = np.argsort(score)
+        score = [
+            math.hypot(c[1] - eu, c[2] - ev) / es
+            + abs(math.log(math.sqrt(c[0] * 4 / math.pi) / es))
+            for c in cand
+        ]
+        order = sorted(range(len(cand)), key=score.__getitem__)
     else:
-        order = np.argsort(-areas)
-    best = int(order[0])
+        order = sorted(range(len(cand)), key=lambda i: -areas[i])
+    best = order[0]
     ambiguity = 0.0
     ambiguous = False
     if len(cand) > 1:
-        second = int(order[1])
+        second = order[1]
         ambiguity = float(min(areas[second], areas[best]) / max(areas[best], areas[second]))
         if use_exp:
             ambiguous = bool(score[second] < score[best] + 0.5 and ambiguity > cfg.ambiguity_ratio)
@@ -673,18 +683,30 @@ def detect_target(
     v0 = max(y0s * k - mg, 0)
     u1 = min((x0s + ws) * k + mg, W)
     v1 = min((y0s + hs) * k + mg, H)
-    roi = img[v0:v1, u0:u1].astype(np.float32)
-    inside = ((roi < thr) if dark else (roi > thr)).view(np.uint8)
-    ker = np.ones((3, 3), np.uint8)
-    core = cv2.erode(inside, ker, iterations=2)
-    outer = cv2.dilate(inside, ker, iterations=3) == 0
+    img_roi = img[v0:v1, u0:u1]
+    # integer grey levels and the half-integer threshold compare exactly in any dtype
+    inside = ((img_roi < thr) if dark else (img_roi > thr)).view(np.uint8)
+    core = cv2.erode(inside, _KER3, iterations=2)
+    outer = cv2.dilate(inside, _KER3, iterations=3) == 0
     core_b = core.astype(bool) if core.any() else inside.astype(bool)
     if not core_b.any() or int(outer.sum()) < 6:
         return _empty("fit_failed", n_blobs)
     if cfg.compiled and _jit is not None:
         return _finish_compiled(
-            roi, core_b, outer, u0, v0, contour, k, cfg, n_blobs, border, ambiguity, ambiguous
+            img_roi.astype(np.float64),
+            core_b,
+            outer,
+            u0,
+            v0,
+            contour,
+            k,
+            cfg,
+            n_blobs,
+            border,
+            ambiguity,
+            ambiguous,
         )
+    roi = img_roi.astype(np.float32)
     ua = np.arange(u0, u1, dtype=np.float32)
     va = np.arange(v0, v1, dtype=np.float32)
     g_in, lvl_in, g_out, lvl_out = _level_surfaces(roi, core_b, outer, ua, va)
@@ -767,7 +789,7 @@ def _finish_compiled(
     """Steps 2-5 through :func:`pipeline.stages._detect_jit.fine_stage`."""
     assert _jit is not None
     r = _jit.fine_stage(
-        roi.astype(np.float64),
+        roi,
         core,
         outer,
         float(u0),
