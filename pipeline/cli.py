@@ -67,13 +67,45 @@ def cli() -> None:
     """
 
 
+def _caused_by_interrupt(exc: BaseException) -> bool:
+    """True if a KeyboardInterrupt is in the exception's cause/context chain.
+
+    Ctrl-C landing inside a C extension's import (matplotlib, numba, ...) surfaces
+    as an ImportError whose context is the KeyboardInterrupt.
+    """
+    seen: set[int] = set()
+    e: BaseException | None = exc
+    while e is not None and id(e) not in seen:
+        if isinstance(e, KeyboardInterrupt):
+            return True
+        seen.add(id(e))
+        e = e.__cause__ or e.__context__
+    return False
+
+
+def _interrupted(standalone: bool) -> None:
+    """Say so in one line and exit 130.
+
+    As the real command (``standalone``) it leaves through ``os._exit`` after
+    flushing: every artefact is already complete (writes are atomic), and a
+    half-initialised extension module interrupted mid-import can crash the
+    interpreter's own finalisation.
+    """
+    click.echo("vtcal: interrupted; finished artefacts are intact", err=True)
+    if standalone:
+        sys.stdout.flush()
+        sys.stderr.flush()
+        os._exit(130)
+    sys.exit(130)
+
+
 def main(argv: list[str] | None = None) -> Any:
     """Entry point: run the CLI, mapping vtcal errors to one line and an exit code."""
+    standalone = argv is None
     try:
         return cli.main(args=argv, prog_name="vtcal", standalone_mode=False)
     except click.exceptions.Abort:  # click turns Ctrl-C (KeyboardInterrupt) into Abort
-        click.echo("vtcal: interrupted; finished artefacts are intact", err=True)
-        sys.exit(130)
+        _interrupted(standalone)
     except click.UsageError as exc:  # bad option or argument: one line, like bad input
         cmd = exc.ctx.command_path if exc.ctx is not None else "vtcal"
         click.echo(f"vtcal: error: {exc.format_message()} (see '{cmd} --help')", err=True)
@@ -85,9 +117,10 @@ def main(argv: list[str] | None = None) -> Any:
         click.echo(f"vtcal: error: {exc}", err=True)
         sys.exit(exc.exit_code)
     except KeyboardInterrupt:
-        click.echo("vtcal: interrupted; finished artefacts are intact", err=True)
-        sys.exit(130)
+        _interrupted(standalone)
     except Exception as exc:  # a bug, not bad input: one line, traceback on request
+        if _caused_by_interrupt(exc):
+            _interrupted(standalone)
         if os.environ.get("VTCAL_DEBUG"):
             raise
         where = exc.__traceback__

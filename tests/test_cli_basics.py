@@ -55,3 +55,22 @@ def test_parse_distances() -> None:
     for bad in ("0:2", "0=1", "0:2=-1", "0:2=x", ":2=1"):
         with pytest.raises(BadInput, match="expected A:B=METRES"):
             parse_distances(bad)
+
+
+def test_interrupt_inside_an_import_counts_as_an_interrupt() -> None:
+    from pipeline.cli import _caused_by_interrupt
+
+    def import_interrupted() -> None:
+        try:
+            raise KeyboardInterrupt
+        except KeyboardInterrupt:
+            raise ImportError("initialization failed") from None
+
+    try:
+        import_interrupted()
+    except ImportError as exc:
+        assert _caused_by_interrupt(exc)  # context kept even with 'from None'
+    try:
+        raise ValueError("a bug")
+    except ValueError as exc:
+        assert not _caused_by_interrupt(exc)
