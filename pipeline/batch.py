@@ -825,54 +825,12 @@ def _fan_out(
 # the summary
 
 
-_NULLABLE = (
-    "peak_rss_mb",
-    "model",
-    "n_touchups",
-    "n_used",
-    "n_targets",
-    "n_identified",
-    "n_params",
-    "rms_mm",
-    "max_mm",
-    "predicted_shape_rms_mm",
-    "predicted_absolute_rms_mm",
-    "cond",
-    "scale_identified",
-)
-_SUMMARY_COLUMNS = [
-    "name",
-    "recording",
-    "run_dir",
-    "robot",
-    "robot_urdf",
-    "notes",
-    "status",
-    "error_kind",
-    "error",
-    "exit_code",
-    "stages",
-    "stages_ran",
-    "stages_cached",
-    "seconds",
-    "cpu_seconds",
-    "peak_rss_mb",
-    "worker",
-    "model",
-    "n_touchups",
-    "n_used",
-    "n_targets",
-    "n_identified",
-    "n_params",
-    "rms_mm",
-    "max_mm",
-    "predicted_shape_rms_mm",
-    "predicted_absolute_rms_mm",
-    "cond",
-    "scale_identified",
-    "headline",
-    "retried",
-]
+def _summary_columns() -> tuple[list[str], list[str]]:
+    """Columns of the summary and the nullable ones, from ``schemas/batch_summary.json``."""
+    from pipeline.artefacts import load_schema
+
+    schema = load_schema("batch_summary")
+    return schema.column_names, [c.name for c in schema.columns if c.nullable]
 
 
 def summary_table(outcomes: Sequence[RecordingOutcome]) -> pd.DataFrame:
@@ -917,8 +875,9 @@ def summary_table(outcomes: Sequence[RecordingOutcome]) -> pd.DataFrame:
                 "retried": bool(o.retried),
             }
         )
-    df = pd.DataFrame(rows, columns=_SUMMARY_COLUMNS)
-    for c in _NULLABLE:  # keep None (not NaN) so ints stay ints and bools stay bools
+    columns, nullable = _summary_columns()
+    df = pd.DataFrame(rows, columns=columns)
+    for c in nullable:  # keep None (not NaN) so ints stay ints and bools stay bools
         df[c] = pd.Series([r[c] for r in rows], dtype=object)
     return df
 
