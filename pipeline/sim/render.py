@@ -93,6 +93,19 @@ def _roi(camera: CameraModel, T_camera_target: F64, radius: float) -> tuple[int,
     return u0, u1, v0, v1
 
 
+def _footprint(xy: F64, ok: np.ndarray, floor: float) -> F64:
+    """Conservative footprint (m) of each grid cell on the plane, ``(h, w)``.
+
+    ``0.75 (|d xy / du| + |d xy / dv|) + floor`` where the ray hits the plane, 0
+    elsewhere, capped at 1 m: a cell whose centre is farther than this from a disc
+    edge is wholly inside or outside that disc.
+    """
+    gu = np.linalg.norm(np.gradient(xy, axis=1), axis=-1)
+    gv = np.linalg.norm(np.gradient(xy, axis=0), axis=-1)
+    foot: F64 = np.minimum(np.where(ok, 0.75 * (gu + gv) + floor, 0.0), 1.0)
+    return foot
+
+
 def _coverage(
     camera: CameraModel,
     T_camera_target: F64,
@@ -168,12 +181,8 @@ def render_ideal(
             vv, uu = np.mgrid[v0:v1, u0:u1].astype(float)
             uv_grid = np.stack([uu, vv], axis=-1)
             xy, ok = _plane_coords(camera, T, rays)
-            # pixel footprint on the plane (m): |d xy / du| + |d xy / dv|, conservative
             if xy.shape[0] > 1 and xy.shape[1] > 1:
-                gu = np.linalg.norm(np.gradient(xy, axis=1), axis=-1)
-                gv = np.linalg.norm(np.gradient(xy, axis=0), axis=-1)
-                foot = np.where(ok, 0.75 * (gu + gv) + 1e-9, 0.0)
-                foot = np.minimum(foot, 1.0)
+                foot = _footprint(xy, ok, 1e-9)
             else:
                 foot = np.full(xy.shape[:2], 1.0)
             roi = np.full(xy.shape[:2], bg)
@@ -241,9 +250,7 @@ def _fine_blurred_region(
     uu, vv = np.meshgrid(us, vs)
     uv = np.stack([uu, vv], axis=-1)
     xy, ok = _plane_coords(camera, T, camera.pixel_to_normalised(uv))
-    gu = np.linalg.norm(np.gradient(xy, axis=1), axis=-1)
-    gv = np.linalg.norm(np.gradient(xy, axis=0), axis=-1)
-    foot = np.minimum(np.where(ok, 0.75 * (gu + gv) + 1e-12, 0.0), 1.0)
+    foot = _footprint(xy, ok, 1e-12)
     img = np.full(xy.shape[:2], bg)
     n_sub = max(4, int(np.ceil(subsamples / k)))
     for c, r, g in layers:
