@@ -5,27 +5,13 @@ from __future__ import annotations
 import numpy as np
 import pytest
 from mcap.writer import CompressionType
+from test_robustness_data import MS, NAMES, T0, URDF
 
 from pipeline.artefacts import write_artefact
 from pipeline.errors import BadInput
 from pipeline.stages._mcap_write import write_recording
 from pipeline.stages.detect import DetectConfig
 from pipeline.stages.ingest import IngestConfig, ingest_recording, load_image
-
-URDF = """<?xml version="1.0"?>
-<robot name="two">
-  <link name="base_link"/><link name="l1"/><link name="flange"/>
-  <joint name="j1" type="revolute"><parent link="base_link"/><child link="l1"/>
-    <origin xyz="0 0 0.3" rpy="0 0 0"/><axis xyz="0 0 1"/>
-    <limit lower="-3" upper="3" effort="1" velocity="1"/></joint>
-  <joint name="j2" type="revolute"><parent link="l1"/><child link="flange"/>
-    <origin xyz="0.4 0 0" rpy="0 0 0"/><axis xyz="0 1 0"/>
-    <limit lower="-3" upper="3" effort="1" velocity="1"/></joint>
-</robot>
-"""
-NAMES = ["j1", "j2"]
-T0 = 1_700_000_000_000_000_000
-MS = 1_000_000
 
 
 def disc_image(u: float, v: float, r: float, w: int = 160, h: int = 128, dark: bool = True):
