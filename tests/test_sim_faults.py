@@ -187,3 +187,42 @@ def test_knocked_target(rec: dict[str, Any]) -> None:
         expect = after if tu["index"] in f["touchups_after"] else before
         assert np.allclose(centre, expect)
         assert np.linalg.norm(tu["pin_miss_mm"]) < 2.0
+
+
+def test_faults_are_extra_attempts_and_leave_the_rest_identical(
+    rec: dict[str, Any], tmp_path: Path
+) -> None:
+    """The same seed without faults: every touch-up of that recording is in the faulty
+    one with the same converged joints and the same detections (noise drawn per plan
+    pose), apart from those on the knocked target after the knock."""
+    sc = load_scenario(SCEN / "faults.toml")
+    no_faults = dataclasses.replace(
+        sc.faults, **{f.name: False for f in dataclasses.fields(sc.faults)}
+    )
+    sc = dataclasses.replace(
+        sc,
+        poses=dataclasses.replace(sc.poses, per_target=3),
+        touchup=dataclasses.replace(sc.touchup, max_iterations=8),
+        faults=no_faults,
+    )
+    clean = write_recording(sc, 5, tmp_path / "clean.mcap")
+    faulty = rec["truth"]
+    knock = _fault(faulty, "target_knocked")
+    per_touchup = [f for f in faulty["faults"] if "touchup" in f]
+    # every fault but the knock (between touch-ups) and the truncation (one extra
+    # touch-up the recorder dies in) is an extra, faulted attempt
+    extra = {f["touchup"] for f in per_touchup if f["type"] != "target_knocked"}
+    assert len(faulty["touchups"]) == len(clean["touchups"]) + len(extra) + 1
+    after_knock = set(knock["touchups_after"])
+    kept = [
+        t for t in faulty["touchups"] if t["index"] not in extra and t["index"] not in after_knock
+    ][: len(clean["touchups"])]
+    n_same = 0
+    for c in clean["touchups"]:
+        match = [t for t in kept if np.array_equal(t["q"], c["q"])]
+        if match:
+            n_same += 1
+            assert match[0]["final_error_px"] == c["final_error_px"]
+            assert match[0]["target"] == c["target"]
+    n_knocked = sum(1 for i in after_knock if i not in extra)
+    assert n_same == len(clean["touchups"]) - n_knocked

@@ -467,6 +467,12 @@ class Robot:
         dq = float(np.max(np.abs(np.asarray(q_goal) - self.q)))
         return max(minimum, 1.875 * dq / speed)
 
+    def align_to_tick(self) -> None:
+        """Advance the clock to the next joint-state tick (emitting it): the time
+        from here to every later tick is then a whole number of ticks."""
+        if self.t != self.next_tick - self.dt_ns:
+            self.advance((self.next_tick - self.t) / NS)
+
     def advance(self, dt_s: float) -> None:
         t_end = self.t + int(round(dt_s * NS))
         while self.next_tick <= t_end:
@@ -533,6 +539,20 @@ class Session:
         self.safe_bytes = 0
 
     # ------------------------------------------------------------ helpers
+    def reseed(self, plan_index: int, faulted: bool) -> None:
+        """Give the touch-up at plan pose ``plan_index`` its own image and encoder noise.
+
+        The streams come from ``SeedSequence(seed, spawn_key=(1000, plan_index,
+        faulted))``: a touch-up's noise depends on the seed and its plan pose only, not
+        on how many images or joint states the touch-ups before it drew.
+        """
+        ss = np.random.SeedSequence(self.seed, spawn_key=(1000, plan_index, int(faulted)))
+        s_img, s_enc = ss.spawn(2)
+        self.rng_img = np.random.default_rng(s_img)
+        self.rng_enc = np.random.default_rng(s_enc)
+        if self.robot is not None:
+            self.robot.rng = self.rng_enc
+
     def _T_camera_target(self, q: F64, tg: Target) -> F64:
         T_base_cam = fk(self.cell.true, q) @ self.cell.T_flange_camera
         return invert_transform(T_base_cam) @ tg.T_base_target()
@@ -663,6 +683,20 @@ class Session:
         q_new, _ = solve_ik(self.cell.nominal, T_goal, q, max_iter=50, respect_limits=False)
         return q_new
 
+    def nominal_roll(self, q: F64, angle_rad: float) -> F64:
+        """Joint vector rolling the *nominal* flange by ``angle_rad`` about the camera's
+        optical axis through the virtual pin: the same target, seen from a pose the
+        touch-up extraction takes for another touch-up (an extra, faulted attempt)."""
+        axis_flange = self.cell.T_flange_camera[:3, 2]
+        R = matrix_from_axis_angle(axis_flange, angle_rad)
+        pin = self.cell.p_vt_flange
+        T_rot = np.eye(4)
+        T_rot[:3, :3] = R
+        T_rot[:3, 3] = pin - R @ pin
+        T_goal = fk(self.cell.nominal, q) @ T_rot
+        q_new, _ = solve_ik(self.cell.nominal, T_goal, q, max_iter=50, respect_limits=False)
+        return q_new
+
     def small_move(self, q_goal: F64) -> None:
         rob = self.robot
         assert rob is not None
@@ -755,6 +789,31 @@ def _fault_plan(sess: Session, plan: list[tuple[int, F64]]) -> dict[str, int]:
     return out
 
 
+#: Roll of an extra, faulted touch-up off its plan pose, rad (about 3.4 degrees).
+FAULT_ROLL_RAD = 0.06
+
+
+def _attempts(n_plan: int, faults_at: dict[str, int]) -> list[tuple[int, bool]]:
+    """The touch-ups of a session in order: ``(plan index, faulted)``.
+
+    A fault never takes the place of a planned touch-up: a plan pose that carries a
+    fault (other than a knock, which happens between touch-ups) is visited twice,
+    first by an extra, faulted touch-up at the pose rolled by
+    :data:`FAULT_ROLL_RAD` about the camera axis through the pin (so that it is a
+    touch-up of its own, not a continuation of the next), then by the planned one.
+    A recording with faults thus holds every touch-up of the same seed's
+    fault-free recording (with the same noise, see :meth:`Session.reseed`) plus
+    the faulted ones.
+    """
+    faulted = {i for nm, i in faults_at.items() if nm != "knocked_target" and i >= 0}
+    out: list[tuple[int, bool]] = []
+    for i in range(n_plan):
+        if i in faulted:
+            out.append((i, True))
+        out.append((i, False))
+    return out
+
+
 def _run(sess: Session) -> dict[str, Any]:
     sc = sess.sc
     cell = sess.cell
@@ -765,12 +824,12 @@ def _run(sess: Session) -> dict[str, Any]:
     for tid, _ in plan:
         labels.setdefault(tid, len(labels))
     faults_at = _fault_plan(sess, plan)
-    tail_index = -1
     safe_bytes = 0
     if sc.faults.truncate:
         # one more touch-up (a repeat of the first pose) during which the recorder dies
         plan = plan + [plan[0]]
-        tail_index = len(plan) - 1
+    attempts = _attempts(len(plan), faults_at)
+    tail_index = len(attempts) - 1 if sc.faults.truncate else -1
 
     t0 = sc.timing.start_ns
     rec.push(t0, "/robot_description", "std_msgs/msg/String", {"data": cell.nominal_urdf})
@@ -825,13 +884,18 @@ def _run(sess: Session) -> dict[str, Any]:
     u0, v0, s0 = cell.u0, cell.v0, cell.s0
     goal = np.array([u0, v0, 1.0 / s0])
 
-    for ti, (tid, q_plan) in enumerate(plan):
+    for ti, (pi, faulted) in enumerate(attempts):
+        tid, q_plan = plan[pi]
+        if faulted:  # an extra attempt, rolled off the plan pose (docstring of _attempts)
+            q_plan = sess.nominal_roll(q_plan, FAULT_ROLL_RAD)
         tg = targets[tid]
         img_start = len(sess.images)
         gain = tt.gain
         opts = CaptureOptions()
         fault_here: list[dict[str, Any]] = []
-        if faults_at["knocked_target"] == ti:
+        # the faults of this attempt: plan index -> fault, on the extra attempt only
+        here = {nm: faulted and i == pi for nm, i in faults_at.items()}
+        if faults_at["knocked_target"] == pi and (ti == 0 or attempts[ti - 1][0] != pi):
             shift = sess.rng_fault.normal(0.0, 1.0, 3)
             shift *= sess.rng_fault.uniform(0.001, 0.002) / np.linalg.norm(shift)
             tg.centre = tg.centre + shift
@@ -848,17 +912,19 @@ def _run(sess: Session) -> dict[str, Any]:
                     "first_touchup": ti,
                     "centre_after": tg.centre.tolist(),
                     "time_ns": int(rob.t),
-                    "touchups_after": [i for i in range(ti, len(plan)) if plan[i][0] == tid],
+                    "touchups_after": [
+                        i for i in range(ti, len(attempts)) if plan[attempts[i][0]][0] == tid
+                    ],
                 }
             )
-        if faults_at["unconverged"] == ti:
+        if here["unconverged"]:
             gain = 0.2
             offset = sess.rng_fault.normal(0.0, 1.0, 3)
             offset[2] = 0.0
             offset *= 0.01 / np.linalg.norm(offset)
             q_plan = sess.nominal_shift(q_plan, offset)
             fault_here.append({"type": "unconverged", "gain": gain, "plan_offset_m": 0.01})
-        if faults_at["second_blob"] == ti:
+        if here["second_blob"]:
             ang = sess.rng_fault.uniform(0, 2 * np.pi)
             rad = sess.rng_fault.uniform(0.013, 0.02)
             off = (float(rad * np.cos(ang)), float(rad * np.sin(ang)))
@@ -866,17 +932,23 @@ def _run(sess: Session) -> dict[str, Any]:
             fault_here.append(
                 {"type": "second_blob", "diameter_m": 0.004, "offset_in_plate_m": list(off)}
             )
-        if faults_at["joint_state_gap"] == ti:
+        if here["joint_state_gap"]:
             g0 = rob.t + int(0.3 * NS)
             rob.gaps.append((g0, g0 + int(0.5 * NS)))
 
         # ---- large move to the planned pose
         n_dropped = len(rob.dropped)
-        capture_mid = faults_at["capture_while_moving"] == ti
+        capture_mid = here["capture_while_moving"]
         if ti == tail_index:
             safe_bytes = rec.cut_chunk()
         sess.large_move(q_plan, stop_at=0.94 if capture_mid else None, tg=tg)
-        if faults_at["joint_state_gap"] == ti:
+        if not capture_mid:
+            # at the planned pose: from here on this touch-up's noise is its own (clock
+            # phase and random streams depend on the plan pose only), so a touch-up is
+            # the same whatever faulted attempts came before it
+            rob.align_to_tick()
+        sess.reseed(pi, faulted)
+        if here["joint_state_gap"]:
             dropped = rob.dropped[n_dropped:]
             n_pre = rob.emitted_before_gap[len(rob.gaps) - 1]
             sess.faults.append(
@@ -902,7 +974,7 @@ def _run(sess: Session) -> dict[str, Any]:
         expected: tuple[float, float] | None = None
 
         # ---- lost target: an occluder hides it at the first capture
-        if faults_at["lost_target"] == ti:
+        if here["lost_target"]:
             occ = (
                 float(u0 + sess.rng_fault.normal(0, 5)),
                 float(v0 + sess.rng_fault.normal(0, 5)),
