@@ -19,14 +19,15 @@ on read; a write goes to a temporary file in the same folder and is renamed
 into place, so a killed run never leaves a half-written artefact. Parquet
 key-value metadata carries the stage, the package version, a hash of the
 stage's configuration and the hashes of its input artefacts (``vtcal.*`` keys).
+
+File hashing and the atomic write itself live in :mod:`pipeline.fileio` (standard
+library only, for the cache checks that must not load pandas) and are re-exported here.
 """
 
 from __future__ import annotations
 
-import hashlib
 import json
 import os
-import tempfile
 from collections.abc import Mapping
 from dataclasses import dataclass
 from functools import cache
@@ -40,6 +41,23 @@ import pyarrow.parquet as pq
 
 from pipeline import __version__
 from pipeline.errors import BadInput, VtcalError
+from pipeline.fileio import atomic_write_bytes, config_hash, file_hash
+
+__all__ = [
+    "SCHEMA_DIR",
+    "TYPES",
+    "Column",
+    "Schema",
+    "SchemaError",
+    "atomic_write_bytes",
+    "config_hash",
+    "file_hash",
+    "load_schema",
+    "read_artefact",
+    "read_artefact_table",
+    "read_meta",
+    "write_artefact",
+]
 
 SCHEMA_DIR = Path(__file__).resolve().parent.parent / "schemas"
 
@@ -179,42 +197,6 @@ def load_schema(name: str) -> Schema:
         extra_type=extra["type"] if extra else None,
         extra_doc=extra.get("doc", "") if extra else "",
     )
-
-
-def config_hash(config: Mapping[str, Any]) -> str:
-    """Stable short hash of a JSON-able configuration mapping."""
-    blob = json.dumps(config, sort_keys=True, default=str, separators=(",", ":"))
-    return hashlib.sha256(blob.encode()).hexdigest()[:16]
-
-
-def file_hash(path: str | os.PathLike[str]) -> str:
-    """SHA-256 (first 16 hex digits) of a file's bytes."""
-    h = hashlib.sha256()
-    with open(path, "rb") as f:
-        for block in iter(lambda: f.read(1 << 20), b""):
-            h.update(block)
-    return h.hexdigest()[:16]
-
-
-_UMASK = os.umask(0)
-os.umask(_UMASK)
-
-
-def atomic_write_bytes(path: str | os.PathLike[str], data: bytes) -> None:
-    """Write a file through a temporary sibling and ``os.replace`` (all or nothing)."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    try:
-        with os.fdopen(fd, "wb") as f:
-            f.write(data)
-            f.flush()
-            os.fsync(f.fileno())
-        os.chmod(tmp, 0o666 & ~_UMASK)  # mkstemp makes 0600; give the usual file mode
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
 
 
 def write_artefact(
