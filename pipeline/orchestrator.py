@@ -7,6 +7,12 @@ the stage's configuration and the package version. A stage whose outputs exist
 and whose recorded inputs, configuration and version all match is skipped
 (``force=True`` re-runs everything).
 
+Before any of that, the run ledger (:mod:`pipeline.run_ledger`) is asked whether
+the run folder is already exactly what this request makes: same recording bytes,
+options, ``until``, version and code, every artefact intact. Then the run returns
+at once with every stage cached, without loading pandas, pyarrow or a stage
+module. Importing this module is light too (no numeric library).
+
 Stages, in order (``--until`` stops after the named one)::
 
     ingest     recording.mcap -> frames.parquet, detections.parquet, recording.json
@@ -22,19 +28,15 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import sys
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 from pipeline import __version__
-from pipeline.artefacts import (
-    atomic_write_bytes,
-    config_hash,
-    file_hash,
-    read_meta,
-)
 from pipeline.errors import BadInput
+from pipeline.fileio import atomic_write_bytes, config_hash, file_hash
 from pipeline.known_distances import parse_distances
 
 STAGES = ("ingest", "touchups", "outliers", "identify", "crossval", "report")
@@ -65,15 +67,15 @@ class RunResult:
 
 def _jsonable(obj: Any) -> Any:
     """JSON form of configs and summaries; numpy arrays (bulk data) are left out."""
-    import numpy as np
+    np = sys.modules.get("numpy")  # not loaded: nothing here can be a numpy value
 
     if dataclasses.is_dataclass(obj) and not isinstance(obj, type):
         return {
             f.name: _jsonable(getattr(obj, f.name))
             for f in dataclasses.fields(obj)
-            if not isinstance(getattr(obj, f.name), np.ndarray)
+            if np is None or not isinstance(getattr(obj, f.name), np.ndarray)
         }
-    if isinstance(obj, np.generic):
+    if np is not None and isinstance(obj, np.generic):
         return obj.item()
     if isinstance(obj, Mapping):
         return {str(k): _jsonable(v) for k, v in obj.items()}
@@ -95,6 +97,8 @@ def is_fresh(outputs: list[Path], inputs: Mapping[str, str], config: Mapping[str
     Non-Parquet outputs only need to exist; they are written after the stage's
     Parquet artefacts, so their presence plus a fresh Parquet means the stage finished.
     """
+    from pipeline.artefacts import read_meta
+
     want_cfg = config_hash(config)
     parquet = [p for p in outputs if p.suffix == ".parquet"]
     if not all(p.exists() for p in outputs) or not parquet:
@@ -201,21 +205,31 @@ def run_pipeline(
     Returns
     -------
     RunResult with one :class:`StageRecord` per stage and the identification summary.
+    Without ``force``, a run folder the run ledger vouches for (see
+    :func:`cached_run`) is returned as it stands, every stage ``cached``.
     """
     import time
 
-    import pandas as pd
-
-    from pipeline.artefacts import read_artefact, write_artefact
+    from pipeline import run_ledger
 
     cfg = config or RunConfig()
     if until is not None and until not in STAGES:
         raise BadInput(f"--until {until!r}: not a stage (stages: {', '.join(STAGES)})")
     last = STAGES.index(until) if until else len(STAGES) - 1
     recording = Path(recording)
+    out = Path(out)
     if not recording.is_file():
         raise BadInput(f"{recording}: no such recording file")
     parse_distances(cfg.overrides.get("known_distances", ""))  # before the long ingest
+    fp = run_ledger.fingerprint(recording, cfg, until)
+    if not force:
+        hit = _from_ledger(out, fp)
+        if hit is not None:
+            return hit
+
+    import pandas as pd
+
+    from pipeline.artefacts import read_artefact, write_artefact
     from pipeline.stages import detect, identify, ingest, outliers, touchup
 
     out.mkdir(parents=True, exist_ok=True)
@@ -248,7 +262,7 @@ def run_pipeline(
         overrides=dict(cfg.overrides),
     )
     detect_cfg = _build(detect.DetectConfig, opts.get("detect", {}))
-    rec_inputs = {"recording": file_hash(recording)}
+    rec_inputs = {"recording": fp["recording"]}
 
     def do_ingest(conf: dict[str, Any]) -> None:
         def cb(done: int, total: int | None) -> None:
@@ -286,7 +300,7 @@ def run_pipeline(
         do_ingest,
     )
     if last < STAGES.index("touchups"):
-        return _finish(out, P, records)
+        return _finish(out, P, records, fingerprint=fp)
 
     info = ingest.RecordingInfo(**json.loads(P["recording"].read_text()))
     parse_distances(info.metadata.get("known_distances", ""))  # bad values fail now, not late
@@ -305,7 +319,7 @@ def run_pipeline(
 
     stage("touchups", [P["touchups"]], tu_inputs, touchup_cfg, do_touchups)
     if last < STAGES.index("outliers"):
-        return _finish(out, P, records)
+        return _finish(out, P, records, fingerprint=fp)
 
     # -- outlier rejection -------------------------------------------------------
     out_cfg = _build(outliers.OutlierConfig, opts.get("outliers", {}))
@@ -320,7 +334,7 @@ def run_pipeline(
 
     stage("outliers", [P["inliers"]], ol_inputs, out_cfg, do_outliers)
     if last < STAGES.index("identify"):
-        return _finish(out, P, records)
+        return _finish(out, P, records, fingerprint=fp)
 
     # -- identification ----------------------------------------------------------
     id_cfg = _build(
@@ -345,7 +359,7 @@ def run_pipeline(
         do_identify,
     )
     if last < STAGES.index("crossval"):
-        return _finish(out, P, records)
+        return _finish(out, P, records, fingerprint=fp)
 
     # -- cross-validation and the choice of error model -----------------------------
     from pipeline.stages import crossval
@@ -370,7 +384,7 @@ def run_pipeline(
 
     stage("crossval", [P["crossval"]], cv_inputs, cv_cfg, do_crossval)
     if last < STAGES.index("report") or not cfg.report:
-        return _finish(out, P, records)
+        return _finish(out, P, records, fingerprint=fp)
 
     # -- report.html and run.rrd, from the artefacts alone ------------------------
     report_inputs = hashes(
@@ -412,7 +426,7 @@ def run_pipeline(
             StageRecord("report", "ran", ["report.html", "run.rrd"], time.perf_counter() - t0)
         )
     del pd
-    return _finish(out, P, records, report_inputs)
+    return _finish(out, P, records, report_inputs, fingerprint=fp)
 
 
 def crossval_and_choose(
@@ -484,10 +498,86 @@ def _finish(
     P: dict[str, Path],
     records: list[StageRecord],
     report_inputs: dict[str, str] | None = None,
+    *,
+    fingerprint: dict[str, Any] | None = None,
 ) -> RunResult:
+    """Write ``run.json`` (what each stage did, and the run ledger's entry) and the result."""
+    from pipeline import run_ledger
+
     summary: dict[str, Any] = {}
     if P["identify"].exists():
         summary = json.loads(P["identify"].read_text())
-    run = {"version": __version__, "stages": records, "report_inputs": report_inputs}
+    run: dict[str, Any] = {
+        "version": __version__,
+        "stages": records,
+        "report_inputs": report_inputs,
+    }
+    if fingerprint is not None:
+        run[run_ledger.KEY] = run_ledger.entry(
+            out, fingerprint, [name for r in records for name in r.outputs]
+        )
     write_json(P["run"], run)
     return RunResult(out, records, summary)
+
+
+def _from_ledger(out: Path, fp: dict[str, Any]) -> RunResult | None:
+    """The run as it stands in ``out`` when the run ledger vouches for ``fp``, else None.
+
+    On a hit ``run.json`` is brought to what a run with every stage cached writes
+    (statuses ``cached``; rewritten only when that changes its bytes).
+    """
+    from pipeline import run_ledger
+
+    run = run_ledger.lookup(out, fp)
+    if run is None:
+        return None
+    P = run_paths(out)
+    try:
+        records = [
+            StageRecord(str(s["stage"]), "cached", [str(o) for o in s.get("outputs", [])])
+            for s in run["stages"]
+        ]
+        summary: dict[str, Any] = {}
+        if P["identify"].exists():
+            summary = json.loads(P["identify"].read_text())
+        now = {
+            "version": __version__,
+            "stages": records,
+            "report_inputs": run.get("report_inputs"),
+            run_ledger.KEY: run[run_ledger.KEY],
+        }
+        blob = (json.dumps(_jsonable(now), indent=1, sort_keys=True) + "\n").encode()
+        if P["run"].read_bytes() != blob:
+            atomic_write_bytes(P["run"], blob)
+    except (OSError, ValueError, TypeError, AttributeError):
+        return None  # an odd run.json: let the per-stage checks decide
+    return RunResult(out, records, summary)
+
+
+def cached_run(
+    recording: Path, out: Path, config: RunConfig | None = None, *, until: str | None = None
+) -> RunResult | None:
+    """The run of ``recording`` into ``out`` if the run ledger vouches it is complete, else None.
+
+    What :func:`run_pipeline` returns without ``force`` when nothing changed,
+    without running anything else: no numeric library or stage module is
+    imported. Never raises: an unusable recording or run folder is a miss (the
+    real run then reports it).
+
+    Parameters
+    ----------
+    recording : MCAP file
+    out : run folder
+    config : stage options, as given to :func:`run_pipeline`
+    until : last stage, as given to :func:`run_pipeline`
+    """
+    from pipeline import run_ledger
+
+    try:
+        recording, out = Path(recording), Path(out)
+        if (until is not None and until not in STAGES) or not recording.is_file():
+            return None
+        fp = run_ledger.fingerprint(recording, config or RunConfig(), until)
+        return _from_ledger(out, fp)
+    except (OSError, ValueError):
+        return None
