@@ -20,9 +20,15 @@ interface only, so one code path serves
 
 Caching is the orchestrator's: every stage's Parquet outputs record the hashes
 of their inputs, the stage configuration and the package version, and a fresh
-stage is skipped. A batch run again with nothing changed therefore only
-re-hashes, and an interrupted batch resumes where it stopped. ``force=True``
-re-runs every stage.
+stage is skipped. An interrupted batch therefore resumes where it stopped.
+``force=True`` re-runs every stage. Before fanning out, this process asks the
+run ledger (:mod:`pipeline.run_ledger`) about every recording: a run folder it
+vouches for (same recording bytes, options, ``until``, code; artefacts intact)
+is not sent to a worker at all, and when no recording is left the worker pool
+is never started. When, in addition, ``batch.json`` says the summary and
+comparison files were written by a batch with the same fingerprint and they are
+intact, they are left as they are (no pandas is loaded): a batch run again with
+nothing changed only re-hashes files.
 
 A recording that fails (bad input, calibration that cannot be trusted, or an
 internal error, even a worker that dies) is recorded in the summary with its
@@ -362,14 +368,7 @@ def run_recording(
     """
     limit_threads()
     out = Path(run_dir)
-    rec = RecordingOutcome(
-        name=item.name,
-        recording=str(item.recording),
-        run_dir=str(out),
-        robot=item.robot,
-        notes=item.notes,
-        worker=f"{socket.gethostname()}:{os.getpid()}",
-    )
+    rec = _new_outcome(item, out)
     t0, c0 = time.perf_counter(), time.process_time()
     try:
         from pipeline.orchestrator import run_pipeline
@@ -382,18 +381,64 @@ def run_recording(
         rec.status, rec.error_kind = "error", "internal"
         rec.error, rec.exit_code = internal_error_line(exc), 70
     else:
-        rec.status = "ok"
-        rec.stages = [(s.stage, s.status, float(s.seconds)) for s in result.stages]
-        if any(s.stage == "identify" for s in result.stages):
-            summ = result.summary
-            rec.figures = {"model": summ.get("best_model") or summ.get("model")}
-            rec.figures["scale_identified"] = (
-                None if "scale_held" not in summ else not bool(summ["scale_held"])
-            )
-            for k in _FIGURES_INT + _FIGURES_FLOAT:
-                v = summ.get(k)
-                rec.figures[k] = v if isinstance(v, (int, float)) else None
-            rec.headline = [str(h) for h in summ.get("headline", [])]
+        _take_result(rec, result)
+    return _close_outcome(rec, out, t0, c0)
+
+
+def cached_outcome(
+    item: BatchItem,
+    run_dir: str | os.PathLike[str],
+    config: RunConfig | None = None,
+    until: str | None = None,
+) -> RecordingOutcome | None:
+    """The outcome of a recording whose run folder the run ledger vouches for, else None.
+
+    Asked in the batch's own process before fanning out: what
+    :func:`run_recording` would report for a run with every stage cached, made
+    without a worker and without loading pandas or a stage module
+    (:func:`pipeline.orchestrator.cached_run`). ``worker`` and the memory figures
+    are this process's.
+    """
+    from pipeline.orchestrator import cached_run
+
+    out = Path(run_dir)
+    t0, c0 = time.perf_counter(), time.process_time()
+    result = cached_run(item.recording, out, config, until=until)
+    if result is None:
+        return None
+    rec = _new_outcome(item, out)
+    _take_result(rec, result)
+    return _close_outcome(rec, out, t0, c0)
+
+
+def _new_outcome(item: BatchItem, out: Path) -> RecordingOutcome:
+    return RecordingOutcome(
+        name=item.name,
+        recording=str(item.recording),
+        run_dir=str(out),
+        robot=item.robot,
+        notes=item.notes,
+        worker=f"{socket.gethostname()}:{os.getpid()}",
+    )
+
+
+def _take_result(rec: RecordingOutcome, result: Any) -> None:
+    """Stage statuses and, when identify ran or was cached, the figures of ``identify.json``."""
+    rec.status = "ok"
+    rec.stages = [(s.stage, s.status, float(s.seconds)) for s in result.stages]
+    if any(s.stage == "identify" for s in result.stages):
+        summ = result.summary
+        rec.figures = {"model": summ.get("best_model") or summ.get("model")}
+        rec.figures["scale_identified"] = (
+            None if "scale_held" not in summ else not bool(summ["scale_held"])
+        )
+        for k in _FIGURES_INT + _FIGURES_FLOAT:
+            v = summ.get(k)
+            rec.figures[k] = v if isinstance(v, (int, float)) else None
+        rec.headline = [str(h) for h in summ.get("headline", [])]
+
+
+def _close_outcome(rec: RecordingOutcome, out: Path, t0: float, c0: float) -> RecordingOutcome:
     rec.seconds = time.perf_counter() - t0
     rec.cpu_seconds = time.process_time() - c0
     rec.robot_urdf = _robot_from_urdf(out)
@@ -535,20 +580,46 @@ BatchProgress = Callable[[int, int, RecordingOutcome], None]
 class BatchResult:
     """A finished batch.
 
-    ``timings`` (s): ``fan_out`` (executor start to the last outcome, pool
-    shutdown included), ``summary`` (summary.parquet), ``compare`` (compare.parquet
-    and compare.html); ``seconds`` is the whole batch.
+    ``timings`` (s): ``fan_out`` (ledger checks, then executor start to the last
+    outcome, pool shutdown included), ``summary`` (summary.parquet), ``compare``
+    (compare.parquet and compare.html); ``seconds`` is the whole batch.
+
+    ``reused`` is True when the summary and comparison files were left as an
+    identical earlier batch wrote them (see :func:`run_batch`); :attr:`summary`
+    then reads ``summary.parquet`` and :attr:`compare` recomputes the comparison
+    (without writing) when first asked for. ``compare_lines`` are the
+    comparison's printed lines (the shipped model per run, the verdict, what moved).
     """
 
     out_dir: Path
     outcomes: list[RecordingOutcome]
-    summary: pd.DataFrame
+    summary_frame: pd.DataFrame | None
     summary_path: Path
     seconds: float
     interrupted: bool = False
-    compare: Any = None
+    compare_result: Any = None
     compare_note: str = ""
     timings: dict[str, float] = field(default_factory=dict)
+    compare_lines: list[str] = field(default_factory=list)
+    reused: bool = False
+
+    @property
+    def summary(self) -> pd.DataFrame:
+        """The summary table (schema ``batch_summary``)."""
+        if self.summary_frame is None:
+            from pipeline.artefacts import read_artefact
+
+            self.summary_frame = read_artefact(self.summary_path, "batch_summary")
+        return self.summary_frame
+
+    @property
+    def compare(self) -> Any:
+        """The :class:`pipeline.compare.CompareResult` of the identified runs, or None."""
+        if self.compare_result is None and self.reused and self.compare_lines:
+            from pipeline.compare import compare_runs
+
+            self.compare_result = compare_runs(_identified_runs(self.outcomes))
+        return self.compare_result
 
     @property
     def n_ok(self) -> int:
@@ -677,6 +748,17 @@ def run_batch(
     :class:`pipeline.compare.CompareResult` (or None, ``compare_note`` says why). On
     Ctrl-C the summary of what finished is written (the rest ``not_run``) before
     :class:`KeyboardInterrupt` propagates; finished recordings are cached for the next run.
+
+    Notes
+    -----
+    Without ``force``, a recording whose run folder the run ledger vouches for
+    (:func:`cached_outcome`) is answered in this process and never sent to a
+    worker; the process pool (or Dask cluster) is started only when some
+    recording is left. When every recording was answered so and ``batch.json``
+    records a batch with the same items, options, ``until`` and runs whose
+    summary and comparison files are intact, those files are not rewritten:
+    ``summary.parquet``'s per-run columns (stages, times, worker) then describe
+    the batch that last wrote it.
     """
     _check_names(items)
     if until is not None:
@@ -686,6 +768,8 @@ def run_batch(
             raise BadInput(f"--until {until!r}: not a stage (stages: {', '.join(STAGES)})")
     if recycle_after < 0:
         raise BadInput(f"--recycle {recycle_after}: must be >= 0")
+    if executor is None:
+        _check_executor_options(kind, workers, scheduler)
     out_dir = Path(out).expanduser().absolute()
     out_dir.mkdir(parents=True, exist_ok=True)
     t0 = time.perf_counter()
@@ -696,32 +780,40 @@ def run_batch(
     outcomes: dict[str, RecordingOutcome] = {}
     interrupted = False
     timings: dict[str, float] = {}
+    pending: list[BatchItem] = []
     try:
-        with contextlib.ExitStack() as stack:
-            if executor is not None:
-                slots = [_Slot(executor, max(1, len(items)))]
-            elif kind == "processes":
-                if scheduler:
-                    raise BadInput(
-                        "--scheduler is for --executor dask; the process pool needs no server"
-                    )
-                if workers is not None and workers < 1:
-                    raise BadInput(f"--workers {workers}: needs at least 1")
-                ctx = _process_context()
-                n = min(workers or default_workers(), max(1, len(items)))
+        for it in items:  # the run ledger, in this process: no worker for what is done
+            rec = None if force else cached_outcome(it, out_dir / it.name, config, until)
+            if rec is None:
+                if not pending and executor is None:
+                    prestart(kind)  # its imports overlap the remaining ledger checks
+                pending.append(it)
+                continue
+            outcomes[it.name] = rec
+            if progress is not None:
+                progress(len(outcomes), len(items), rec)
+        if pending:
+            with contextlib.ExitStack() as stack:
+                if executor is not None:
+                    slots = [_Slot(executor, max(1, len(pending)))]
+                elif kind == "processes":
+                    ctx = _process_context()
+                    n = min(workers or default_workers(), len(pending))
 
-                def make() -> Executor:
-                    from concurrent.futures import ProcessPoolExecutor
+                    def make() -> Executor:
+                        from concurrent.futures import ProcessPoolExecutor
 
-                    return ProcessPoolExecutor(max_workers=1, mp_context=ctx)
+                        return ProcessPoolExecutor(max_workers=1, mp_context=ctx)
 
-                slots = [_Slot(None, 1, make, recycle_after) for _ in range(n)]
-                for slot in slots:
-                    stack.callback(slot.close)
-            else:
-                ex = stack.enter_context(open_executor(kind, workers, scheduler))
-                slots = [_Slot(ex, max(1, len(items)))]
-            _fan_out(slots, items, out_dir, config, until, force, outcomes, progress)
+                    slots = [_Slot(None, 1, make, recycle_after) for _ in range(n)]
+                    for slot in slots:
+                        stack.callback(slot.close)
+                else:
+                    ex = stack.enter_context(open_executor(kind, workers, scheduler))
+                    slots = [_Slot(ex, max(1, len(pending)))]
+                _fan_out(
+                    slots, pending, out_dir, config, until, force, outcomes, progress, len(items)
+                )
     except KeyboardInterrupt:
         interrupted = True
     timings["fan_out"] = time.perf_counter() - t0
@@ -739,6 +831,20 @@ def run_batch(
         )
         for it in items
     ]
+    fp = (
+        None if interrupted else _batch_fingerprint(out_dir, items, ordered, config, until, compare)
+    )
+    path = out_dir / "summary.parquet"
+    if not pending and fp is not None:
+        kept = _reusable(out_dir, fp)
+        if kept is not None:  # nothing changed since the batch that wrote these files
+            timings["summary"] = timings["compare"] = 0.0
+            seconds = time.perf_counter() - t0
+            note, lines = str(kept.get("compare_note", "")), list(kept.get("compare_lines", []))
+            return BatchResult(
+                out_dir, ordered, None, path, seconds, False, None, note, timings, lines, True
+            )
+    (out_dir / BATCH_RECORD).unlink(missing_ok=True)  # it vouches for the files below
     summary = summary_table(ordered)
     path = write_summary(out_dir, summary, config=config, until=until, force=force)
     timings["summary"] = time.perf_counter() - t0 - timings["fan_out"]
@@ -746,9 +852,109 @@ def run_batch(
         raise KeyboardInterrupt
     t1 = time.perf_counter()
     cmp, note = compare_batch(out_dir, ordered) if compare else (None, "not asked for")
+    lines = compare_lines(cmp) if cmp is not None else []
     timings["compare"] = time.perf_counter() - t1
+    if fp is not None:
+        written = [path] + ([out_dir / "compare.parquet", out_dir / "compare.html"] if cmp else [])
+        _write_record(out_dir, fp, written, note, lines)
     seconds = time.perf_counter() - t0
-    return BatchResult(out_dir, ordered, summary, path, seconds, False, cmp, note, timings)
+    return BatchResult(out_dir, ordered, summary, path, seconds, False, cmp, note, timings, lines)
+
+
+def _check_executor_options(kind: str, workers: int | None, scheduler: str | None) -> None:
+    """Bad executor options fail before anything runs, whether or not a worker is needed."""
+    if kind not in EXECUTORS:
+        raise BadInput(f"--executor {kind!r}: not one of {', '.join(EXECUTORS)}")
+    if workers is not None and workers < 1:
+        raise BadInput(f"--workers {workers}: needs at least 1")
+    if kind == "processes" and scheduler:
+        raise BadInput("--scheduler is for --executor dask; the process pool needs no server")
+    if kind == "dask":
+        import importlib.util
+
+        if importlib.util.find_spec("distributed") is None:
+            raise BadInput("--executor dask needs Dask distributed: pip install 'vtcal[dask]'")
+
+
+# ---------------------------------------------------------------------------------------
+# batch.json: the summary and comparison files of a batch, vouched for
+
+#: file in the batch folder recording the fingerprint of the batch that wrote the
+#: summary and comparison files, their hashes and the comparison's printed lines
+BATCH_RECORD = "batch.json"
+
+
+def _batch_fingerprint(
+    out_dir: Path,
+    items: Sequence[BatchItem],
+    outcomes: Sequence[RecordingOutcome],
+    config: RunConfig | None,
+    until: str | None,
+    compare: bool,
+) -> dict[str, Any] | None:
+    """What the summary and comparison depend on: the items, options, ``until`` and
+    every run's ledger entry (recording, options, code, artefact hashes).
+
+    None when a recording did not finish or its run folder has no ledger entry
+    (such a batch is never taken as unchanged).
+    """
+    from pipeline import run_ledger
+    from pipeline.orchestrator import RunConfig
+
+    if any(o.status != "ok" for o in outcomes):
+        return None
+    runs = []
+    for it in items:
+        try:
+            led = json.loads((out_dir / it.name / "run.json").read_text()).get(run_ledger.KEY)
+        except (OSError, ValueError, AttributeError):
+            return None
+        if not isinstance(led, dict):
+            return None
+        runs.append(run_ledger.digest(led))
+    return {
+        "out": str(out_dir),
+        "items": [[it.name, str(it.recording), it.robot, it.notes] for it in items],
+        "config": run_ledger.config_json(config or RunConfig()),
+        "until": until,
+        "compare": compare,
+        "runs": runs,
+    }
+
+
+def _reusable(out_dir: Path, fp: dict[str, Any]) -> dict[str, Any] | None:
+    """``batch.json`` when it records ``fp`` and every file it lists is intact, else None."""
+    from pipeline.fileio import file_hash
+
+    try:
+        rec = json.loads((out_dir / BATCH_RECORD).read_text())
+        if not isinstance(rec, dict) or rec.get("fingerprint") != fp:
+            return None
+        files = rec["files"]
+        if "summary.parquet" not in files:
+            return None
+        for name, want in files.items():
+            if Path(name).name != name or file_hash(out_dir / name) != want:
+                return None
+    except (OSError, ValueError, KeyError, TypeError, AttributeError):
+        return None
+    return rec
+
+
+def _write_record(
+    out_dir: Path, fp: dict[str, Any], written: Sequence[Path], note: str, lines: Sequence[str]
+) -> None:
+    """Write ``batch.json`` (atomically, after the files it vouches for)."""
+    from pipeline.fileio import atomic_write_bytes, file_hash
+
+    rec = {
+        "fingerprint": fp,
+        "files": {p.name: file_hash(p) for p in written},
+        "compare_note": note,
+        "compare_lines": list(lines),
+    }
+    blob = json.dumps(rec, indent=1, sort_keys=True) + "\n"
+    atomic_write_bytes(out_dir / BATCH_RECORD, blob.encode())
 
 
 def _fan_out(
@@ -760,8 +966,12 @@ def _fan_out(
     force: bool,
     outcomes: dict[str, RecordingOutcome],
     progress: BatchProgress | None,
+    total: int | None = None,
 ) -> None:
     """Feed the items to the slots as they free up; collect outcomes as tasks finish.
+
+    ``progress`` counts ``outcomes`` (which may already hold some) out of ``total``
+    (default: the number of ``items``).
 
     A task whose worker died (:class:`~concurrent.futures.BrokenExecutor`) is run
     once more in a fresh worker when its slot can make one, else recorded as an
@@ -771,6 +981,7 @@ def _fan_out(
     from concurrent.futures import FIRST_COMPLETED, BrokenExecutor, wait
 
     queue = deque(items)
+    total = len(items) if total is None else total
     attempts: dict[str, int] = {}
     in_flight: dict[Future[RecordingOutcome], tuple[_Slot, BatchItem]] = {}
 
@@ -778,7 +989,7 @@ def _fan_out(
         rec.retried = attempts.get(it.name, 1) > 1
         outcomes[it.name] = rec
         if progress is not None:
-            progress(len(outcomes), len(items), rec)
+            progress(len(outcomes), total, rec)
 
     def died(slot: _Slot, it: BatchItem, exc: BaseException) -> None:
         slot.broken()
@@ -921,7 +1132,7 @@ def compare_batch(out_dir: Path, outcomes: Sequence[RecordingOutcome]) -> tuple[
     compare or :mod:`pipeline.compare` is absent or fails (the batch summary stands
     alone; a comparison failure never fails the batch).
     """
-    runs = [Path(o.run_dir) for o in outcomes if o.status == "ok" and o.figures]
+    runs = _identified_runs(outcomes)
     if not runs:
         return None, "no identified run to compare"
     try:
@@ -947,3 +1158,45 @@ def compare_batch(out_dir: Path, outcomes: Sequence[RecordingOutcome]) -> tuple[
     except Exception as exc:  # a bug there must not cost the batch its summary
         return None, f"comparison failed: internal error: {internal_error_line(exc)}"
     return res, f"{out_dir / 'compare.parquet'}, {out_dir / 'compare.html'}"
+
+
+def _identified_runs(outcomes: Sequence[RecordingOutcome]) -> list[Path]:
+    return [Path(o.run_dir) for o in outcomes if o.status == "ok" and o.figures]
+
+
+def _fmt(v: Any, spec: str) -> str:
+    if v is None or (isinstance(v, float) and v != v):
+        return "-"
+    return format(v, spec)
+
+
+def compare_lines(res: Any) -> list[str]:
+    """The printed lines of a :class:`pipeline.compare.CompareResult`: the shipped
+    model's line per run, the verdict and the drift flags (every model is in compare.html).
+
+    Stored in ``batch.json`` so that an unchanged batch prints them without
+    rebuilding the comparison.
+    """
+    lines = ["cross-run comparison (vtcal compare), shipped model:"]
+    for r in res.runs.itertuples():
+        if not r.shipped:
+            continue
+        lines.append(
+            f"  {r.run:<20} {r.model:<8} held-out {_fmt(r.heldout_rms_mm, '.4f')} mm  "
+            f"training {_fmt(r.train_rms_mm, '.4f')} mm  cond {_fmt(r.cond, '.3g')}  "
+            f"rejected {r.n_rejected}"
+        )
+    lines.append(f"  {res.summary.get('verdict', '')}")
+    moved = res.moved
+    if len(moved):
+        shipped = {(r.run, r.model) for r in res.runs.itertuples() if r.shipped}
+        for (run, model), g in moved.groupby(["run", "model"], sort=False):
+            if (run, model) not in shipped:
+                continue
+            top = g.reindex(g["delta_sigma"].abs().sort_values(ascending=False).index)
+            names = ", ".join(str(p) for p in top["parameter"].head(3))
+            lines.append(
+                f"    {run} [{model}] against {g['baseline_run'].iloc[0]}: {len(g)} parameter(s) "
+                f"moved (largest: {names})"
+            )
+    return lines

@@ -8,6 +8,7 @@ good_a among the two corrupt ones.
 
 from __future__ import annotations
 
+import json
 import os
 import shutil
 import signal
@@ -399,3 +400,117 @@ def test_dask_gives_the_same_artefacts(pool_batch, recordings, tmp_path: Path) -
     sa = pool_summary.drop(list(VOLATILE))
     sb = pq.read_table(dres.summary_path).drop(list(VOLATILE))
     assert sa.equals(sb)
+
+
+# -- the run ledger: a batch with nothing changed --------------------------------------
+
+
+def _ledger_batch(pool_batch, tmp_path: Path):
+    """Two copies of the sample (good_a, good_b) and a batch folder whose two run
+    folders are copies of the fixture's good_a run: both complete, as the ledger sees it."""
+    result, _, _ = pool_batch
+    recs = tmp_path / "recs"
+    recs.mkdir()
+    for name in ("good_a", "good_b"):
+        shutil.copyfile(SAMPLE, recs / f"{name}.mcap")
+        shutil.copytree(Path(result.out_dir) / "good_a", tmp_path / "batch" / name)
+    return items_from_paths([recs / "good_a.mcap", recs / "good_b.mcap"]), tmp_path / "batch"
+
+
+def _refuse_pool(monkeypatch: pytest.MonkeyPatch) -> None:
+    import pipeline.batch as batch
+
+    def refuse(*args: object, **kwargs: object) -> None:
+        raise AssertionError("a worker pool was started")
+
+    monkeypatch.setattr(batch, "_process_context", refuse)
+    monkeypatch.setattr(batch, "prestart", refuse)
+
+
+COMPARE_FILES = ("summary.parquet", "compare.parquet", "compare.html")
+
+
+def test_fully_cached_batch_starts_no_pool_and_keeps_its_files(
+    pool_batch, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    items, out = _ledger_batch(pool_batch, tmp_path)
+    with monkeypatch.context() as m:
+        _refuse_pool(m)
+        first = run_batch(items, out, workers=2, until=UNTIL)
+        assert [o.status for o in first.outcomes] == ["ok", "ok"]
+        for o in first.outcomes:  # answered in this process, from the ledger
+            assert o.worker.endswith(f":{os.getpid()}")
+            assert [st for _, st, _ in o.stages] == ["cached"] * 4
+            assert o.figures["rms_mm"] is not None and o.figures["rms_mm"] < 0.1
+        assert not first.reused and (out / "batch.json").exists()  # summary written once
+        assert any("good_b" in line for line in first.compare_lines)
+        files = {n: (out / n).read_bytes() for n in COMPARE_FILES}
+        again = run_batch(items, out, workers=2, until=UNTIL)
+    assert again.reused
+    assert {n: (out / n).read_bytes() for n in COMPARE_FILES} == files
+    assert again.compare_lines == first.compare_lines
+    assert again.compare_note == first.compare_note
+    assert list(again.summary["name"]) == ["good_a", "good_b"]  # read from the file
+    assert again.compare is not None and set(again.compare.runs["run"]) == {"good_a", "good_b"}
+    # other options are another batch: the files are written again (runs still cached)
+    with monkeypatch.context() as m:
+        _refuse_pool(m)
+        other = run_batch(items, out, workers=2, until=UNTIL, compare=False)
+    assert not other.reused and (out / "summary.parquet").read_bytes() != files["summary.parquet"]
+
+
+def test_fully_cached_cli_batch_loads_no_numeric_library(pool_batch, tmp_path: Path) -> None:
+    """A cold `vtcal batch` with nothing changed: no pandas, no fork server, same output."""
+    items, out = _ledger_batch(pool_batch, tmp_path)
+    first = run_batch(items, out, workers=2, until=UNTIL)
+    summary = (out / "summary.parquet").read_bytes()
+    argv = ["batch", *(str(it.recording) for it in items), "--out", str(out), "--until", UNTIL]
+    code = (
+        "import json, os, sys\n"
+        "from pipeline.cli import main\n"
+        f"main({argv!r})\n"
+        "kids = []\n"
+        "for d in filter(str.isdigit, os.listdir('/proc')):\n"
+        "    try:\n"
+        "        stat = open(f'/proc/{d}/stat').read()\n"
+        "    except OSError:\n"
+        "        continue\n"
+        "    if stat.rsplit(')', 1)[1].split()[1] == str(os.getpid()):\n"
+        "        kids.append(d)\n"
+        "heavy = ['pandas', 'pyarrow', 'scipy', 'cv2', 'numba', 'pipeline.stages.ingest']\n"
+        "print(json.dumps({'kids': kids, 'loaded': [m for m in heavy if m in sys.modules]}))\n"
+    )
+    env = {**os.environ, "COLUMNS": "200"}
+    proc = subprocess.run(
+        [sys.executable, "-c", code], capture_output=True, text=True, cwd=REPO, env=env
+    )
+    assert proc.returncode == 0, proc.stderr
+    lines = proc.stdout.rstrip().splitlines()
+    got = json.loads(lines[-1])
+    assert got == {"kids": [], "loaded": []}
+    assert (out / "summary.parquet").read_bytes() == summary
+    for line in first.compare_lines:  # the comparison, printed from batch.json
+        assert line.rstrip() in lines
+    assert "2 of 2 recording(s) ok" in proc.stdout
+
+
+def test_batch_with_one_changed_recording_rebuilds_the_summary(
+    pool_batch, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    items, out = _ledger_batch(pool_batch, tmp_path)
+    with monkeypatch.context() as m:
+        _refuse_pool(m)
+        run_batch(items, out, workers=2, until=UNTIL)
+    before = (out / "summary.parquet").read_bytes()
+    Path(items[1].recording).write_bytes(os.urandom(4096))  # good_b replaced: not an MCAP now
+    res = run_batch(items, out, workers=2, until=UNTIL)
+    assert not res.reused
+    a, b = res.outcomes
+    assert a.status == "ok" and [st for _, st, _ in a.stages] == ["cached"] * 4
+    assert a.worker.endswith(f":{os.getpid()}")
+    assert b.status == "error" and b.error_kind == "bad_input"
+    assert not b.worker.endswith(f":{os.getpid()}")  # sent to a worker
+    assert (out / "summary.parquet").read_bytes() != before
+    df = read_artefact(out / "summary.parquet", "batch_summary")
+    assert list(df["status"]) == ["ok", "error"]
+    assert not (out / "batch.json").exists()  # a batch with a failure is never taken as unchanged

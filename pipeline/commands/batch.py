@@ -107,7 +107,7 @@ def command(
     compare.html, as `vtcal compare`). Exit status 0 when every recording
     finished, 1 otherwise. See docs/batch.md.
     """
-    from pipeline.batch import default_workers, items_from_paths, load_manifest, prestart, run_batch
+    from pipeline.batch import default_workers, items_from_paths, load_manifest, run_batch
 
     if manifest is not None and recordings:
         raise BadInput("give recordings or --manifest, not both")
@@ -117,7 +117,8 @@ def command(
         raise BadInput(f"--workers {workers}: needs at least 1")
     items = load_manifest(manifest).items if manifest else tuple(items_from_paths(recordings))
 
-    prestart(executor)  # the workers' fork server imports the pipeline meanwhile
+    # light: no numeric library. The workers' fork server is started by run_batch,
+    # only when some recording is not already complete (the run ledger says which).
     from pipeline.orchestrator import STAGES, RunConfig
 
     if until is not None and until not in STAGES:
@@ -273,42 +274,11 @@ def print_summary(console: Any, result: BatchResult) -> None:
                 highlight=False,
                 markup=False,
             )
-    if result.compare is not None:
-        _print_compare(console, result.compare)
+    for line in result.compare_lines:  # kept in batch.json: no pandas when nothing changed
+        console.print(line, highlight=False, markup=False)
     console.print(f"comparison: {result.compare_note}", highlight=False, markup=False)
     console.print(
         f"{result.n_ok} of {len(result.outcomes)} recording(s) ok in {result.seconds:.1f} s; "
         f"summary: {result.summary_path}",
         highlight=False,
     )
-
-
-def _print_compare(console: Any, res: Any) -> None:
-    """The shipped model's line per run, the verdict and the drift flags of a
-    :class:`pipeline.compare.CompareResult` (every model is in compare.html)."""
-    console.print("cross-run comparison (vtcal compare), shipped model:", highlight=False)
-    for r in res.runs.itertuples():
-        if not r.shipped:
-            continue
-        console.print(
-            f"  {r.run:<20} {r.model:<8} held-out {_fmt(r.heldout_rms_mm, '.4f')} mm  "
-            f"training {_fmt(r.train_rms_mm, '.4f')} mm  cond {_fmt(r.cond, '.3g')}  "
-            f"rejected {r.n_rejected}",
-            highlight=False,
-            markup=False,
-        )
-    console.print(f"  {res.summary.get('verdict', '')}", highlight=False, markup=False)
-    moved = res.moved
-    if len(moved):
-        shipped = {(r.run, r.model) for r in res.runs.itertuples() if r.shipped}
-        for (run, model), g in moved.groupby(["run", "model"], sort=False):
-            if (run, model) not in shipped:
-                continue
-            top = g.reindex(g["delta_sigma"].abs().sort_values(ascending=False).index)
-            names = ", ".join(str(p) for p in top["parameter"].head(3))
-            console.print(
-                f"    {run} [{model}] against {g['baseline_run'].iloc[0]}: {len(g)} parameter(s) "
-                f"moved (largest: {names})",
-                highlight=False,
-                markup=False,
-            )
