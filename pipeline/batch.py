@@ -899,6 +899,7 @@ def _batch_fingerprint(
     (such a batch is never taken as unchanged).
     """
     from pipeline import run_ledger
+    from pipeline.fileio import config_hash
     from pipeline.orchestrator import RunConfig
 
     if any(o.status != "ok" for o in outcomes):
@@ -911,7 +912,7 @@ def _batch_fingerprint(
             return None
         if not isinstance(led, dict):
             return None
-        runs.append(run_ledger.digest(led))
+        runs.append(config_hash(led))
     return {
         "out": str(out_dir),
         "items": [[it.name, str(it.recording), it.robot, it.notes] for it in items],

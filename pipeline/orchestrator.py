@@ -86,9 +86,14 @@ def _jsonable(obj: Any) -> Any:
     return obj
 
 
+def json_bytes(obj: Any) -> bytes:
+    """The bytes of a JSON side file (sorted keys, one-space indent: byte-stable)."""
+    return (json.dumps(_jsonable(obj), indent=1, sort_keys=True) + "\n").encode()
+
+
 def write_json(path: Path, obj: Any) -> None:
-    """Atomically write a JSON side file (sorted keys: byte-stable)."""
-    atomic_write_bytes(path, (json.dumps(_jsonable(obj), indent=1, sort_keys=True) + "\n").encode())
+    """Atomically write a JSON side file (:func:`json_bytes`)."""
+    atomic_write_bytes(path, json_bytes(obj))
 
 
 def is_fresh(outputs: list[Path], inputs: Mapping[str, str], config: Mapping[str, Any]) -> bool:
@@ -235,7 +240,7 @@ def run_pipeline(
     out.mkdir(parents=True, exist_ok=True)
     # temporaries a killed run left behind (atomic writes, the .rrd's partial save): never
     # artefacts; a run folder has one run at a time, so they are stale
-    for stale in [*out.glob(".*.tmp"), *out.glob(".*.partial")]:
+    for stale in run_ledger.temporaries(out):
         stale.unlink(missing_ok=True)
     P = run_paths(out)
     records: list[StageRecord] = []
@@ -546,7 +551,7 @@ def _from_ledger(out: Path, fp: dict[str, Any]) -> RunResult | None:
             "report_inputs": run.get("report_inputs"),
             run_ledger.KEY: run[run_ledger.KEY],
         }
-        blob = (json.dumps(_jsonable(now), indent=1, sort_keys=True) + "\n").encode()
+        blob = json_bytes(now)
         if P["run"].read_bytes() != blob:
             atomic_write_bytes(P["run"], blob)
     except (OSError, ValueError, TypeError, AttributeError):

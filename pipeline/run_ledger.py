@@ -112,9 +112,12 @@ def entry(out: Path, fp: dict[str, Any], outputs: Iterable[str]) -> dict[str, An
     return {"fingerprint": fp, "artefacts": arts}
 
 
-def stale_temporaries(out: Path) -> bool:
-    """True when a killed run left a temporary (``.NAME.*.tmp``, ``.NAME.partial``) in ``out``."""
-    return any(out.glob(".*.tmp")) or any(out.glob(".*.partial"))
+def temporaries(out: Path) -> list[Path]:
+    """Temporaries a killed run left in ``out`` (``.NAME.*.tmp``, ``.NAME.partial``).
+
+    Never artefacts: a run folder has one run at a time, so they are stale.
+    """
+    return [*out.glob(".*.tmp"), *out.glob(".*.partial")]
 
 
 def lookup(out: Path, fp: dict[str, Any]) -> dict[str, Any] | None:
@@ -143,7 +146,7 @@ def lookup(out: Path, fp: dict[str, Any]) -> dict[str, Any] | None:
         return None
     if not all(isinstance(s, dict) and isinstance(s.get("stage"), str) for s in stages):
         return None
-    if stale_temporaries(out):
+    if temporaries(out):
         return None
     for name, want in arts.items():
         p = out / str(name)
@@ -155,9 +158,3 @@ def lookup(out: Path, fp: dict[str, Any]) -> dict[str, Any] | None:
         except OSError:
             return None
     return run
-
-
-def digest(obj: Any) -> str:
-    """Short stable hash of a JSON-able value (a ledger entry, a batch fingerprint)."""
-    blob = json.dumps(obj, sort_keys=True, separators=(",", ":"), default=str)
-    return hashlib.sha256(blob.encode()).hexdigest()[:16]
