@@ -217,6 +217,27 @@ def accuracy(run: Path, truth: dict[str, Any], model: str | None = None) -> dict
     return pin_accuracy(cal, np.zeros(3), true_chain, np.array(truth["p_vt_flange"]), q)
 
 
+def refit_accuracy(
+    rec: dict[str, Any], table: pd.DataFrame, model: str, truth: dict[str, Any], poses: pd.DataFrame
+) -> dict[str, float]:
+    """Identify ``table`` (inliers layout) with ``model`` and the recording's known
+    distances, then judge it as :func:`accuracy` does, over the volume of the inlier
+    touch-ups of ``poses``."""
+    from pipeline.stages.identify import IdentifyResult, identify
+
+    cfg = IdentifyConfig(
+        model=model, distances=parse_distances(rec["metadata"].get("known_distances", ""))
+    )
+    res = identify(table, rec["urdf"], rec["base_link"], rec["flange_link"], cfg)
+    assert isinstance(res, IdentifyResult)
+    true_chain = load_chain(truth["true_urdf"], truth["base_link"], truth["flange_link"])
+    ok = poses["inlier"].to_numpy(dtype=bool)
+    q = workspace_poses(
+        poses.loc[ok, truth["joint_names"]].to_numpy(), 300, np.random.default_rng(0)
+    )
+    return pin_accuracy(res.chain, res.p_flange_pin, true_chain, np.array(truth["p_vt_flange"]), q)
+
+
 def oracle_accuracy(run: Path, truth: dict[str, Any], bad: set[int]) -> dict[str, float]:
     """Accuracy of the same recording with the truth's own verdicts instead of the stage's.
 
@@ -225,8 +246,6 @@ def oracle_accuracy(run: Path, truth: dict[str, Any], bad: set[int]) -> dict[str
     known distances). Against this, the stage's accuracy shows what its decisions
     cost, free of the noise draws that differ between two recordings.
     """
-    from pipeline.stages.identify import IdentifyResult, identify
-
     rec = json.loads((run / "recording.json").read_text())
     summ = json.loads((run / "identify.json").read_text())
     inl = pd.read_parquet(run / "inliers.parquet")
@@ -238,16 +257,7 @@ def oracle_accuracy(run: Path, truth: dict[str, Any], bad: set[int]) -> dict[str
         if f["type"] == "target_knocked":
             t.loc[t["touchup_id"].isin(f["touchups_after"]), "target_id"] = label
             label += 1
-    cfg = IdentifyConfig(
-        model=summ["best_model"],
-        distances=parse_distances(rec["metadata"].get("known_distances", "")),
-    )
-    res = identify(t, rec["urdf"], rec["base_link"], rec["flange_link"], cfg)
-    assert isinstance(res, IdentifyResult)
-    true_chain = load_chain(truth["true_urdf"], truth["base_link"], truth["flange_link"])
-    ok = inl["inlier"].to_numpy(dtype=bool)
-    q = workspace_poses(inl.loc[ok, truth["joint_names"]].to_numpy(), 300, np.random.default_rng(0))
-    return pin_accuracy(res.chain, res.p_flange_pin, true_chain, np.array(truth["p_vt_flange"]), q)
+    return refit_accuracy(rec, t, summ["best_model"], truth, inl)
 
 
 def same_touchups_accuracy(run: Path, truth: dict[str, Any], clean_run: Path) -> dict[str, float]:
@@ -258,23 +268,12 @@ def same_touchups_accuracy(run: Path, truth: dict[str, Any], clean_run: Path) ->
     identification as in ``clean_run`` (its shipped model, known distances), judged
     as :func:`accuracy` judges ``clean_run``.
     """
-    from pipeline.stages.identify import IdentifyResult, identify
-
     rec = json.loads((run / "recording.json").read_text())
     extra = {f["touchup"] for f in truth["faults"] if "touchup" in f}
     t = pd.read_parquet(run / "inliers.parquet")
     t["inlier"] = ~t["touchup_id"].isin(extra) & t["inlier"].astype(bool)
-    cfg = IdentifyConfig(
-        model=json.loads((clean_run / "identify.json").read_text())["best_model"],
-        distances=parse_distances(rec["metadata"].get("known_distances", "")),
-    )
-    res = identify(t, rec["urdf"], rec["base_link"], rec["flange_link"], cfg)
-    assert isinstance(res, IdentifyResult)
-    true_chain = load_chain(truth["true_urdf"], truth["base_link"], truth["flange_link"])
-    inl = pd.read_parquet(clean_run / "inliers.parquet")
-    ok = inl["inlier"].to_numpy(dtype=bool)
-    q = workspace_poses(inl.loc[ok, truth["joint_names"]].to_numpy(), 300, np.random.default_rng(0))
-    return pin_accuracy(res.chain, res.p_flange_pin, true_chain, np.array(truth["p_vt_flange"]), q)
+    model = json.loads((clean_run / "identify.json").read_text())["best_model"]
+    return refit_accuracy(rec, t, model, truth, pd.read_parquet(clean_run / "inliers.parquet"))
 
 
 def knock_distance(run: Path, truth: dict[str, Any]) -> tuple[float, float] | None:
