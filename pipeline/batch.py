@@ -705,6 +705,27 @@ class _Slot:
             self.executor.shutdown(wait=wait, cancel_futures=True)
             self.executor = None
 
+    def abort(self, grace_s: float = 10.0) -> None:
+        """After Ctrl-C: stop our pool without waiting on its worker for ever.
+
+        The worker got the same SIGINT and normally hands its interrupted task
+        back at once; one interrupted inside a C extension (or an import) may
+        never do so, and ``shutdown(wait=True)`` would then hang the batch. Its
+        process is given ``grace_s`` to end, then terminated. Its recording is
+        unfinished either way (atomic writes: nothing half-written stays; the
+        next run redoes it).
+        """
+        if self.make is None or self.executor is None:
+            return
+        procs = list((getattr(self.executor, "_processes", None) or {}).values())
+        self.executor.shutdown(wait=False, cancel_futures=True)
+        self.executor = None
+        for proc in procs:
+            proc.join(grace_s)
+            if proc.is_alive():
+                proc.terminate()
+                proc.join(grace_s)
+
 
 def run_batch(
     items: Sequence[BatchItem],
@@ -811,9 +832,15 @@ def run_batch(
                 else:
                     ex = stack.enter_context(open_executor(kind, workers, scheduler))
                     slots = [_Slot(ex, max(1, len(pending)))]
-                _fan_out(
-                    slots, pending, out_dir, config, until, force, outcomes, progress, len(items)
-                )
+                try:
+                    _fan_out(
+                        slots, pending, out_dir, config, until, force, outcomes, progress,
+                        len(items),
+                    )  # fmt: skip
+                except KeyboardInterrupt:
+                    for slot in slots:
+                        slot.abort()
+                    raise
     except KeyboardInterrupt:
         interrupted = True
     timings["fan_out"] = time.perf_counter() - t0

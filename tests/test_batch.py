@@ -514,3 +514,29 @@ def test_batch_with_one_changed_recording_rebuilds_the_summary(
     df = read_artefact(out / "summary.parquet", "batch_summary")
     assert list(df["status"]) == ["ok", "error"]
     assert not (out / "batch.json").exists()  # a batch with a failure is never taken as unchanged
+
+
+def test_abort_after_ctrl_c_does_not_wait_for_a_stuck_worker() -> None:
+    """A worker that never hands its task back (stuck after Ctrl-C) is terminated after
+    the grace period instead of hanging the batch in shutdown(wait=True)."""
+    import multiprocessing as mp
+    from concurrent.futures import ProcessPoolExecutor
+
+    from pipeline.batch import _Slot
+
+    ctx = mp.get_context("spawn")
+    slot = _Slot(None, 1, lambda: ProcessPoolExecutor(max_workers=1, mp_context=ctx), 0)
+    assert slot.make is not None
+    slot.executor = slot.make()
+    slot.executor.submit(time.sleep, 120)  # never hands its task back in time
+    procs = []
+    t_wait = time.monotonic()
+    while not procs and time.monotonic() - t_wait < 30:
+        procs = list(slot.executor._processes.values())
+        time.sleep(0.05)
+    assert procs, "the pool never started its worker"
+    t0 = time.monotonic()
+    slot.abort(grace_s=0.5)
+    assert time.monotonic() - t0 < 10
+    assert slot.executor is None
+    assert not any(p.is_alive() for p in procs)
