@@ -42,11 +42,14 @@ from __future__ import annotations
 
 import math
 from dataclasses import asdict, dataclass
+from functools import lru_cache
 from typing import Any
 
 import cv2
 import numpy as np
 from scipy.special import ndtr
+
+from pipeline.stages.response import Response, parse_response
 
 try:  # the compiled fine stage (same steps, loops compiled by numba)
     from pipeline.stages import _detect_jit as _jit
@@ -86,6 +89,14 @@ class DetectConfig:
     compiled : bool
         Run the fine stage compiled (:mod:`pipeline.stages._detect_jit`, numba)
         when numba is installed; False: the NumPy reference path.
+    response : str
+        The camera's response curve (:mod:`pipeline.stages.response`: ``linear``,
+        ``srgb``, ``gamma:G``): the grey levels of the target's window are
+        linearised with its inverse before the sub-pixel stage, so that the
+        halfway level is halfway in irradiance. ``auto`` (the default): ingest
+        takes the recording's ``camera_response`` metadata or estimates the
+        curve from the first images (:func:`pipeline.stages.response.estimate_response`);
+        :func:`detect_target` called alone treats ``auto`` as ``linear``.
     """
 
     polarity: str | None = None
@@ -98,6 +109,7 @@ class DetectConfig:
     curvature_correction: bool = True
     ambiguity_ratio: float = 0.5
     compiled: bool = True
+    response: str = "auto"
 
     def to_dict(self) -> dict[str, Any]:
         return asdict(self)
@@ -572,6 +584,13 @@ def noise_bias_pq(mu: np.ndarray, eps: float) -> np.ndarray:
     return m1 - m2 - mu * (1.0 - mu)
 
 
+@lru_cache(maxsize=16)
+def _response(spec: str) -> Response | None:
+    """The response of a spec string; None when linear (nothing to do)."""
+    r = parse_response(spec)
+    return None if r is None or r.is_linear else r
+
+
 def _auto_polarity(bg: float, lo: float, hi: float) -> str:
     return "dark_on_light" if (bg - lo) >= (hi - bg) else "light_on_dark"
 
@@ -691,6 +710,10 @@ def detect_target(
     core_b = core.astype(bool) if core.any() else inside.astype(bool)
     if not core_b.any() or int(outer.sum()) < 6:
         return _empty("fit_failed", n_blobs)
+    resp = _response(cfg.response)
+    if resp is not None:
+        # sub-pixel stage on irradiance: the halfway level is halfway in light, not in grey
+        img_roi = resp.linearise(img_roi)
     if cfg.compiled and _jit is not None:
         return _finish_compiled(
             img_roi.astype(np.float64),

@@ -43,6 +43,12 @@ from pipeline.io_mcap import (
 )
 from pipeline.kinematics.urdf import RobotDescription, chain_joints, parse_urdf
 from pipeline.stages.detect import RESULT_KEYS, DetectConfig, detect_target
+from pipeline.stages.response import ResponseEstimate, estimate_response, parse_response
+
+#: images held back at the start of a recording to estimate the camera response from
+RESPONSE_PROBE_IMAGES = 24
+#: of those, how many clean target detections the estimate uses
+RESPONSE_FIT_IMAGES = 12
 
 Progress = Callable[[int, "int | None"], None]
 
@@ -58,6 +64,7 @@ METADATA_KEYS = (
     "threshold_size_px",
     "polarity",
     "known_distances",
+    "camera_response",
 )
 
 
@@ -251,6 +258,24 @@ def ingest_recording(
             "or light_on_dark"
         )
     dcfg = DetectConfig(**{**detect_config.to_dict(), "polarity": polarity or None})
+    # camera response: the detect option, else --set / metadata camera_response, else estimated
+    resp_text = dcfg.response
+    resp_source = "option"
+    if resp_text == "auto":
+        resp_text = config.overrides.get("camera_response") or metadata.get(
+            "camera_response", "auto"
+        )
+        resp_source = "metadata"
+    try:
+        resp_fixed = parse_response(resp_text)
+    except ValueError as exc:
+        raise BadInput(f"{path}: {exc}") from exc
+    probing: list[tuple[int, np.ndarray]] | None = None
+    response_est: ResponseEstimate | None = None
+    if resp_fixed is None:
+        probing = []
+    else:
+        dcfg = DetectConfig(**{**dcfg.to_dict(), "response": resp_fixed.spec})
 
     state = StreamState(path)
     urdf: str | None = None
@@ -293,10 +318,18 @@ def ingest_recording(
                 grey = None
             if grey is not None:
                 height, width = grey.shape
-                det = detect_target(grey, dcfg, expected)
-                if det["found"] and det["quality_ok"]:
-                    expected = (det["u"], det["v"], det["s"])
+                if probing is not None:
+                    # the response is not known yet: keep the image until it is estimated
+                    probing.append((k, np.array(grey, copy=True)))
+                    det = {}
+                else:
+                    det = detect_target(grey, dcfg, expected)
+                    if det["found"] and det["quality_ok"]:
+                        expected = (det["u"], det["v"], det["s"])
             rows.append(det)
+            if probing is not None and len(probing) >= RESPONSE_PROBE_IMAGES:
+                dcfg, response_est, expected = _resolve_response(probing, rows, dcfg)
+                probing = None
             img_log.append(int(msg.log_time))
             img_stamp.append(int(enc.stamp_ns) if enc.stamp_ns > 0 else int(msg.log_time))
             if progress is not None and (k % 16 == 0):
@@ -346,6 +379,8 @@ def ingest_recording(
             if sname not in STRING_TYPES:
                 raise BadInput(f"{path}: topic {topic}: type {sname!r} is not std_msgs/String")
             urdf = decode_string(msg.data)
+    if probing is not None:
+        dcfg, response_est, expected = _resolve_response(probing, rows, dcfg)
     if progress is not None:
         progress(len(rows), n_total)
     # metadata seen while streaming (summary-less files)
@@ -449,6 +484,13 @@ def ingest_recording(
         pols = [r for r in rows if r["found"]]
         metadata["polarity"] = polarity or "dark_on_light"
         inferred["polarity"] = f"{metadata['polarity']} (automatic, from {len(pols)} images)"
+    if response_est is not None:
+        metadata["camera_response"] = response_est.response.spec
+        inferred["camera_response"] = response_est.note
+    elif resp_fixed is not None:
+        metadata["camera_response"] = resp_fixed.spec
+        if resp_source == "option":
+            inferred["camera_response"] = f"{resp_fixed.spec} (detect option)"
     if "designated_u" not in metadata and width:
         metadata["designated_u"] = repr((width - 1) / 2.0)
         inferred["designated_u"] = f"{metadata['designated_u']} (image centre)"
@@ -484,6 +526,26 @@ def ingest_recording(
         image_height=height,
     )
     return frames, det_df, info
+
+
+def _resolve_response(
+    probing: list[tuple[int, np.ndarray]], rows: list[dict[str, Any]], dcfg: DetectConfig
+) -> tuple[DetectConfig, ResponseEstimate, tuple[float, float, float] | None]:
+    """Estimate the camera response from the held-back images, then detect them with it.
+
+    ``rows[k]`` of every held-back image ``k`` is filled in place, in order, each
+    capture's detection steering the next one's (``expected``) as in the stream.
+    """
+    est = estimate_response((g for _, g in probing), dcfg, max_images=RESPONSE_FIT_IMAGES)
+    cfg = DetectConfig(**{**dcfg.to_dict(), "response": est.response.spec})
+    expected: tuple[float, float, float] | None = None
+    for k, grey in probing:
+        det = detect_target(grey, cfg, expected)
+        if det["found"] and det["quality_ok"]:
+            expected = (det["u"], det["v"], det["s"])
+        rows[k] = det
+    probing.clear()
+    return cfg, est, expected
 
 
 def _nan_row() -> list[Any]:

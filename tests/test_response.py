@@ -1,0 +1,92 @@
+"""Camera response: estimated from the edges, and detection on linearised grey."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from pipeline.sim.camera import CameraModel
+from pipeline.sim.render import projected_ellipse, render_ideal
+from pipeline.stages.detect import DetectConfig, detect_target
+from pipeline.stages.response import Response, estimate_response, parse_response
+from test_detect import pose
+
+CAM = CameraModel(fx=900.0, fy=900.0, cx=318.2, cy=256.9, k1=-0.05, k2=0.005)
+
+
+def srgb_encode(E: np.ndarray) -> np.ndarray:
+    """IEC 61966-2-1 encoding of linear irradiance in [0, 1] (independent of the module's)."""
+    E = np.clip(E, 0.0, 1.0)
+    return np.where(E <= 0.0031308, 12.92 * E, 1.055 * E ** (1 / 2.4) - 0.055)
+
+
+def renders(encode, n: int = 8, seed: int = 5, noise: float = 2.0):
+    """``n`` images of a 10 mm disc at 0.15-0.2 m, tilted 0-35 deg, grey = encode(E) + noise."""
+    rng = np.random.default_rng(seed)
+    out = []
+    for _ in range(n):
+        T = pose(*rng.uniform(-0.01, 0.01, 2), rng.uniform(0.15, 0.2), rng.uniform(0, 35),
+                 rng.uniform(0, 6.3), rng.uniform(0, 6.3))  # fmt: skip
+        E = render_ideal(CAM, T, 0.01, levels=(40.0, 200.0), blur_sigma_px=0.7) / 255.0
+        grey = encode(E) * 255.0 + rng.normal(0.0, noise, E.shape)
+        img = np.clip(np.rint(grey), 0, 255).astype(np.uint8)
+        out.append((img, projected_ellipse(CAM, T, 0.01)[2]))
+    return out
+
+
+def size_errors(images, response: str) -> np.ndarray:
+    cfg = DetectConfig(polarity="dark_on_light", response=response)
+    return np.array([detect_target(img, cfg)["s"] - s for img, s in images])
+
+
+def test_srgb_images_are_recognised_and_their_long_axis_is_unbiased():
+    """On sRGB-encoded images the halfway-grey long axis reads ~0.4 px short; linearised, not."""
+    images = renders(srgb_encode)
+    est = estimate_response(img for img, _ in images)
+    assert est.response.spec == "srgb", est.note
+    assert est.delta_linear > 100  # linear is far worse than sRGB at explaining the edges
+    raw = size_errors(images, "linear")
+    fixed = size_errors(images, est.response.spec)
+    assert raw.mean() < -0.3  # what vtcal measured before the response was estimated
+    assert abs(fixed.mean()) < 0.006
+    assert fixed.std() < 0.02
+
+
+def test_linear_images_stay_linear():
+    images = renders(lambda E: E, seed=6)
+    est = estimate_response(img for img, _ in images)
+    assert est.response.is_linear, est.note
+    assert "estimated" in est.note
+    assert abs(size_errors(images, est.response.spec).mean()) < 0.006
+
+
+def test_declared_gamma_linearises_exactly():
+    images = renders(lambda E: E ** (1 / 1.8), seed=7)
+    assert size_errors(images, "linear").mean() < -0.2
+    assert abs(size_errors(images, "gamma:1.8").mean()) < 0.006
+
+
+def test_edges_that_the_model_cannot_explain_fall_back_to_linear():
+    """Unblurred, noise-free area-coverage discs: no profile to read a response from."""
+    from test_ingest import disc_image
+
+    est = estimate_response(disc_image(70.3 + i, 60.7, 12.0) for i in range(5))
+    assert est.response.is_linear
+    assert est.note.startswith("linear (assumed")
+
+
+def test_parse_response_and_tables():
+    assert parse_response("auto") is None
+    assert parse_response("sRGB") == Response("srgb")
+    assert parse_response("gamma:2.2") == Response("gamma", 2.2)
+    assert parse_response("2.2") == Response("gamma", 2.2)
+    assert parse_response("gamma:1") == Response("linear")
+    for bad in ("log", "gamma:9", "gamma:x"):
+        with pytest.raises(ValueError, match="camera response"):
+            parse_response(bad)
+    r = Response("srgb")
+    img = np.arange(256, dtype=np.uint8).reshape(16, 16)
+    lin = r.linearise(img)
+    # the table inverts the encoding: encode(table(I)) == I
+    assert np.allclose(srgb_encode(lin / 255.0) * 255.0, img, atol=1e-9)
+    assert np.allclose(r.linearise(img.astype(np.uint16) * 257) / 65535.0, lin / 255.0)
