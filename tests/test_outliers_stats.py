@@ -166,9 +166,15 @@ def test_rules_fire_on_the_conformance_sample(conformance_sample: Path, tmp_path
     inl = pd.read_parquet(tmp_path / "inliers.parquet")
     truth = json.loads(Path(str(conformance_sample) + ".truth.json").read_text())
     reason = dict(zip(inl["touchup_id"], inl["reason"], strict=True))
+    note = dict(zip(inl["touchup_id"], inl["note"], strict=True))
     for f in truth["faults"]:
         if f["type"] == "unconverged":
-            assert "not converged" in reason[f["touchup"]]
+            # it stopped 1.7 px off (its last e_T), within the correctable range: a
+            # measurement once the residual correction is applied, kept and said so
+            tu = truth["touchups"][f["touchup"]]
+            assert max(abs(e) for e in tu["final_error_px"]) < 2.0
+            assert reason[f["touchup"]] == ""
+            assert "not converged, corrected" in note[f["touchup"]]
         if f["type"] == "target_lost":
             assert "target lost" in reason[f["touchup"]]
     assert len(inl) == len(pd.read_parquet(tmp_path / "touchups.parquet"))

@@ -8,7 +8,13 @@ column is absent from the touch-up table is skipped):
 
 | reason | when |
 |---|---|
-| ``not converged`` | ``converged`` is false |
+| ``not converged`` | ``converged`` is false and the final image error ``e_T`` is beyond
+  correction: ``|e_u|`` or ``|e_v|`` above ``max_correctable_px``, ``|e_s|`` above
+  ``max_correctable_size_px``, or not measured. A touch-up that stopped short of the
+  thresholds but within these bounds (a controller whose own detection was biased by
+  uneven light, an iteration limit hit a few tenths of a pixel out) is a measurement
+  like any other once the residual correction ``d = -J^-1 e_T`` is applied: it is kept,
+  with the note ``not converged, corrected by the residual correction``. |
 | ``target lost`` | ``lost`` is true, or the blob at the final pose is not the target: its long
   axis is off the designated one (``s - e_s_px``) by more than ``lost_size_frac`` of it |
 | ``captured while moving`` | ``moving`` is true |
@@ -97,6 +103,10 @@ class OutlierConfig:
     Attributes
     ----------
     max_fit_residual_px : contour-fit RMS above which a touch-up is rejected, px
+    max_correctable_px, max_correctable_size_px : largest remaining centre / long-axis error
+        (px) of an unconverged touch-up that the residual correction still turns into a
+        measurement (the image Jacobian is linear over this range: a 1 px long-axis error
+        is ~2 % of the stand-off, corrected to ~1 % of that with a Jacobian good to 1 %)
     min_captures : fewest good captures averaged at the final pose
     lost_size_frac : a final blob whose long axis is off the designated one by more than this
         fraction of it is not the target (an occluder, a reflection): ``target lost``
@@ -119,6 +129,8 @@ class OutlierConfig:
     """
 
     max_fit_residual_px: float = 0.25
+    max_correctable_px: float = 2.0
+    max_correctable_size_px: float = 1.0
     min_captures: int = 1
     lost_size_frac: float = 0.3
     statistical: bool = True
@@ -147,7 +159,7 @@ def _rule_masks(table: pd.DataFrame, config: OutlierConfig) -> dict[str, np.ndar
     with np.errstate(invalid="ignore", divide="ignore"):
         not_target = np.abs(e_s) > config.lost_size_frac * np.abs(s_final - e_s)
     return {
-        "not converged": ~col("converged", True).astype(bool),
+        "not converged": ~col("converged", True).astype(bool) & ~correctable(table, config),
         "target lost": col("lost", False).astype(bool) | not_target,  # NaN compares False
         "captured while moving": col("moving", False).astype(bool),
         "poor contour fit": col("fit_residual_px", 0.0).astype(float) > config.max_fit_residual_px,
@@ -156,6 +168,30 @@ def _rule_masks(table: pd.DataFrame, config: OutlierConfig) -> dict[str, np.ndar
         "too few captures": col("n_converged_captures", config.min_captures).astype(float)
         < config.min_captures,
     }
+
+
+def correctable(table: pd.DataFrame, config: OutlierConfig) -> np.ndarray:
+    """Rows whose final image error the residual correction can remove (see the rules table).
+
+    Needs ``e_u``, ``e_v``, ``e_s_px`` (vtcal's touch-up artefact); a table without
+    them (a spec touch-up table) has nothing to correct with: all False.
+    """
+    n = len(table)
+    if not {"e_u", "e_v", "e_s_px"} <= set(table.columns):
+        return np.zeros(n, dtype=bool)
+    e = table[["e_u", "e_v", "e_s_px"]].to_numpy(dtype=float)
+    lost = (
+        table["lost"].fillna(False).to_numpy(dtype=bool) if "lost" in table else np.zeros(n, bool)
+    )
+    with np.errstate(invalid="ignore"):
+        ok = (
+            np.isfinite(e).all(axis=1)
+            & (np.abs(e[:, 0]) <= config.max_correctable_px)
+            & (np.abs(e[:, 1]) <= config.max_correctable_px)
+            & (np.abs(e[:, 2]) <= config.max_correctable_size_px)
+        )
+    result: np.ndarray = ok & ~lost
+    return result
 
 
 def flag_outliers(table: pd.DataFrame, info: Any, config: OutlierConfig) -> pd.DataFrame:
@@ -199,7 +235,18 @@ def flag_outliers(table: pd.DataFrame, info: Any, config: OutlierConfig) -> pd.D
     out["reason"] = reasons
     out["studentized"] = np.nan
     out["leverage"] = np.nan
-    out["note"] = ""
+    conv = base["converged"].fillna(True).to_numpy(dtype=bool) if "converged" in base else None
+    fixed = (~conv & correctable(base, config)) if conv is not None else np.zeros(len(base), bool)
+    out["note"] = [
+        "not converged, corrected by the residual correction (e_T {:+.2f}, {:+.2f}, {:+.2f} px)".format(
+            *base.loc[i, ["e_u", "e_v", "e_s_px"]].to_numpy(dtype=float)
+        )
+        if fixed[i]
+        else ""
+        for i in range(len(base))
+    ]
+    # identification uses converged rows: a corrected one counts as converged from here on
+    out.loc[fixed, "converged"] = True
     labels = pd.to_numeric(out["target_id"], errors="coerce")
     if config.statistical and getattr(info, "urdf", None):
         if labels.notna().all() and (labels == labels.round()).all():
@@ -465,7 +512,7 @@ def _statistical(out: pd.DataFrame, info: Any, config: OutlierConfig) -> pd.Data
     out = out.copy()
     out["target_id"] = out["target_id"].astype(np.int64)
     stamps = out["stamp_ns"].to_numpy(dtype=np.int64)
-    notes: list[list[str]] = [[] for _ in range(len(out))]
+    notes: list[list[str]] = [[n] if n else [] for n in out["note"].astype(str)]
     flagged: list[int] = []
     next_label = int(max(out["target_id"].max(), out["source_target_id"].max())) + 1
     model_used = config.model
