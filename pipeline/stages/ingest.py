@@ -114,6 +114,9 @@ class RecordingInfo:
     truncated : the file ended early (recorder killed)
     warnings : one line each (truncation, joint-state gaps)
     image_width, image_height : size of the images (px)
+    camera : what was found about the camera: ``response`` (the curve detection used,
+        :mod:`pipeline.stages.response`), ``response_source`` (option, metadata,
+        estimated), and the estimate's figures (``ResponseEstimate.to_dict``)
     """
 
     path: str
@@ -130,6 +133,7 @@ class RecordingInfo:
     warnings: list[str]
     image_width: int = 0
     image_height: int = 0
+    camera: dict[str, Any] = field(default_factory=dict)
 
 
 def _prescan(path: str) -> tuple[dict[str, tuple[str, str]], dict[str, dict[str, str]]]:
@@ -484,10 +488,15 @@ def ingest_recording(
         pols = [r for r in rows if r["found"]]
         metadata["polarity"] = polarity or "dark_on_light"
         inferred["polarity"] = f"{metadata['polarity']} (automatic, from {len(pols)} images)"
+    camera: dict[str, Any] = {}
     if response_est is not None:
         metadata["camera_response"] = response_est.response.spec
         inferred["camera_response"] = response_est.note
+        camera = {**response_est.to_dict(), "response_source": "estimated"}
+        if response_est.note.startswith("linear (assumed"):
+            camera["response_source"] = "assumed"
     elif resp_fixed is not None:
+        camera = {"response": resp_fixed.spec, "response_source": resp_source}
         metadata["camera_response"] = resp_fixed.spec
         if resp_source == "option":
             inferred["camera_response"] = f"{resp_fixed.spec} (detect option)"
@@ -524,6 +533,7 @@ def ingest_recording(
         warnings=warnings,
         image_width=width,
         image_height=height,
+        camera=camera,
     )
     return frames, det_df, info
 

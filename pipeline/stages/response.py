@@ -61,7 +61,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Iterable, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from functools import lru_cache
 from typing import Any
 
@@ -191,6 +191,9 @@ class ResponseEstimate:
     delta_linear, delta_srgb : ``(RSS(curve) - RSS(best)) / sigma2`` of the two named curves
     sigma_grey : residual RMS of the best fit, grey levels of the recording
     n_images, n_pixels : edge profiles used
+    illumination_gradient : median over the images of the plate's irradiance change across
+        one target diameter (relative; :func:`illumination_gradient`)
+    illumination_gradient_max : the largest of them
     note : one line for the report and the run's summary
     """
 
@@ -201,8 +204,9 @@ class ResponseEstimate:
     sigma_grey: float = float("nan")
     n_images: int = 0
     n_pixels: int = 0
+    illumination_gradient: float = float("nan")
+    illumination_gradient_max: float = float("nan")
     note: str = ""
-    per_image_shift_px: list[float] = field(default_factory=list)
 
     def to_dict(self) -> dict[str, Any]:
         return {
@@ -213,6 +217,8 @@ class ResponseEstimate:
             "sigma_grey": self.sigma_grey,
             "n_images": self.n_images,
             "n_pixels": self.n_pixels,
+            "illumination_gradient": self.illumination_gradient,
+            "illumination_gradient_max": self.illumination_gradient_max,
             "note": self.note,
         }
 
@@ -226,6 +232,7 @@ class _Profile:
     dv: F64
     grey: F64
     x0: tuple[float, float] = (0.0, 0.8)
+    diameter_px: float = 0.0
 
 
 def edge_profile(
@@ -263,7 +270,7 @@ def edge_profile(
     m = (np.abs(d) < W) & (g > 0.5 / full_scale) & (g < 1.0 - 0.5 / full_scale)
     if m.sum() < 50:
         return None
-    return _Profile(d[m], pts[m, 0] - u, pts[m, 1] - v, g[m], (0.0, max(sig, 0.3)))
+    return _Profile(d[m], pts[m, 0] - u, pts[m, 1] - v, g[m], (0.0, max(sig, 0.3)), 2.0 * a)
 
 
 def _fit_profile(pr: _Profile, resp: Response) -> tuple[float, tuple[float, float]]:
@@ -298,6 +305,21 @@ def _flat_noise2(pr: _Profile, resp: Response) -> tuple[float, int]:
     coef, *_ = np.linalg.lstsq(A, E * w, rcond=None)
     r = A @ coef - E * w
     return float(np.sum(r**2)), int(far.sum()) - 6
+
+
+def illumination_gradient(pr: _Profile, resp: Response, diameter_px: float) -> float:
+    """Relative change of the plate's irradiance across one target diameter (model R1's levels).
+
+    ``|grad b| D / b0`` of the plate plane ``b0 + b1 du + b2 dv`` fitted in linearised
+    grey: 0.15 means the light falls off by 15 % from one side of the target to the other.
+    """
+    _, (delta, sigma) = _fit_profile(pr, resp)
+    E = resp.to_linear(pr.grey)
+    F = ndtr((pr.d - delta) / max(sigma, 0.05))
+    A = np.stack([1 - F, (1 - F) * pr.du, (1 - F) * pr.dv, F, F * pr.du, F * pr.dv], 1)
+    coef, *_ = np.linalg.lstsq(A, E, rcond=None)
+    plate = coef[3:] if coef[3] > coef[0] else coef[:3]  # the plate is the brighter side
+    return float(np.hypot(plate[1], plate[2]) * diameter_px / max(abs(plate[0]), 1e-9))
 
 
 def _total(profiles: Sequence[_Profile], resp: Response) -> float:
@@ -351,6 +373,8 @@ def estimate_from_profiles(
         )
     elif sigma_edge < 0.4:
         unreliable = f"the edges are too sharp ({sigma_edge:.2f} px) to show the response"
+    grads = [illumination_gradient(p, Response("gamma", g_best), p.diameter_px) for p in profiles]
+    illum = (float(np.median(grads)), float(np.max(grads)))
     if unreliable:
         return ResponseEstimate(
             Response("linear"),
@@ -360,6 +384,8 @@ def estimate_from_profiles(
             sigma_grey=255.0 * sigma_fit,
             n_images=len(profiles),
             n_pixels=n_pix,
+            illumination_gradient=illum[0],
+            illumination_gradient_max=illum[1],
             note=(
                 f"linear (assumed: {unreliable}; if the camera encodes its output, declare it "
                 "with --set camera_response=srgb or gamma:G)"
@@ -384,6 +410,8 @@ def estimate_from_profiles(
         sigma_grey=float(math.sqrt(sigma2) * 255.0),
         n_images=len(profiles),
         n_pixels=n_pix,
+        illumination_gradient=illum[0],
+        illumination_gradient_max=illum[1],
         note=note,
     )
 
