@@ -53,6 +53,7 @@ from pipeline.report.data import (
     target_positions,
     touchup_frames,
 )
+from pipeline.report.diagnosis import camera_section
 
 TEMPLATE_DIR = Path(__file__).resolve().parent.parent.parent / "reports"
 TEMPLATE = "report.html.j2"
@@ -586,6 +587,7 @@ def report_context(data: RunData, images: dict[int, np.ndarray] | None) -> dict[
         "touchups": _touchup_section(data, images),
         "convergence": _convergence_section(data),
         "crossval": _crossval_section(data),
+        "camera": camera_section(data),
         "run": _run_section(data),
         "NA": NA,
     }

@@ -222,3 +222,18 @@ def singular_values(sv: np.ndarray) -> str:
         ax.set_xlabel("index")
         ax.set_ylabel("singular value")
         return to_svg(fig)
+
+
+def along_view(tilt_deg: np.ndarray, beta_deg: np.ndarray, r_view_um: np.ndarray) -> str:
+    """Touch-ups' residuals along the view (um) against the plate tilt and the long axis' direction."""
+    with plt.rc_context(_RC):
+        fig = _figure(6.4, 2.6)
+        ax1, ax2 = fig.subplots(1, 2, sharey=True)
+        ax1.scatter(tilt_deg, r_view_um, s=12, color=AFTER)
+        ax1.set_xlabel("plate tilt to the view (deg)")
+        ax1.set_ylabel("residual along the view (um)")
+        ax2.scatter(np.mod(beta_deg, 180.0), r_view_um, s=12, color=AFTER)
+        ax2.set_xlabel("long axis on the plate, beta mod 180 (deg)")
+        for ax in (ax1, ax2):
+            ax.axhline(0.0, color=BEFORE, lw=0.8)
+        return to_svg(fig)

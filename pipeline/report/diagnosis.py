@@ -1,0 +1,255 @@
+"""Self-diagnosis of the camera and the targets: what vtcal found, and what no residual can show.
+
+A constant error of the measured long axis (a camera response taken for
+linear, a print of the wrong diameter) moves every touch-up along the view by
+the same amount: the identified pin absorbs it and the residuals stay small.
+An error that depends on the view (an out-of-round print read along different
+directions, a size bias growing with the plate's tilt) does leave a trace: the
+touch-ups' residuals along the view then correlate with the tilt and with the
+long axis' direction on the plate. This section shows, from the artefacts only:
+
+* the response curve detection used and how it was chosen
+  (``recording.json`` ``camera``, :mod:`pipeline.stages.response`);
+* the illumination gradient across the target;
+* touch-ups that stopped off target and were corrected rather than rejected;
+* per-target print shape, where identification estimated one
+  (``targets.parquet`` columns ``print_*``);
+* the along-view residual of every used touch-up against the tilt ``theta``
+  (``cos theta = axis_ratio``) and the long axis' direction ``beta`` in the
+  target's plate, with the least-squares fit
+  ``r_view = c0 + c1 (1 - cos theta) + c2 cos 2 beta + c3 sin 2 beta``
+  (an out-of-round print gives the ``2 beta`` terms, a tilt-dependent size bias
+  ``c1``); a term larger than 3 standard errors and 5 um is flagged.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Any
+
+import numpy as np
+import pandas as pd
+
+from pipeline.kinematics.chain import fk
+from pipeline.report.data import RunData
+
+#: a fitted along-view trend must exceed this (m) and 3 standard errors to be flagged
+TREND_MIN_M = 5e-6
+
+
+def _row(effect: str, found: str, status: str) -> dict[str, str]:
+    return {"effect": effect, "found": found, "status": status}
+
+
+def _response_rows(cam: dict[str, Any]) -> tuple[list[dict[str, str]], list[str]]:
+    rows: list[dict[str, str]] = []
+    warn: list[str] = []
+    if not cam:
+        rows.append(_row("camera response", "not recorded by this run", "na"))
+        return rows, warn
+    resp = str(cam.get("response", "linear"))
+    src = str(cam.get("response_source", ""))
+    note = str(cam.get("note", ""))
+    status = "ok"
+    if src == "assumed":
+        status = "warn"
+        warn.append(
+            "The camera's response curve could not be estimated from the edges and linear was "
+            "assumed. If the camera encodes its output (sRGB, a gamma), every long axis is read "
+            "short or long by the same amount (about 0.4 px at 0.8 px edge width: millimetres of "
+            "pin depth), and no residual shows it: declare camera_response in the metadata."
+        )
+    elif "neither" in note:
+        status = "warn"
+        warn.append(
+            "Neither a linear nor an sRGB response explains the target edges well: the pin depth "
+            "may carry a constant error no residual shows. Declare the camera's curve "
+            "(camera_response) if it is known."
+        )
+    found = {
+        "option": f"{resp} (given on the command line)",
+        "metadata": f"{resp} (declared in the recording's metadata)",
+    }.get(src, note or resp)
+    rows.append(_row("camera response", found, status))
+    g = cam.get("illumination_gradient")
+    if g is not None and isinstance(g, (int, float)) and math.isfinite(g):
+        gmax = float(cam.get("illumination_gradient_max", g))
+        rows.append(
+            _row(
+                "illumination across the target",
+                f"{100 * g:.1f} % change across one target diameter (median over "
+                f"{int(cam.get('n_images', 0))} images; largest {100 * gmax:.1f} %); "
+                "the detector's level surfaces follow it",
+                "ok" if gmax < 0.3 else "warn",
+            )
+        )
+    return rows, warn
+
+
+def _corrected_rows(inl: pd.DataFrame | None) -> list[dict[str, str]]:
+    if inl is None or "note" not in inl:
+        return []
+    n = int(inl["note"].astype(str).str.contains("not converged, corrected").sum())
+    if not n:
+        return []
+    return [
+        _row(
+            "touch-ups that stopped off target",
+            f"{n} corrected by the residual correction and kept (their controller stopped "
+            "outside the thresholds; see the touch-up notes)",
+            "ok",
+        )
+    ]
+
+
+def _print_rows(data: RunData, model: str | None) -> list[dict[str, str]]:
+    t = data.targets
+    if t is None:
+        return []
+    cols = [c for c in t.columns if c.startswith("print_")]
+    if not cols:
+        return []
+    if model is not None and "model" in t:
+        t = t[t["model"] == model]
+    out = []
+    for _, r in t.iterrows():
+        vals = [
+            f"{c[6:].replace('_', ' ')} {float(r[c]):.3g}"
+            for c in cols
+            if isinstance(r[c], (int, float, np.floating)) and math.isfinite(float(r[c]))
+        ]
+        if vals:
+            out.append(
+                _row(
+                    f"print shape, target {r.get('target_label', r['target_id'])}",
+                    "; ".join(vals),
+                    "ok",
+                )
+            )
+    return out
+
+
+def along_view_trend(data: RunData) -> dict[str, Any] | None:
+    """Fit ``r_view = c0 + c1 (1 - cos theta) + c2 cos 2beta + c3 sin 2beta`` (module docstring).
+
+    Returns the per-touch-up points (tilt deg, beta deg, r_view um) and the fitted
+    terms with standard errors, or None when the artefacts lack what it needs
+    (a calibrated chain, residuals, the touch-ups' ``axis_ratio`` and flange-frame
+    ``view_*`` / ``long_axis_*`` directions).
+    """
+    need = [
+        "axis_ratio",
+        *(f"view_{a}_flange" for a in "xyz"),
+        *(f"long_axis_{a}_flange" for a in "xyz"),
+    ]
+    tu, res, chain = data.touchups, data.residuals, data.calibrated_chain()
+    if tu is None or res is None or chain is None or not set(need) <= set(tu.columns):
+        return None
+    model = (data.identify or {}).get("best_model")
+    r = res[res["model"] == model] if model is not None and "model" in res else res
+    r = r[r["used"].astype(bool)] if "used" in r else r
+    df = r.merge(tu[["touchup_id", *need, *data.joint_names]], on="touchup_id", how="inner")
+    if len(df) < 8:
+        return None
+    q = df[data.joint_names].to_numpy(dtype=float)
+    v_f = df[[f"view_{a}_flange" for a in "xyz"]].to_numpy(dtype=float)
+    a_f = df[[f"long_axis_{a}_flange" for a in "xyz"]].to_numpy(dtype=float)
+    rv = df[["rx", "ry", "rz"]].to_numpy(dtype=float)
+    cos_t = np.clip(df["axis_ratio"].to_numpy(dtype=float), 0.0, 1.0)
+    R = np.stack([fk(chain, qi)[:3, :3] for qi in q])
+    v_b = np.einsum("nij,nj->ni", R, v_f)
+    a_b = np.einsum("nij,nj->ni", R, a_f)
+    r_view = np.einsum("ni,ni->n", rv, v_b)
+    beta = np.full(len(df), np.nan)
+    labels = df["target_id"].astype(str).to_numpy()
+    for lab in np.unique(labels):
+        m = labels == lab
+        n = v_b[m].mean(axis=0)
+        n /= np.linalg.norm(n)
+        e1 = np.cross(n, [0.0, 0.0, 1.0] if abs(n[2]) < 0.9 else [1.0, 0.0, 0.0])
+        e1 /= np.linalg.norm(e1)
+        e2 = np.cross(n, e1)
+        beta[m] = np.arctan2(a_b[m] @ e2, a_b[m] @ e1)
+    ok = np.isfinite(r_view) & np.isfinite(beta) & np.isfinite(cos_t)
+    if ok.sum() < 8:
+        return None
+    X = np.stack([np.ones(ok.sum()), 1 - cos_t[ok], np.cos(2 * beta[ok]), np.sin(2 * beta[ok])], 1)
+    # one mean per target instead of c0: each target's pin depth can differ (print diameter)
+    tl = labels[ok]
+    D = np.stack([(tl == lab).astype(float) for lab in np.unique(tl)], 1)
+    A = np.concatenate([D, X[:, 1:]], 1)
+    coef, *_ = np.linalg.lstsq(A, r_view[ok], rcond=None)
+    e = r_view[ok] - A @ coef
+    dof = max(len(e) - A.shape[1], 1)
+    s2 = float(e @ e) / dof
+    cov = s2 * np.linalg.pinv(A.T @ A)
+    se = np.sqrt(np.clip(np.diag(cov), 0, None))
+    k = D.shape[1]
+    tilt_c, c2, c3 = coef[k], coef[k + 1], coef[k + 2]
+    amp = float(math.hypot(c2, c3))
+    amp_se = float(
+        math.sqrt(max((c2 * se[k + 1]) ** 2 + (c3 * se[k + 2]) ** 2, 0.0)) / max(amp, 1e-12)
+    )
+    return {
+        "tilt_deg": np.degrees(np.arccos(cos_t[ok])),
+        "beta_deg": np.degrees(beta[ok]),
+        "r_view_um": 1e6 * r_view[ok],
+        "tilt_term_m": float(tilt_c),
+        "tilt_term_se_m": float(se[k]),
+        "roll_amp_m": amp,
+        "roll_amp_se_m": amp_se,
+        "n": int(ok.sum()),
+    }
+
+
+def _trend_rows(tr: dict[str, Any] | None) -> tuple[list[dict[str, str]], list[str]]:
+    if tr is None:
+        return [
+            _row(
+                "size bias against tilt and roll",
+                "not available (needs touch-ups with view and long-axis directions and a fit)",
+                "na",
+            )
+        ], []
+    warn: list[str] = []
+    rows = []
+    for name, val, se, what in (
+        ("tilt", tr["tilt_term_m"], tr["tilt_term_se_m"], "per unit of (1 - cos tilt)"),
+        ("roll", tr["roll_amp_m"], tr["roll_amp_se_m"], "amplitude of the 2-beta term"),
+    ):
+        flagged = abs(val) > max(3 * se, TREND_MIN_M)
+        rows.append(
+            _row(
+                f"size bias against {name}",
+                f"{1e6 * val:+.1f} +- {1e6 * se:.1f} um along the view {what} "
+                f"({tr['n']} touch-ups, residuals of the shipped model)",
+                "warn" if flagged else "ok",
+            )
+        )
+        if flagged:
+            warn.append(
+                f"The touch-ups' residuals along the view depend on the {name} "
+                f"({1e6 * val:+.1f} um, {abs(val) / max(se, 1e-12):.1f} standard errors): the "
+                "long-axis measurement depends on the view (an out-of-round print, a size bias "
+                "with tilt); the calibration carries part of it."
+            )
+    return rows, warn
+
+
+def camera_section(data: RunData) -> dict[str, Any]:
+    """The report's "Camera and targets" section (rows, warnings, a plot)."""
+    cam = (data.recording or {}).get("camera") or {}
+    model = (data.identify or {}).get("best_model")
+    rows, warn = _response_rows(cam)
+    rows += _corrected_rows(data.inliers)
+    rows += _print_rows(data, model)
+    tr = along_view_trend(data)
+    more, w2 = _trend_rows(tr)
+    rows += more
+    warn += w2
+    svg = ""
+    if tr is not None:
+        from pipeline.report.plots import along_view
+
+        svg = along_view(tr["tilt_deg"], tr["beta_deg"], tr["r_view_um"])
+    return {"rows": rows, "warnings": warn, "svg": svg, "available": bool(rows)}
