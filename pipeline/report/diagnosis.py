@@ -129,6 +129,14 @@ def _print_rows(data: RunData, model: str | None) -> list[dict[str, str]]:
     return out
 
 
+def plate_basis(normal: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Two unit vectors ``(e1, e2)`` spanning the plane perpendicular to ``normal`` (3,)."""
+    n = np.asarray(normal, dtype=float) / np.linalg.norm(normal)
+    e1 = np.cross(n, [0.0, 0.0, 1.0] if abs(n[2]) < 0.9 else [1.0, 0.0, 0.0])
+    e1 /= np.linalg.norm(e1)
+    return e1, np.cross(n, e1)
+
+
 def along_view_trend(data: RunData) -> dict[str, Any] | None:
     """Fit ``r_view = c0 + c1 (1 - cos theta) + c2 cos 2beta + c3 sin 2beta`` (module docstring).
 
@@ -164,11 +172,7 @@ def along_view_trend(data: RunData) -> dict[str, Any] | None:
     labels = df["target_id"].astype(str).to_numpy()
     for lab in np.unique(labels):
         m = labels == lab
-        n = v_b[m].mean(axis=0)
-        n /= np.linalg.norm(n)
-        e1 = np.cross(n, [0.0, 0.0, 1.0] if abs(n[2]) < 0.9 else [1.0, 0.0, 0.0])
-        e1 /= np.linalg.norm(e1)
-        e2 = np.cross(n, e1)
+        e1, e2 = plate_basis(v_b[m].mean(axis=0))
         beta[m] = np.arctan2(a_b[m] @ e2, a_b[m] @ e1)
     ok = np.isfinite(r_view) & np.isfinite(beta) & np.isfinite(cos_t)
     if ok.sum() < 8:

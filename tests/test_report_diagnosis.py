@@ -1,0 +1,123 @@
+"""The report's camera and target self-diagnosis: trends a residual can show, and what it cannot."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+
+from pipeline.kinematics.chain import fk, load_chain
+from pipeline.report.data import RunData
+from pipeline.report.diagnosis import along_view_trend, camera_section, plate_basis
+from pipeline.robots import builtin_urdf
+
+PIN = np.array([0.01, -0.02, 0.25])
+
+
+def _run(tmp_path: Path, amp_m: float, tilt_m: float, n: int = 36, seed: int = 3) -> RunData:
+    """A run folder's artefacts in memory: residuals along the view with a 2-beta and tilt term."""
+    urdf = builtin_urdf("lrmate")
+    cal = urdf.replace(
+        "</robot>",
+        '<link name="virtual_pin"/><joint name="virtual_pin_joint" type="fixed">'
+        '<parent link="flange"/><child link="virtual_pin"/>'
+        f'<origin xyz="{PIN[0]} {PIN[1]} {PIN[2]}" rpy="0 0 0"/></joint></robot>',
+    )
+    chain = load_chain(urdf, "base_link", "flange")
+    names = chain.joint_names
+    rng = np.random.default_rng(seed)
+    rows, res = [], []
+    for i in range(n):
+        k = i % 3
+        q = np.array([0.3 * k - 0.3, 0.2, -0.1, 0.0, -1.2, 0.0]) + rng.normal(0, 0.25, 6)
+        R = fk(chain, q)[:3, :3]
+        view_f = np.array([0.0, 0.0, 1.0])
+        tilt = np.radians(rng.uniform(5, 35))
+        phi = rng.uniform(0, 2 * np.pi)
+        long_f = np.array([np.cos(phi), np.sin(phi), 0.0])
+        v_b, a_b = R @ view_f, R @ long_f
+        rows.append(
+            {
+                "touchup_id": i,
+                "target_id": k,
+                "axis_ratio": np.cos(tilt),
+                **{f"view_{c}_flange": view_f[j] for j, c in enumerate("xyz")},
+                **{f"long_axis_{c}_flange": long_f[j] for j, c in enumerate("xyz")},
+                **dict(zip(names, q, strict=True)),
+            }
+        )
+        # the diagnosis measures beta in a plate basis built from the target's mean view:
+        # inject the signal through the same construction, after the loop
+        res.append((i, k, v_b, a_b, tilt))
+    tu = pd.DataFrame(rows)
+    vb = np.array([r[2] for r in res])
+    ab = np.array([r[3] for r in res])
+    r_view = np.zeros(n)
+    for k in range(3):
+        m = np.arange(n) % 3 == k
+        e1, e2 = plate_basis(vb[m].mean(0))
+        beta = np.arctan2(ab[m] @ e2, ab[m] @ e1)
+        tilt = np.array([r[4] for r in res])[m]
+        r_view[m] = amp_m * np.cos(2 * beta - 0.4) + tilt_m * (1 - np.cos(tilt)) + 1e-5 * k
+    r_view += rng.normal(0, 1e-6, n)
+    resid = pd.DataFrame(
+        {
+            "model": "full",
+            "touchup_id": np.arange(n),
+            "target_id": np.arange(n) % 3,
+            "used": True,
+            "rx": r_view * vb[:, 0],
+            "ry": r_view * vb[:, 1],
+            "rz": r_view * vb[:, 2],
+        }
+    )
+    rec = {"joint_names": names, "base_link": "base_link", "flange_link": "flange",
+           "camera": {"response": "srgb", "response_source": "estimated",
+                      "note": "srgb (estimated ...)", "illumination_gradient": 0.12,
+                      "illumination_gradient_max": 0.18, "n_images": 12}}  # fmt: skip
+    return RunData(
+        run_dir=tmp_path,
+        recording=rec,
+        identify={"best_model": "full"},
+        touchups=tu,
+        residuals=resid,
+        calibrated_urdf=cal,
+    )
+
+
+def test_a_roll_dependent_size_error_is_found_and_flagged(tmp_path: Path) -> None:
+    tr = along_view_trend(_run(tmp_path, amp_m=40e-6, tilt_m=0.0))
+    assert tr is not None and tr["n"] == 36
+    assert abs(tr["roll_amp_m"] - 40e-6) < 2e-6
+    assert abs(tr["tilt_term_m"]) < 5e-6
+    sec = camera_section(_run(tmp_path, amp_m=40e-6, tilt_m=0.0))
+    status = {r["effect"]: r["status"] for r in sec["rows"]}
+    assert status["size bias against roll"] == "warn"
+    assert status["size bias against tilt"] == "ok"
+    assert any("depend on the roll" in w for w in sec["warnings"])
+    assert sec["svg"].startswith("<svg")
+
+
+def test_a_tilt_dependent_size_error_is_found(tmp_path: Path) -> None:
+    tr = along_view_trend(_run(tmp_path, amp_m=0.0, tilt_m=400e-6))
+    assert tr is not None
+    assert abs(tr["tilt_term_m"] - 400e-6) < 20e-6
+    assert tr["roll_amp_m"] < 3e-6
+
+
+def test_clean_runs_raise_no_flag_and_say_what_was_found(tmp_path: Path) -> None:
+    sec = camera_section(_run(tmp_path, amp_m=0.0, tilt_m=0.0))
+    assert not sec["warnings"]
+    found = {r["effect"]: r["found"] for r in sec["rows"]}
+    assert found["camera response"].startswith("srgb")
+    assert found["illumination across the target"].startswith("12.0 %")
+
+
+def test_an_assumed_response_is_warned_about(tmp_path: Path) -> None:
+    data = _run(tmp_path, amp_m=0.0, tilt_m=0.0)
+    assert data.recording is not None
+    data.recording["camera"] = {"response": "linear", "response_source": "assumed",
+                                "note": "linear (assumed: the edges are too sharp)"}  # fmt: skip
+    sec = camera_section(data)
+    assert any("could not be estimated" in w for w in sec["warnings"])
