@@ -22,6 +22,16 @@ the background grey. Rendering is by area coverage:
 A capture during motion averages step 1-3 over several poses of the exposure
 (``T_camera_target`` of shape ``(K, 4, 4)``).
 
+Real-camera effects (:mod:`pipeline.sim.optics`, scenario ``[optics]``) enter
+here where they act on the scene: a printed target that is not a perfect circle
+(:class:`PrintShape`, boundary radius as a function of the polar angle in the
+plate frame, used by every inside test), the illumination of the plate
+(:class:`~pipeline.sim.optics.PlateLight`, evaluated per point of the plate
+before the blur) and thin-lens defocus (:class:`~pipeline.sim.optics.Defocus`,
+a pillbox whose radius follows the plate depth, after the Gaussian blur).
+Without them (the defaults) the code paths are those of a perfect circle,
+uniformly lit, in focus.
+
 The reference geometry is :func:`projected_ellipse`: many points of the 3-D
 circle projected through the same camera model, and the ellipse fitted to them
 (centre, full long and short axes, long-axis angle). This is the contour the
@@ -31,6 +41,8 @@ spec defines (boundary at the grey level halfway between target and plate).
 from __future__ import annotations
 
 from collections.abc import Sequence
+from dataclasses import dataclass
+from typing import Any
 
 import cv2
 import numpy as np
@@ -38,11 +50,98 @@ from numpy.typing import ArrayLike
 
 from pipeline.kinematics.se3 import F64
 from pipeline.sim.camera import CameraModel
+from pipeline.sim.optics import Defocus, PlateLight, variable_pillbox
 
 #: (x_m, y_m, diameter_m, grey) of an extra disc in the target plane.
 ExtraDisc = tuple[float, float, float, float]
 #: (u, v, semi_major_px, semi_minor_px, angle_rad, grey) image-space occluder.
 Occluder = tuple[float, float, float, float, float, float]
+
+
+@dataclass(frozen=True)
+class PrintShape:
+    """Boundary of a printed target disc in the plate frame, ``r(phi)`` about its centre.
+
+    An ellipse of semi-axes ``a = R (1 + e)``, ``b = R (1 - e)`` with its long
+    axis at ``orientation_rad`` from the plate's ``x`` axis, plus edge roughness:
+
+        r(phi) = a b / sqrt((b cos psi)^2 + (a sin psi)^2) + sum_k A_k cos(k phi + p_k),
+        psi = phi - orientation
+
+    (``phi`` the polar angle about the centre, m). ``e = 0`` and no harmonics is
+    the perfect circle of radius ``R``. Drawn per target by
+    :func:`pipeline.sim.optics.draw_print`.
+
+    Attributes
+    ----------
+    radius_m : float
+        ``R`` (half the mean printed diameter), m.
+    ellipticity : float
+        ``e``.
+    orientation_rad : float
+    harmonics : tuple of (k, A_k m, p_k rad)
+    """
+
+    radius_m: float
+    ellipticity: float = 0.0
+    orientation_rad: float = 0.0
+    harmonics: tuple[tuple[int, float, float], ...] = ()
+
+    @classmethod
+    def from_dict(cls, d: dict[str, Any]) -> PrintShape:
+        """From :func:`pipeline.sim.optics.draw_print`'s dictionary."""
+        return cls(
+            radius_m=float(d["radius_m"]),
+            ellipticity=float(d["ellipticity"]),
+            orientation_rad=float(d["orientation_rad"]),
+            harmonics=tuple((int(k), float(a), float(p)) for k, a, p in d["harmonics"]),
+        )
+
+    @property
+    def is_circle(self) -> bool:
+        return self.ellipticity == 0.0 and not self.harmonics
+
+    def radius_at(self, phi: ArrayLike) -> F64:
+        """Boundary radius ``r(phi)`` (m) at polar angles ``phi`` (rad, any shape)."""
+        ph = np.asarray(phi, dtype=float)
+        a = self.radius_m * (1.0 + self.ellipticity)
+        b = self.radius_m * (1.0 - self.ellipticity)
+        psi = ph - self.orientation_rad
+        r = a * b / np.sqrt((b * np.cos(psi)) ** 2 + (a * np.sin(psi)) ** 2)
+        for k, amp, p in self.harmonics:
+            r = r + amp * np.cos(k * ph + p)
+        out: F64 = np.asarray(r, dtype=float)
+        return out
+
+    def max_radius(self) -> float:
+        """An upper bound of ``r(phi)`` (m)."""
+        return self.radius_m * (1.0 + abs(self.ellipticity)) + sum(
+            abs(a) for _, a, _ in self.harmonics
+        )
+
+    def band_factor(self) -> float:
+        """Widening of the edge band for a boundary not normal to the radius (slope bound)."""
+        slope = 2.0 * abs(self.ellipticity) + sum(k * abs(a) for k, a, _ in self.harmonics) / max(
+            self.radius_m, 1e-12
+        )
+        return 1.25 + slope
+
+
+#: A disc layer's boundary: a radius (m, perfect circle) or a printed shape.
+Boundary = float | PrintShape
+
+
+def _boundary(shape: PrintShape | None, diameter_m: float) -> Boundary:
+    """The target layer's boundary: a plain radius unless the print is not a circle."""
+    if shape is None:
+        return 0.5 * diameter_m
+    if shape.is_circle:
+        return shape.radius_m
+    return shape
+
+
+def _max_radius(b: Boundary) -> float:
+    return b.max_radius() if isinstance(b, PrintShape) else float(b)
 
 
 def _plane_coords(
@@ -114,11 +213,20 @@ def _coverage(
     foot: F64,
     uv_grid: F64,
     centre: tuple[float, float],
-    radius: float,
+    radius: Boundary,
     subsamples: int,
     cell: float = 1.0,
 ) -> F64:
-    """Area fraction of each ROI cell (a pixel, or a ``cell``-px square) inside one disc."""
+    """Area fraction of each ROI cell (a pixel, or a ``cell``-px square) inside one disc.
+
+    ``radius`` is a circle's radius, or a :class:`PrintShape` whose boundary
+    ``r(phi)`` (polar angle about ``centre`` in the plate frame) every inside
+    test then uses.
+    """
+    if isinstance(radius, PrintShape):
+        return _coverage_shape(
+            camera, T_camera_target, xy, ok, foot, uv_grid, centre, radius, subsamples, cell
+        )
     rho = np.hypot(xy[..., 0] - centre[0], xy[..., 1] - centre[1])
     cov = ((rho <= radius) & ok).astype(float)
     band = np.abs(rho - radius) <= foot
@@ -136,6 +244,61 @@ def _coverage(
     return cov
 
 
+def _coverage_shape(
+    camera: CameraModel,
+    T_camera_target: F64,
+    xy: F64,
+    ok: np.ndarray,
+    foot: F64,
+    uv_grid: F64,
+    centre: tuple[float, float],
+    shape: PrintShape,
+    subsamples: int,
+    cell: float,
+) -> F64:
+    """:func:`_coverage` for a non-circular printed boundary ``r(phi)``."""
+    dx = xy[..., 0] - centre[0]
+    dy = xy[..., 1] - centre[1]
+    rho = np.hypot(dx, dy)
+    rb = shape.radius_at(np.arctan2(dy, dx))
+    cov = ((rho <= rb) & ok).astype(float)
+    band = np.abs(rho - rb) <= foot * shape.band_factor()
+    if not np.any(band):
+        return cov
+    n = max(int(subsamples), 1)
+    off = cell * ((np.arange(n) + 0.5) / n - 0.5)
+    ou, ov = np.meshgrid(off, off)
+    sub = np.stack([ou.ravel(), ov.ravel()], axis=-1)
+    pts = uv_grid[band][:, None, :] + sub[None, :, :]
+    sxy, sok = _plane_coords(camera, T_camera_target, camera.pixel_to_normalised(pts))
+    sdx = sxy[..., 0] - centre[0]
+    sdy = sxy[..., 1] - centre[1]
+    inside = (np.hypot(sdx, sdy) <= shape.radius_at(np.arctan2(sdy, sdx))) & sok
+    cov[band] = inside.mean(axis=1)
+    return cov
+
+
+def _grey_field(
+    light: PlateLight | None, grey: float, xy: F64, ok: np.ndarray, T: F64
+) -> float | F64:
+    """A layer's radiance: its grey, or (with ``light``) the lit field on the plate."""
+    if light is None:
+        return grey
+    return light.radiance(grey, xy, ok, T)
+
+
+def _plane_depth(T_camera_target: F64, rays: F64) -> F64:
+    """Depth ``z`` (m) where rays ``(x, y, 1)`` ``(..., 2)`` meet the plate plane; 0 if never."""
+    R = T_camera_target[:3, :3]
+    t = T_camera_target[:3, 3]
+    n = R[:, 2]
+    denom = rays[..., 0] * n[0] + rays[..., 1] * n[1] + n[2]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        s = float(n @ t) / denom
+    out: F64 = np.where(np.isfinite(s) & (s > 0), s, 0.0)
+    return out
+
+
 def render_ideal(
     camera: CameraModel,
     T_camera_target: ArrayLike,
@@ -148,6 +311,9 @@ def render_ideal(
     subsamples: int = 16,
     blur_sigma_px: float = 0.0,
     fine: int = 4,
+    target_shape: PrintShape | None = None,
+    light: PlateLight | None = None,
+    defocus: Defocus | None = None,
 ) -> F64:
     """Noise-free grey image ``(H, W)`` float by area coverage (steps 1-3), optionally blurred.
 
@@ -164,6 +330,18 @@ def render_ideal(
     would then shift with the target's sub-pixel position (a few thousandths of
     a pixel of size, tens of micrometres of pin depth). Elsewhere (plate edge,
     background) the discrete blur of pixel values is used.
+
+    Optional real-camera effects (``None``: off, the code paths of before):
+
+    target_shape : PrintShape
+        The printed target's boundary (else a circle of ``diameter_m``).
+    light : PlateLight
+        Illumination gradient and sheen on the plate and what is printed on it
+        (the background outside the plate stays ``background_grey``).
+    defocus : Defocus
+        Pillbox blur of radius ``defocus.radius_px(z)`` at the plate depth ``z``
+        of every pixel (of every fine cell around the target), after the
+        Gaussian blur (:func:`pipeline.sim.optics.variable_pillbox`).
     """
     T_all = np.asarray(T_camera_target, dtype=float)
     if T_all.ndim == 2:
@@ -173,6 +351,7 @@ def render_ideal(
     H, W = camera.height, camera.width
     acc = np.zeros((H, W))
     rays_all = camera.pixel_rays()
+    target_b = _boundary(target_shape, diameter_m)
     for T in T_all:
         img = np.full((H, W), bg)
         u0, u1, v0, v1 = _roi(camera, T, plate_radius_m)
@@ -186,39 +365,53 @@ def render_ideal(
             else:
                 foot = np.full(xy.shape[:2], 1.0)
             roi = np.full(xy.shape[:2], bg)
-            layers: list[tuple[tuple[float, float], float, float, int]] = [
+            layers: list[tuple[tuple[float, float], Boundary, float, int]] = [
                 ((0.0, 0.0), plate_radius_m, plate_grey, 4)
             ]
             for x, y, d, g in extra_discs:
                 layers.append(((float(x), float(y)), 0.5 * float(d), float(g), subsamples))
-            layers.append(((0.0, 0.0), 0.5 * diameter_m, target_grey, subsamples))
+            layers.append(((0.0, 0.0), target_b, target_grey, subsamples))
             for c, r, g, ns in layers:
                 cov = _coverage(camera, T, xy, ok, foot, uv_grid, c, r, ns)
-                roi = roi * (1.0 - cov) + g * cov
+                roi = roi * (1.0 - cov) + _grey_field(light, g, xy, ok, T) * cov
             img[v0:v1, u0:u1] = roi
+        if defocus is not None:
+            img = variable_pillbox(img, defocus.radius_px(_plane_depth(T, rays_all)))
         acc += img
     acc /= len(T_all)
     if blur_sigma_px <= 0:
         return acc
     blurred = cv2.GaussianBlur(acc, (0, 0), blur_sigma_px, borderType=cv2.BORDER_REFLECT)
     margin = int(np.ceil(4.0 * blur_sigma_px)) + 3
-    boxes = [_roi(camera, T, 0.5 * diameter_m) for T in T_all]
+    if defocus is not None:
+        depths = [float(T[2, 3]) + s * plate_radius_m for T in T_all for s in (-1.0, 1.0)]
+        margin += int(np.ceil(float(np.max(defocus.radius_px(np.array(depths))))))
+    boxes = [_roi(camera, T, _max_radius(target_b)) for T in T_all]
     u0 = max(min(b[0] for b in boxes) - margin, 0)
     u1 = min(max(b[1] for b in boxes) + margin, W)
     v0 = max(min(b[2] for b in boxes) - margin, 0)
     v1 = min(max(b[3] for b in boxes) + margin, H)
     if u1 - u0 < W and v1 - v0 < H and u1 > u0 and v1 > v0:
-        fine_layers: list[tuple[tuple[float, float], float, float]] = [
+        fine_layers: list[tuple[tuple[float, float], Boundary, float]] = [
             ((0.0, 0.0), plate_radius_m, plate_grey)
         ]
         fine_layers += [
             ((float(x), float(y)), 0.5 * float(d), float(g)) for x, y, d, g in extra_discs
         ]
-        fine_layers.append(((0.0, 0.0), 0.5 * diameter_m, target_grey))
+        fine_layers.append(((0.0, 0.0), target_b, target_grey))
         region = np.zeros((v1 - v0, u1 - u0))
         for T in T_all:
             region += _fine_blurred_region(
-                camera, T, (u0, u1, v0, v1), fine_layers, bg, blur_sigma_px, fine, subsamples
+                camera,
+                T,
+                (u0, u1, v0, v1),
+                fine_layers,
+                bg,
+                blur_sigma_px,
+                fine,
+                subsamples,
+                light=light,
+                defocus=defocus,
             )
         blurred[v0:v1, u0:u1] = region / len(T_all)
     result: F64 = np.asarray(blurred, dtype=float)
@@ -229,18 +422,24 @@ def _fine_blurred_region(
     camera: CameraModel,
     T: F64,
     box: tuple[int, int, int, int],
-    layers: Sequence[tuple[tuple[float, float], float, float]],
+    layers: Sequence[tuple[tuple[float, float], Boundary, float]],
     bg: float,
     sigma_px: float,
     fine: int,
     subsamples: int,
+    *,
+    light: PlateLight | None = None,
+    defocus: Defocus | None = None,
 ) -> F64:
     """Pixels of ``box`` as ``box * (G_sigma * scene)``, evaluated on a ``fine``-times grid.
 
     Each fine cell gets its area coverage of every disc (``subsamples / fine``
     points per side in edge cells, at least 4), the fine image is blurred with
     ``sigma_px * fine`` cells (replicated borders: the box has a margin of
-    uniform plate around the target) and averaged back to pixels.
+    uniform plate around the target) and averaged back to pixels. With
+    ``light`` the layers' greys are the lit radiance at each fine cell; with
+    ``defocus`` the fine image is then blurred by the depth-dependent pillbox
+    (radius ``fine * r_px(z)`` cells, ``z`` the plate depth of each cell).
     """
     u0, u1, v0, v1 = box
     k = max(int(fine), 1)
@@ -255,11 +454,38 @@ def _fine_blurred_region(
     n_sub = max(4, int(np.ceil(subsamples / k)))
     for c, r, g in layers:
         cov = _coverage(camera, T, xy, ok, foot, uv, c, r, n_sub, cell=1.0 / k)
-        img = img * (1.0 - cov) + g * cov
+        img = img * (1.0 - cov) + _grey_field(light, g, xy, ok, T) * cov
     img = cv2.GaussianBlur(img, (0, 0), sigma_px * k, borderType=cv2.BORDER_REPLICATE)
+    if defocus is not None:
+        z = T[2, 0] * xy[..., 0] + T[2, 1] * xy[..., 1] + T[2, 3]
+        z = np.where(ok, z, 0.0)
+        img = variable_pillbox(
+            np.asarray(img, dtype=float), k * defocus.radius_px(z), step=0.25 * k
+        )
     h, w = v1 - v0, u1 - u0
     out: F64 = img.reshape(h, k, w, k).mean(axis=(1, 3))
     return out
+
+
+def paint_occluders(img: np.ndarray, occluders: Sequence[Occluder]) -> np.ndarray:
+    """Paint image-space elliptical occluders (soft edge about 3 px) over ``img`` ``(H, W)``.
+
+    Works in ``img``'s precision (``float32`` for :func:`finish_image`).
+    """
+    if not occluders:
+        return img
+    H, W = img.shape
+    vv, uu = np.mgrid[0:H, 0:W].astype(np.float32)
+    for u, v, a, b, ang, grey in occluders:
+        c, s = np.cos(ang), np.sin(ang)
+        du, dv = uu - u, vv - v
+        x = (c * du + s * dv) / a
+        y = (-s * du + c * dv) / b
+        r = np.sqrt(x * x + y * y)
+        # soft edge about 3 px wide
+        w = np.clip((1.0 - r) * min(a, b) / 3.0 + 0.5, 0.0, 1.0)
+        img = img * (1 - w) + np.float32(grey) * w
+    return img
 
 
 def finish_image(
@@ -276,17 +502,7 @@ def finish_image(
     """Optics and sensor (step 4): occluders, blur, vignetting, exposure, noise, ``uint8``."""
     img: np.ndarray = np.array(ideal, dtype=np.float32)
     H, W = img.shape
-    if occluders:
-        vv, uu = np.mgrid[0:H, 0:W].astype(np.float32)
-        for u, v, a, b, ang, grey in occluders:
-            c, s = np.cos(ang), np.sin(ang)
-            du, dv = uu - u, vv - v
-            x = (c * du + s * dv) / a
-            y = (-s * du + c * dv) / b
-            r = np.sqrt(x * x + y * y)
-            # soft edge about 3 px wide
-            w = np.clip((1.0 - r) * min(a, b) / 3.0 + 0.5, 0.0, 1.0)
-            img = img * (1 - w) + np.float32(grey) * w
+    img = paint_occluders(img, occluders)
     if blur_sigma_px > 0:
         img = cv2.GaussianBlur(img, (0, 0), blur_sigma_px, borderType=cv2.BORDER_REFLECT)
     if vignetting:
@@ -423,18 +639,27 @@ def fit_ellipse(points: ArrayLike) -> tuple[float, float, float, float, float]:
 
 
 def projected_contour(
-    camera: CameraModel, T_camera_target: ArrayLike, diameter_m: float, n: int = 720
+    camera: CameraModel,
+    T_camera_target: ArrayLike,
+    diameter_m: float,
+    n: int = 720,
+    shape: PrintShape | None = None,
 ) -> F64:
-    """Pixels ``(n, 2)`` of ``n`` points of the target circle through the camera model."""
+    """Pixels ``(n, 2)`` of ``n`` points of the target circle (or printed ``shape``)
+    through the camera model."""
     T = np.asarray(T_camera_target, dtype=float)
     a = np.linspace(0.0, 2 * np.pi, n, endpoint=False)
-    r = 0.5 * diameter_m
+    r = 0.5 * diameter_m if shape is None else shape.radius_at(a)
     pts = np.stack([r * np.cos(a), r * np.sin(a), np.zeros_like(a)], axis=-1)
     return camera.project(pts @ T[:3, :3].T + T[:3, 3])
 
 
 def projected_ellipse(
-    camera: CameraModel, T_camera_target: ArrayLike, diameter_m: float, n: int = 720
+    camera: CameraModel,
+    T_camera_target: ArrayLike,
+    diameter_m: float,
+    n: int = 720,
+    shape: PrintShape | None = None,
 ) -> tuple[float, float, float, float, float]:
     """The true image ellipse of the target: fit to its exactly projected contour.
 
@@ -445,10 +670,13 @@ def projected_ellipse(
     diameter_m : float
     n : int
         Number of circle points projected.
+    shape : PrintShape, optional
+        The printed boundary ``r(phi)`` instead of the circle of ``diameter_m``
+        (points at ``n`` equally spaced polar angles).
 
     Returns
     -------
     u, v, long_axis_px, short_axis_px, angle_rad
         See :func:`fit_ellipse`; the long axis is the full length ``s``.
     """
-    return fit_ellipse(projected_contour(camera, T_camera_target, diameter_m, n))
+    return fit_ellipse(projected_contour(camera, T_camera_target, diameter_m, n, shape))

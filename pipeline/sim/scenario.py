@@ -17,6 +17,12 @@ and keys (see ``docs/simulator.md`` for the meaning of each)::
                max_speed_rad_s, chunk_size
     [faults]   capture_while_moving, second_blob, unconverged, knocked_target,
                joint_state_gap, lost_target, truncate (booleans)
+    [optics]   response ("linear"|"srgb"|"gamma"|"curve"), gamma, exposure_gain,
+               shot_noise, full_well_e, read_noise_e, prnu_sigma, bayer, demosaic,
+               jpeg_quality, defocus_px, focus_offset, illumination, sheen_grey,
+               sheen_width_rad, out_of_round_um, roughness_um, diameter_scale_error,
+               diameter_sigma_um, vibration_m, vibration_rad, vibration_hz,
+               vibration_damping_s (real-camera image formation, all off by default)
 """
 
 from __future__ import annotations
@@ -123,6 +129,71 @@ class FaultsCfg:
 
 
 @dataclass(frozen=True)
+class OpticsCfg:
+    """Real-camera image formation (:mod:`pipeline.sim.optics`); the defaults are all off.
+
+    response, gamma : the camera's response curve (``curve``: an unknown monotone curve
+        drawn from the seed); exposure_gain : linear grey 255 -> this fraction of the full
+        well (above 1 saturates the plate); shot_noise, full_well_e, read_noise_e,
+        prnu_sigma : sensor noise; bayer, demosaic : RGGB mosaic, demosaiced to BGR (the
+        recording then carries ``bgr8`` / colour PNG / JPEG); jpeg_quality : 1..100 writes
+        JPEG CompressedImage instead of PNG/raw (0: off); defocus_px, focus_offset : thin-lens
+        pillbox of radius ``defocus_px`` at the stand-off, focus at ``(1 + focus_offset)``
+        times the stand-off; illumination : fraction of irradiance change across the plate
+        (direction drawn per target); sheen_grey, sheen_width_rad : specular lobe of a ring
+        light; out_of_round_um, roughness_um, diameter_scale_error, diameter_sigma_um : the
+        printed targets (:func:`pipeline.sim.optics.draw_print`); vibration_* : damped
+        oscillation of the camera after each move (:class:`pipeline.sim.optics.Vibration`).
+    """
+
+    response: str = "linear"
+    gamma: float = 2.2
+    exposure_gain: float = 1.0
+    shot_noise: bool = False
+    full_well_e: float = 10000.0
+    read_noise_e: float = 0.0
+    prnu_sigma: float = 0.0
+    bayer: bool = False
+    demosaic: str = "bilinear"
+    jpeg_quality: int = 0
+    defocus_px: float = 0.0
+    focus_offset: float = -0.1
+    illumination: float = 0.0
+    sheen_grey: float = 0.0
+    sheen_width_rad: float = 0.26
+    out_of_round_um: float = 0.0
+    roughness_um: float = 0.0
+    diameter_scale_error: float = 0.0
+    diameter_sigma_um: float = 0.0
+    vibration_m: float = 0.0
+    vibration_rad: float = 0.0
+    vibration_hz: float = 15.0
+    vibration_damping_s: float = 0.3
+
+    def sensor_active(self) -> bool:
+        """Whether the image is formed by :func:`pipeline.sim.optics.form_image`."""
+        return (
+            self.response != "linear"
+            or self.exposure_gain != 1.0
+            or self.shot_noise
+            or self.read_noise_e > 0
+            or self.prnu_sigma > 0
+            or self.bayer
+        )
+
+    def print_active(self) -> bool:
+        return (
+            self.out_of_round_um > 0
+            or self.roughness_um > 0
+            or self.diameter_scale_error != 0
+            or self.diameter_sigma_um > 0
+        )
+
+    def any(self) -> bool:
+        return self != OpticsCfg()
+
+
+@dataclass(frozen=True)
 class Scenario:
     name: str = "standard"
     robot: RobotCfg = field(default_factory=RobotCfg)
@@ -132,6 +203,7 @@ class Scenario:
     poses: PosesCfg = field(default_factory=PosesCfg)
     timing: TimingCfg = field(default_factory=TimingCfg)
     faults: FaultsCfg = field(default_factory=FaultsCfg)
+    optics: OpticsCfg = field(default_factory=OpticsCfg)
     base_dir: str = "."
 
     def to_dict(self) -> dict[str, Any]:
@@ -148,6 +220,7 @@ _SECTIONS: dict[str, type] = {
     "poses": PosesCfg,
     "timing": TimingCfg,
     "faults": FaultsCfg,
+    "optics": OpticsCfg,
 }
 
 
@@ -191,6 +264,15 @@ def scenario_from_dict(
         )
     if sc.camera.image not in ("png", "raw"):
         raise BadInput(f"{where} [camera] image {sc.camera.image!r} is not 'png' or 'raw'")
+    op = sc.optics
+    if op.response not in ("linear", "srgb", "gamma", "curve"):
+        raise BadInput(f"{where} [optics] response {op.response!r} is not linear/srgb/gamma/curve")
+    if op.demosaic not in ("bilinear", "ea", "vng"):
+        raise BadInput(f"{where} [optics] demosaic {op.demosaic!r} is not bilinear/ea/vng")
+    if not 0 <= op.jpeg_quality <= 100:
+        raise BadInput(f"{where} [optics] jpeg_quality {op.jpeg_quality} is not 0..100")
+    if op.exposure_gain <= 0 or op.gamma <= 0 or op.full_well_e <= 0:
+        raise BadInput(f"{where} [optics] exposure_gain, gamma and full_well_e must be > 0")
     if sc.targets.count < 1 or sc.poses.per_target < 1:
         raise BadInput(f"{where}: needs at least one target and one pose per target")
     return sc

@@ -47,7 +47,6 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-import cv2
 import numpy as np
 
 from pipeline.errors import BadInput
@@ -64,8 +63,16 @@ from pipeline.kinematics.urdf import parse_urdf
 from pipeline.robots import load_urdf
 from pipeline.sim.camera import CameraModel
 from pipeline.sim.detect import detect_target
+from pipeline.sim.optics_state import OpticsState
 from pipeline.sim.recorder import Recorder, stamp
-from pipeline.sim.render import ExtraDisc, Occluder, finish_image, projected_ellipse, render_ideal
+from pipeline.sim.render import (
+    ExtraDisc,
+    Occluder,
+    finish_image,
+    paint_occluders,
+    projected_ellipse,
+    render_ideal,
+)
 from pipeline.sim.robot import (
     deviated_origins,
     draw_deviations,
@@ -519,6 +526,13 @@ class Session:
         self.rng_fault = np.random.default_rng(streams[4])
         self.rec = rec
         self.cell = build_cell(sc, self.rng_cell)
+        self.optics = OpticsState(
+            sc,
+            seed,
+            [t.id for t in self.cell.targets],
+            self.cell.camera,
+            float(self.cell.p_vt_camera[2]),
+        )
         self.polarity = sc.targets.polarity
         lv = sc.targets.levels
         if self.polarity == "dark_on_light":
@@ -531,8 +545,9 @@ class Session:
         self.touchups: list[dict[str, Any]] = []
         self.probes: list[dict[str, Any]] = []
         self.faults: list[dict[str, Any]] = []
+        self.compressed = sc.camera.image == "png" or sc.optics.jpeg_quality > 0
         self.image_topic = (
-            "/camera/image_raw/compressed" if sc.camera.image == "png" else "/camera/image_raw"
+            "/camera/image_raw/compressed" if self.compressed else "/camera/image_raw"
         )
         self.robot: Robot | None = None
         self.last_renders = 1
@@ -552,6 +567,7 @@ class Session:
         self.rng_enc = np.random.default_rng(s_enc)
         if self.robot is not None:
             self.robot.rng = self.rng_enc
+        self.optics.reseed(plan_index, faulted)
 
     def _T_camera_target(self, q: F64, tg: Target) -> F64:
         T_base_cam = fk(self.cell.true, q) @ self.cell.T_flange_camera
@@ -580,16 +596,22 @@ class Session:
         if moving:
             exp_ns = int(max(sc.camera.exposure_s, 0.04) * NS)
         n_sub = 1
+        op = self.optics
         if moving:
             # enough sub-exposure renders that consecutive copies are < 0.5 px apart
             ends = [self._T_camera_target(rob.q_at(t), tg) for t in (t_start, t_start + exp_ns)]
             sweep = float(np.linalg.norm(cam_project(self, ends[1]) - cam_project(self, ends[0])))
             n_sub = int(np.clip(np.ceil(sweep / 0.5), 5, 40))
+        elif op.vibration.active:
+            n_sub = 3  # the camera still shakes during the exposure
         times = [t_start + exp_ns * (k + 0.5) / n_sub for k in range(n_sub)]
         qs = [rob.q_at(t) for t in times]
-        Ts = np.stack([self._T_camera_target(q, tg) for q in qs])
+        Ts = np.stack(
+            [op.shaken(self._T_camera_target(q, tg), t) for q, t in zip(qs, times, strict=True)]
+        )
         cam = self.cell.camera
         D = sc.targets.diameter_m
+        shape = op.shapes.get(tg.id)
         ideal = render_ideal(
             cam,
             Ts,
@@ -600,24 +622,31 @@ class Session:
             extra_discs=opts.extra_discs,
             subsamples=sc.camera.subsamples,
             blur_sigma_px=sc.camera.blur_sigma_px,
+            target_shape=shape,
+            light=op.lights.get(tg.id),
+            defocus=op.defocus,
         )
-        img = finish_image(
-            ideal,
-            cam,
-            blur_sigma_px=0.0,
-            noise_sigma=sc.camera.noise_sigma,
-            vignetting=sc.camera.vignetting,
-            rng=self.rng_img,
-            occluders=opts.occluders,
-        )
+        if op.sensor_active:
+            img, grey = op.form(paint_occluders(ideal, opts.occluders))
+        else:
+            img = finish_image(
+                ideal,
+                cam,
+                blur_sigma_px=0.0,
+                noise_sigma=sc.camera.noise_sigma,
+                vignetting=sc.camera.vignetting,
+                rng=self.rng_img,
+                occluders=opts.occluders,
+            )
+            grey = img
         det = detect_target(
-            img, self.polarity, expected_uv=expected_uv or (self.cell.u0, self.cell.v0)
+            grey, self.polarity, expected_uv=expected_uv or (self.cell.u0, self.cell.v0)
         )
         t_mid = t_start + exp_ns // 2
         q_mid = rob.q_at(t_mid)
-        T_mid = self._T_camera_target(q_mid, tg)
+        T_mid = op.shaken(self._T_camera_target(q_mid, tg), t_mid)
         centre_px = cam.project(T_mid[:3, 3])
-        ell = projected_ellipse(cam, T_mid, D)
+        ell = projected_ellipse(cam, T_mid, D, shape=shape)
         blur_px = 0.0
         if moving:
             c = np.array([cam.project(T[:3, 3]) for T in Ts])
@@ -649,23 +678,24 @@ class Session:
             "stamp_ns": int(stamp_ns),
         }
         self.images.append(rec)
-        if sc.camera.image == "png":
-            ok, buf = cv2.imencode(".png", img)
+        if self.compressed:
+            fmt, data = op.encode(img)
             msg: dict[str, Any] = {
                 "header": {"stamp": stamp(stamp_ns), "frame_id": "camera_optical_frame"},
-                "format": "png",
-                "data": buf.tobytes(),
+                "format": fmt,
+                "data": data,
             }
             datatype = "sensor_msgs/msg/CompressedImage"
         else:
+            colour = img.ndim == 3
             msg = {
                 "header": {"stamp": stamp(stamp_ns), "frame_id": "camera_optical_frame"},
                 "height": cam.height,
                 "width": cam.width,
-                "encoding": "mono8",
+                "encoding": "bgr8" if colour else "mono8",
                 "is_bigendian": 0,
-                "step": cam.width,
-                "data": img.tobytes(),
+                "step": cam.width * (3 if colour else 1),
+                "data": np.ascontiguousarray(img).tobytes(),
             }
             datatype = "sensor_msgs/msg/Image"
 
@@ -702,6 +732,7 @@ class Session:
         assert rob is not None
         dur = rob.move_duration(q_goal, self.sc.timing.max_speed_rad_s, 0.3)
         rob.start_move(q_goal, dur)
+        self.optics.on_move(rob.t + dur * NS)
         rob.advance(dur + self.sc.timing.settle_s)
 
     def _blur_fraction(self, tg: Target, dur: float, latest: float, want_px: float = 4.0) -> float:
@@ -726,6 +757,7 @@ class Session:
         assert rob is not None
         dur = rob.move_duration(q_goal, self.sc.timing.max_speed_rad_s, 0.8)
         rob.start_move(q_goal, dur)
+        self.optics.on_move(rob.t + dur * NS)
         if stop_at is not None and tg is not None:
             rob.advance(self._blur_fraction(tg, dur, stop_at) * dur)
             return
@@ -1176,13 +1208,13 @@ def _truth(
             "targets": sc.targets.count,
             "faults": sc.faults.any(),
             "polarity": sc.targets.polarity,
-            "compressed": "png" if sc.camera.image == "png" else None,
+            "compressed": _image_encoding(sc) if sess.compressed else None,
             "known_distance": bool(known),
             "truncate_at": None,
             "scenario": sc.to_dict(),
         },
         "image_topic": sess.image_topic,
-        "image_encoding": "png" if sc.camera.image == "png" else "mono8",
+        "image_encoding": _image_encoding(sc),
         "metadata": metadata,
         "known_distances": known,
         "truncated": None,
@@ -1241,8 +1273,18 @@ def _truth(
             },
         },
         "faults": sess.faults,
+        "optics": sess.optics.truth() if sess.optics.active else None,
         "notes": NOTES,
     }
+
+
+def _image_encoding(sc: Scenario) -> str:
+    """What the image topic carries: ``jpeg``, ``png``, ``bgr8`` (Bayer, raw) or ``mono8``."""
+    if sc.optics.jpeg_quality > 0:
+        return "jpeg"
+    if sc.camera.image == "png":
+        return "png"
+    return "bgr8" if sc.optics.bayer else "mono8"
 
 
 def _truncate(
