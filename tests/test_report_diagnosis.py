@@ -121,3 +121,11 @@ def test_an_assumed_response_is_warned_about(tmp_path: Path) -> None:
                                 "note": "linear (assumed: the edges are too sharp)"}  # fmt: skip
     sec = camera_section(data)
     assert any("could not be estimated" in w for w in sec["warnings"])
+
+
+def test_a_saturated_edge_is_warned_about(tmp_path: Path) -> None:
+    data = _run(tmp_path, amp_m=0.0, tilt_m=0.0)
+    assert data.recording is not None
+    data.recording["camera"] = {**data.recording["camera"], "saturated_fraction": 0.2}
+    sec = camera_section(data)
+    assert any("saturated" in w and "20 %" in w for w in sec["warnings"])

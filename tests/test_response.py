@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import cv2
 import numpy as np
 import pytest
 from test_detect import pose
@@ -90,3 +91,27 @@ def test_parse_response_and_tables():
     # the table inverts the encoding: encode(table(I)) == I
     assert np.allclose(srgb_encode(lin / 255.0) * 255.0, img, atol=1e-9)
     assert np.allclose(r.linearise(img.astype(np.uint16) * 257) / 65535.0, lin / 255.0)
+
+
+def test_a_declared_table_linearises_any_monotone_curve() -> None:
+    """``table:`` takes a vendor curve as its encoded values; its inverse is exact at the knots."""
+    E = np.linspace(0.0, 1.0, 33)
+    enc = 0.6 * E ** (1 / 2.4) + 0.4 * (3 * E**2 - 2 * E**3)  # a monotone S-ish curve
+    r = parse_response("table:" + ",".join(f"{255 * x:.6f}" for x in enc))
+    assert r is not None and r.kind == "table"
+    assert np.max(np.abs(r.to_linear(enc) - E)) < 1e-7
+    mid = 0.5 * (enc[:-1] + enc[1:])
+    assert np.all(np.diff(r.to_linear(mid)) > 0)
+    assert np.all(r.slope(mid) > 0)
+    for bad in ("table:0,0.5", "table:0,0.6,0.5,1", "table:0,x,1"):
+        with pytest.raises(ValueError, match="table"):
+            parse_response(bad)
+
+
+def test_saturated_edges_are_counted_and_named() -> None:
+    img = np.full((200, 200), 255, np.uint8)
+    cv2.circle(img, (100, 100), 30, 60, -1)
+    img = cv2.GaussianBlur(img, (0, 0), 0.8)
+    est = estimate_response([img, img])
+    assert est.saturated_fraction > 0.05  # the plate side of the edge band is clipped
+    assert "saturated" in est.note

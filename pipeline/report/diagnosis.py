@@ -66,10 +66,25 @@ def _response_rows(cam: dict[str, Any]) -> tuple[list[dict[str, str]], list[str]
             "may carry a constant error no residual shows. Declare the camera's curve "
             "(camera_response) if it is known."
         )
+    sat = cam.get("saturated_fraction")
+    if isinstance(sat, (int, float)) and math.isfinite(sat) and sat > 0.01:
+        status = "warn"
+        warn.append(
+            f"{100 * sat:.0f} % of the pixels at the target's edge are saturated. A clipped plate "
+            "(or target) level moves the halfway contour: every long axis reads short or long by "
+            "the same amount (about 0.3 px at 45 % over-exposure: tenths of a millimetre of pin "
+            "depth) and no residual shows it. Record with a lower exposure."
+        )
     found = {
         "option": f"{resp} (given on the command line)",
         "metadata": f"{resp} (declared in the recording's metadata)",
     }.get(src, note or resp)
+    if src == "estimated" and resp == "srgb":
+        found += (
+            ". A pure power law gamma 2.2 looks the same to the edges but reads the long axis "
+            "about 0.03 px differently (tens of micrometres of pin depth): if the camera's "
+            "curve is known, declare it (camera_response)"
+        )
     rows.append(_row("camera response", found, status))
     g = cam.get("illumination_gradient")
     if g is not None and isinstance(g, (int, float)) and math.isfinite(g):

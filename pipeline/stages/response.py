@@ -19,7 +19,11 @@ line (``--response``), the recording's ``touchup`` metadata key
 
 Curves (``Response.spec``): ``linear``; ``srgb`` (IEC 61966-2-1:
 ``I = 12.92 E`` below ``E = 0.0031308``, else ``1.055 E^(1/2.4) - 0.055``);
-``gamma:G`` (``I = E^(1/G)``, grey normalised to ``[0, 1]``).
+``gamma:G`` (``I = E^(1/G)``, grey normalised to ``[0, 1]``); ``table:I_0,...,I_N``
+(any other monotone curve, declared as its encoded values ``I_k = g(k / N)`` at
+``N + 1 >= 3`` equally spaced irradiances, in ``[0, 1]`` or in grey levels
+``0..255``; ``g^-1`` is its piecewise-linear inverse). Such a curve cannot be
+estimated from the edges (below): a camera that uses one must declare it.
 
 Estimation (per recording, from the edge profiles of the first images that
 show a target). An edge blurred by a symmetric point spread function has, in
@@ -81,18 +85,23 @@ class Response:
 
     Attributes
     ----------
-    kind : ``linear``, ``srgb`` or ``gamma``
+    kind : ``linear``, ``srgb``, ``gamma`` or ``table``
     gamma : exponent of ``gamma`` (``I = E^(1/gamma)``); 1 otherwise
+    table : ``table``'s encoded values ``I_k = g(k / N)``, ``k = 0..N``, in ``[0, 1]``,
+        strictly increasing
     """
 
     kind: str = "linear"
     gamma: float = 1.0
+    table: tuple[float, ...] = ()
 
     @property
     def spec(self) -> str:
         """The text form: ``linear``, ``srgb`` or ``gamma:G``."""
         if self.kind == "gamma":
             return f"gamma:{self.gamma:.4f}"
+        if self.kind == "table":
+            return "table:" + ",".join(f"{x:.6g}" for x in self.table)
         return self.kind
 
     @property
@@ -107,6 +116,9 @@ class Response:
             return out
         if self.kind == "gamma":
             return np.asarray(i**self.gamma, dtype=float)
+        if self.kind == "table":
+            t = np.asarray(self.table, dtype=float)
+            return np.asarray(np.interp(i, t, np.linspace(0.0, 1.0, len(t))), dtype=float)
         return i
 
     def slope(self, grey01: F64) -> F64:
@@ -119,6 +131,11 @@ class Response:
             return out
         if self.kind == "gamma":
             return np.asarray(self.gamma * i ** (self.gamma - 1.0), dtype=float)
+        if self.kind == "table":
+            t = np.asarray(self.table, dtype=float)
+            dE = 1.0 / (len(t) - 1)
+            k = np.clip(np.searchsorted(t, i, side="right") - 1, 0, len(t) - 2)
+            return np.asarray(dE / np.maximum(t[k + 1] - t[k], 1e-12), dtype=float)
         return np.ones_like(i)
 
     def linearise(self, image: np.ndarray) -> np.ndarray:
@@ -155,6 +172,8 @@ def parse_response(text: str) -> Response | None:
     t = str(text).strip().lower()
     if t in ("", "auto"):
         return None
+    if t.startswith("table:"):
+        return _parse_table(text)
     if t in NAMED:
         return Response(t)
     num = t.split(":", 1)[1] if t.startswith("gamma:") else t.split("=", 1)[-1]
@@ -166,7 +185,27 @@ def parse_response(text: str) -> Response | None:
         if not (math.isfinite(g) and 0.2 <= g <= 5.0):
             raise ValueError(f"camera response {text!r}: gamma must be a number in [0.2, 5]")
         return Response("linear") if g == 1.0 else Response("gamma", g)
-    raise ValueError(f"camera response {text!r} is not linear, srgb, gamma:G or auto")
+    raise ValueError(f"camera response {text!r} is not linear, srgb, gamma:G, table:... or auto")
+
+
+def _parse_table(text: str) -> Response:
+    """``table:I_0,...,I_N`` -> :class:`Response` (values in ``[0, 1]`` or ``0..255``)."""
+    try:
+        vals = [float(x) for x in text.split(":", 1)[1].replace(";", ",").split(",") if x.strip()]
+    except ValueError:
+        raise ValueError(
+            f"camera response {text[:40]!r}...: table values must be numbers"
+        ) from None
+    v = np.asarray(vals, dtype=float)
+    if len(v) < 3 or not np.all(np.isfinite(v)):
+        raise ValueError("camera response table: needs at least 3 finite values")
+    if v.max() > 1.0:
+        v = v / 255.0
+    if not np.all(np.diff(v) > 0) or v[0] < 0 or v[-1] > 1.0 + 1e-9:
+        raise ValueError(
+            "camera response table: values must increase strictly within [0, 1] (or 0..255)"
+        )
+    return Response("table", table=tuple(float(x) for x in v))
 
 
 def _is_number(s: str) -> bool:
@@ -194,6 +233,9 @@ class ResponseEstimate:
     illumination_gradient : median over the images of the plate's irradiance change across
         one target diameter (relative; :func:`illumination_gradient`)
     illumination_gradient_max : the largest of them
+    saturated_fraction : share of the pixels within a few edge widths of the contour (in the
+        images used) at the top or bottom code: a clipped level moves the halfway contour
+        (:func:`saturated_fraction`)
     note : one line for the report and the run's summary
     """
 
@@ -206,6 +248,7 @@ class ResponseEstimate:
     n_pixels: int = 0
     illumination_gradient: float = float("nan")
     illumination_gradient_max: float = float("nan")
+    saturated_fraction: float = 0.0
     note: str = ""
 
     def to_dict(self) -> dict[str, Any]:
@@ -219,6 +262,7 @@ class ResponseEstimate:
             "n_pixels": self.n_pixels,
             "illumination_gradient": self.illumination_gradient,
             "illumination_gradient_max": self.illumination_gradient_max,
+            "saturated_fraction": self.saturated_fraction,
             "note": self.note,
         }
 
@@ -440,6 +484,7 @@ def estimate_response(
 
     cfg = DetectConfig(**{**(config.to_dict() if config is not None else {}), "response": "linear"})
     profiles: list[_Profile] = []
+    sat: list[tuple[int, int]] = []
     for img in images:
         arr = np.asarray(img)
         det = detect_target(arr, cfg)
@@ -447,6 +492,46 @@ def estimate_response(
         pr = edge_profile(arr, det, full)
         if pr is not None:
             profiles.append(pr)
+            sat.append(saturated_fraction(arr, det, full))
         if len(profiles) >= max_images:
             break
-    return estimate_from_profiles(profiles, warn_sigma2_per_image)
+    est = estimate_from_profiles(profiles, warn_sigma2_per_image)
+    n_sat, n_all = sum(a for a, _ in sat), sum(b for _, b in sat)
+    est.saturated_fraction = n_sat / n_all if n_all else 0.0
+    if est.saturated_fraction > SATURATION_WARN:
+        est.note += (
+            f"; {100 * est.saturated_fraction:.0f} % of the pixels at the target's edge are "
+            "saturated: the halfway level between target and plate is then wrong and every long "
+            "axis reads short or long by the same amount (a few tenths of a pixel, a constant "
+            "pin-depth error no residual shows): lower the exposure"
+        )
+    return est
+
+
+#: share of saturated pixels at the edge above which the estimate warns
+SATURATION_WARN = 0.01
+
+
+def saturated_fraction(image: np.ndarray, det: dict[str, Any], full: float) -> tuple[int, int]:
+    """(saturated, all) pixels within 3 px of the detected contour's bounding box ring.
+
+    Saturated: at 0 or at the top code ``full``. Counts pixels of the box
+    ``|u - u_c| <= a + 3``, ``|v - v_c| <= a + 3`` whose distance to the centre is
+    between ``b - 3`` and ``a + 3`` (``a``, ``b`` the semi-axes): the edge band.
+    """
+    if not det.get("found"):
+        return 0, 0
+    u, v = float(det["u"]), float(det["v"])
+    a, b = 0.5 * float(det["s"]), 0.5 * float(det["s_minor"])
+    if not all(math.isfinite(x) for x in (u, v, a, b)):
+        return 0, 0
+    H, W = image.shape[:2]
+    u0, u1 = int(max(u - a - 4, 0)), int(min(u + a + 5, W))
+    v0, v1 = int(max(v - a - 4, 0)), int(min(v + a + 5, H))
+    if u1 <= u0 or v1 <= v0:
+        return 0, 0
+    vv, uu = np.mgrid[v0:v1, u0:u1]
+    r = np.hypot(uu - u, vv - v)
+    band = (r >= b - 3.0) & (r <= a + 3.0)
+    g = np.asarray(image)[v0:v1, u0:u1][band].astype(float)
+    return int(np.sum((g >= full) | (g <= 0))), int(g.size)
