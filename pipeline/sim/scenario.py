@@ -11,7 +11,7 @@ and keys (see ``docs/simulator.md`` for the meaning of each)::
     [targets]  count, diameter_m, polarity, plate_radius_m, bar, centre_m, spread_m,
                tilt_deg, levels (target, plate, background)
     [touchup]  threshold_px, threshold_size_px, gain, max_iterations, repeat_captures,
-               probe_shift_m, designated_u, designated_v
+               probe_shift_m, designated_u, designated_v, controller ("moments"|"binary")
     [poses]    per_target, cone_half_angle_deg, roll_range_deg, plan (Parquet path)
     [timing]   joint_rate_hz, encoder_noise_rad, start_ns, settle_s, compute_s,
                max_speed_rad_s, chunk_size
@@ -93,6 +93,7 @@ class TouchupCfg:
     probe_shift_m: float = 0.002
     designated_u: float | None = None
     designated_v: float | None = None
+    controller: str = "moments"
 
 
 @dataclass(frozen=True)
@@ -264,6 +265,10 @@ def scenario_from_dict(
         )
     if sc.camera.image not in ("png", "raw"):
         raise BadInput(f"{where} [camera] image {sc.camera.image!r} is not 'png' or 'raw'")
+    if sc.touchup.controller not in ("moments", "binary"):
+        raise BadInput(
+            f"{where} [touchup] controller {sc.touchup.controller!r} is not moments/binary"
+        )
     op = sc.optics
     if op.response not in ("linear", "srgb", "gamma", "curve"):
         raise BadInput(f"{where} [optics] response {op.response!r} is not linear/srgb/gamma/curve")

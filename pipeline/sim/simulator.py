@@ -640,7 +640,10 @@ class Session:
             )
             grey = img
         det = detect_target(
-            grey, self.polarity, expected_uv=expected_uv or (self.cell.u0, self.cell.v0)
+            grey,
+            self.polarity,
+            expected_uv=expected_uv or (self.cell.u0, self.cell.v0),
+            method=sc.touchup.controller,
         )
         t_mid = t_start + exp_ns // 2
         q_mid = rob.q_at(t_mid)
