@@ -105,8 +105,11 @@ class OutlierConfig:
     max_fit_residual_px : contour-fit RMS above which a touch-up is rejected, px
     max_correctable_px, max_correctable_size_px : largest remaining centre / long-axis error
         (px) of an unconverged touch-up that the residual correction still turns into a
-        measurement (the image Jacobian is linear over this range: a 1 px long-axis error
-        is ~2 % of the stand-off, corrected to ~1 % of that with a Jacobian good to 1 %)
+        measurement. Along the view the correction is exact but for the Jacobian's error
+        (``s_inv = z / (f D)`` is linear in the stand-off ``z``): 2.5 px of long axis is ~5 %
+        of the stand-off, and a controller that measures size differently from vtcal (a
+        binary blob's contour polygon reads ~1.5 px short) stops every touch-up about that
+        far off
     min_captures : fewest good captures averaged at the final pose
     lost_size_frac : a final blob whose long axis is off the designated one by more than this
         fraction of it is not the target (an occluder, a reflection): ``target lost``
@@ -130,7 +133,7 @@ class OutlierConfig:
 
     max_fit_residual_px: float = 0.25
     max_correctable_px: float = 2.0
-    max_correctable_size_px: float = 1.0
+    max_correctable_size_px: float = 2.5
     min_captures: int = 1
     lost_size_frac: float = 0.3
     statistical: bool = True
