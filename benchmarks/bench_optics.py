@@ -1,0 +1,213 @@
+"""Accuracy on images formed as real cameras form them (issue 14).
+
+For the standard LR Mate-like cell (``standard.toml``) and the UR5e-like cell
+(``ur.toml``), 3 targets x 12 poses with a calibration bar: one recording per
+real-camera effect (scenario ``[optics]``, :mod:`pipeline.sim.optics`), one with
+all of them together and the linear-image twin (same seed: same robot, cell and
+plan), each run through the whole pipeline (``vtcal run`` to cross-validation).
+The shipped ``calibrated.urdf`` is judged against the truth as
+``../shared/spec/outputs.md`` says (shape and absolute RMS over 500 poses in the
+volume the touch-ups covered) and printed next to the linear-image figure
+(ratio; target <= 1.5x, and all effects together < 0.1 mm shape).
+
+Uneven light is 90 % across the 60 mm plate (15 % across the target) plus a ring
+light's sheen, recorded by the simpler controller it fools (``[touchup]
+controller = "binary"``). Also printed per effect: the detector's long-axis bias against the exact
+projected printed contour (px, mean over every still capture, from
+``detections.parquet`` and the truth's ``true_ellipse``), the
+response vtcal chose, how many touch-ups it kept, and the training residual it
+reported.
+
+    python benchmarks/bench_optics.py                      # everything (~25 min, 2 workers)
+    python benchmarks/bench_optics.py --cells lrmate --effects linear srgb
+    python benchmarks/bench_optics.py --list
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import tempfile
+import time
+import tomllib
+from concurrent.futures import ProcessPoolExecutor
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+REPO = Path(__file__).resolve().parent.parent
+CELLS = {"lrmate": "standard.toml", "ur5e": "ur.toml"}
+
+#: effect -> the [optics] keys it sets (every other knob at its default)
+EFFECTS: dict[str, dict[str, Any]] = {
+    "linear": {},
+    "srgb": {"response": "srgb"},
+    "gamma2.2": {"response": "gamma", "gamma": 2.2},
+    "curve": {"response": "curve"},
+    "saturated": {"exposure_gain": 1.45},
+    "defocus": {"defocus_px": 1.5, "focus_offset": -0.1},
+    "uneven light": {"illumination": 0.9, "sheen_grey": 25.0},
+    "sensor noise": {"shot_noise": True, "read_noise_e": 8.0, "prnu_sigma": 0.01},
+    "bayer": {"bayer": True, "demosaic": "bilinear"},
+    "jpeg q90": {"jpeg_quality": 90},
+    "print": {"out_of_round_um": 20.0, "roughness_um": 2.0},
+    "vibration": {"vibration_m": 20e-6, "vibration_rad": 5e-5},
+}
+#: effects recorded by the simpler controller that uneven light fools (binary blob
+#: moments at one global threshold: its touch-ups stop a few tenths of a pixel off)
+BINARY_CONTROLLER = {"uneven light", "all"}
+#: the camera response declared to vtcal (``camera_response``) instead of estimated
+DECLARED = {"gamma2.2 declared": "gamma2.2", "curve declared": "curve"}
+EFFECTS["gamma2.2 declared"] = EFFECTS["gamma2.2"]
+EFFECTS["curve declared"] = EFFECTS["curve"]
+#: everything a good real camera does at once (the issue's "all of these together"):
+#: sRGB output, uneven light, imperfect prints, defocus, sensor noise, Bayer, JPEG, vibration
+ALL_OF = ["srgb", "defocus", "uneven light", "sensor noise", "bayer", "jpeg q90", "print"]
+EFFECTS["all"] = {k: v for e in ALL_OF + ["vibration"] for k, v in EFFECTS[e].items()}
+#: effects vtcal cannot undo from the images alone; it must say so (the "warned" column)
+LIMITS = {"gamma2.2", "curve", "saturated"}
+
+
+def one_case(cell: str, effect: str, seed: int, work: str) -> dict[str, Any]:
+    """Simulate, run and judge one (cell, effect); figures in mm and px."""
+    import pandas as pd
+
+    from pipeline.artefacts import read_artefact
+    from pipeline.evaluate import pin_accuracy, workspace_poses
+    from pipeline.kinematics import load_chain
+    from pipeline.orchestrator import RunConfig, run_pipeline
+    from pipeline.sim.scenario import scenario_from_dict
+    from pipeline.sim.simulator import write_recording
+
+    raw = tomllib.loads((REPO / "datasets" / "scenarios" / CELLS[cell]).read_text())
+    raw.setdefault("poses", {})["per_target"] = 12
+    raw["optics"] = dict(EFFECTS[effect])
+    if effect in BINARY_CONTROLLER:
+        raw.setdefault("touchup", {})["controller"] = "binary"
+    sc = scenario_from_dict(raw, where=f"{cell}-{effect}", base_dir=str(REPO))
+    tag = f"{cell}_{effect.replace(' ', '_')}_{seed}"
+    rec = Path(work) / f"{tag}.mcap"
+    t0 = time.perf_counter()
+    truth = write_recording(sc, seed, rec)
+    t_sim = time.perf_counter() - t0
+    out = Path(work) / tag
+    overrides = {}
+    if effect in DECLARED:
+        r = truth["optics"]["response"]
+        overrides["camera_response"] = (
+            f"gamma:{r['gamma']}"
+            if r["kind"] == "gamma"
+            else "table:" + ",".join(f"{x:.4f}" for x in r["table"])
+        )
+    t0 = time.perf_counter()
+    run_pipeline(rec, out, RunConfig(report=False, overrides=overrides), until="crossval")
+    t_run = time.perf_counter() - t0
+    summary = json.loads((out / "identify.json").read_text())
+    base, flange = truth["base_link"], truth["flange_link"]
+    calibrated = load_chain((out / "calibrated.urdf").read_text(), base, "virtual_pin")
+    true_chain = load_chain(truth["true_urdf"], base, flange)
+    nominal = load_chain(truth["nominal_urdf"], base, flange)
+    inl = read_artefact(out / "inliers.parquet", "inliers")
+    q = workspace_poses(inl[truth["joint_names"]].to_numpy(), 500, np.random.default_rng(seed))
+    p_true = np.array(truth["p_vt_flange"])
+    after = pin_accuracy(calibrated, np.zeros(3), true_chain, p_true, q)
+    before = pin_accuracy(nominal, p_true, true_chain, p_true, q)
+    best = summary["best_model"]
+    ms = summary.get("models", {}).get(best, summary)
+    # detector long-axis bias against the exact projected (printed) contour, converged captures
+    det = read_artefact(out / "detections.parquet", "detections")
+    imgs = pd.DataFrame(truth["images"])
+    imgs = imgs[~imgs["moving"].astype(bool)]
+    m = imgs.merge(det[det["found"]], left_on="index", right_on="frame_index", how="inner")
+    s_true = np.array([e[2] for e in m["true_ellipse"]], dtype=float)
+    bias = float(np.nanmean(m["s"].to_numpy(dtype=float) - s_true)) if len(m) else float("nan")
+    cam = json.loads((out / "recording.json").read_text()).get("camera", {})
+    note = str(cam.get("note", ""))
+    warned = (
+        "neither" in note
+        or "assumed" in note
+        or float(cam.get("saturated_fraction", 0.0) or 0.0) > 0.01
+    )
+    kept = int(inl["inlier"].sum())
+    return {
+        "cell": cell,
+        "effect": effect,
+        "nominal": before["shape_rms_m"] * 1e3,
+        "shape": after["shape_rms_m"] * 1e3,
+        "abs": after["abs_rms_m"] * 1e3,
+        "residual": float(ms.get("rms_mm", ms.get("residual_rms_mm", np.nan))),
+        "model": best,
+        "kept": kept,
+        "touchups": len(inl),
+        "bias_px": bias,
+        "response": str(cam.get("response", "?")).split(":")[0],
+        "warned": warned,
+        "t_sim": t_sim,
+        "t_run": t_run,
+    }
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--cells", nargs="+", default=list(CELLS), choices=list(CELLS))
+    ap.add_argument("--effects", nargs="+", default=list(EFFECTS))
+    ap.add_argument("--seed", type=int, default=7)
+    ap.add_argument("--workers", type=int, default=2)
+    ap.add_argument("--list", action="store_true", help="print the effects' [optics] keys")
+    args = ap.parse_args()
+    if args.list:
+        for k, v in EFFECTS.items():
+            print(f"{k:<13} {v}")
+        return
+    bad = [e for e in args.effects if e not in EFFECTS]
+    if bad:
+        sys.exit(f"unknown effect(s) {bad}; known: {list(EFFECTS)}")
+    effects = list(dict.fromkeys(["linear", *args.effects]))
+    jobs = [(c, e) for c in args.cells for e in effects]
+    t0 = time.perf_counter()
+    with tempfile.TemporaryDirectory() as tmp, ProcessPoolExecutor(args.workers) as ex:
+        futs = {job: ex.submit(one_case, job[0], job[1], args.seed, tmp) for job in jobs}
+        res = {job: f.result() for job, f in futs.items()}
+    hdr = (
+        f"{'cell':<7} {'effect':<13} {'shape':>7} {'abs':>7} {'x lin':>6} {'resid':>7}"
+        f" {'kept':>6} {'s bias px':>9} {'response':<9} {'warned':<6} {'model':<8} {'sim s':>6}"
+        f" {'run s':>6}"
+    )
+    print(hdr)
+    ok_all = True
+    for c in args.cells:
+        lin = res[(c, "linear")]
+        for e in effects:
+            r = res[(c, e)]
+            ratio = r["shape"] / lin["shape"]
+            flag = ""
+            if e in LIMITS:
+                flag = " (limit: warned)" if r["warned"] else " (limit: NOT warned)"
+            elif e != "linear" and ratio > 1.5:
+                flag, ok_all = " >1.5x", False
+            if e == "all" and r["shape"] >= 0.1:
+                flag, ok_all = flag + " >=0.1mm", False
+            print(
+                f"{c:<7} {e:<13} {r['shape']:7.4f} {r['abs']:7.4f} {ratio:6.2f}"
+                f" {r['residual']:7.4f} {r['kept']:>3d}/{r['touchups']:<2d} {r['bias_px']:+9.4f}"
+                f" {r['response']!s:<9} {'yes' if r['warned'] else 'no':<6} {r['model']!s:<8}"
+                f" {r['t_sim']:6.1f} {r['t_run']:6.1f}{flag}",
+                flush=True,
+            )
+        print(f"{c:<7} nominal robot {lin['nominal']:7.3f} mm shape RMS")
+    print(
+        "mm shape/abs RMS of the shipped model vs truth (500 poses); x lin = shape / linear-image"
+        " shape; resid = the training residual vtcal reported; s bias = detector long axis minus"
+        " the exact projected contour's (still captures)"
+    )
+    print(
+        f"limits (not judged against 1.5x; vtcal must warn): {sorted(LIMITS)};"
+        f" 'all' = {' + '.join(ALL_OF)} + vibration"
+    )
+    print(f"targets met: {ok_all} ({time.perf_counter() - t0:.0f} s)")
+
+
+if __name__ == "__main__":
+    main()
