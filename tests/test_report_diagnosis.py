@@ -9,7 +9,12 @@ import pandas as pd
 
 from pipeline.kinematics.chain import fk, load_chain
 from pipeline.report.data import RunData
-from pipeline.report.diagnosis import along_view_trend, camera_section, plate_basis
+from pipeline.report.diagnosis import (
+    along_view_trend,
+    camera_section,
+    plate_basis,
+    size_correction_rows,
+)
 from pipeline.robots import builtin_urdf
 
 PIN = np.array([0.01, -0.02, 0.25])
@@ -129,3 +134,25 @@ def test_a_saturated_edge_is_warned_about(tmp_path: Path) -> None:
     data.recording["camera"] = {**data.recording["camera"], "saturated_fraction": 0.2}
     sec = camera_section(data)
     assert any("saturated" in w and "20 %" in w for w in sec["warnings"])
+
+
+def test_a_large_mean_size_correction_is_warned_about() -> None:
+    """Touch-ups that all stopped ~1.4 mm off along the view: the pin error it can leave."""
+    n = 12
+    tu = pd.DataFrame(
+        {
+            "touchup_id": np.arange(n),
+            "converged": True,
+            "lost": False,
+            "dx_flange": 1e-5,
+            "dy_flange": -2e-5,
+            "dz_flange": np.full(n, 1.4e-3),
+            "e_s_px": 0.45,
+        }
+    )
+    rows, warn = size_correction_rows(tu)
+    assert rows[0]["status"] == "warn" and "1.40 mm" in rows[0]["found"]
+    assert warn and "14 um" in warn[0]
+    tu["dz_flange"] = 1e-4
+    rows, warn = size_correction_rows(tu)
+    assert rows[0]["status"] == "ok" and not warn

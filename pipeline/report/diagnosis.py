@@ -117,6 +117,59 @@ def _corrected_rows(inl: pd.DataFrame | None) -> list[dict[str, str]]:
     ]
 
 
+#: relative error of the image Jacobian's size row assumed for the warning (2 mm probes
+#: along the view, ~0.01 px long-axis noise: 0.5-1.5 % per target measured on vtcal's cells)
+SIZE_ROW_REL_ERROR = 0.01
+#: mean along-view correction (m) above which the pin error it implies is worth a warning
+SIZE_CORRECTION_WARN_M = 5e-4
+
+
+def size_correction_rows(tu: pd.DataFrame | None) -> tuple[list[dict[str, str]], list[str]]:
+    """The mean residual correction of the touch-ups, and the pin error it can leave.
+
+    A controller that measures the long axis differently from vtcal (an encoded
+    image read as linear, a binary blob, another detector) stops every touch-up
+    the same amount off in size. The residual correction moves each one by
+    ``-J^-1 e_T``, ~0.3 mm per 0.1 px of long axis along the view, and an error
+    ``x`` of the image Jacobian's size row moves the pin by ``x`` times that mean:
+    a constant no residual shows (``docs/detection.md``, "Real cameras").
+    """
+    if tu is None or not {"dx_flange", "dy_flange", "dz_flange"} <= set(tu.columns):
+        return [], []
+    ok = tu["converged"].astype(bool) if "converged" in tu else pd.Series(True, index=tu.index)
+    if "lost" in tu:
+        ok &= ~tu["lost"].astype(bool)
+    d = tu.loc[ok, ["dx_flange", "dy_flange", "dz_flange"]].to_numpy(dtype=float)
+    d = d[np.all(np.isfinite(d), axis=1)]
+    if not len(d):
+        return [], []
+    mean = float(np.linalg.norm(d.mean(axis=0)))
+    es = ""
+    if "e_s_px" in tu:
+        es = f", remaining long axis {float(np.nanmean(tu.loc[ok, 'e_s_px'])):+.2f} px on average"
+    pin = SIZE_ROW_REL_ERROR * mean
+    flagged = mean > SIZE_CORRECTION_WARN_M
+    rows = [
+        _row(
+            "residual correction (mean)",
+            f"{1e3 * mean:.2f} mm{es}; at a {100 * SIZE_ROW_REL_ERROR:.0f} % error of the image "
+            f"Jacobian's size row that is {1e6 * pin:.0f} um of pin no residual shows",
+            "warn" if flagged else "ok",
+        )
+    ]
+    warn = []
+    if flagged:
+        warn.append(
+            f"The touch-ups stopped on average {1e3 * mean:.2f} mm from where vtcal's detector "
+            "puts the target (the controller measures the size differently). The residual "
+            "correction removes it through the image Jacobian, whose size row is known to about "
+            f"{100 * SIZE_ROW_REL_ERROR:.0f} %: the pin may carry ~{1e6 * pin:.0f} um of "
+            "constant error. Converge the touch-ups with the same detection, or probe further "
+            "along the view."
+        )
+    return rows, warn
+
+
 def _print_rows(data: RunData, model: str | None) -> list[dict[str, str]]:
     t = data.targets
     if t is None:
@@ -261,6 +314,9 @@ def camera_section(data: RunData) -> dict[str, Any]:
     model = (data.identify or {}).get("best_model")
     rows, warn = _response_rows(cam)
     rows += _corrected_rows(data.inliers)
+    more_rows, w_corr = size_correction_rows(data.touchups)
+    rows += more_rows
+    warn += w_corr
     rows += _print_rows(data, model)
     tr = along_view_trend(data)
     more, w2 = _trend_rows(tr)
