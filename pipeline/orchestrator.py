@@ -28,6 +28,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import math
 import sys
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
@@ -185,6 +186,15 @@ def _build(cls: Any, options: Mapping[str, Any], **base: Any) -> Any:
     if unknown:
         raise BadInput(f"unknown option(s) for {cls.__name__}: {', '.join(sorted(unknown))}")
     return cls(**{**{k: v for k, v in base.items() if k in names}, **dict(options)})
+
+
+def _diameter(text: str | None) -> float | None:
+    """The recording's printed target diameter (m), or None when absent or not a size."""
+    try:
+        d = float(text) if text else float("nan")
+    except ValueError:
+        return None
+    return d if math.isfinite(d) and d > 0 else None
 
 
 def run_pipeline(
@@ -348,6 +358,7 @@ def run_pipeline(
         model="all",  # every model; cross-validation picks the one the run ships
         distances=parse_distances(info.metadata.get("known_distances", "")),
         strict_distances=False,  # a truncated recording may not reach every target
+        target_diameter_m=_diameter(info.metadata.get("target_diameter_m")),
     )
     id_inputs = hashes({"inliers": P["inliers"]})
 

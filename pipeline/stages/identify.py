@@ -99,6 +99,13 @@ class IdentifyConfig:
     max_nfev : iteration budget of the solver
     n_workspace : poses over which the predicted error is evaluated
     seed : seed of those poses
+    target_shape : the targets' print shape (:mod:`pipeline.stages.print_shape`): ``auto`` fits
+        each target's size (relative to the first) and out-of-roundness when the table has
+        the shape columns and every target ``shape_min_touchups`` touch-ups, and keeps them
+        when an F-test at ``shape_alpha`` finds them significant; ``fit`` keeps them whenever
+        they can be fitted; ``none`` never fits them
+    shape_alpha, shape_min_touchups : see ``target_shape``
+    target_diameter_m : printed diameter, to state print errors in micrometres (else relative)
     strict_distances : a known distance naming a target absent from the table is bad input
         (``vtcal identify``); False drops it with a note (``vtcal run``: the recording's
         metadata names every target of the cell, a truncated run may not have reached them all)
@@ -117,6 +124,10 @@ class IdentifyConfig:
     n_workspace: int = 200
     seed: int = 0
     strict_distances: bool = True
+    target_shape: str = "auto"
+    shape_alpha: float = 1e-3
+    shape_min_touchups: int = 6
+    target_diameter_m: float | None = None
 
 
 @dataclass
@@ -168,6 +179,10 @@ class _Data:
     q_all: F64  # (M, n) all rows (NaN where missing)
     d_all: F64
     tk_all: np.ndarray  # target index per row (-1 if target not used)
+    #: (N, 3) each used row's print-size lever ``g`` and (N, 3) long-axis direction ``l``
+    #: (flange frame, :mod:`pipeline.stages.print_shape`), None without those columns
+    shape_g: F64 | None = None
+    shape_l: F64 | None = None
 
 
 def _prepare(touchups: pd.DataFrame, chain: Chain, config: IdentifyConfig) -> _Data:
@@ -264,6 +279,14 @@ def _prepare(touchups: pd.DataFrame, chain: Chain, config: IdentifyConfig) -> _D
         }
     )
     ui = np.flatnonzero(used)
+    shape_g = shape_l = None
+    if all(c in df.columns for c in SHAPE_COLUMNS):
+        sh = np.stack(
+            [pd.to_numeric(df[c], errors="coerce").to_numpy(dtype=float) for c in SHAPE_COLUMNS],
+            axis=1,
+        )[ui]
+        if len(sh) and np.all(np.isfinite(sh)):
+            shape_g, shape_l = sh[:, :3], sh[:, 3:]
     return _Data(
         q=q_all[ui],
         d=d_all[ui],
@@ -279,7 +302,13 @@ def _prepare(touchups: pd.DataFrame, chain: Chain, config: IdentifyConfig) -> _D
         q_all=q_all,
         d_all=d_all,
         tk_all=tk_all,
+        shape_g=shape_g,
+        shape_l=shape_l,
     )
+
+
+#: optional touch-up columns of the print-shape geometry (``pipeline/stages/touchup.py``)
+SHAPE_COLUMNS = ("view_gx", "view_gy", "view_gz", "axis_lx", "axis_ly", "axis_lz")
 
 
 #: rows beyond these are flagged, not fitted: a joint at 1000 rad (or m), a residual correction
@@ -623,6 +652,118 @@ def _flange_whitening(prob: _Problem, z: F64, n_free: int) -> tuple[F64 | None, 
     return W, np.sqrt(lam)
 
 
+def _fit_print_shape(
+    prob: _Problem, sol: Any, solve: Any, config: IdentifyConfig, n_free: int
+) -> tuple[Any, _Data, dict[str, Any]]:
+    """Each target's print size and out-of-roundness, solved jointly with the fit.
+
+    :mod:`pipeline.stages.print_shape` has the model (S1)-(S2). Three Gauss-Newton
+    steps on ``theta`` together with every unknown of ``prob`` (the design ``B`` is
+    recomputed from the current kinematics before each), each followed by the full
+    solve from where it stood; the rows' corrections become ``d_i + g_i (B_i . theta)``.
+    ``auto`` keeps the result when the nested-model F-test on the unwhitened residual
+    sums rejects ``theta = 0`` at ``shape_alpha``; otherwise the fit is the one before.
+
+    Returns
+    -------
+    sol : the solver result to continue with
+    data : the data it belongs to (a copy with the corrected ``d``, or ``prob.data``)
+    summary : ``fitted``, ``note``, F-test figures, per-target figures
+    """
+    import dataclasses
+
+    from scipy.stats import f as f_dist
+
+    from pipeline.stages import print_shape as ps
+
+    D0 = prob.data
+    K, N = D0.K, len(D0.q)
+    counts = np.bincount(D0.tk, minlength=K)
+    if int(counts.min()) < config.shape_min_touchups:
+        return (
+            sol,
+            D0,
+            {
+                "fitted": False,
+                "note": f"print shape not fitted: a target has {int(counts.min())} touch-ups "
+                f"(needs {config.shape_min_touchups})",
+            },
+        )
+    assert D0.shape_g is not None and D0.shape_l is not None
+    ne = 3 * K - 1
+
+    def rss(D: _Data, z: F64) -> float:
+        x, pin, tg = prob.split(z)
+        p, _, _ = prob.model.pin_and_jacobian(x, D.q, pin + D.d, jac=False)
+        return float(np.sum(((p - tg[D.tk]) * D.sw[:, None]) ** 2))
+
+    rss0 = rss(D0, sol.x)
+    dof1 = 3 * N + len(D0.dist) - (n_free + 3 + 3 * K) - ne
+    if dof1 < 5:
+        return sol, D0, {"fitted": False, "note": "print shape not fitted: too few touch-ups"}
+    D = dataclasses.replace(D0, d=D0.d.copy(), d_all=D0.d_all.copy())
+    prob.data = D
+    sol0, W0 = sol, prob.W
+    theta = np.zeros(ne)
+    G: F64 = D0.shape_g
+    L: F64 = D0.shape_l
+
+    def joint(z: F64) -> tuple[F64, F64, F64]:
+        """(A, r, B): Jacobian over [z, theta], residual and the design at ``z``."""
+        x, pin, tg = prob.split(z)
+        r, Jf = prob.full_eval(x, pin, tg)
+        assert Jf is not None
+        _, R, _ = prob.model.pin_and_jacobian(x, D.q, pin + D.d, jac=False)
+        B, _ = ps.design(np.einsum("nij,nj->ni", R, L), D.tk, K, np.einsum("nij,nj->ni", R, G))
+        V = np.einsum("nij,nj->ni", R, G) if prob.W is None else G @ prob.W.T
+        S = np.zeros((prob.m, ne))
+        S[: 3 * N] = (V[:, :, None] * B[:, None, :] * D.sw[:, None, None]).reshape(3 * N, ne)
+        return np.hstack([Jf[:, prob.columns()], S]), r, B
+
+    for _ in range(3):
+        A, r, B = joint(sol.x)
+        cn = np.maximum(np.linalg.norm(A, axis=0), 1e-300)
+        step = np.linalg.lstsq(A / cn, -r, rcond=None)[0] / cn
+        theta = theta + step[-ne:]
+        D.d[:] = D0.d + G * (B @ theta)[:, None]
+        D.d_all[D.used_idx] = D.d
+        sol = solve(sol.x)
+    A, r, B = joint(sol.x)
+    cn = np.maximum(np.linalg.norm(A, axis=0), 1e-300)
+    dof_w = prob.m - A.shape[1]
+    sig2 = float(r @ r / dof_w) if dof_w > 0 else float("nan")
+    Us, sv, Vt = np.linalg.svd(A / cn, full_matrices=False)
+    good = sv > sv[0] * 1e-12
+    cov = (Vt[good].T / sv[good] ** 2) @ Vt[good] * sig2
+    std = np.sqrt(np.clip(np.diag(cov)[-ne:], 0, None)) / cn[-ne:]
+    rss1 = rss(D, sol.x)
+    F = ((rss0 - rss1) / ne) / max(rss1 / dof1, 1e-300)
+    p_value = float(f_dist.sf(F, ne, dof1)) if rss1 > 0 else 0.0
+    keep = config.target_shape == "fit" or p_value < config.shape_alpha
+    out: dict[str, Any] = {
+        "fitted": bool(keep),
+        "F": float(F),
+        "p_value": p_value,
+        "alpha": config.shape_alpha,
+        "rss_before_mm2": 1e6 * rss0,
+        "rss_after_mm2": 1e6 * rss1,
+        "n_params": ne,
+        "held": "the size of target 0's print (the reference): a size error common to every "
+        "print moves every touch-up along the view like the virtual pin's own coordinate",
+        "targets": ps.summarise(theta, std, K, config.target_diameter_m),
+        "note": (
+            f"print shape fitted ({ne} parameters, F = {F:.1f}, p = {p_value:.2g})"
+            if keep
+            else f"print shape not significant (F = {F:.2f}, p = {p_value:.2g} >= "
+            f"{config.shape_alpha:g}): perfect circles of one size assumed"
+        ),
+    }
+    if not keep:
+        prob.data, prob.W = D0, W0
+        return sol0, D0, out
+    return sol, D, out
+
+
 def _partial_loss(name: str, n_robust: int) -> Any:
     """A ``least_squares`` loss callable: ``name`` on the first ``n_robust`` residuals
     (the touch-up rows), linear on the rest (known distances, scale gauge), so a
@@ -850,6 +991,9 @@ def _identify_one(
                 "pin residuals whitened by their covariance in the flange frame, estimated from "
                 "the fit (feasible generalised least squares)"
             )
+    shape: dict[str, Any] | None = None
+    if data.shape_g is not None and config.target_shape != "none":
+        sol, data, shape = _fit_print_shape(prob, sol, solve, config, len(kept))
     x, pin, tg = prob.split(sol.x)
     r, Jfull = prob.full_eval(x, pin, tg)
     assert Jfull is not None
@@ -971,6 +1115,10 @@ def _identify_one(
             "n_touchups": np.bincount(data.tk, minlength=K).astype(np.int64),
         }
     )
+    fitted = shape is not None and bool(shape.get("fitted"))
+    for key in ("kappa", "ellipticity", "orientation_rad", "diameter_error_um", "out_of_round_um"):
+        vals = [t.get(key, np.nan) for t in shape["targets"]] if fitted and shape else [np.nan] * K
+        targets[f"print_{key}"] = np.asarray(vals, dtype=float)
     urdf_out = write_calibrated_urdf(urdf, model.origins(x), flange_link, pin)
 
     scale_held = not data.dist
@@ -979,6 +1127,7 @@ def _identify_one(
     ]
     seconds = time.perf_counter() - t0
     summary: dict[str, Any] = {
+        "print_shape": shape,
         "model": name,
         "model_description": model.description,
         "n_rows": int(M),

@@ -94,6 +94,9 @@ INLIER_COLUMNS = (
     "converged",
     "stamp_ns",
 )
+#: the print-shape geometry of each touch-up, carried after the verdict columns
+#: (pipeline/stages/print_shape.py); NaN where the table has none
+SHAPE_COLUMNS = ("view_gx", "view_gy", "view_gz", "axis_lx", "axis_ly", "axis_lz")
 
 
 @dataclass
@@ -250,6 +253,12 @@ def flag_outliers(table: pd.DataFrame, info: Any, config: OutlierConfig) -> pd.D
     ]
     # identification uses converged rows: a corrected one counts as converged from here on
     out.loc[fixed, "converged"] = True
+    for c in SHAPE_COLUMNS:
+        out[c] = (
+            pd.to_numeric(base[c], errors="coerce").to_numpy(dtype=float)
+            if c in base
+            else np.full(len(base), np.nan)
+        )
     labels = pd.to_numeric(out["target_id"], errors="coerce")
     if config.statistical and getattr(info, "urdf", None):
         if labels.notna().all() and (labels == labels.round()).all():

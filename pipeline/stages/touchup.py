@@ -237,6 +237,35 @@ def camera_from_jacobian(J: np.ndarray, s0: float) -> tuple[np.ndarray, float, f
     return R_cf.T, f, z
 
 
+def view_geometry(J: np.ndarray, s0: float, angle: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """What a print-size error does to a touch-up, from the image Jacobian (flange frame).
+
+    A target whose image long axis reads ``(1 + eps)`` times what a perfect disc of
+    the nominal diameter would show stops the camera ``z eps`` too far (``s = f D / z``),
+    so the point that touched the target is ``p_pin + d + eps g`` with
+
+        g = z r_z                                   (m per unit eps)
+
+    ``r_z`` the camera's view axis and ``z`` the stand-off
+    (:func:`camera_from_jacobian`). The long axis of touch-up ``k`` lies along
+
+        l_k = cos(a_k) r_x + sin(a_k) r_y           (unit)
+
+    ``a_k`` its image long-axis angle (from ``+u`` towards ``+v``): what
+    :mod:`pipeline.stages.print_shape` needs to tell an out-of-round print from the
+    roll of the view.
+
+    Returns
+    -------
+    g : (3,) ; l : (n, 3) (NaN where the angle is)
+    """
+    R_fc, _, z = camera_from_jacobian(J, s0)
+    g = z * R_fc[:, 2]
+    a = np.asarray(angle, dtype=float)
+    lvec = np.cos(a)[:, None] * R_fc[:, 0][None, :] + np.sin(a)[:, None] * R_fc[:, 1][None, :]
+    return g, lvec
+
+
 def tilt_bias(
     shape: np.ndarray,
     T_base_flange: np.ndarray,
@@ -537,6 +566,7 @@ def extract_touchups(
     bias, tilt_deg, resolved = tilt_bias(shape, T_rep, labels, J_global, s0)
     if not config.tilt_correction:
         bias[:] = 0.0
+    view_g, axis_l = view_geometry(J_global, s0, shape[:, 4])
     out: list[dict[str, Any]] = []
     for k, fr in enumerate(seg_frames):
         b = finals[k]
@@ -615,6 +645,12 @@ def extract_touchups(
             bias_u_px=float(bias[k, 0]),
             bias_v_px=float(bias[k, 1]),
             bias_s_px=float(bias[k, 2]),
+            view_gx=float(view_g[0]),
+            view_gy=float(view_g[1]),
+            view_gz=float(view_g[2]),
+            axis_lx=float(axis_l[k, 0]),
+            axis_ly=float(axis_l[k, 1]),
+            axis_lz=float(axis_l[k, 2]),
         )
         out.append(row)
     table = pd.DataFrame(out)
