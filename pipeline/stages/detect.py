@@ -97,6 +97,12 @@ class DetectConfig:
         takes the recording's ``camera_response`` metadata or estimates the
         curve from the first images (:func:`pipeline.stages.response.estimate_response`);
         :func:`detect_target` called alone treats ``auto`` as ``linear``.
+    clip_correction : bool
+        Where the bright side of the edge is clipped at the image type's top code
+        (an over-exposed plate), move the contour to where the unclipped halfway
+        level would be, by a censored fit of the edge profile
+        (:mod:`pipeline.stages.saturation`); the long and short axes grow by the
+        ``clip_correction_px`` of the result.
     """
 
     polarity: str | None = None
@@ -110,6 +116,7 @@ class DetectConfig:
     ambiguity_ratio: float = 0.5
     compiled: bool = True
     response: str = "auto"
+    clip_correction: bool = True
 
     def to_dict(self) -> dict[str, Any]:
         return asdict(self)
@@ -132,6 +139,7 @@ RESULT_KEYS = (
     "ambiguous",
     "contrast",
     "edge_sigma_px",
+    "clip_correction_px",
     "n_edge_points",
     "quality_ok",
     "reason",
@@ -156,6 +164,7 @@ def _empty(reason: str, n_blobs: int = 0) -> dict[str, Any]:
         "ambiguous": False,
         "contrast": nan,
         "edge_sigma_px": nan,
+        "clip_correction_px": nan,
         "n_edge_points": 0,
         "quality_ok": False,
         "reason": reason,
@@ -602,6 +611,9 @@ def detect_target(
 ) -> dict[str, Any]:
     """Find the target ellipse in one grey image.
 
+    The ellipse of :func:`_detect` and, where the bright side of the edge is clipped,
+    its censored-profile correction (:func:`_unclip`).
+
     Parameters
     ----------
     image : (H, W) uint8 / uint16 / float
@@ -621,6 +633,16 @@ def detect_target(
     ``blurred``).
     """
     cfg = config or DetectConfig()
+    out = _detect(image, cfg, expected)
+    if out["found"] and cfg.clip_correction:
+        out = _unclip(np.asarray(image), out, cfg)
+    return out
+
+
+def _detect(
+    image: np.ndarray, cfg: DetectConfig, expected: tuple[float, float, float] | None
+) -> dict[str, Any]:
+    """:func:`detect_target` without the clipped-edge correction."""
     img = np.asarray(image)
     if img.ndim != 2:
         raise ValueError(f"detect_target needs a 2-D grey image, got shape {img.shape}")
@@ -795,6 +817,56 @@ def detect_target(
     )
 
 
+def _unclip(img: np.ndarray, out: dict[str, Any], cfg: DetectConfig) -> dict[str, Any]:
+    """Correct a detection whose edge is clipped at the image type's top code.
+
+    The window around the ellipse (its semi-axis plus ``4 sigma + 3`` px) is linearised
+    like the sub-pixel stage's and handed to
+    :func:`pipeline.stages.saturation.fit_clipped_edge`; the polarity is the levels'
+    (the darker side inside: dark on light). Nothing changes where no pixel of the
+    window is at the top code.
+    """
+    from pipeline.stages import saturation
+
+    if img.ndim != 2:
+        return out
+    top = saturation.clip_level(img.dtype)
+    if top is None:
+        return out
+    u, v, s = float(out["u"]), float(out["v"]), float(out["s"])
+    sig = float(out["edge_sigma_px"]) if math.isfinite(float(out["edge_sigma_px"])) else 1.0
+    pad = 0.5 * s + 4.0 * min(max(sig, 0.3), 5.0) + 3.0
+    H, W = img.shape
+    u0, v0 = max(int(u - pad), 0), max(int(v - pad), 0)
+    u1, v1 = min(int(u + pad) + 2, W), min(int(v + pad) + 2, H)
+    raw = img[v0:v1, u0:u1]
+    if raw.size == 0 or not bool((raw >= top).any()):
+        return out
+    roi = raw.astype(np.float64)
+    clip = top
+    resp = _response(cfg.response)
+    if resp is not None:
+        roi = np.asarray(resp.linearise(raw), dtype=np.float64)
+        clip = float(np.asarray(resp.linearise(np.array([[top]], dtype=img.dtype)))[0, 0])
+    ell = (u, v, 0.5 * s, 0.5 * float(out["s_minor"]), float(out["angle"]))
+    d = saturation.signed_distance(
+        np.arange(u0, u1, dtype=float)[None, :], np.arange(v0, v1, dtype=float)[:, None], ell
+    )
+    inside, outside = roi[d < -1.0], roi[(d > 1.0) & (d < 4.0 * sig + 2.0)]
+    if inside.size < 5 or outside.size < 5:
+        return out
+    dark = float(np.median(inside)) < float(np.median(outside))
+    fit = saturation.fit_clipped_edge(roi, float(u0), float(v0), ell, sig, clip, dark)
+    if not fit.ok:
+        return out
+    out = dict(out)
+    out["s"] = s + 2.0 * fit.delta_px
+    out["s_minor"] = float(out["s_minor"]) + 2.0 * fit.delta_px
+    out["s_inv"] = 1.0 / out["s"]
+    out["clip_correction_px"] = 2.0 * fit.delta_px
+    return out
+
+
 def _finish_compiled(
     roi: np.ndarray,
     core: np.ndarray,
@@ -889,6 +961,7 @@ def _result(
         "ambiguous": ambiguous,
         "contrast": float(contrast),
         "edge_sigma_px": float(sigma),
+        "clip_correction_px": 0.0,
         "n_edge_points": int(n_pts),
         "quality_ok": quality,
         "reason": reason,

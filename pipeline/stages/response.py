@@ -502,8 +502,10 @@ def estimate_response(
         est.note += (
             f"; {100 * est.saturated_fraction:.0f} % of the pixels at the target's edge are "
             "saturated: the halfway level between target and plate is then wrong and every long "
-            "axis reads short or long by the same amount (a few tenths of a pixel, a constant "
-            "pin-depth error no residual shows): lower the exposure"
+            "axis would read short or long by the same amount (a few tenths of a pixel, a "
+            "constant pin-depth error no residual shows); detection corrects it by a censored "
+            "fit of the edge profile (detections' clip_correction_px), which assumes a Gaussian "
+            "edge and is less exact the more of the edge is clipped: lower the exposure"
         )
     return est
 
