@@ -1,0 +1,293 @@
+"""Real robots: vtcal against MUKCa on real Franka Panda point-constraint data (issue 16).
+
+Data: ``datasets/real/mukca/`` (see ``datasets/real/README.md``): a ball fixed
+to the Panda's hand seated by hand in two sockets 50 mm apart on a tool put at
+4-9 placements; ~30 configurations per socket.
+
+For each dataset, vtcal is trained with ``vtcal identify`` exactly as a user
+calls it (the click command, in process) on the touch-ups of the training
+placement only::
+
+    vtcal identify TRAIN.csv --urdf nominal_panda.urdf --out DIR \
+        --flange-link panda_hand_tcp --distance P/hole_0:P/hole_1=0.05 [--model M]
+
+and judged on every OTHER placement with two KPIs that need no ground truth
+and are invariant to the base frame (``x_i`` the pin position the model
+predicts for configuration ``q_i``):
+
+* consistency ``sqrt(mean_i |x_i - mean_s|^2)`` pooled over both sockets (mm);
+* distance error ``| |mean_0 - mean_1| - 50 mm |`` (mm).
+
+Compared: the nominal robot with the pin of the nominal URDF's ``ball_joint``,
+the nominal robot with the pin refitted on the training placement (linear
+least squares of the pin and the two sockets at fixed kinematics), MUKCa's
+calibrated URDF of the dataset with its own ``ball_joint`` pin and with the pin
+refitted the same way, and every vtcal model (``--model`` full, mdh, poe,
+offsets, each registered model, and the shipped default). Then the same with
+TWO training placements (the named one and the one farthest from it), judged
+on the rest.
+
+    python benchmarks/bench_real.py                  # all three datasets
+    python benchmarks/bench_real.py --datasets panda_3 --models default
+    python benchmarks/bench_real.py --no-two         # one training placement only
+"""
+
+from __future__ import annotations
+
+import argparse
+import tempfile
+import time
+import xml.etree.ElementTree as ET
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+from click.testing import CliRunner
+
+from pipeline.kinematics import load_chain
+from pipeline.kinematics.chain import Chain, fk
+
+REPO = Path(__file__).resolve().parent.parent
+DATA = REPO / "datasets" / "real" / "mukca"
+DATASETS = ("panda_2", "panda_3", "panda_4")
+#: the placement MUKCa trained each dataset on (datasets/real/README.md)
+TRAIN = {"panda_2": "front_center", "panda_3": "frontcenter", "panda_4": "front"}
+BASE, TCP = "panda_link0", "panda_hand_tcp"
+JOINTS = [f"panda_joint{i}" for i in range(1, 8)]
+DISTANCE_M = 0.05
+#: the models benchmarked by name; "default" is ``vtcal identify`` without --model
+BASE_MODELS = ("full", "mdh", "poe", "offsets")
+
+
+@dataclass(frozen=True)
+class Kpi:
+    consistency_mm: float
+    distance_error_mm: float
+
+
+def load_table(dataset: str) -> pd.DataFrame:
+    """A dataset's touch-up table with a ``placement`` column."""
+    df = pd.read_csv(DATA / f"{dataset}.csv")
+    df["placement"] = df["target_id"].str.split("/").str[0]
+    return df
+
+
+def placements(df: pd.DataFrame) -> list[str]:
+    return list(dict.fromkeys(df["placement"]))
+
+
+def kpis(points: np.ndarray, socket: np.ndarray) -> Kpi:
+    """The README's two KPIs of one placement's predicted pin positions (m in, mm out)."""
+    means = {}
+    sq = []
+    for s in np.unique(socket):
+        p = points[socket == s]
+        means[s] = p.mean(axis=0)
+        sq.append(np.sum((p - means[s]) ** 2, axis=1))
+    cons = float(np.sqrt(np.mean(np.concatenate(sq))))
+    m = list(means.values())
+    dist = float(abs(np.linalg.norm(m[0] - m[1]) - DISTANCE_M))
+    return Kpi(cons * 1e3, dist * 1e3)
+
+
+def pin_points(chain: Chain, pin: np.ndarray, q: np.ndarray) -> np.ndarray:
+    T = fk(chain, q)
+    return np.einsum("nij,j->ni", T[:, :3, :3], pin) + T[:, :3, 3]
+
+
+def refit_pin(chain: Chain, q: np.ndarray, socket_index: np.ndarray) -> np.ndarray:
+    """Linear least squares of the pin and the sockets at fixed kinematics (no distance row)."""
+    T = fk(chain, q)
+    N, K = len(q), int(socket_index.max()) + 1
+    A = np.zeros((3 * N, 3 + 3 * K))
+    A[:, :3] = T[:, :3, :3].reshape(3 * N, 3)
+    rows = np.arange(3 * N).reshape(N, 3)
+    for c in range(3):
+        A[rows[:, c], 3 + 3 * socket_index + c] = -1.0
+    sol = np.linalg.lstsq(A, -T[:, :3, 3].ravel(), rcond=None)[0]
+    return np.asarray(sol[:3])
+
+
+def ball_pin(urdf: str) -> np.ndarray:
+    """The ``ball_joint`` origin (the ball in the ``panda_hand_tcp`` frame) of a URDF."""
+    root = ET.fromstring(urdf)
+    for j in root.findall("joint"):
+        if j.get("name") == "ball_joint":
+            o = j.find("origin")
+            assert o is not None
+            return np.array([float(v) for v in str(o.get("xyz")).split()])
+    raise ValueError("no ball_joint")
+
+
+class Judge:
+    """Held-out KPIs of one calibrated chain + pin on a dataset's placements."""
+
+    def __init__(self, df: pd.DataFrame, train: list[str]) -> None:
+        self.df = df
+        self.train = train
+        self.test = [p for p in placements(df) if p not in train]
+
+    def sub(self, placement: str) -> tuple[np.ndarray, np.ndarray]:
+        d = self.df[self.df["placement"] == placement]
+        return d[JOINTS].to_numpy(float), d["target_id"].str.endswith("hole_1").to_numpy(int)
+
+    def train_rows(self) -> tuple[np.ndarray, np.ndarray]:
+        d = self.df[self.df["placement"].isin(self.train)]
+        codes = {t: i for i, t in enumerate(dict.fromkeys(d["target_id"]))}
+        return d[JOINTS].to_numpy(float), d["target_id"].map(codes).to_numpy(int)
+
+    def refit(self, chain: Chain) -> np.ndarray:
+        q, s = self.train_rows()
+        return refit_pin(chain, q, s)
+
+    def __call__(self, chain: Chain, pin: np.ndarray) -> dict[str, Kpi]:
+        out = {}
+        for p in self.test:
+            q, s = self.sub(p)
+            out[p] = kpis(pin_points(chain, pin, q), s)
+        return out
+
+
+def mean_kpi(per: dict[str, Kpi]) -> Kpi:
+    return Kpi(
+        float(np.mean([k.consistency_mm for k in per.values()])),
+        float(np.mean([k.distance_error_mm for k in per.values()])),
+    )
+
+
+def vtcal_identify(
+    df: pd.DataFrame, train: list[str], model: str, work: Path, extra: tuple[str, ...] = ()
+) -> tuple[Chain, float, str]:
+    """``vtcal identify`` on the training placements; the shipped chain to the virtual pin."""
+    from pipeline.cli import cli
+
+    tag = "+".join(train) + "_" + model
+    table = work / f"{tag}.csv"
+    cols = ["touchup_id", "target_id", *JOINTS]
+    df[df["placement"].isin(train)][cols].to_csv(table, index=False)
+    out = work / tag
+    args = [
+        "identify",
+        str(table),
+        "--urdf",
+        str(DATA / "nominal_panda.urdf"),
+        "--out",
+        str(out),
+        "--flange-link",
+        TCP,
+        "--no-report",
+    ]
+    for p in train:
+        args += ["--distance", f"{p}/hole_0:{p}/hole_1={DISTANCE_M}"]
+    if model != "default":
+        args += ["--model", model, "--no-crossval"]
+    args += list(extra)
+    t0 = time.perf_counter()
+    res = CliRunner().invoke(cli, args, prog_name="vtcal", catch_exceptions=False)
+    seconds = time.perf_counter() - t0
+    if res.exit_code != 0:
+        raise RuntimeError(f"vtcal identify {model} failed ({res.exit_code}): {res.output}")
+    shipped = ""
+    for line in res.output.splitlines():
+        if line.startswith("calibrated.urdf from model"):
+            shipped = line.split()[-1]
+    chain = load_chain((out / "calibrated.urdf").read_text(), BASE, "virtual_pin")
+    return chain, seconds, shipped or model
+
+
+def farthest_placement(df: pd.DataFrame, first: str) -> str:
+    """The placement whose sockets are farthest from ``first``'s (nominal kinematics)."""
+    nominal = load_chain((DATA / "nominal_panda.urdf").read_text(), BASE, TCP)
+    pin = ball_pin((DATA / "nominal_panda.urdf").read_text())
+    centre = {
+        p: pin_points(nominal, pin, g[JOINTS].to_numpy(float)).mean(axis=0)
+        for p, g in df.groupby("placement", sort=False)
+    }
+    return max(centre, key=lambda p: float(np.linalg.norm(centre[p] - centre[first])))
+
+
+def evaluate(
+    dataset: str, train: list[str], models: list[str], work: Path
+) -> tuple[dict[str, dict[str, Kpi]], dict[str, str]]:
+    """Held-out KPIs of every contender; notes (timings, shipped model)."""
+    from pipeline.models import model_names
+
+    df = load_table(dataset)
+    judge = Judge(df, train)
+    nominal_urdf = (DATA / "nominal_panda.urdf").read_text()
+    mukca_urdf = (DATA / f"mukca_calibrated_{dataset}.urdf").read_text()
+    nominal = load_chain(nominal_urdf, BASE, TCP)
+    mukca = load_chain(mukca_urdf, BASE, TCP)
+    rows: dict[str, dict[str, Kpi]] = {
+        "nominal": judge(nominal, ball_pin(nominal_urdf)),
+        "nominal+pin": judge(nominal, judge.refit(nominal)),
+        "MUKCa": judge(mukca, ball_pin(mukca_urdf)),
+        "MUKCa+pin": judge(mukca, judge.refit(mukca)),
+    }
+    notes: dict[str, str] = {}
+    names = [m for m in models if m != "all"]
+    if "all" in models:
+        names = ["default", *BASE_MODELS, *[m for m in model_names() if m not in BASE_MODELS]]
+    for m in names:
+        chain, seconds, shipped = vtcal_identify(df, train, m, work)
+        label = f"vtcal {m}" + (f" (-> {shipped})" if m == "default" else "")
+        rows[label] = judge(chain, np.zeros(3))
+        notes[label] = f"{seconds:.1f} s"
+    return rows, notes
+
+
+def print_table(
+    dataset: str, train: list[str], rows: dict[str, dict[str, Kpi]], notes: dict[str, str]
+) -> None:
+    test = list(next(iter(rows.values())))
+    print(f"\n{dataset}: trained on {' + '.join(train)}; held out: {len(test)} placements")
+    print("consistency / distance error, mm, per held-out placement and their mean")
+    w = max(len(r) for r in rows) + 2
+    head = "".ljust(w) + "".join(p[:13].rjust(14) for p in test) + "mean".rjust(14) + "  time"
+    print(head)
+    for r, per in rows.items():
+        cells = "".join(
+            f"{per[p].consistency_mm:.3f}/{per[p].distance_error_mm:.3f}".rjust(14) for p in test
+        )
+        m = mean_kpi(per)
+        mean = f"{m.consistency_mm:.3f}/{m.distance_error_mm:.3f}".rjust(14)
+        print(r.ljust(w) + cells + mean + "  " + notes.get(r, ""))
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--datasets", nargs="+", default=list(DATASETS))
+    ap.add_argument(
+        "--models",
+        nargs="+",
+        default=["all"],
+        help="vtcal models to run: 'all' (default, full, mdh, poe, offsets and every "
+        "registered model) or names ('default' = no --model)",
+    )
+    ap.add_argument("--no-two", action="store_true", help="skip the two-placement training")
+    args = ap.parse_args()
+    t_all = time.perf_counter()
+    summary: list[tuple[str, str, dict[str, Kpi]]] = []
+    with tempfile.TemporaryDirectory(prefix="bench_real_") as tmp:
+        work = Path(tmp)
+        for ds in args.datasets:
+            splits = [[TRAIN[ds]]]
+            if not args.no_two:
+                splits.append([TRAIN[ds], farthest_placement(load_table(ds), TRAIN[ds])])
+            for train in splits:
+                t0 = time.perf_counter()
+                rows, notes = evaluate(ds, train, args.models, work)
+                print_table(ds, train, rows, notes)
+                print(f"({time.perf_counter() - t0:.1f} s)")
+                summary.append((ds, "+".join(train), {r: mean_kpi(v) for r, v in rows.items()}))
+    print("\nheld-out means, consistency / distance error (mm)")
+    for ds, train, means in summary:
+        print(f"{ds} [{train}]")
+        for r, m in means.items():
+            print(f"  {r:<34} {m.consistency_mm:.3f} / {m.distance_error_mm:.3f}")
+    print(f"total {time.perf_counter() - t_all:.1f} s")
+
+
+if __name__ == "__main__":
+    main()
