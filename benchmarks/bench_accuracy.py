@@ -15,7 +15,6 @@ cross-validated (held-out) error of the shipped model.
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 import tempfile
 import time
@@ -24,9 +23,7 @@ from pathlib import Path
 
 import numpy as np
 
-from pipeline.artefacts import read_artefact
-from pipeline.evaluate import pin_accuracy, workspace_poses
-from pipeline.kinematics import load_chain
+from pipeline.evaluate import judge_run
 from pipeline.orchestrator import RunConfig, run_pipeline
 from pipeline.sim.scenario import scenario_from_dict
 from pipeline.sim.simulator import write_recording
@@ -47,18 +44,9 @@ def one_case(robot: str, per_target: int, seed: int, work: Path) -> dict[str, fl
     t0 = time.perf_counter()
     run_pipeline(rec, out, RunConfig(report=False), until="crossval")
     t_run = time.perf_counter() - t0
-    summary = json.loads((out / "identify.json").read_text())
-    base, flange = truth["base_link"], truth["flange_link"]
-    calibrated = load_chain((out / "calibrated.urdf").read_text(), base, "virtual_pin")
-    true_chain = load_chain(truth["true_urdf"], base, flange)
-    nominal = load_chain(truth["nominal_urdf"], base, flange)
-    inl = read_artefact(out / "inliers.parquet", "inliers")
-    q = workspace_poses(inl[truth["joint_names"]].to_numpy(), 500, np.random.default_rng(seed))
-    p_true = np.array(truth["p_vt_flange"])
-    after = pin_accuracy(calibrated, np.zeros(3), true_chain, p_true, q)
-    before = pin_accuracy(nominal, p_true, true_chain, p_true, q)
-    best = summary["best_model"]
-    model_summary = summary.get("models", {}).get(best, summary)
+    judged = judge_run(out, truth, 500, seed)
+    summary, best, model_summary = judged["summary"], judged["best"], judged["model_summary"]
+    after, before = judged["after"], judged["before"]
     cv = summary.get("crossval", {}).get("models", {}).get(best, {})
     return {
         "n_used": float(model_summary.get("n_used", np.nan)),

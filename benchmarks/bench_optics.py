@@ -75,8 +75,7 @@ def one_case(cell: str, effect: str, seed: int, work: str) -> dict[str, Any]:
     import pandas as pd
 
     from pipeline.artefacts import read_artefact
-    from pipeline.evaluate import pin_accuracy, workspace_poses
-    from pipeline.kinematics import load_chain
+    from pipeline.evaluate import judge_run
     from pipeline.orchestrator import RunConfig, run_pipeline
     from pipeline.sim.scenario import scenario_from_dict
     from pipeline.sim.simulator import write_recording
@@ -104,18 +103,9 @@ def one_case(cell: str, effect: str, seed: int, work: str) -> dict[str, Any]:
     t0 = time.perf_counter()
     run_pipeline(rec, out, RunConfig(report=False, overrides=overrides), until="crossval")
     t_run = time.perf_counter() - t0
-    summary = json.loads((out / "identify.json").read_text())
-    base, flange = truth["base_link"], truth["flange_link"]
-    calibrated = load_chain((out / "calibrated.urdf").read_text(), base, "virtual_pin")
-    true_chain = load_chain(truth["true_urdf"], base, flange)
-    nominal = load_chain(truth["nominal_urdf"], base, flange)
-    inl = read_artefact(out / "inliers.parquet", "inliers")
-    q = workspace_poses(inl[truth["joint_names"]].to_numpy(), 500, np.random.default_rng(seed))
-    p_true = np.array(truth["p_vt_flange"])
-    after = pin_accuracy(calibrated, np.zeros(3), true_chain, p_true, q)
-    before = pin_accuracy(nominal, p_true, true_chain, p_true, q)
-    best = summary["best_model"]
-    ms = summary.get("models", {}).get(best, summary)
+    judged = judge_run(out, truth, 500, seed)
+    best, ms = judged["best"], judged["model_summary"]
+    after, before, inl = judged["after"], judged["before"], judged["inliers"]
     # detector long-axis bias against the exact projected (printed) contour, converged captures
     det = read_artefact(out / "detections.parquet", "detections")
     imgs = pd.DataFrame(truth["images"])

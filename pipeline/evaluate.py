@@ -294,3 +294,42 @@ def synthetic_touchups(
     df["weight"] = 1.0
     df["converged"] = True
     return df, targets
+
+
+def judge_run(out: Any, truth: dict[str, Any], n_poses: int, seed: int) -> dict[str, Any]:
+    """A finished run folder judged against its simulation truth (``../shared/spec/outputs.md``).
+
+    The shipped ``calibrated.urdf`` (to ``virtual_pin``) and the nominal robot with the
+    true pin, each against the true robot over ``n_poses`` poses in the volume the
+    inlier touch-ups covered (:func:`workspace_poses`, seeded).
+
+    Returns
+    -------
+    dict: ``after`` / ``before`` (:func:`pin_accuracy` dicts), ``summary`` (identify.json),
+    ``best`` (the shipped model's name), ``model_summary`` (its own summary) and
+    ``inliers`` (the inliers artefact).
+    """
+    import json
+    from pathlib import Path
+
+    from pipeline.artefacts import read_artefact
+    from pipeline.kinematics import load_chain
+
+    folder = Path(out)
+    summary = json.loads((folder / "identify.json").read_text())
+    base, flange = truth["base_link"], truth["flange_link"]
+    calibrated = load_chain((folder / "calibrated.urdf").read_text(), base, "virtual_pin")
+    true_chain = load_chain(truth["true_urdf"], base, flange)
+    nominal = load_chain(truth["nominal_urdf"], base, flange)
+    inl = read_artefact(folder / "inliers.parquet", "inliers")
+    q = workspace_poses(inl[truth["joint_names"]].to_numpy(), n_poses, np.random.default_rng(seed))
+    p_true = np.array(truth["p_vt_flange"])
+    best = summary["best_model"]
+    return {
+        "after": pin_accuracy(calibrated, np.zeros(3), true_chain, p_true, q),
+        "before": pin_accuracy(nominal, p_true, true_chain, p_true, q),
+        "summary": summary,
+        "best": best,
+        "model_summary": summary.get("models", {}).get(best, summary),
+        "inliers": inl,
+    }
