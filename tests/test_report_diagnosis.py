@@ -156,3 +156,19 @@ def test_a_large_mean_size_correction_is_warned_about() -> None:
     tu["dz_flange"] = 1e-4
     rows, warn = size_correction_rows(tu)
     assert rows[0]["status"] == "ok" and not warn
+
+
+def test_clipped_edges_say_how_much_they_were_corrected() -> None:
+    from pipeline.report.diagnosis import clip_rows
+
+    det = pd.DataFrame(
+        {
+            "found": [True, True, True, False],
+            "clip_correction_px": [0.0, 0.31, 0.35, np.nan],
+        }
+    )
+    rows = clip_rows(det)
+    assert len(rows) == 1 and "2 of 3 detections" in rows[0]["found"]
+    assert "+0.330 px" in rows[0]["found"]
+    det["clip_correction_px"] = 0.0
+    assert clip_rows(det) == []

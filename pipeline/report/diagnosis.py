@@ -73,7 +73,9 @@ def _response_rows(cam: dict[str, Any]) -> tuple[list[dict[str, str]], list[str]
             f"{100 * sat:.0f} % of the pixels at the target's edge are saturated. A clipped plate "
             "(or target) level moves the halfway contour: every long axis reads short or long by "
             "the same amount (about 0.3 px at 45 % over-exposure: tenths of a millimetre of pin "
-            "depth) and no residual shows it. Record with a lower exposure."
+            "depth) and no residual shows it. Detection corrects it where the edge profile shows "
+            "the hidden level (see 'clipped edges'); the correction assumes a Gaussian edge. "
+            "Record with a lower exposure."
         )
     found = {
         "option": f"{resp} (given on the command line)",
@@ -113,6 +115,27 @@ def _corrected_rows(inl: pd.DataFrame | None) -> list[dict[str, str]]:
             f"{n} corrected by the residual correction and kept (their controller stopped "
             "outside the thresholds; see the touch-up notes)",
             "ok",
+        )
+    ]
+
+
+def clip_rows(det: pd.DataFrame | None) -> list[dict[str, str]]:
+    """What the clipped-edge correction did (detections' ``clip_correction_px``)."""
+    if det is None or "clip_correction_px" not in det or "found" not in det:
+        return []
+    c = pd.to_numeric(det.loc[det["found"].astype(bool), "clip_correction_px"], errors="coerce")
+    c = c[np.isfinite(c)]
+    n = int((c != 0).sum())
+    if not n:
+        return []
+    moved = c[c != 0]
+    return [
+        _row(
+            "clipped edges",
+            f"{n} of {len(c)} detections had a clipped bright level; their long axis was "
+            f"corrected by {moved.mean():+.3f} px on average ({moved.min():+.3f} to "
+            f"{moved.max():+.3f}) by a censored fit of the edge profile",
+            "warn",
         )
     ]
 
@@ -313,6 +336,7 @@ def camera_section(data: RunData) -> dict[str, Any]:
     cam = (data.recording or {}).get("camera") or {}
     model = (data.identify or {}).get("best_model")
     rows, warn = _response_rows(cam)
+    rows += clip_rows(data.detections)
     rows += _corrected_rows(data.inliers)
     more_rows, w_corr = size_correction_rows(data.touchups)
     rows += more_rows
