@@ -465,7 +465,7 @@ def crossval_and_choose(
     on held-out, not training, error. Used by ``vtcal run`` and ``vtcal identify``.
     """
     from pipeline.artefacts import write_artefact
-    from pipeline.stages import crossval
+    from pipeline.stages import crossval, identify
 
     P = run_paths(out)
     summary = json.loads(P["identify"].read_text())
@@ -484,9 +484,10 @@ def crossval_and_choose(
     candidate = out / f"calibrated_{chosen}.urdf"
     if chosen and chosen != summary.get("best_model") and candidate.exists():
         atomic_write_bytes(P["calibrated_urdf"], candidate.read_bytes())
+    if chosen and chosen in (summary.get("models") or {}):
+        # every top-level figure becomes the shipped model's (not the first-fitted one's)
+        summary = identify.shipped_summary(summary["models"], chosen)
     summary["crossval"] = result.summary
-    if chosen:
-        summary["best_model"] = chosen
     if result.summary.get("choice"):
         lines = [
             line

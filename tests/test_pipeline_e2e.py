@@ -77,6 +77,36 @@ def test_run_ships_the_model_with_the_smallest_held_out_error(sample_run: Path) 
     assert (sample_run / "run.rrd").stat().st_size > 10_000
 
 
+def test_every_top_level_figure_is_the_shipped_models(sample_run: Path) -> None:
+    """identify.json's top level is the shipped model's summary, not the first-fitted one's.
+
+    The sample ships ``mdh``; before, the top level (residual, predicted accuracy,
+    print shape, counts: what the report and the batch summary read) was ``full``'s.
+    """
+    summary = json.loads((sample_run / "identify.json").read_text())
+    best = summary["best_model"]
+    assert best != "full", "the sample must ship another model for this test to bite"
+    assert summary["model"] == best
+    own = summary["models"][best]
+    for key, value in own.items():
+        if key in ("headline",):
+            continue
+        assert summary[key] == value, (key, summary[key], value)
+    assert f"calibrated.urdf from model {best}" in summary["headline"]
+    # the batch summary reads the same figures
+    from types import SimpleNamespace
+
+    from pipeline.batch import _FIGURES_FLOAT, _FIGURES_INT, RecordingOutcome, _take_result
+
+    rec = RecordingOutcome(name="sample", recording=str(SAMPLE), run_dir=str(sample_run))
+    stage = SimpleNamespace(stage="identify", status="cached", seconds=0.0)
+    _take_result(rec, SimpleNamespace(stages=[stage], summary=summary))
+    assert rec.figures["model"] == best
+    for key in _FIGURES_INT + _FIGURES_FLOAT:
+        if isinstance(own.get(key), (int, float)):
+            assert rec.figures[key] == own[key], key
+
+
 def test_every_artefact_validates_and_records_its_inputs(sample_run: Path) -> None:
     for schema, name in STAGE_ARTEFACTS.items():
         df = read_artefact(sample_run / name, schema)

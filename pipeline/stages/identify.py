@@ -1393,18 +1393,33 @@ def write_outputs(
             p = out / f"calibrated_{n}.urdf"
             atomic_write_bytes(p, r.calibrated_urdf.encode())
             paths[f"calibrated_urdf_{n}"] = p
-    summary = dict(best.summary)
-    summary["models"] = {n: r.summary for n, r in many.items()}
-    summary["best_model"] = best.model
-    if len(many) > 1:
-        summary["headline"] = [
-            line for r in many.values() for line in r.summary["headline"][:1]
-        ] + [f"calibrated.urdf from model {best.model}", best.summary["headline"][-1]]
+    summary = shipped_summary({n: r.summary for n, r in many.items()}, best.model)
     atomic_write_bytes(
         paths["identify"],
         json.dumps(_finite(summary), indent=2, default=_json_default, allow_nan=False).encode(),
     )
     return paths
+
+
+def shipped_summary(models: dict[str, dict[str, Any]], shipped: str) -> dict[str, Any]:
+    """identify.json: the shipped model's own summary at the top, every model under ``models``.
+
+    Every top-level figure (residual, conditioning, predicted accuracy, counts) is
+    the shipped model's; other models' figures appear only under their names.
+    The headline: each model's first line, the shipped model, then the shipped
+    model's last line.
+    """
+    out = dict(models[shipped])
+    out["models"] = models
+    out["best_model"] = shipped
+    if len(models) > 1:
+        out["headline"] = [
+            line for m in models.values() for line in list(m.get("headline", []))[:1]
+        ] + [
+            f"calibrated.urdf from model {shipped}",
+            *list(models[shipped].get("headline", []))[-1:],
+        ]
+    return out
 
 
 def _finite(o: Any) -> Any:
