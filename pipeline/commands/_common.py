@@ -30,8 +30,43 @@ def set_option(fn: Callable[..., Any]) -> Callable[..., Any]:
         callback=_parse_set,
         metavar="KEY=VALUE",
         help="Override a key of the recording's `touchup` metadata "
-        "(target_diameter_m, designated_u, polarity, threshold_px, ...). Repeatable.",
+        "(target_diameter_m, designated_u, polarity, threshold_px, camera_response, ...), or "
+        "set a stage option as STAGE.OPTION=VALUE (e.g. identify.target_shape=none, "
+        "detect.clip_correction=false; stages: ingest, detect, touchups, outliers, identify, "
+        "crossval). Repeatable.",
     )(fn)
+
+
+#: the stages whose options ``--set STAGE.OPTION=VALUE`` reaches
+STAGE_OPTION_PREFIXES = ("ingest", "detect", "touchups", "outliers", "identify", "crossval")
+
+
+def _option_value(text: str) -> Any:
+    """``true``/``false`` -> bool, an int or float literal -> number, else the text."""
+    low = text.lower()
+    if low in ("true", "false"):
+        return low == "true"
+    for kind in (int, float):
+        try:
+            return kind(text)
+        except ValueError:
+            pass
+    return text
+
+
+def split_stage_options(
+    overrides: dict[str, str],
+) -> tuple[dict[str, str], dict[str, dict[str, Any]]]:
+    """``--set`` items: (metadata overrides, ``{stage: {option: value}}``)."""
+    meta: dict[str, str] = {}
+    stages: dict[str, dict[str, Any]] = {}
+    for key, val in overrides.items():
+        stage, dot, opt = key.partition(".")
+        if dot and stage in STAGE_OPTION_PREFIXES and opt:
+            stages.setdefault(stage, {})[opt] = _option_value(val)
+        else:
+            meta[key] = val
+    return meta, stages
 
 
 def distance_option(fn: Callable[..., Any]) -> Callable[..., Any]:

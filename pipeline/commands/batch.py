@@ -8,7 +8,7 @@ from typing import Any
 import click
 
 from pipeline.batch import EXECUTORS, BatchIncomplete, BatchResult, RecordingOutcome
-from pipeline.commands._common import distance_option, set_option
+from pipeline.commands._common import distance_option, set_option, split_stage_options
 from pipeline.errors import BadInput
 
 
@@ -127,9 +127,9 @@ def command(
     overrides = dict(overrides)
     if distance:
         overrides["known_distances"] = ";".join(distance)
-    stage_options: dict[str, dict[str, object]] = {}
+    overrides, stage_options = split_stage_options(overrides)
     if model:
-        stage_options["identify"] = {"model": model}
+        stage_options.setdefault("identify", {})["model"] = model
     cfg = RunConfig(overrides=overrides, stage_options=stage_options, report=not no_report)
 
     from rich.console import Console

@@ -6,7 +6,13 @@ from pathlib import Path
 
 import click
 
-from pipeline.commands._common import distance_option, echo_summary, progress_bars, set_option
+from pipeline.commands._common import (
+    distance_option,
+    echo_summary,
+    progress_bars,
+    set_option,
+    split_stage_options,
+)
 from pipeline.orchestrator import STAGES, RunConfig, run_pipeline
 
 
@@ -74,9 +80,9 @@ def command(
         overrides["flange_link"] = flange_link
     if distance:
         overrides["known_distances"] = ";".join(distance)
-    stage_options: dict[str, dict[str, object]] = {}
+    overrides, stage_options = split_stage_options(overrides)
     if model:
-        stage_options["identify"] = {"model": model}
+        stage_options.setdefault("identify", {})["model"] = model
     cfg = RunConfig(
         image_topic=image_topic,
         joint_topic=joint_topic,
