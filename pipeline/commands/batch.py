@@ -78,6 +78,12 @@ Examples:
 @distance_option
 @set_option
 @click.option("--no-report", is_flag=True, help="Skip report.html and run.rrd.")
+@click.option(
+    "--accept-implausible",
+    is_flag=True,
+    help="Identify even where an input contradicts the nominal robot (joint values outside "
+    "the URDF's limits, a known distance beyond the nominal robot's own error).",
+)
 @click.option("--quiet", "-q", is_flag=True, help="No progress bar, no per-recording lines.")
 def command(
     recordings: tuple[Path, ...],
@@ -93,6 +99,7 @@ def command(
     distance: tuple[str, ...],
     overrides: dict[str, str],
     no_report: bool,
+    accept_implausible: bool,
     quiet: bool,
 ) -> None:
     """Run every recording (RECORDINGS, or those of --manifest) through the pipeline.
@@ -130,6 +137,8 @@ def command(
     overrides, stage_options = split_stage_options(overrides)
     if model:
         stage_options.setdefault("identify", {})["model"] = model
+    if accept_implausible:
+        stage_options.setdefault("identify", {})["accept_implausible"] = True
     cfg = RunConfig(overrides=overrides, stage_options=stage_options, report=not no_report)
 
     from rich.console import Console

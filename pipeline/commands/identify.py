@@ -160,6 +160,13 @@ def _integer_target_ids(df: pd.DataFrame, cfg: Any) -> tuple[pd.DataFrame, Any]:
     type=click.Choice(["linear", "soft_l1", "huber", "cauchy", "arctan"]),
     help="Loss on the pin residuals (scipy least_squares).",
 )
+@click.option(
+    "--accept-implausible",
+    is_flag=True,
+    help="Identify even where an input contradicts the nominal robot (joint values outside "
+    "the URDF's limits, a known distance beyond the nominal robot's own error); the lines "
+    "are kept in identify.json as 'implausible'.",
+)
 def command(
     table: Path,
     urdf_path: Path,
@@ -171,6 +178,7 @@ def command(
     no_crossval: bool,
     no_report: bool,
     robust_loss: str,
+    accept_implausible: bool,
 ) -> None:
     """Identify kinematics from a touch-up table (CSV or Parquet).
 
@@ -198,7 +206,12 @@ def command(
             flange_link = f
             click.echo(f"flange link: {f} (inferred: end of the serial chain)")
     distances = [d for item in distance for d in parse_distances(item)]
-    cfg = IdentifyConfig(model=model, distances=distances, robust_loss=robust_loss)
+    cfg = IdentifyConfig(
+        model=model,
+        distances=distances,
+        robust_loss=robust_loss,
+        accept_implausible=accept_implausible,
+    )
     try:
         result = identify(df, urdf, base_link, flange_link, cfg)
     except BadInput as exc:
@@ -208,7 +221,12 @@ def command(
         if msg.startswith("URDF"):
             raise BadInput(f"{urdf_path}: {msg}") from exc
         raise
-    conf = {"model": model, "distances": distances, "robust_loss": robust_loss}
+    conf = {
+        "model": model,
+        "distances": distances,
+        "robust_loss": robust_loss,
+        "accept_implausible": accept_implausible,
+    }
     paths = write_outputs(result, out_dir, stage_config=conf, inputs={})
     written = [p.name for p in paths.values()]
     if not no_crossval:

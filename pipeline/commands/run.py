@@ -49,6 +49,12 @@ Examples:
 @click.option("--base-link", default=None, help="URDF base link (overrides the metadata).")
 @click.option("--flange-link", default=None, help="URDF flange link (overrides the metadata).")
 @click.option("--no-report", is_flag=True, help="Skip report.html and run.rrd.")
+@click.option(
+    "--accept-implausible",
+    is_flag=True,
+    help="Identify even where an input contradicts the nominal robot (joint values outside "
+    "the URDF's limits, a known distance beyond the nominal robot's own error).",
+)
 @click.option("--quiet", "-q", is_flag=True, help="No progress bars.")
 def command(
     recording: Path,
@@ -64,6 +70,7 @@ def command(
     base_link: str | None,
     flange_link: str | None,
     no_report: bool,
+    accept_implausible: bool,
     quiet: bool,
 ) -> None:
     """Calibrate from RECORDING (an MCAP file per shared/spec/recording.md).
@@ -83,6 +90,8 @@ def command(
     overrides, stage_options = split_stage_options(overrides)
     if model:
         stage_options.setdefault("identify", {})["model"] = model
+    if accept_implausible:
+        stage_options.setdefault("identify", {})["accept_implausible"] = True
     cfg = RunConfig(
         image_topic=image_topic,
         joint_topic=joint_topic,

@@ -110,6 +110,10 @@ class IdentifyConfig:
         fitted at p = 7.6e-4 and lost 5 % of shape accuracy; 20 um out-of-round prints
         give p ~ 1e-34.
     target_diameter_m : printed diameter, to state print errors in micrometres (else relative)
+    accept_implausible : identify even where :mod:`pipeline.stages.plausibility` finds an
+        input the nominal robot contradicts (joint values outside the URDF's limits, a
+        known distance off by more than the nominal robot's own error); the lines are
+        then kept in the summary as ``implausible``
     strict_distances : a known distance naming a target absent from the table is bad input
         (``vtcal identify``); False drops it with a note (``vtcal run``: the recording's
         metadata names every target of the cell, a truncated run may not have reached them all)
@@ -132,6 +136,7 @@ class IdentifyConfig:
     shape_alpha: float = 1e-4
     shape_min_touchups: int = 6
     target_diameter_m: float | None = None
+    accept_implausible: bool = False
 
 
 @dataclass
@@ -369,6 +374,15 @@ def _numeric_columns(df: pd.DataFrame, names: list[str]) -> pd.DataFrame:
             f"(row {i}); it must be unique per row"
         )
     return df
+
+
+def _implausible(chain: Chain, data: _Data) -> list[str]:
+    """The guardrails of :mod:`pipeline.stages.plausibility` on the used touch-ups."""
+    from pipeline.stages import plausibility as pl
+
+    return pl.joint_values(data.q, chain) + pl.known_distances(
+        chain, data.q, data.d, data.tk, data.K, data.sw, data.dist, data.target_labels
+    )
 
 
 def _refuse_early(data: _Data, source_rows: int) -> None:
@@ -922,6 +936,13 @@ def identify(
     chain = load_chain(urdf, base_link, flange_link)
     data = _prepare(touchups, chain, config)
     _refuse_early(data, len(touchups))
+    implausible = _implausible(chain, data)
+    if implausible and not config.accept_implausible:
+        raise CalibrationFailed(
+            "implausible input: "
+            + "; ".join(implausible)
+            + " (rerun with --accept-implausible if it is right)"
+        )
     if config.model == "all":
         results: dict[str, IdentifyResult] = {}
         errors: list[str] = []
@@ -934,6 +955,7 @@ def identify(
             raise CalibrationFailed("no error model could be identified: " + " | ".join(errors))
         for r in results.values():
             r.summary["other_models_failed"] = errors
+            r.summary["implausible"] = implausible
         return results
     if config.model == "auto":
         refusals: list[str] = []
@@ -948,9 +970,12 @@ def identify(
             )
             if refusals:
                 res.summary["headline"].insert(1, f"model auto -> {name}: " + refusals[0])
+            res.summary["implausible"] = implausible
             return res
         raise TooFewTouchups(" | ".join(refusals))
-    return _identify_one(config.model, chain, data, urdf, flange_link, config)
+    one = _identify_one(config.model, chain, data, urdf, flange_link, config)
+    one.summary["implausible"] = implausible
+    return one
 
 
 def _identify_one(

@@ -1,0 +1,118 @@
+"""Guardrails: plausible-looking wrong inputs are refused with one line, not fitted.
+
+Each case is seeded synthetic touch-ups of a perturbed LR Mate-like robot
+(the nominal robot 1-2 mm off) with one wrong input. Before the guardrails,
+each of them ended in a fit and a sub-0.1 mm residual claim.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from pipeline.errors import CalibrationFailed
+from pipeline.evaluate import perturbed_chain, random_deviations, synthetic_touchups
+from pipeline.kinematics import load_chain
+from pipeline.robots import builtin_urdf
+from pipeline.stages import plausibility as pl
+from pipeline.stages.identify import IdentifyConfig, identify
+
+PIN = np.array([0.0167, -0.0101, 0.2524])
+LRMATE_CENTRE = np.array([-0.73, 0.18, -0.45, 0.34, -0.57, -0.32])
+
+
+@pytest.fixture(scope="module")
+def cell():
+    urdf = builtin_urdf("lrmate")
+    nominal = load_chain(urdf, "base_link", "flange")
+    rng = np.random.default_rng(4)
+    true = perturbed_chain(nominal, random_deviations(nominal, rng))
+    table, targets = synthetic_touchups(
+        true, PIN, 3, 10, rng, noise_pin_m=10e-6, q_centre=LRMATE_CENTRE
+    )
+    d02 = float(np.linalg.norm(targets[0] - targets[2]))
+    return urdf, nominal, table, d02
+
+
+def _identify(cell, table=None, distance=None, accept=False):
+    urdf, _, t, d02 = cell
+    dist = [(0, 2, d02 if distance is None else distance)]
+    cfg = IdentifyConfig(model="full", distances=dist, accept_implausible=accept)
+    return identify(t if table is None else table, urdf, "base_link", "flange", cfg)
+
+
+def test_the_right_inputs_pass(cell):
+    res = _identify(cell)
+    assert res.summary["implausible"] == []
+
+
+def test_joint_values_in_degrees_are_refused(cell):
+    _, nominal, table, _ = cell
+    deg = table.copy()
+    deg[nominal.joint_names] = np.rad2deg(deg[nominal.joint_names].to_numpy())
+    with pytest.raises(CalibrationFailed, match="look like degrees") as exc:
+        _identify(cell, table=deg)
+    assert "--accept-implausible" in str(exc.value)
+    assert "\n" not in str(exc.value)
+
+
+def test_swapped_joint_columns_outside_the_limits_are_refused(cell):
+    _, nominal, table, _ = cell
+    sw = table.copy()
+    j = nominal.joint_names
+    sw[[j[1], j[4]]] = sw[[j[4], j[1]]].to_numpy() * 3.0  # swapped and scaled: beyond limits
+    lines = pl.joint_values(sw[j].to_numpy(), nominal)
+    assert lines and all("outside the URDF's limits" in line for line in lines), lines
+    assert all("check the joint columns" in line for line in lines), lines
+
+
+@pytest.mark.parametrize(
+    ("factor", "words"),
+    [(1000.0, "millimetres"), (1.034, "typo"), (0.95, "typo")],
+)
+def test_a_wrong_bar_length_is_refused(cell, factor, words):
+    _, _, _, d02 = cell
+    with pytest.raises(CalibrationFailed, match=words) as exc:
+        _identify(cell, distance=d02 * factor)
+    assert "ppm" in str(exc.value)
+
+
+def test_a_bar_within_the_nominal_robots_own_error_passes(cell):
+    _, _, _, d02 = cell
+    res = _identify(cell, distance=d02 * 1.002)  # 0.2 %: below what the nominal robot can tell
+    assert res.summary["implausible"] == []
+
+
+def test_accept_implausible_fits_and_keeps_the_lines(cell):
+    _, _, _, d02 = cell
+    res = _identify(cell, distance=d02 * 1.034, accept=True)
+    assert len(res.summary["implausible"]) == 1
+    assert "ppm" in res.summary["implausible"][0]
+
+
+def test_the_nominal_fit_is_exact_on_the_nominal_robot():
+    urdf = builtin_urdf("lrmate")
+    nominal = load_chain(urdf, "base_link", "flange")
+    rng = np.random.default_rng(1)
+    table, targets = synthetic_touchups(nominal, PIN, 3, 6, rng, q_centre=LRMATE_CENTRE)
+    q = table[nominal.joint_names].to_numpy()
+    tk = table["target_id"].to_numpy()
+    pin, tg, rms = pl.nominal_targets(nominal, q, np.zeros((len(q), 3)), tk, 3, np.ones(len(q)))
+    assert rms < 1e-9 and np.allclose(pin, PIN, atol=1e-9) and np.allclose(tg, targets, atol=1e-9)
+
+
+def test_the_cli_exits_3_with_one_line(cell, tmp_path, capsys):
+    from pipeline.cli import main
+
+    urdf, nominal, table, d02 = cell
+    csv = tmp_path / "t.csv"
+    table.to_csv(csv, index=False)
+    (tmp_path / "r.urdf").write_text(urdf)
+    args = ["identify", str(csv), "--urdf", str(tmp_path / "r.urdf"), "--out",
+            str(tmp_path / "o"), "--flange-link", "flange", "--base-link", "base_link",
+            "--distance", f"0:2={d02 * 1000:.3f}", "--no-report", "--no-crossval"]  # fmt: skip
+    with pytest.raises(SystemExit) as exc:
+        main(args)
+    assert exc.value.code == 3
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "millimetres" in err[0], err
