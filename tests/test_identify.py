@@ -135,7 +135,8 @@ def test_noisy_accuracy_and_covariance_prediction():
 
 
 def test_unused_rows_are_kept_with_reasons_and_string_labels():
-    urdf, nominal, true, table, _ = _case(seed=6, per_target=10)
+    urdf, nominal, true, table, targets = _case(seed=6, per_target=10)
+    d_ac = float(np.linalg.norm(targets[0] - targets[2]))
     table = table.copy()
     table["target_id"] = table["target_id"].map({0: "A", 1: "B", 2: "C"})
     table.loc[0, "converged"] = False
@@ -143,7 +144,7 @@ def test_unused_rows_are_kept_with_reasons_and_string_labels():
     table["inlier"] = True
     table.loc[2, "inlier"] = False
     table.loc[2, "reason"] = "knocked"
-    r = identify(table, urdf, "base_link", "flange", IdentifyConfig(distances=[("A", "C", 0.3)]))
+    r = identify(table, urdf, "base_link", "flange", IdentifyConfig(distances=[("A", "C", d_ac)]))
     res = r.residuals
     assert len(res) == len(table)
     assert res.loc[0, "reason"] == "not converged" and not res.loc[0, "used"]
