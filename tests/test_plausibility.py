@@ -9,27 +9,19 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from test_identify import LRMATE_CENTRE, PIN, _case
 
 from pipeline.errors import CalibrationFailed
-from pipeline.evaluate import perturbed_chain, random_deviations, synthetic_touchups
+from pipeline.evaluate import synthetic_touchups
 from pipeline.kinematics import load_chain
 from pipeline.robots import builtin_urdf
 from pipeline.stages import plausibility as pl
 from pipeline.stages.identify import IdentifyConfig, identify
 
-PIN = np.array([0.0167, -0.0101, 0.2524])
-LRMATE_CENTRE = np.array([-0.73, 0.18, -0.45, 0.34, -0.57, -0.32])
-
 
 @pytest.fixture(scope="module")
 def cell():
-    urdf = builtin_urdf("lrmate")
-    nominal = load_chain(urdf, "base_link", "flange")
-    rng = np.random.default_rng(4)
-    true = perturbed_chain(nominal, random_deviations(nominal, rng))
-    table, targets = synthetic_touchups(
-        true, PIN, 3, 10, rng, noise_pin_m=10e-6, q_centre=LRMATE_CENTRE
-    )
+    urdf, nominal, _, table, targets = _case(seed=4, per_target=10, noise_pin=10e-6)
     d02 = float(np.linalg.norm(targets[0] - targets[2]))
     return urdf, nominal, table, d02
 
