@@ -481,6 +481,12 @@ def crossval_and_choose(
         inputs=inputs,
     )
     chosen = result.chosen_model
+    choice = str(result.summary.get("choice") or "")
+    fitted = summary.get("models") or {}
+    if chosen and chosen not in fitted and len(fitted) == 1:
+        # one model asked for by a rule ('auto'): ship under the model it fitted
+        rule, chosen = chosen, next(iter(fitted))
+        choice = choice.replace(f": {rule},", f": {rule} (which fitted {chosen}),", 1)
     candidate = out / f"calibrated_{chosen}.urdf"
     if chosen and chosen != summary.get("best_model") and candidate.exists():
         atomic_write_bytes(P["calibrated_urdf"], candidate.read_bytes())
@@ -488,7 +494,7 @@ def crossval_and_choose(
         # every top-level figure becomes the shipped model's (not the first-fitted one's)
         summary = identify.shipped_summary(summary["models"], chosen)
     summary["crossval"] = result.summary
-    if result.summary.get("choice"):
+    if choice:
         lines = [
             line
             for line in summary.get("headline", [])
@@ -496,7 +502,7 @@ def crossval_and_choose(
         ]
         if chosen:
             lines.append(f"calibrated.urdf from model {chosen}")
-        summary["headline"] = [*lines, result.summary["choice"]]
+        summary["headline"] = [*lines, choice]
     write_json(P["identify"], summary)
     return result
 

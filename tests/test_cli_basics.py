@@ -74,3 +74,25 @@ def test_interrupt_inside_an_import_counts_as_an_interrupt() -> None:
         raise ValueError("a bug")
     except ValueError as exc:
         assert not _caused_by_interrupt(exc)
+
+
+def test_model_auto_ships_under_the_model_it_fitted(tmp_path) -> None:
+    """``--model auto`` said 'calibrated.urdf from model auto'; it names what auto fitted."""
+    import json
+
+    from test_identify import _case
+
+    urdf, _, _, table, _ = _case(seed=4, per_target=10, noise_pin=10e-6)
+    table.to_csv(tmp_path / "t.csv", index=False)
+    (tmp_path / "r.urdf").write_text(urdf)
+    res = CliRunner().invoke(
+        cli,
+        ["identify", str(tmp_path / "t.csv"), "--urdf", str(tmp_path / "r.urdf"),
+         "--out", str(tmp_path / "o"), "--model", "auto", "--no-report"],
+    )  # fmt: skip
+    assert res.exit_code == 0, res.output
+    summary = json.loads((tmp_path / "o" / "identify.json").read_text())
+    assert summary["best_model"] == summary["model"] == "full"
+    assert "calibrated.urdf from model full" in res.output
+    assert "from model auto" not in res.output
+    assert "auto (which fitted full)" in res.output
