@@ -540,3 +540,20 @@ def test_abort_after_ctrl_c_does_not_wait_for_a_stuck_worker() -> None:
     assert time.monotonic() - t0 < 10
     assert slot.executor is None
     assert not any(p.is_alive() for p in procs)
+
+
+def test_the_batch_table_is_not_clipped_off_a_terminal(pool_batch) -> None:
+    """Printed to a file or pipe, every row of the table is whole (rich clips to 80 columns)."""
+    import io
+
+    from pipeline.commands.batch import print_summary, summary_console
+
+    result = pool_batch[0] if isinstance(pool_batch, tuple) else pool_batch
+    buf = io.StringIO()
+    print_summary(summary_console(buf), result)
+    text = buf.getvalue()
+    assert "…" not in text, text
+    for o in result.outcomes:
+        row = next(line for line in text.splitlines() if o.name in line)
+        assert o.status in row, row  # the name and its status on one line, not wrapped
+    assert max(len(line) for line in text.splitlines()) > 80

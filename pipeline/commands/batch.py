@@ -141,9 +141,7 @@ def command(
         stage_options.setdefault("identify", {})["accept_implausible"] = True
     cfg = RunConfig(overrides=overrides, stage_options=stage_options, report=not no_report)
 
-    from rich.console import Console
-
-    console = Console(stderr=False)
+    console = summary_console()
     where = f"scheduler {scheduler}" if scheduler else f"{workers or default_workers()} worker(s)"
     if not quiet:
         console.print(f"batch: {len(items)} recording(s) -> {out} ({executor}, {where})")
@@ -247,6 +245,22 @@ def _fmt(v: Any, spec: str) -> str:
     if v is None or (isinstance(v, float) and v != v):
         return "-"
     return format(v, spec)
+
+
+#: width of the batch table when stdout is not a terminal (a file, a pipe, CI logs): wide
+#: enough that no column is clipped or wrapped (rich would take 80)
+OFF_TERMINAL_WIDTH = 400
+
+
+def summary_console(file: Any = None) -> Any:
+    """The console the batch prints to: the terminal's width, or unclipped off a terminal."""
+    import sys
+
+    from rich.console import Console
+
+    stream = file if file is not None else sys.stdout
+    tty = bool(getattr(stream, "isatty", lambda: False)())
+    return Console(file=file, width=None if tty else OFF_TERMINAL_WIDTH)
 
 
 def print_summary(console: Any, result: BatchResult) -> None:
