@@ -96,3 +96,22 @@ def test_model_auto_ships_under_the_model_it_fitted(tmp_path) -> None:
     assert "calibrated.urdf from model full" in res.output
     assert "from model auto" not in res.output
     assert "auto (which fitted full)" in res.output
+
+
+def test_a_truncation_warning_is_shown_when_the_run_then_fails(tmp_path) -> None:
+    """A truncated recording that leaves too few touch-ups: exit 3, and the warning says why."""
+    from pathlib import Path
+
+    sample = Path(__file__).resolve().parents[1] / "datasets" / "samples" / "sample_lrmate.mcap"
+    data = sample.read_bytes()
+    cut = tmp_path / "cut.mcap"
+    cut.write_bytes(data[: int(len(data) * 0.35)])
+    r = subprocess.run(
+        [sys.executable, "-m", "pipeline", "run", str(cut), "--out", str(tmp_path / "o"), "-q",
+         "--no-report"],
+        capture_output=True, text=True,
+    )  # fmt: skip
+    assert r.returncode == 3, r.stderr
+    lines = r.stderr.strip().splitlines()
+    assert any("truncated recording" in line for line in lines), lines
+    assert lines[-1].startswith("vtcal: error:"), lines

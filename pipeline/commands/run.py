@@ -100,12 +100,24 @@ def command(
         stage_options=stage_options,
         report=not no_report,
     )
-    with progress_bars(enabled=not quiet) as progress:
-        result = run_pipeline(recording, out, cfg, until=until, force=force, progress=progress)
+    try:
+        with progress_bars(enabled=not quiet) as progress:
+            result = run_pipeline(recording, out, cfg, until=until, force=force, progress=progress)
+    finally:
+        # ingest's warnings (truncation, skipped chunks, ...), one line each, also when a
+        # later stage failed: a truncated recording is often why it did
+        _echo_ingest_warnings(out)
     echo_summary(result)
-    rec_json = result.out_dir / "recording.json"
-    if rec_json.exists():  # ingest warnings (truncation, skipped chunks, ...): one line each
-        import json
 
-        for line in json.loads(rec_json.read_text()).get("warnings", []):
-            click.echo(f"vtcal: warning: {line}", err=True)
+
+def _echo_ingest_warnings(out: Path) -> None:
+    """The warnings of ``recording.json`` in ``out`` on stderr, one line each."""
+    import json
+
+    rec_json = out / "recording.json"
+    try:
+        lines = json.loads(rec_json.read_text()).get("warnings", []) if rec_json.exists() else []
+    except (OSError, ValueError):
+        return
+    for line in lines:
+        click.echo(f"vtcal: warning: {line}", err=True)
