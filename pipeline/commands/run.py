@@ -13,6 +13,7 @@ from pipeline.commands._common import (
     set_option,
     split_stage_options,
 )
+from pipeline.errors import VtcalError
 from pipeline.orchestrator import STAGES, RunConfig, run_pipeline
 
 
@@ -103,21 +104,25 @@ def command(
     try:
         with progress_bars(enabled=not quiet) as progress:
             result = run_pipeline(recording, out, cfg, until=until, force=force, progress=progress)
-    finally:
-        # ingest's warnings (truncation, skipped chunks, ...), one line each, also when a
-        # later stage failed: a truncated recording is often why it did
-        _echo_ingest_warnings(out)
+    except VtcalError as exc:
+        # still one line: ingest's warnings (a truncated recording is often why a later
+        # stage failed) go into the error line rather than before it
+        warnings = _ingest_warnings(out)
+        if not warnings:
+            raise
+        raise type(exc)(f"{exc} (ingest warned: {'; '.join(warnings)})") from exc
     echo_summary(result)
+    for line in _ingest_warnings(out):
+        click.echo(f"vtcal: warning: {line}", err=True)
 
 
-def _echo_ingest_warnings(out: Path) -> None:
-    """The warnings of ``recording.json`` in ``out`` on stderr, one line each."""
+def _ingest_warnings(out: Path) -> list[str]:
+    """The warnings of ``recording.json`` in ``out`` (truncation, skipped chunks, ...)."""
     import json
 
     rec_json = out / "recording.json"
     try:
-        lines = json.loads(rec_json.read_text()).get("warnings", []) if rec_json.exists() else []
+        data = json.loads(rec_json.read_text()) if rec_json.exists() else {}
     except (OSError, ValueError):
-        return
-    for line in lines:
-        click.echo(f"vtcal: warning: {line}", err=True)
+        return []
+    return [str(w) for w in data.get("warnings", [])]
