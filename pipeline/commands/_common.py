@@ -121,3 +121,8 @@ def echo_summary(result: Any) -> None:
     if s:
         for line in s.get("headline", []):
             click.echo(f"  {line}")
+        from pipeline.verdict import verdict
+
+        v = verdict(s)
+        if v is not None and v["validated_mm"] is not None:
+            click.echo(f"  {v['line']}")

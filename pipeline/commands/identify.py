@@ -254,4 +254,9 @@ def command(
     summary = json.loads((out_dir / "identify.json").read_text())
     for line in summary.get("headline", []):
         click.echo(line)
+    from pipeline.verdict import verdict
+
+    v = verdict(summary)
+    if v is not None and v["validated_mm"] is not None:
+        click.echo(v["line"])
     click.echo(f"wrote {', '.join(written)} to {out_dir}")

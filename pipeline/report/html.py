@@ -122,6 +122,15 @@ def _verdict(data: RunData) -> dict[str, Any]:
     else:
         scale_text = ""
     rpath = rec.get("path")
+    from pipeline.verdict import IMPROVED_BELOW, verdict
+
+    v = verdict(idf) or {}
+    validated = None
+    if v.get("validated_mm") is not None:
+        validated = (v["validated_mm"], v.get("validated_max_mm"), v["validated_how"])
+    base = before[0] if before else v.get("nominal_mm")
+    ratio = base / validated[0] if base and validated and validated[0] > 0 else None
+    improved = None if ratio is None else bool(validated[0] < IMPROVED_BELOW * base)  # type: ignore[index,operator]
     return {
         "robot": data.robot_name(),
         "recording": Path(rpath).name if rpath else NA,
@@ -130,8 +139,12 @@ def _verdict(data: RunData) -> dict[str, Any]:
         "date": data.date(),
         "model": chosen_model(data) or idf.get("error_model") or "",
         "before": before,
-        "after": after,
-        "ratio": (before[0] / after[0]) if before and after and after[0] > 0 else None,
+        "after": after,  # the shipped model's fit residual (training), shown as such
+        "validated": validated,
+        "predicted": v.get("predicted_mm"),
+        "ratio": ratio,
+        "improved": improved,
+        "improved_below": IMPROVED_BELOW,
         "figures": [
             {
                 "label": f.label,

@@ -1,0 +1,79 @@
+"""The verdict of a run: the validated error of the shipped model, against the nominal robot.
+
+A training residual is not an accuracy: it shrinks with every parameter fitted.
+The verdict's headline is therefore the shipped model's **held-out** error
+(k-fold cross-validation, ``crossval`` in identify.json). Without
+cross-validation it is the covariance-predicted shape error, labelled as such.
+It is compared with the nominal robot's error on the same touch-ups (the nominal
+kinematics with their best pin and targets, ``solver.initial_rms_mm``). A run is
+*improved* only when the validated error is below ``IMPROVED_BELOW`` times the
+nominal one. Otherwise it says "not improved", and nothing is shown green.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Any
+
+#: a validated error at or above this share of the nominal robot's is "not improved"
+IMPROVED_BELOW = 0.8
+
+
+def _num(v: Any) -> float | None:
+    return float(v) if isinstance(v, (int, float)) and math.isfinite(float(v)) else None
+
+
+def verdict(summary: dict[str, Any] | None) -> dict[str, Any] | None:
+    """Validated error, fit residual, nominal error and the improvement, from identify.json.
+
+    Returns
+    -------
+    None without a summary; else a dict: ``model``, ``validated_mm`` and ``validated_how``
+    (held-out k-fold, or predicted), ``validated_max_mm``, ``fit_mm`` (training residual),
+    ``predicted_mm``, ``nominal_mm``, ``ratio`` (nominal / validated), ``improved`` (bool or
+    None when unknown) and ``line`` (one sentence for the CLI).
+    """
+    if not summary:
+        return None
+    model = str(summary.get("best_model") or summary.get("model") or "")
+    cv = ((summary.get("crossval") or {}).get("models") or {}).get(model) or {}
+    held = _num(cv.get("kfold_rms_mm"))
+    pred = _num(summary.get("predicted_shape_rms_mm"))
+    if held is not None:
+        validated, vmax = held, _num(cv.get("kfold_max_mm"))
+        how = f"held-out (k-fold, {cv.get('kfold_n', '?')} touch-ups)"
+    elif pred is not None:
+        validated, vmax = pred, _num(summary.get("predicted_shape_max_mm"))
+        how = "predicted from the parameter covariance (not cross-validated)"
+    else:
+        validated, vmax, how = None, None, "not available"
+    nominal = _num((summary.get("solver") or {}).get("initial_rms_mm"))
+    ratio = nominal / validated if nominal and validated else None
+    improved = None if ratio is None else bool(validated < IMPROVED_BELOW * nominal)  # type: ignore[operator]
+    fit = _num(summary.get("rms_mm"))
+    if validated is None:
+        line = f"verdict: model {model}: no validated error (fit residual {fit} mm, training)"
+    else:
+        state = (
+            f"improved x{ratio:.1f} over the nominal robot's {nominal:.4f} mm"
+            if improved
+            else (
+                f"NOT improved: the nominal robot's error is {nominal:.4f} mm"
+                if improved is False
+                else "the nominal robot's error is unknown"
+            )
+        )
+        fit_text = f"; fit residual {fit:.4f} mm (training)" if fit is not None else ""
+        line = f"verdict: model {model}: {validated:.4f} mm RMS {how}; {state}{fit_text}"
+    return {
+        "model": model,
+        "validated_mm": validated,
+        "validated_max_mm": vmax,
+        "validated_how": how,
+        "fit_mm": fit,
+        "predicted_mm": pred,
+        "nominal_mm": nominal,
+        "ratio": ratio,
+        "improved": improved,
+        "line": line,
+    }

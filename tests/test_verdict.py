@@ -1,0 +1,89 @@
+"""The verdict: the shipped model's validated (held-out) error against the nominal robot's.
+
+The headline must not be a training residual, and a run whose validated error is not
+clearly below the nominal robot's must not show an improvement.
+"""
+
+from __future__ import annotations
+
+import json
+import shutil
+from pathlib import Path
+
+import pytest
+from click.testing import CliRunner
+
+from pipeline.cli import cli
+from pipeline.report.html import build_report
+from pipeline.verdict import IMPROVED_BELOW, verdict
+
+REPO = Path(__file__).resolve().parent.parent
+SAMPLE = REPO / "datasets" / "samples" / "sample_lrmate.mcap"
+
+
+def _summary(kfold=0.06, nominal=1.2, fit=0.013, pred=0.05):
+    return {
+        "best_model": "mdh",
+        "model": "mdh",
+        "rms_mm": fit,
+        "predicted_shape_rms_mm": pred,
+        "solver": {"initial_rms_mm": nominal},
+        "crossval": {
+            "models": {"mdh": {"kfold_rms_mm": kfold, "kfold_max_mm": 0.2, "kfold_n": 18}}
+        },  # fmt: skip
+    }
+
+
+def test_the_headline_is_the_held_out_error_not_the_fit():
+    v = verdict(_summary())
+    assert v["validated_mm"] == 0.06 and "held-out" in v["validated_how"]
+    assert v["fit_mm"] == 0.013 and v["improved"] is True
+    assert v["ratio"] == pytest.approx(20.0)
+    assert "0.0600 mm RMS held-out" in v["line"] and "(training)" in v["line"]
+
+
+def test_a_held_out_error_above_the_nominal_is_not_an_improvement():
+    v = verdict(_summary(kfold=1.5, nominal=1.2))
+    assert v["improved"] is False and "NOT improved" in v["line"]
+    # "clearly below": just under the nominal is not enough either
+    v = verdict(_summary(kfold=IMPROVED_BELOW * 1.2 * 1.01, nominal=1.2))
+    assert v["improved"] is False
+
+
+def test_without_crossval_the_prediction_is_named_as_such():
+    s = _summary()
+    del s["crossval"]
+    v = verdict(s)
+    assert v["validated_mm"] == 0.05 and "predicted" in v["validated_how"]
+    assert verdict(None) is None
+
+
+@pytest.fixture(scope="module")
+def sample_run(tmp_path_factory):
+    out = tmp_path_factory.mktemp("verdict") / "run"
+    res = CliRunner().invoke(cli, ["run", str(SAMPLE), "--out", str(out), "-q", "--no-report"])
+    assert res.exit_code == 0, res.output
+    assert "verdict: model" in res.output and "held-out" in res.output
+    return out
+
+
+def test_the_report_headline_is_validated(sample_run):
+    text = build_report(sample_run).read_text()
+    summary = json.loads((sample_run / "identify.json").read_text())
+    kfold = summary["crossval"]["models"][summary["best_model"]]["kfold_rms_mm"]
+    assert "RMS, validated" in text and f"{kfold:.3f}" in text
+    assert "fit residual (training, not an accuracy)" in text
+    assert "improvement" in text and "not improved" not in text
+
+
+def test_a_run_worse_than_nominal_shows_no_improvement(sample_run, tmp_path):
+    run = tmp_path / "run"
+    shutil.copytree(sample_run, run)
+    p = run / "identify.json"
+    summary = json.loads(p.read_text())
+    best = summary["best_model"]
+    summary["crossval"]["models"][best]["kfold_rms_mm"] = 50.0  # far beyond the nominal
+    p.write_text(json.dumps(summary))
+    text = build_report(run).read_text()
+    assert "not improved" in text
+    assert '<div class="card ratio">' not in text  # no green improvement card
