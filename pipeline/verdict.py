@@ -23,15 +23,23 @@ def _num(v: Any) -> float | None:
     return float(v) if isinstance(v, (int, float)) and math.isfinite(float(v)) else None
 
 
-def verdict(summary: dict[str, Any] | None) -> dict[str, Any] | None:
+def verdict(
+    summary: dict[str, Any] | None, tolerance_mm: float | None = None
+) -> dict[str, Any] | None:
     """Validated error, fit residual, nominal error and the improvement, from identify.json.
+
+    With ``tolerance_mm`` (``--tolerance-mm``, or the recording's ``tolerance_mm``
+    metadata key) the run PASSES when its validated error is at most the tolerance
+    and it improved on the nominal robot; it FAILS otherwise, also when nothing was
+    validated.
 
     Returns
     -------
     None without a summary; else a dict: ``model``, ``validated_mm`` and ``validated_how``
     (held-out k-fold, or predicted), ``validated_max_mm``, ``fit_mm`` (training residual),
     ``predicted_mm``, ``nominal_mm``, ``ratio`` (nominal / validated), ``improved`` (bool or
-    None when unknown) and ``line`` (one sentence for the CLI).
+    None when unknown), ``tolerance_mm``, ``passed`` (None without a tolerance) and
+    ``line`` (one sentence for the CLI).
     """
     if not summary:
         return None
@@ -65,7 +73,26 @@ def verdict(summary: dict[str, Any] | None) -> dict[str, Any] | None:
         )
         fit_text = f"; fit residual {fit:.4f} mm (training)" if fit is not None else ""
         line = f"verdict: model {model}: {validated:.4f} mm RMS {how}; {state}{fit_text}"
+    passed = None
+    if tolerance_mm is not None:
+        passed = bool(validated is not None and validated <= tolerance_mm and improved)
+        why = (
+            f"{validated:.4f} mm <= {tolerance_mm:g} mm"
+            if passed
+            else (
+                "nothing validated"
+                if validated is None
+                else (
+                    f"{validated:.4f} mm > {tolerance_mm:g} mm"
+                    if validated > tolerance_mm
+                    else "not improved on the nominal robot"
+                )
+            )
+        )
+        line += f" | {'PASS' if passed else 'FAIL'} ({why})"
     return {
+        "tolerance_mm": tolerance_mm,
+        "passed": passed,
         "model": model,
         "validated_mm": validated,
         "validated_max_mm": vmax,

@@ -87,3 +87,40 @@ def test_a_run_worse_than_nominal_shows_no_improvement(sample_run, tmp_path):
     text = build_report(run).read_text()
     assert "not improved" in text
     assert '<div class="card ratio">' not in text  # no green improvement card
+
+
+def test_a_tolerance_passes_or_fails_the_validated_error():
+    assert verdict(_summary(kfold=0.06), tolerance_mm=0.1)["passed"] is True
+    v = verdict(_summary(kfold=0.06), tolerance_mm=0.05)
+    assert v["passed"] is False and "FAIL (0.0600 mm > 0.05 mm)" in v["line"]
+    # within the tolerance but no better than the nominal robot: FAIL too
+    v = verdict(_summary(kfold=0.06, nominal=0.065), tolerance_mm=0.1)
+    assert v["passed"] is False and "not improved" in v["line"]
+    s = _summary()
+    del s["crossval"], s["predicted_shape_rms_mm"]
+    assert verdict(s, tolerance_mm=1.0)["passed"] is False  # nothing validated
+
+
+def test_the_cli_exits_3_on_fail_and_0_on_pass(sample_run):
+    from pipeline.errors import CalibrationFailed
+
+    args = ["run", str(SAMPLE), "--out", str(sample_run), "-q", "--no-report"]
+    res = CliRunner().invoke(cli, [*args, "--tolerance-mm", "0.001"])
+    assert isinstance(res.exception, CalibrationFailed), res.output  # exit 3 via main()
+    assert "verdict FAIL" in str(res.exception) and "| FAIL (" in res.output
+    res = CliRunner().invoke(cli, [*args, "--tolerance-mm", "1.0"])
+    assert res.exit_code == 0 and "| PASS (" in res.output, res.output
+
+
+def test_the_report_shows_pass_or_fail_from_the_metadata(sample_run, tmp_path):
+    run = tmp_path / "run"
+    shutil.copytree(sample_run, run)
+    p = run / "recording.json"
+    rec = json.loads(p.read_text())
+    rec.setdefault("metadata", {})["tolerance_mm"] = "0.001"
+    p.write_text(json.dumps(rec))
+    text = build_report(run).read_text()
+    assert "<b>FAIL</b>" in text and "0.001 mm" in text
+    rec["metadata"]["tolerance_mm"] = "1"
+    p.write_text(json.dumps(rec))
+    assert "<b>PASS</b>" in build_report(run).read_text()

@@ -111,8 +111,8 @@ def progress_bars(enabled: bool = True) -> Iterator[Callable[[str, int, int | No
         yield update
 
 
-def echo_summary(result: Any) -> None:
-    """Print what each stage did and where its files are."""
+def echo_summary(result: Any, tolerance_mm: float | None = None) -> dict[str, Any] | None:
+    """Print what each stage did, where its files are and the verdict; return the verdict."""
     click.echo(f"run folder: {result.out_dir}")
     for rec in result.stages:
         took = f"{rec.seconds:6.1f} s" if rec.status == "ran" else "      -"
@@ -123,6 +123,28 @@ def echo_summary(result: Any) -> None:
             click.echo(f"  {line}")
         from pipeline.verdict import verdict
 
-        v = verdict(s)
-        if v is not None and v["validated_mm"] is not None:
+        v = verdict(s, tolerance_mm)
+        if v is not None and (v["validated_mm"] is not None or tolerance_mm is not None):
             click.echo(f"  {v['line']}")
+        return v
+    return None
+
+
+def tolerance_option(fn: Callable[..., Any]) -> Callable[..., Any]:
+    """``--tolerance-mm T``: PASS / FAIL of the validated error, exit 3 on FAIL."""
+    return click.option(
+        "--tolerance-mm",
+        type=float,
+        default=None,
+        help="Accuracy the calibration must reach: PASS when the shipped model's validated "
+        "(held-out) RMS is at most this and it improved on the nominal robot, else FAIL and "
+        "exit 3. Default: the recording's tolerance_mm metadata key, if any.",
+    )(fn)
+
+
+def fail_on_verdict(v: dict[str, Any] | None) -> None:
+    """Raise :class:`CalibrationFailed` (exit 3) when a tolerance was given and not met."""
+    from pipeline.errors import CalibrationFailed
+
+    if v is not None and v.get("passed") is False:
+        raise CalibrationFailed("verdict FAIL: " + v["line"].split(" | FAIL ", 1)[-1].strip("()"))

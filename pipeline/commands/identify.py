@@ -20,7 +20,7 @@ from typing import Any
 import click
 import pandas as pd
 
-from pipeline.commands._common import distance_option
+from pipeline.commands._common import distance_option, fail_on_verdict, tolerance_option
 from pipeline.errors import BadInput
 
 
@@ -160,6 +160,7 @@ def _integer_target_ids(df: pd.DataFrame, cfg: Any) -> tuple[pd.DataFrame, Any]:
     type=click.Choice(["linear", "soft_l1", "huber", "cauchy", "arctan"]),
     help="Loss on the pin residuals (scipy least_squares).",
 )
+@tolerance_option
 @click.option(
     "--accept-implausible",
     is_flag=True,
@@ -179,6 +180,7 @@ def command(
     no_report: bool,
     robust_loss: str,
     accept_implausible: bool,
+    tolerance_mm: float | None,
 ) -> None:
     """Identify kinematics from a touch-up table (CSV or Parquet).
 
@@ -256,7 +258,8 @@ def command(
         click.echo(line)
     from pipeline.verdict import verdict
 
-    v = verdict(summary)
-    if v is not None and v["validated_mm"] is not None:
+    v = verdict(summary, tolerance_mm)
+    if v is not None and (v["validated_mm"] is not None or tolerance_mm is not None):
         click.echo(v["line"])
     click.echo(f"wrote {', '.join(written)} to {out_dir}")
+    fail_on_verdict(v)

@@ -9,9 +9,11 @@ import click
 from pipeline.commands._common import (
     distance_option,
     echo_summary,
+    fail_on_verdict,
     progress_bars,
     set_option,
     split_stage_options,
+    tolerance_option,
 )
 from pipeline.errors import VtcalError
 from pipeline.orchestrator import STAGES, RunConfig, run_pipeline
@@ -56,6 +58,7 @@ Examples:
     help="Identify even where an input contradicts the nominal robot (joint values outside "
     "the URDF's limits, a known distance beyond the nominal robot's own error).",
 )
+@tolerance_option
 @click.option("--quiet", "-q", is_flag=True, help="No progress bars.")
 def command(
     recording: Path,
@@ -72,6 +75,7 @@ def command(
     flange_link: str | None,
     no_report: bool,
     accept_implausible: bool,
+    tolerance_mm: float | None,
     quiet: bool,
 ) -> None:
     """Calibrate from RECORDING (an MCAP file per shared/spec/recording.md).
@@ -111,9 +115,24 @@ def command(
         if not warnings:
             raise
         raise type(exc)(f"{exc} (ingest warned: {'; '.join(warnings)})") from exc
-    echo_summary(result)
+    if tolerance_mm is None:
+        tolerance_mm = _metadata_tolerance(out)
+    v = echo_summary(result, tolerance_mm)
     for line in _ingest_warnings(out):
         click.echo(f"vtcal: warning: {line}", err=True)
+    fail_on_verdict(v)
+
+
+def _metadata_tolerance(out: Path) -> float | None:
+    """The recording's ``tolerance_mm`` metadata key (mm), if it holds a positive number."""
+    import json
+
+    try:
+        meta = json.loads((out / "recording.json").read_text()).get("metadata") or {}
+        t = float(meta.get("tolerance_mm", "nan"))
+    except (OSError, ValueError, TypeError):
+        return None
+    return t if t > 0 else None
 
 
 def _ingest_warnings(out: Path) -> list[str]:

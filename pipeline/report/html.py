@@ -124,7 +124,12 @@ def _verdict(data: RunData) -> dict[str, Any]:
     rpath = rec.get("path")
     from pipeline.verdict import IMPROVED_BELOW, verdict
 
-    v = verdict(idf) or {}
+    try:
+        tol: float | None = float(data.meta.get("tolerance_mm", "nan"))
+    except ValueError:
+        tol = None
+    tol = tol if tol is not None and tol > 0 else None  # NaN and <= 0: no tolerance
+    v = verdict(idf, tol) or {}
     validated = None
     if v.get("validated_mm") is not None:
         validated = (v["validated_mm"], v.get("validated_max_mm"), v["validated_how"])
@@ -145,6 +150,9 @@ def _verdict(data: RunData) -> dict[str, Any]:
         "ratio": ratio,
         "improved": improved,
         "improved_below": IMPROVED_BELOW,
+        "tolerance": tol,
+        "passed": v.get("passed"),
+        "verdict_line": v.get("line", ""),
         "figures": [
             {
                 "label": f.label,
