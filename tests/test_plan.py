@@ -231,6 +231,7 @@ def test_cli_plan_feeds_the_simulator(tmp_path: Path, capsys: pytest.CaptureFixt
         [
             "plan", "--urdf", "lrmate", "--targets", str(REPO / "datasets/targets/lrmate_cell.csv"),
             "--poses", "9", "--candidates", "150", "--pin", "0.03,0,0.25", "--out", str(out),
+            "--model", "offsets",  # 9 poses are too few for the full model (refused: rank)
         ],
     )  # fmt: skip
     assert r.exit_code == 0, r.output
@@ -259,3 +260,15 @@ def test_cli_plan_feeds_the_simulator(tmp_path: Path, capsys: pytest.CaptureFixt
               "--out", str(out)])  # fmt: skip
     assert exc.value.code == 2
     assert "targets file not found" in capsys.readouterr().err
+
+
+def test_a_rank_deficient_plan_is_refused_not_written(tmp_path: Path, capsys) -> None:
+    """5 poses for the full model: condition 2e17, and a 0.025 mm 'predicted error' before."""
+    out = tmp_path / "p5.parquet"
+    with pytest.raises(SystemExit) as exc:
+        main(["plan", "--urdf", "lrmate", "--targets", str(REPO / "datasets/targets/lrmate_cell.csv"),
+              "--poses", "5", "--candidates", "300", "--out", str(out)])  # fmt: skip
+    assert exc.value.code == 3
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "rank deficient" in err[0] and "plan more poses" in err[0], err
+    assert not out.exists()

@@ -44,6 +44,11 @@ def _summary_lines(s: dict[str, Any], out: Path) -> list[str]:
     ]
 
 
+#: a plan whose identification Jacobian is worse conditioned than this is refused (exit 3):
+#: well-planned cells give 1e3-1e4, a rank-deficient one 1e17
+MAX_PLAN_COND = 1e8
+
+
 @click.command("plan")
 @click.option("--urdf", required=True, help="Robot: URDF file, or built-in lrmate/ur5e/iiwa7.")
 @click.option(
@@ -147,6 +152,17 @@ def command(
     )
     if out.parent and not out.parent.exists():
         raise BadInput(f"{out}: folder {out.parent} does not exist")
+    cond = float(res.summary["indices_after"]["cond"])
+    if not cond < MAX_PLAN_COND:
+        from pipeline.errors import CalibrationFailed
+
+        raise CalibrationFailed(
+            f"{out}: not written: the {res.summary['n_poses']} planned poses leave the "
+            f"identification rank deficient (condition number {cond:.3g} > {MAX_PLAN_COND:g}; "
+            f"{res.summary['n_identifiable']} of {res.summary['n_params']} parameter directions "
+            "identifiable), so no predicted error would mean anything: plan more poses "
+            "(--poses) or a smaller error model (--model offsets)"
+        )
     write_artefact(
         out,
         res.table,
