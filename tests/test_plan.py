@@ -272,3 +272,38 @@ def test_a_rank_deficient_plan_is_refused_not_written(tmp_path: Path, capsys) ->
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "rank deficient" in err[0] and "plan more poses" in err[0], err
     assert not out.exists()
+
+
+def test_the_readme_plan_simulate_run_sequence_calibrates(tmp_path: Path, capsys) -> None:
+    """README: plan (with the standard cell's pin) -> simulate -> run ends in a calibration.
+
+    18 poses instead of the README's 36 to keep the test short. Without --pin the
+    planner's default pin is 69 mm from the cell's: simulate now refuses that plan
+    (before, 34 of 36 touch-ups were lost and the run ended in exit 3).
+    """
+    import re
+
+    readme = (REPO / "README.md").read_text()
+    pin = re.search(r"vtcal plan --urdf lrmate [^`]*--pin ([0-9.,-]+)", readme)
+    assert pin, "the README's plan example gives --pin"
+    plan = tmp_path / "plan.parquet"
+    targets = str(REPO / "datasets/targets/lrmate_cell.csv")
+    main(["plan", "--urdf", "lrmate", "--targets", targets, "--poses", "18",
+          "--pin", pin.group(1), "--out", str(plan)])  # fmt: skip
+    rec = tmp_path / "rec.mcap"
+    scen = str(REPO / "datasets/scenarios/standard.toml")
+    main(["simulate", "--scenario", scen, "--plan", str(plan), "--out", str(rec), "--quiet"])
+    main(["run", str(rec), "--out", str(tmp_path / "run"), "-q", "--no-report",
+          "--until", "identify"])  # fmt: skip
+    summary = json.loads((tmp_path / "run" / "identify.json").read_text())
+    assert summary["n_used"] >= 16, summary["n_used"]
+    # the planner's default pin: refused by simulate with one line naming the pin to use
+    bad = tmp_path / "default_pin.parquet"
+    main(["plan", "--urdf", "lrmate", "--targets", targets, "--poses", "18", "--out", str(bad)])
+    capsys.readouterr()
+    with pytest.raises(SystemExit) as exc:
+        main(["simulate", "--scenario", scen, "--plan", str(bad), "--out",
+              str(tmp_path / "x.mcap"), "--quiet"])  # fmt: skip
+    assert exc.value.code == 2
+    err = capsys.readouterr().err
+    assert "plan with --pin" in err and not (tmp_path / "x.mcap").exists()

@@ -375,6 +375,41 @@ def measuring_poses(sc: Scenario, cell: Cell, rng: np.random.Generator) -> list[
     return out
 
 
+#: a plan made for a pin farther than this from the cell's starts its touch-ups too far off:
+#: a third of the half field of view of the standard cells at their stand-off (17 mm off
+#: worked in docs/planner.md's example, 69 mm (the planner's default pin) lost 34 of 36)
+MAX_PLAN_PIN_OFFSET_M = 0.03
+
+
+def _check_plan_pin(path: Path, cell: Cell) -> None:
+    """Refuse a plan made (``vtcal plan --pin``) for another virtual pin than this cell's.
+
+    The planner puts the pin it was given on each target; the cell's camera puts its
+    own pin there. Farther apart than ``MAX_PLAN_PIN_OFFSET_M``, the touch-ups start
+    centimetres off and most are lost.
+    """
+    import json
+
+    import pyarrow.parquet as pq
+
+    try:
+        meta = pq.read_schema(path).metadata or {}
+        planned = json.loads(meta.get(b"vtcal.plan", b"{}")).get("config", {}).get("p_flange_pin")
+    except (OSError, ValueError):
+        return
+    if planned is None:
+        return  # a plan written by hand: nothing to compare
+    off = float(np.linalg.norm(np.asarray(planned, dtype=float) - cell.p_vt_flange))
+    if off > MAX_PLAN_PIN_OFFSET_M:
+        want = ",".join(f"{v:.3f}" for v in cell.p_vt_flange)
+        raise BadInput(
+            f"{path}: planned for a virtual pin at {[round(float(v), 4) for v in planned]} m in "
+            f"the flange frame, but this scenario's camera puts it at "
+            f"{[round(float(v), 4) for v in cell.p_vt_flange]} ({1e3 * off:.0f} mm away): every "
+            f"pose would miss its target; plan with --pin {want}"
+        )
+
+
 def _poses_from_plan(sc: Scenario, cell: Cell) -> list[tuple[int, F64]]:
     import pandas as pd
 
@@ -391,6 +426,7 @@ def _poses_from_plan(sc: Scenario, cell: Cell) -> list[tuple[int, F64]]:
     missing = [c for c in ["target_id", *names] if c not in df.columns]
     if missing:
         raise BadInput(f"{path}: plan lacks columns {missing} (needs target_id and {names})")
+    _check_plan_pin(path, cell)
     ids = {t.id for t in cell.targets}
     out = []
     for row in df.itertuples(index=False):
