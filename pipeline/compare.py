@@ -226,7 +226,11 @@ def compare_runs(run_dirs: list[Path], *, k_sigma: float = 3.0) -> CompareResult
     _drift(table, k_sigma)
     moved = table[table["moved"]].reset_index(drop=True)
     flags = []
+    others: list[str] = []  # models a run did not ship: listed, never the verdict
     for (run, model), g in moved.groupby(["run", "model"], sort=False):
+        if not bool(g["shipped"].iloc[0]):
+            others.append(f"{run} [{model}, not shipped]: {len(g)} parameter(s)")
+            continue
         items = ", ".join(
             f"{p} ({_fmt_delta(_num(d), str(u))}, {_num(ds):.1f} sigma)"
             for p, d, u, ds in g[["parameter", "delta", "unit", "delta_sigma"]].itertuples(
@@ -238,16 +242,35 @@ def compare_runs(run_dirs: list[Path], *, k_sigma: float = 3.0) -> CompareResult
             f"by more than {k_sigma:g} sigma: {items}"
         )
     runs_df = pd.DataFrame(run_rows)
+    compared = table[
+        table["shipped"].astype(bool) & np.isfinite(table["delta_sigma"].astype(float))
+    ]
+    if flags:
+        verdict = f"{len(flags)} run/model pair(s) with parameters that moved"
+    elif len(runs) < 2 or not len(compared):
+        hashes = set(table["nominal_hash"]) if len(table) else set()
+        why = (
+            "the runs have different nominal robots (URDFs), so each is its own baseline"
+            if len(hashes) > 1
+            else "no identifiable kinematic parameter of a shipped model has an uncertainty in "
+            "two runs"
+            if len(runs) >= 2
+            else "one run"
+        )
+        verdict = f"nothing compared: {why}"
+    else:
+        verdict = (
+            f"no parameter moved beyond its uncertainty between runs of the same robot "
+            f"({len(compared)} shipped-model parameter(s) compared)"
+        )
     summary = {
         "runs": names,
         "k_sigma": k_sigma,
         "robots": sorted(set(table["robot"])) if len(table) else [],
         "flags": flags,
-        "verdict": (
-            "no parameter moved beyond its uncertainty between runs of the same robot"
-            if not flags
-            else f"{len(flags)} run/model pair(s) with parameters that moved"
-        ),
+        "not_shipped_moved": others,
+        "n_compared": int(len(compared)),
+        "verdict": verdict,
     }
     return CompareResult(table=table, runs=runs_df, moved=moved, summary=summary)
 

@@ -105,3 +105,32 @@ def test_not_a_run_folder_is_one_line_bad_input(tmp_path: Path) -> None:
     with pytest.raises(BadInput) as exc:
         compare_runs([tmp_path / "empty"])
     assert "empty" in str(exc.value) and "\n" not in str(exc.value)
+
+
+def test_a_model_that_was_not_shipped_is_not_a_verdict(runs: dict[str, Path], tmp_path) -> None:
+    """Drift of a model a run did not ship is listed, not flagged (it flagged 7.5 sigma before)."""
+    import shutil
+
+    b = tmp_path / "b"
+    shutil.copytree(runs["b"], b)
+    s = json.loads((b / "identify.json").read_text())
+    s["best_model"] = "mdh"  # b shipped another model than the one whose parameters moved
+    (b / "identify.json").write_text(json.dumps(s))
+    res = compare_runs([runs["a1"], b])
+    assert res.summary["flags"] == []
+    assert res.summary["not_shipped_moved"] and "not shipped" in res.summary["not_shipped_moved"][0]
+    assert res.summary["verdict"].startswith("nothing compared")
+
+
+def test_different_nominal_robots_compare_nothing_and_say_so(runs: dict[str, Path], tmp_path):
+    """Every delta NaN (different nominal URDFs): not 'no parameter moved'."""
+    import shutil
+
+    other = tmp_path / "a2"
+    shutil.copytree(runs["a2"], other)
+    (other / "recording.json").write_text(json.dumps({"urdf": URDF.replace("lrmate", "lrmate_b")}))
+    res = compare_runs([runs["a1"], other])
+    assert res.summary["verdict"].startswith("nothing compared: the runs have different nominal")
+    same = compare_runs([runs["a1"], runs["a2"]])
+    assert same.summary["verdict"].startswith("no parameter moved")
+    assert same.summary["n_compared"] > 10
