@@ -1102,7 +1102,10 @@ def _identify_one(
 
     # -- tables
     calibrated = model.chain(x)
-    e_used = r[: 3 * N].reshape(N, 3) / data.sw[:, None]
+    # the pin-to-target distances themselves (residuals.parquet's), not the whitened
+    # residual vector the solver minimised: a fit residual in millimetres means a distance
+    p_used, _, _ = model.pin_and_jacobian(x, data.q, pin + data.d, jac=False)
+    e_used = p_used - tg[data.tk]
     norms_used = np.linalg.norm(e_used, axis=1)
     wsum = float(np.sum(data.sw**2))
     rms = float(np.sqrt(np.sum(norms_used**2 * data.sw**2) / wsum))
