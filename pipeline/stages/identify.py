@@ -69,6 +69,7 @@ from pipeline.kinematics.urdf_write import write_calibrated_urdf
 from pipeline.models import get_model, model_names
 from pipeline.models.base import ErrorModel
 from pipeline.models.observability import indices_from_singular_values, project_out
+from pipeline.stages.print_shape import SHAPE_COLUMNS
 
 DEFAULT_MODEL = "full"
 #: ``model="auto"`` tries these in order and keeps the first the touch-ups support
@@ -314,10 +315,6 @@ def _prepare(touchups: pd.DataFrame, chain: Chain, config: IdentifyConfig) -> _D
         shape_g=shape_g,
         shape_l=shape_l,
     )
-
-
-#: optional touch-up columns of the print-shape geometry (``pipeline/stages/touchup.py``)
-SHAPE_COLUMNS = ("view_gx", "view_gy", "view_gz", "axis_lx", "axis_ly", "axis_lz")
 
 
 #: rows beyond these are flagged, not fitted: a joint at 1000 rad (or m), a residual correction

@@ -83,6 +83,7 @@ import pandas as pd
 from scipy import stats
 
 from pipeline.kinematics.se3 import F64
+from pipeline.stages.print_shape import SHAPE_COLUMNS
 
 INLIER_COLUMNS = (
     "touchup_id",
@@ -94,9 +95,6 @@ INLIER_COLUMNS = (
     "converged",
     "stamp_ns",
 )
-#: the print-shape geometry of each touch-up, carried after the verdict columns
-#: (pipeline/stages/print_shape.py); NaN where the table has none
-SHAPE_COLUMNS = ("view_gx", "view_gy", "view_gz", "axis_lx", "axis_ly", "axis_lz")
 
 
 @dataclass

@@ -45,6 +45,10 @@ import numpy as np
 
 from pipeline.kinematics.se3 import F64
 
+#: the touch-up columns of each touch-up's print-shape geometry: the lever ``g`` and the
+#: long-axis direction ``l``, flange frame (``pipeline/stages/touchup.py``, view_geometry)
+SHAPE_COLUMNS = ("view_gx", "view_gy", "view_gz", "axis_lx", "axis_ly", "axis_lz")
+
 
 def plate_frames(
     l_base: F64, tk: np.ndarray, K: int, view_base: F64 | None = None
