@@ -822,9 +822,9 @@ def _unclip(img: np.ndarray, out: dict[str, Any], cfg: DetectConfig) -> dict[str
 
     The window around the ellipse (its semi-axis plus ``4 sigma + 3`` px) is linearised
     like the sub-pixel stage's and handed to
-    :func:`pipeline.stages.saturation.fit_clipped_edge`; the polarity is the levels'
-    (the darker side inside: dark on light). Nothing changes where no pixel of the
-    window is at the top code.
+    :func:`pipeline.stages.saturation.fit_clipped_edge`, which takes the polarity from
+    the levels (the darker side inside: dark on light). Nothing changes where no pixel
+    of the window is at the top code.
     """
     from pipeline.stages import saturation
 
@@ -849,14 +849,7 @@ def _unclip(img: np.ndarray, out: dict[str, Any], cfg: DetectConfig) -> dict[str
         roi = np.asarray(resp.linearise(raw), dtype=np.float64)
         clip = float(np.asarray(resp.linearise(np.array([[top]], dtype=img.dtype)))[0, 0])
     ell = (u, v, 0.5 * s, 0.5 * float(out["s_minor"]), float(out["angle"]))
-    d = saturation.signed_distance(
-        np.arange(u0, u1, dtype=float)[None, :], np.arange(v0, v1, dtype=float)[:, None], ell
-    )
-    inside, outside = roi[d < -1.0], roi[(d > 1.0) & (d < 4.0 * sig + 2.0)]
-    if inside.size < 5 or outside.size < 5:
-        return out
-    dark = float(np.median(inside)) < float(np.median(outside))
-    fit = saturation.fit_clipped_edge(roi, float(u0), float(v0), ell, sig, clip, dark)
+    fit = saturation.fit_clipped_edge(roi, float(u0), float(v0), ell, sig, clip, dark=None)
     if not fit.ok:
         return out
     out = dict(out)

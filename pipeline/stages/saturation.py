@@ -72,22 +72,18 @@ def clip_level(dtype: np.dtype) -> float | None:
     return None
 
 
-def signed_distance(
-    uu: np.ndarray, vv: np.ndarray, ellipse: tuple[float, float, float, float, float]
+def _signed_distance(
+    H: int, W: int, u0: float, v0: float, ellipse: tuple[float, float, float, float, float]
 ) -> np.ndarray:
-    """First-order signed distance (px, outward positive) of pixels to an ellipse.
+    """(H, W) first-order signed distance (px, outward) of a window's pixels to an ellipse.
 
-    ``ellipse = (u0, v0, a, b, theta)`` (semi-axes); ``(rho - 1) / |grad rho|`` with
-    ``rho`` the ellipse's normalised radius.
+    The detector's own :func:`pipeline.stages.detect._approx_distance`, on the pixel grid.
     """
-    u0, v0, a, b, th = ellipse
-    c, s = np.cos(th), np.sin(th)
-    du, dv = uu - u0, vv - v0
-    x = (c * du + s * dv) / a
-    y = (-s * du + c * dv) / b
-    rho = np.sqrt(x * x + y * y) + 1e-12
-    gx, gy = x / (a * rho), y / (b * rho)
-    return np.asarray((rho - 1.0) / np.sqrt(gx * gx + gy * gy))
+    from pipeline.stages.detect import _approx_distance
+
+    vv, uu = np.mgrid[0:H, 0:W]
+    pts = np.stack([uu.ravel() + u0, vv.ravel() + v0], axis=1).astype(np.float64)
+    return np.asarray(_approx_distance(pts, ellipse)).reshape(H, W)
 
 
 def fit_clipped_edge(
@@ -97,7 +93,7 @@ def fit_clipped_edge(
     ellipse: tuple[float, float, float, float, float],
     sigma_px: float,
     clip: float,
-    dark: bool = True,
+    dark: bool | None = True,
 ) -> ClipFit:
     """Fit (C1) censored at ``clip`` around ``ellipse`` (full-image px; ``roi`` from ``(u0, v0)``).
 
@@ -110,7 +106,8 @@ def fit_clipped_edge(
     clip : the top code on the same scale as ``roi``
     dark : dark target on a bright plate; False: a bright target on a dark plate, whose
         clipped level is the target's (the profile is read inwards, the contour then
-        lies outside the true one)
+        lies outside the true one); None: from the levels, the darker side inside (the
+        median more than 1 px inside against that from 1 px to ``4 sigma + 2`` px outside)
 
     Returns
     -------
@@ -119,9 +116,15 @@ def fit_clipped_edge(
     """
     none = ClipFit(0.0, float("nan"), float("nan"), float("nan"), 0.0, False)
     H, W = roi.shape
-    vv, uu = np.mgrid[0:H, 0:W]
+    d = _signed_distance(H, W, u0, v0, ellipse)
+    if dark is None:
+        inside = roi[d < -1.0]
+        outside = roi[(d > 1.0) & (d < 4.0 * sigma_px + 2.0)]
+        if inside.size < 5 or outside.size < 5:
+            return none
+        dark = float(np.median(inside)) < float(np.median(outside))
     # distance towards the bright side, where the clipped level is
-    d = signed_distance(uu + u0, vv + v0, ellipse) * (1.0 if dark else -1.0)
+    d = d if dark else -d
     sig0 = float(np.clip(sigma_px if np.isfinite(sigma_px) else 1.0, 0.3, 5.0))
     band = np.abs(d) < 4.0 * sig0 + 2.0
     g = roi[band].astype(np.float64)
