@@ -45,6 +45,7 @@ import numpy as np
 import pandas as pd
 from click.testing import CliRunner
 
+from pipeline.evaluate import fit_pin_and_targets
 from pipeline.kinematics import load_chain
 from pipeline.kinematics.chain import Chain, fk
 
@@ -98,15 +99,8 @@ def pin_points(chain: Chain, pin: np.ndarray, q: np.ndarray) -> np.ndarray:
 
 def refit_pin(chain: Chain, q: np.ndarray, socket_index: np.ndarray) -> np.ndarray:
     """Linear least squares of the pin and the sockets at fixed kinematics (no distance row)."""
-    T = fk(chain, q)
-    N, K = len(q), int(socket_index.max()) + 1
-    A = np.zeros((3 * N, 3 + 3 * K))
-    A[:, :3] = T[:, :3, :3].reshape(3 * N, 3)
-    rows = np.arange(3 * N).reshape(N, 3)
-    for c in range(3):
-        A[rows[:, c], 3 + 3 * socket_index + c] = -1.0
-    sol = np.linalg.lstsq(A, -T[:, :3, 3].ravel(), rcond=None)[0]
-    return np.asarray(sol[:3])
+    K = int(socket_index.max()) + 1
+    return fit_pin_and_targets(chain, q, np.zeros((len(q), 3)), socket_index, K)[0]
 
 
 def ball_pin(urdf: str) -> np.ndarray:

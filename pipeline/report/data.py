@@ -706,24 +706,16 @@ def nominal_fit(data: RunData) -> pd.DataFrame | None:
     q = data.joint_matrix(tu)
     if q is None or len(tu) < 2:
         return None
-    T = fk_frames(chain, q)[0]
-    R, t = T[:, :3, :3], T[:, :3, 3]
+    from pipeline.evaluate import fit_pin_and_targets
+
     d = np.zeros((len(tu), 3))
     cols = _first_cols(tu, [("dx_flange", "dy_flange", "dz_flange")])
     if cols is not None:
         d = np.nan_to_num(tu[list(cols)].to_numpy(dtype=float))
     ids = tu["target_id"].to_numpy()
     uniq = list(pd.unique(ids))
-    n, m = len(tu), len(uniq)
-    A = np.zeros((3 * n, 3 + 3 * m))
-    b = np.zeros(3 * n)
-    for i in range(n):
-        k = uniq.index(ids[i])
-        A[3 * i : 3 * i + 3, :3] = R[i]
-        A[3 * i : 3 * i + 3, 3 + 3 * k : 6 + 3 * k] = -np.eye(3)
-        b[3 * i : 3 * i + 3] = -(t[i] + R[i] @ d[i])
-    x = np.linalg.lstsq(A, b, rcond=None)[0]
-    r = (A @ x - b).reshape(n, 3)
+    tk = np.array([uniq.index(i) for i in ids], dtype=np.int64)
+    _, _, r = fit_pin_and_targets(chain, q, d, tk, len(uniq))
     return pd.DataFrame(
         {
             "touchup_id": tu["touchup_id"].to_numpy(),

@@ -31,7 +31,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from pipeline.kinematics.chain import Chain, fk
+from pipeline.evaluate import fit_pin_and_targets
+from pipeline.kinematics.chain import Chain
 from pipeline.kinematics.se3 import F64
 
 #: rad (or m for a prismatic joint) beyond a URDF limit that counts as implausible
@@ -79,29 +80,16 @@ def joint_values(q: F64, chain: Chain) -> list[str]:
 def nominal_targets(
     chain: Chain, q: F64, d: F64, tk: np.ndarray, K: int, sw: F64
 ) -> tuple[F64, F64, float]:
-    """Pin and targets at nominal kinematics (linear least squares) and the fit's RMS residual.
+    """Pin and targets at nominal kinematics and that fit's RMS residual (m).
 
-    ``p_base = R(q_i) (p_pin + d_i) + t(q_i) = c_k``: unknowns ``p_pin`` (3) and
-    ``c_k`` (3 K), rows weighted by ``sw``.
+    :func:`pipeline.evaluate.fit_pin_and_targets` with the nominal chain.
 
     Returns
     -------
     pin : (3,) ; targets : (K, 3) ; rms : m
     """
-    T = fk(chain, q)
-    R, t = T[:, :3, :3], T[:, :3, 3]
-    N = len(q)
-    A = np.zeros((3 * N, 3 + 3 * K))
-    A[:, :3] = R.reshape(3 * N, 3)
-    rows = np.arange(3 * N).reshape(N, 3)
-    for c in range(3):
-        A[rows[:, c], 3 + 3 * tk + c] = -1.0
-    b = -(t + np.einsum("nij,nj->ni", R, d)).ravel()
-    w = np.repeat(sw, 3)
-    sol = np.linalg.lstsq(A * w[:, None], b * w, rcond=None)[0]
-    r = (A @ sol - b).reshape(N, 3)
-    rms = float(np.sqrt(np.mean(np.sum(r**2, axis=1))))
-    return np.asarray(sol[:3]), np.asarray(sol[3:]).reshape(K, 3), rms
+    pin, targets, r = fit_pin_and_targets(chain, q, d, tk, K, sw)
+    return pin, targets, float(np.sqrt(np.mean(np.sum(r**2, axis=1))))
 
 
 def known_distances(
