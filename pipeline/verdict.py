@@ -23,15 +23,27 @@ def _num(v: Any) -> float | None:
     return float(v) if isinstance(v, (int, float)) and math.isfinite(float(v)) else None
 
 
+def tolerance_from_metadata(meta: dict[str, Any] | None) -> float | None:
+    """The recording's ``tolerance_mm`` metadata key (mm) if it holds a positive number."""
+    try:
+        t = float((meta or {}).get("tolerance_mm", "nan"))
+    except (TypeError, ValueError):
+        return None
+    return t if t > 0 else None  # NaN and <= 0: no tolerance
+
+
 def verdict(
-    summary: dict[str, Any] | None, tolerance_mm: float | None = None
+    summary: dict[str, Any] | None,
+    tolerance_mm: float | None = None,
+    nominal_mm: float | None = None,
 ) -> dict[str, Any] | None:
     """Validated error, fit residual, nominal error and the improvement, from identify.json.
 
     With ``tolerance_mm`` (``--tolerance-mm``, or the recording's ``tolerance_mm``
     metadata key) the run PASSES when its validated error is at most the tolerance
     and it improved on the nominal robot; it FAILS otherwise, also when nothing was
-    validated.
+    validated. ``nominal_mm``: the nominal robot's error where the caller measured it
+    (the report's nominal fit), else identify.json's ``solver.initial_rms_mm``.
 
     Returns
     -------
@@ -55,7 +67,11 @@ def verdict(
         how = "predicted from the parameter covariance (not cross-validated)"
     else:
         validated, vmax, how = None, None, "not available"
-    nominal = _num((summary.get("solver") or {}).get("initial_rms_mm"))
+    nominal = (
+        nominal_mm
+        if nominal_mm is not None
+        else _num((summary.get("solver") or {}).get("initial_rms_mm"))
+    )
     ratio = nominal / validated if nominal and validated else None
     improved = None if ratio is None else bool(validated < IMPROVED_BELOW * nominal)  # type: ignore[operator]
     fit = _num(summary.get("rms_mm"))

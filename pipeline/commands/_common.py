@@ -121,13 +121,20 @@ def echo_summary(result: Any, tolerance_mm: float | None = None) -> dict[str, An
     if s:
         for line in s.get("headline", []):
             click.echo(f"  {line}")
-        from pipeline.verdict import verdict
-
-        v = verdict(s, tolerance_mm)
-        if v is not None and (v["validated_mm"] is not None or tolerance_mm is not None):
-            click.echo(f"  {v['line']}")
-        return v
+        return echo_verdict(s, tolerance_mm, indent="  ")
     return None
+
+
+def echo_verdict(
+    summary: dict[str, Any], tolerance_mm: float | None, indent: str = ""
+) -> dict[str, Any] | None:
+    """Print the verdict line (when there is a validated error or a tolerance); return it."""
+    from pipeline.verdict import verdict
+
+    v = verdict(summary, tolerance_mm)
+    if v is not None and (v["validated_mm"] is not None or tolerance_mm is not None):
+        click.echo(f"{indent}{v['line']}")
+    return v
 
 
 def tolerance_option(fn: Callable[..., Any]) -> Callable[..., Any]:

@@ -20,7 +20,12 @@ from typing import Any
 import click
 import pandas as pd
 
-from pipeline.commands._common import distance_option, fail_on_verdict, tolerance_option
+from pipeline.commands._common import (
+    distance_option,
+    echo_verdict,
+    fail_on_verdict,
+    tolerance_option,
+)
 from pipeline.errors import BadInput
 
 
@@ -256,10 +261,6 @@ def command(
     summary = json.loads((out_dir / "identify.json").read_text())
     for line in summary.get("headline", []):
         click.echo(line)
-    from pipeline.verdict import verdict
-
-    v = verdict(summary, tolerance_mm)
-    if v is not None and (v["validated_mm"] is not None or tolerance_mm is not None):
-        click.echo(v["line"])
+    v = echo_verdict(summary, tolerance_mm)
     click.echo(f"wrote {', '.join(written)} to {out_dir}")
     fail_on_verdict(v)

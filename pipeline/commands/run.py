@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from pathlib import Path
+from typing import Any
 
 import click
 
@@ -17,6 +18,7 @@ from pipeline.commands._common import (
 )
 from pipeline.errors import VtcalError
 from pipeline.orchestrator import STAGES, RunConfig, run_pipeline
+from pipeline.verdict import tolerance_from_metadata
 
 
 @click.command(
@@ -111,37 +113,25 @@ def command(
     except VtcalError as exc:
         # still one line: ingest's warnings (a truncated recording is often why a later
         # stage failed) go into the error line rather than before it
-        warnings = _ingest_warnings(out)
+        warnings = _recording_json(out).get("warnings") or []
         if not warnings:
             raise
-        raise type(exc)(f"{exc} (ingest warned: {'; '.join(warnings)})") from exc
+        raise type(exc)(f"{exc} (ingest warned: {'; '.join(map(str, warnings))})") from exc
+    rec = _recording_json(out)
     if tolerance_mm is None:
-        tolerance_mm = _metadata_tolerance(out)
+        tolerance_mm = tolerance_from_metadata(rec.get("metadata"))
     v = echo_summary(result, tolerance_mm)
-    for line in _ingest_warnings(out):
+    for line in rec.get("warnings") or []:  # ingest's (truncation, skipped chunks, ...)
         click.echo(f"vtcal: warning: {line}", err=True)
     fail_on_verdict(v)
 
 
-def _metadata_tolerance(out: Path) -> float | None:
-    """The recording's ``tolerance_mm`` metadata key (mm), if it holds a positive number."""
+def _recording_json(out: Path) -> dict[str, Any]:
+    """``recording.json`` of the run folder ({} when absent or unreadable)."""
     import json
 
     try:
-        meta = json.loads((out / "recording.json").read_text()).get("metadata") or {}
-        t = float(meta.get("tolerance_mm", "nan"))
-    except (OSError, ValueError, TypeError):
-        return None
-    return t if t > 0 else None
-
-
-def _ingest_warnings(out: Path) -> list[str]:
-    """The warnings of ``recording.json`` in ``out`` (truncation, skipped chunks, ...)."""
-    import json
-
-    rec_json = out / "recording.json"
-    try:
-        data = json.loads(rec_json.read_text()) if rec_json.exists() else {}
+        data = json.loads((out / "recording.json").read_text())
     except (OSError, ValueError):
-        return []
-    return [str(w) for w in data.get("warnings", [])]
+        return {}
+    return data if isinstance(data, dict) else {}

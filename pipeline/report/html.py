@@ -122,20 +122,13 @@ def _verdict(data: RunData) -> dict[str, Any]:
     else:
         scale_text = ""
     rpath = rec.get("path")
-    from pipeline.verdict import IMPROVED_BELOW, verdict
+    from pipeline.verdict import IMPROVED_BELOW, tolerance_from_metadata, verdict
 
-    try:
-        tol: float | None = float(data.meta.get("tolerance_mm", "nan"))
-    except ValueError:
-        tol = None
-    tol = tol if tol is not None and tol > 0 else None  # NaN and <= 0: no tolerance
-    v = verdict(idf, tol) or {}
+    tol = tolerance_from_metadata(data.meta)
+    v = verdict(idf, tol, nominal_mm=before[0] if before else None) or {}
     validated = None
     if v.get("validated_mm") is not None:
         validated = (v["validated_mm"], v.get("validated_max_mm"), v["validated_how"])
-    base = before[0] if before else v.get("nominal_mm")
-    ratio = base / validated[0] if base and validated and validated[0] > 0 else None
-    improved = None if ratio is None else bool(validated[0] < IMPROVED_BELOW * base)  # type: ignore[index,operator]
     return {
         "robot": data.robot_name(),
         "recording": Path(rpath).name if rpath else NA,
@@ -147,8 +140,8 @@ def _verdict(data: RunData) -> dict[str, Any]:
         "after": after,  # the shipped model's fit residual (training), shown as such
         "validated": validated,
         "predicted": v.get("predicted_mm"),
-        "ratio": ratio,
-        "improved": improved,
+        "ratio": v.get("ratio"),
+        "improved": v.get("improved"),
         "improved_below": IMPROVED_BELOW,
         "tolerance": tol,
         "passed": v.get("passed"),
