@@ -205,6 +205,22 @@ def _footprint(xy: F64, ok: np.ndarray, floor: float) -> F64:
     return foot
 
 
+def _subsample_plane(
+    camera: CameraModel, T_camera_target: F64, centres: F64, subsamples: int, cell: float
+) -> tuple[F64, np.ndarray]:
+    """Plate coordinates of an ``n x n`` grid of points in each ``cell``-px square.
+
+    ``centres`` (M, 2) pixel centres; returns ``(M, n*n, 2)`` plate ``(x, y)`` and
+    ``(M, n*n)`` whether each ray meets the plate in front of the camera.
+    """
+    n = max(int(subsamples), 1)
+    off = cell * ((np.arange(n) + 0.5) / n - 0.5)
+    ou, ov = np.meshgrid(off, off)
+    sub = np.stack([ou.ravel(), ov.ravel()], axis=-1)  # (n*n, 2)
+    pts = centres[:, None, :] + sub[None, :, :]  # (M, n*n, 2)
+    return _plane_coords(camera, T_camera_target, camera.pixel_to_normalised(pts))
+
+
 def _coverage(
     camera: CameraModel,
     T_camera_target: F64,
@@ -232,13 +248,7 @@ def _coverage(
     band = np.abs(rho - radius) <= foot
     if not np.any(band):
         return cov
-    n = max(int(subsamples), 1)
-    off = cell * ((np.arange(n) + 0.5) / n - 0.5)
-    ou, ov = np.meshgrid(off, off)
-    sub = np.stack([ou.ravel(), ov.ravel()], axis=-1)  # (n*n, 2)
-    centres = uv_grid[band]  # (M, 2)
-    pts = centres[:, None, :] + sub[None, :, :]  # (M, n*n, 2)
-    sxy, sok = _plane_coords(camera, T_camera_target, camera.pixel_to_normalised(pts))
+    sxy, sok = _subsample_plane(camera, T_camera_target, uv_grid[band], subsamples, cell)
     inside = (np.hypot(sxy[..., 0] - centre[0], sxy[..., 1] - centre[1]) <= radius) & sok
     cov[band] = inside.mean(axis=1)
     return cov
@@ -265,12 +275,7 @@ def _coverage_shape(
     band = np.abs(rho - rb) <= foot * shape.band_factor()
     if not np.any(band):
         return cov
-    n = max(int(subsamples), 1)
-    off = cell * ((np.arange(n) + 0.5) / n - 0.5)
-    ou, ov = np.meshgrid(off, off)
-    sub = np.stack([ou.ravel(), ov.ravel()], axis=-1)
-    pts = uv_grid[band][:, None, :] + sub[None, :, :]
-    sxy, sok = _plane_coords(camera, T_camera_target, camera.pixel_to_normalised(pts))
+    sxy, sok = _subsample_plane(camera, T_camera_target, uv_grid[band], subsamples, cell)
     sdx = sxy[..., 0] - centre[0]
     sdy = sxy[..., 1] - centre[1]
     inside = (np.hypot(sdx, sdy) <= shape.radius_at(np.arctan2(sdy, sdx))) & sok
