@@ -36,7 +36,8 @@ from pathlib import Path
 from typing import Any
 
 from pipeline import __version__
-from pipeline.errors import BadInput
+from pipeline.code_key import stage_code_digest
+from pipeline.errors import BadInput, CalibrationFailed
 from pipeline.fileio import atomic_write_bytes, config_hash, file_hash
 from pipeline.known_distances import parse_distances
 
@@ -197,6 +198,17 @@ def _diameter(text: str | None) -> float | None:
     return d if math.isfinite(d) and d > 0 else None
 
 
+def _implied_diameter(touchups: Path) -> float | None:
+    """The image-implied target diameter the touch-up stage recorded (None if absent)."""
+    from pipeline.artefacts import read_meta
+
+    try:
+        value = float(read_meta(touchups).get("implied_target_diameter_m", "nan"))
+    except (OSError, ValueError):
+        return None
+    return value if math.isfinite(value) else None
+
+
 def run_pipeline(
     recording: Path,
     out: Path,
@@ -257,7 +269,7 @@ def run_pipeline(
     opts = cfg.stage_options
 
     def stage(name: str, outputs: list[Path], inputs: dict[str, str], conf: Any, fn: Any) -> None:
-        conf_dict = {"stage": name, "config": _jsonable(conf)}
+        conf_dict = {"stage": name, "config": _jsonable(conf), "code": stage_code_digest(name)}
         t0 = time.perf_counter()
         if not force and is_fresh(outputs, inputs, conf_dict):
             records.append(StageRecord(name, "cached", [p.name for p in outputs]))
@@ -319,6 +331,12 @@ def run_pipeline(
 
     info = ingest.RecordingInfo(**json.loads(P["recording"].read_text()))
     parse_distances(info.metadata.get("known_distances", ""))  # bad values fail now, not late
+    if info.implausible and not opts.get("identify", {}).get("accept_implausible", False):
+        raise CalibrationFailed(
+            f"{recording}: implausible input: "
+            + "; ".join(info.implausible)
+            + " (rerun with --accept-implausible if it is right)"
+        )
 
     # -- touch-up extraction ---------------------------------------------------
     touchup_cfg = _build(touchup.TouchupConfig, opts.get("touchups", {}))
@@ -328,8 +346,15 @@ def run_pipeline(
         frames = read_artefact(P["frames"], "frames")
         detections = read_artefact(P["detections"], "detections")
         table = touchup.extract_touchups(frames, detections, info, touchup_cfg)
+        implied = table.attrs.get("implied_target_diameter_m", float("nan"))
         write_artefact(
-            P["touchups"], table, "touchups", stage="touchups", config=conf, inputs=tu_inputs
+            P["touchups"],
+            table,
+            "touchups",
+            stage="touchups",
+            config=conf,
+            inputs=tu_inputs,
+            extra_meta={"implied_target_diameter_m": repr(float(implied))},
         )
 
     stage("touchups", [P["touchups"]], tu_inputs, touchup_cfg, do_touchups)
@@ -359,6 +384,7 @@ def run_pipeline(
         distances=parse_distances(info.metadata.get("known_distances", "")),
         strict_distances=False,  # a truncated recording may not reach every target
         target_diameter_m=_diameter(info.metadata.get("target_diameter_m")),
+        implied_target_diameter_m=_implied_diameter(P["touchups"]),
     )
     id_inputs = hashes({"inliers": P["inliers"]})
 
@@ -419,6 +445,7 @@ def run_pipeline(
             )
         }
     )
+    report_inputs["code"] = stage_code_digest("report")  # the report's code is an input too
     previous = json.loads(P["run"].read_text()) if P["run"].exists() else {}
     if (
         not force
