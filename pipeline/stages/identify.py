@@ -111,6 +111,9 @@ class IdentifyConfig:
         fitted at p = 7.6e-4 and lost 5 % of shape accuracy; 20 um out-of-round prints
         give p ~ 1e-34.
     target_diameter_m : printed diameter, to state print errors in micrometres (else relative)
+    implied_target_diameter_m : the diameter the touch-up stage's image Jacobian implies
+        (:func:`pipeline.stages.touchup.diameter_from_jacobian`), checked against
+        ``target_diameter_m`` by the guardrails; None for a table without images
     accept_implausible : identify even where :mod:`pipeline.stages.plausibility` finds an
         input the nominal robot contradicts (joint values outside the URDF's limits, a
         known distance off by more than the nominal robot's own error); the lines are
@@ -137,6 +140,7 @@ class IdentifyConfig:
     shape_alpha: float = 1e-4
     shape_min_touchups: int = 6
     target_diameter_m: float | None = None
+    implied_target_diameter_m: float | None = None
     accept_implausible: bool = False
 
 
@@ -373,13 +377,33 @@ def _numeric_columns(df: pd.DataFrame, names: list[str]) -> pd.DataFrame:
     return df
 
 
-def _implausible(chain: Chain, data: _Data) -> list[str]:
+def _implausible(
+    chain: Chain,
+    data: _Data,
+    touchups: pd.DataFrame,
+    urdf: str,
+    base_link: str,
+    flange_link: str,
+    config: IdentifyConfig,
+) -> list[str]:
     """The guardrails of :mod:`pipeline.stages.plausibility` on the used touch-ups."""
+    from pipeline.kinematics.urdf import parse_urdf
     from pipeline.stages import plausibility as pl
 
-    return pl.joint_values(data.q, chain) + pl.known_distances(
+    limits = pl.joint_values(data.q, chain)
+    used = touchups.reset_index(drop=True).iloc[data.used_idx]
+    values = {
+        c: pd.to_numeric(used[c], errors="coerce").to_numpy(dtype=float)
+        for c in used.columns
+        if c not in chain.joint_names
+    }
+    lines = limits + pl.joints_outside_chain(values, parse_urdf(urdf), base_link, flange_link)
+    if not limits:  # joints outside their limits already explain a bad nominal fit
+        lines += pl.nominal_fit(chain, data.q, data.d, data.tk, data.K, data.sw)
+    lines += pl.known_distances(
         chain, data.q, data.d, data.tk, data.K, data.sw, data.dist, data.target_labels
     )
+    return lines + pl.target_diameter(config.target_diameter_m, config.implied_target_diameter_m)
 
 
 def _refuse_early(data: _Data, source_rows: int) -> None:
@@ -933,7 +957,7 @@ def identify(
     chain = load_chain(urdf, base_link, flange_link)
     data = _prepare(touchups, chain, config)
     _refuse_early(data, len(touchups))
-    implausible = _implausible(chain, data)
+    implausible = _implausible(chain, data, touchups, urdf, base_link, flange_link, config)
     if implausible and not config.accept_implausible:
         raise CalibrationFailed(
             "implausible input: "
