@@ -145,7 +145,8 @@ class RunConfig:
     ``overrides`` replace keys of the recording's ``touchup`` metadata
     (``base_link``, ``polarity``, ``known_distances``, ...). ``stage_options``
     holds per-stage keyword overrides for the stage config dataclasses
-    (``{"identify": {"model": "full"}}``).
+    (``{"identify": {"model": "full"}}``). ``tolerance_mm`` (``--tolerance-mm``) is
+    written to ``run.json`` and judged in the report's verdict (PASS / FAIL).
     """
 
     image_topic: str | None = None
@@ -154,6 +155,7 @@ class RunConfig:
     overrides: dict[str, str] = field(default_factory=dict)
     stage_options: dict[str, dict[str, Any]] = field(default_factory=dict)
     report: bool = True
+    tolerance_mm: float | None = None
 
 
 #: artefact name -> file name inside a run folder (``../shared/spec/outputs.md``)
@@ -446,6 +448,7 @@ def run_pipeline(
         }
     )
     report_inputs["code"] = stage_code_digest("report")  # the report's code is an input too
+    report_inputs["tolerance_mm"] = repr(cfg.tolerance_mm)  # the verdict it shows
     previous = json.loads(P["run"].read_text()) if P["run"].exists() else {}
     if (
         not force
@@ -460,7 +463,10 @@ def run_pipeline(
         from pipeline.report.rrd import build_rrd
 
         # the report shows the stage table: give it this run's, not the previous one
-        write_json(P["run"], {"version": __version__, "stages": records})
+        write_json(
+            P["run"],
+            {"version": __version__, "stages": records, "tolerance_mm": cfg.tolerance_mm},
+        )
 
         t0 = time.perf_counter()
         build_report(out)
@@ -469,7 +475,7 @@ def run_pipeline(
             StageRecord("report", "ran", ["report.html", "run.rrd"], time.perf_counter() - t0)
         )
     del pd
-    return _finish(out, P, records, report_inputs, fingerprint=fp)
+    return _finish(out, P, records, report_inputs, fingerprint=fp, tolerance_mm=cfg.tolerance_mm)
 
 
 def crossval_and_choose(
@@ -534,12 +540,12 @@ def crossval_and_choose(
     return result
 
 
-def render_outputs(out: Path) -> None:
+def render_outputs(out: Path, tolerance_mm: float | None = None) -> None:
     """``report.html`` and ``run.rrd`` from the artefacts in ``out`` alone."""
     from pipeline.report.html import build_report
     from pipeline.report.rrd import build_rrd
 
-    build_report(out)
+    build_report(out, tolerance_mm=tolerance_mm)
     build_rrd(out)
 
 
@@ -550,6 +556,7 @@ def _finish(
     report_inputs: dict[str, str] | None = None,
     *,
     fingerprint: dict[str, Any] | None = None,
+    tolerance_mm: float | None = None,
 ) -> RunResult:
     """Write ``run.json`` (what each stage did, and the run ledger's entry) and the result."""
     from pipeline import run_ledger
@@ -561,6 +568,7 @@ def _finish(
         "version": __version__,
         "stages": records,
         "report_inputs": report_inputs,
+        "tolerance_mm": tolerance_mm,
     }
     if fingerprint is not None:
         run[run_ledger.KEY] = run_ledger.entry(
@@ -594,6 +602,7 @@ def _from_ledger(out: Path, fp: dict[str, Any]) -> RunResult | None:
             "version": __version__,
             "stages": records,
             "report_inputs": run.get("report_inputs"),
+            "tolerance_mm": run.get("tolerance_mm"),
             run_ledger.KEY: run[run_ledger.KEY],
         }
         blob = json_bytes(now)

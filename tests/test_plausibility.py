@@ -18,7 +18,7 @@ from pipeline.evaluate import synthetic_touchups
 from pipeline.kinematics import load_chain
 from pipeline.robots import builtin_urdf
 from pipeline.stages import plausibility as pl
-from pipeline.stages.identify import IdentifyConfig, identify
+from pipeline.stages.identify import IdentifyConfig, conditioning_note, identify
 
 REPO = Path(__file__).resolve().parent.parent
 
@@ -226,3 +226,27 @@ def test_the_run_refuses_a_wrong_diameter_or_flange_link(tmp_path, capsys, args,
     assert exc.value.code == 3
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and needle in err[0], err
+
+
+@pytest.mark.parametrize(("spread", "weak"), [(0.35, False), (0.01, True)])
+def test_a_weakly_excited_identification_says_so_with_its_figure(spread, weak):
+    urdf = builtin_urdf("lrmate")
+    nominal = load_chain(urdf, "base_link", "flange")
+    rng = np.random.default_rng(2)
+    table, tg = synthetic_touchups(
+        nominal, PIN, 3, 12, rng, spread_rad=spread, centre_spread_rad=spread,
+        q_centre=LRMATE_CENTRE, noise_pin_m=5e-6,
+    )  # fmt: skip
+    d02 = float(np.linalg.norm(tg[0] - tg[2]))
+    res = identify(table, urdf, "base_link", "flange", IdentifyConfig(model="full", distances=[(0, 2, d02)]))  # fmt: skip
+    lines = [h for h in res.summary["headline"] if h.startswith("conditioning:")]
+    if weak:
+        assert len(lines) == 1 and "cond 4.01e+04 > 1e+04" in lines[0], res.summary["headline"]
+    else:
+        assert lines == [] and res.summary["conditioning_note"].startswith("every identifiable")
+
+
+def test_parameters_the_poses_do_not_excite_are_named():
+    note, weak = conditioning_note(["joint_6.theta", "joint_6.d"], 18, 900.0)
+    assert weak and "2 of 18 identifiable parameters are not excited" in note
+    assert "joint_6.theta" in note and "> 1e+04" not in note

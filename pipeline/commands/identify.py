@@ -257,7 +257,7 @@ def command(
     if not no_report:
         from pipeline.orchestrator import render_outputs
 
-        render_outputs(out_dir)
+        render_outputs(out_dir, tolerance_mm)
         written += ["report.html", "run.rrd"]
     summary = json.loads((out_dir / "identify.json").read_text())
     for line in summary.get("headline", []):

@@ -107,6 +107,7 @@ def command(
         overrides=overrides,
         stage_options=stage_options,
         report=not no_report,
+        tolerance_mm=tolerance_mm,
     )
     try:
         with progress_bars(enabled=not quiet) as progress:

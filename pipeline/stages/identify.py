@@ -1300,13 +1300,18 @@ def _identify_one(
         },
         "seconds": seconds,
     }
+    not_excited = [model.param_names[int(j)] for j in st.kept[h_loc]]
+    summary["conditioning_note"], weak = conditioning_note(
+        not_excited, int(r_struct), float(obs["cond"])
+    )
+    summary["not_excited"] = not_excited
     summary["headline"] = [
         f"identify [{name}]: {N} touch-ups, {K} targets, {len(kept)}/{P} parameters identified; "
         f"residual RMS {rms * 1e3:.4f} mm, covariance-predicted pin error RMS "
         f"{summary['predicted_shape_rms_mm']:.4f} mm (shape), "
         f"{summary['predicted_absolute_rms_mm']:.4f} mm (absolute); cond {obs['cond']:.3g}",
         "scale: " + summary["scale_note"],
-    ]
+    ] + (["conditioning: " + summary["conditioning_note"]] if weak else [])
     return IdentifyResult(
         model=name,
         parameters=parameters,
@@ -1317,6 +1322,43 @@ def _identify_one(
         chain=calibrated,
         p_flange_pin=pin,
         x=x,
+    )
+
+
+#: condition number of the scaled, reduced identification Jacobian above which a run warns
+COND_WARN = 1e4
+
+
+def conditioning_note(not_excited: list[str], n_structural: int, cond: float) -> tuple[str, bool]:
+    """What the identification's conditioning says, and whether it is a warning.
+
+    The touch-ups' own pivoted QR (``data_tol``) holds the structurally
+    identifiable parameters they fail to excite at nominal, so the fitted problem
+    stays solvable; what those parameters do to the robot is then simply not
+    calibrated. That, or a condition number above :data:`COND_WARN` (the
+    sample's 18 touch-ups give 800-1,200), is worth a line.
+
+    Parameters
+    ----------
+    not_excited : names of the structurally identifiable parameters held for lack of excitation
+    n_structural : number of structurally identifiable parameters
+    cond : condition number of the scaled identification Jacobian of the fitted parameters
+    """
+    if not not_excited and cond <= COND_WARN:
+        return f"every identifiable parameter excited (cond {cond:.3g})", False
+    parts = []
+    if not_excited:
+        names = ", ".join(not_excited[:6]) + (", ..." if len(not_excited) > 6 else "")
+        parts.append(
+            f"{len(not_excited)} of {n_structural} identifiable parameters are not excited by "
+            f"these touch-ups and stay at nominal ({names})"
+        )
+    if cond > COND_WARN:
+        parts.append(f"cond {cond:.3g} > {COND_WARN:.0e}")
+    return (
+        "; ".join(parts) + ": add touch-ups in more varied arm orientations (`vtcal plan` "
+        "chooses well-conditioned poses)",
+        True,
     )
 
 
