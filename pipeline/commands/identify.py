@@ -170,7 +170,8 @@ def _integer_target_ids(df: pd.DataFrame, cfg: Any) -> tuple[pd.DataFrame, Any]:
     "--accept-implausible",
     is_flag=True,
     help="Identify even where an input contradicts the nominal robot (joint values outside "
-    "the URDF's limits, a known distance beyond the nominal robot's own error); the lines "
+    "the URDF's limits, a nominal fit worse than 25 mm, a moving joint outside the chain, "
+    "a known distance beyond the nominal robot's own error); the lines "
     "are kept in identify.json as 'implausible'.",
 )
 def command(
@@ -256,7 +257,7 @@ def command(
     if not no_report:
         from pipeline.orchestrator import render_outputs
 
-        render_outputs(out_dir)
+        render_outputs(out_dir, tolerance_mm)
         written += ["report.html", "run.rrd"]
     summary = json.loads((out_dir / "identify.json").read_text())
     for line in summary.get("headline", []):
