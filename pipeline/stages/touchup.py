@@ -8,7 +8,11 @@ joint vector interpolated at each image stamp):
 1. **Segments.** Consecutive still captures whose flange poses differ by more
    than ``rot_split_rad`` in orientation or ``trans_split_m`` in position are
    separated by a large move: a new touch-up starts. (Probing shifts and loop
-   steps are small pure translations of the flange.) A capture taken while
+   steps are small pure translations of the flange.) A pure translation right
+   after a segment's first capture never splits: it is the loop's first step,
+   which can be long when the measuring pose was planned with the nominal robot
+   (33 mm on a planned standard cell, where splitting there made a one-capture
+   "touch-up" that took a target label of its own). A capture taken while
    moving joins the neighbouring still capture whose pose is nearer.
 2. **Probing and loop.** Inside a segment, the loop starts at the last
    capture that returns to the segment's first pose after leaving it (the
@@ -443,11 +447,17 @@ def extract_touchups(
         raise BadInput(f"{info.path}: every capture was taken while the arm moved")
     cur = 0
     seg[still_idx[0]] = 0
+    n_cur = 1  # still captures in the current segment
     for a, b in zip(still_idx[:-1], still_idx[1:], strict=True):
         ang, d = _rel(T[a], T[b])
-        if ang > config.rot_split_rad or np.linalg.norm(d) > config.trans_split_m:
+        # a pure translation after a lone first capture is the loop's first step, however
+        # long (a plan made with the nominal robot can start 30+ mm off)
+        far = np.linalg.norm(d) > config.trans_split_m and n_cur > 1
+        if ang > config.rot_split_rad or far:
             cur += 1
+            n_cur = 0
         seg[b] = cur
+        n_cur += 1
     for i in np.nonzero(~still)[0]:
         prev = still_idx[still_idx < i]
         nxt = still_idx[still_idx > i]
