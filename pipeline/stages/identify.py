@@ -153,6 +153,9 @@ class IdentifyResult:
     chain : calibrated chain, base link to flange link
     p_flange_pin : (3,) identified virtual pin, flange frame
     x : (P,) model parameters (held ones 0)
+    error_model : the fitted model: ``error_model.pin_and_jacobian(x, q, pin)`` predicts
+        the pin exactly, also where ``chain`` (the URDF's rigid kinematics) cannot
+        (a model with ``urdf_exact = False``)
     """
 
     model: str
@@ -164,6 +167,18 @@ class IdentifyResult:
     chain: Chain
     p_flange_pin: F64
     x: F64 = field(repr=False, default_factory=lambda: np.zeros(0))
+    error_model: ErrorModel | None = field(repr=False, default=None)
+
+    def predict(self, q: F64, d: F64) -> F64:
+        """Pin positions ``T_base_flange(q_i; x) (p_pin + d_i)`` of the fitted model, (N, 3)."""
+        pts = self.p_flange_pin[None, :] + d
+        if self.error_model is not None:
+            p, _, _ = self.error_model.pin_and_jacobian(self.x, q, pts, jac=False)
+            return p
+        from pipeline.kinematics.chain import fk
+
+        T = fk(self.chain, q)
+        return np.asarray(np.einsum("nij,nj->ni", T[:, :3, :3], pts) + T[:, :3, 3])
 
 
 # ----------------------------------------------------------------------------- input
@@ -575,7 +590,7 @@ def _structure(
     _, J = prob.full_eval(model.zero(), p_c, tg)
     assert J is not None
     Lc = float(np.sqrt(np.mean(np.sum(tg**2, axis=1))))
-    pscale = np.where(np.array(model.param_units) == "rad", Lc, 1.0)
+    pscale = model.column_scale(Lc)
     prio = np.asarray(getattr(model, "param_priority", np.ones(P)), dtype=float)
     A = project_out(J[:, :P] * pscale, J[:, P:])
     kept, held, _ = _select(A * prio, tol)
@@ -990,14 +1005,13 @@ def _identify_one(
 
     # -- scaling and identifiability
     Lc = float(max(np.sqrt(np.mean(np.sum(tg0**2, axis=1))), 0.1))
-    units = np.array(model.param_units)
-    pscale = np.where(units == "rad", Lc, 1.0)  # column scale: J[:, j] * pscale[j]
+    pscale = model.column_scale(Lc)  # column scale: J[:, j] * pscale[j]
     st = _structure(
         name, urdf, chain.base_link, chain.tip_link, bool(data.dist), float(config.rank_tol)
     )
     if st.gauge is not None:
         # the gauge row is defined in the structure's scaling; x_scaled = x * pscale
-        g = st.gauge * np.where(units == "rad", st.length, 1.0)
+        g = st.gauge * model.column_scale(st.length)
         prob = _Problem(model, data, config, gauge=g / np.linalg.norm(g))
     r0, J0 = prob.full_eval(x0, pin0, tg0)
     e0 = r0[: 3 * N].reshape(N, 3) / data.sw[:, None]
@@ -1283,6 +1297,13 @@ def _identify_one(
         f"{summary['predicted_absolute_rms_mm']:.4f} mm (absolute); cond {obs['cond']:.3g}",
         "scale: " + summary["scale_note"],
     ]
+    if not model.urdf_exact:
+        summary["urdf_note"] = (
+            f"calibrated URDF of model {name}: its rigid part only (a URDF cannot carry its "
+            "configuration-dependent terms); the residuals and figures above are the whole "
+            "model's, its values are in parameters.parquet"
+        )
+        summary["headline"].insert(1, summary["urdf_note"])
     return IdentifyResult(
         model=name,
         parameters=parameters,
@@ -1293,6 +1314,7 @@ def _identify_one(
         chain=calibrated,
         p_flange_pin=pin,
         x=x,
+        error_model=model,
     )
 
 
@@ -1342,7 +1364,7 @@ def design_jacobian(
     tg = np.array([p[data.tk == k].mean(axis=0) for k in range(data.K)])
     st = _structure(model, urdf, base_link, flange_link, bool(dist), IdentifyConfig().rank_tol)
     Lc = float(max(np.sqrt(np.mean(np.sum(tg**2, axis=1))), 0.1))
-    pscale = np.where(np.array(m.param_units) == "rad", Lc, 1.0)
+    pscale = m.column_scale(Lc)
     prob = _Problem(m, data, IdentifyConfig())
     _, J = prob.full_eval(m.zero(), pin, tg)
     assert J is not None
