@@ -23,7 +23,10 @@ the nominal robot with the pin refitted on the training placement (linear
 least squares of the pin and the two sockets at fixed kinematics), MUKCa's
 calibrated URDF of the dataset with its own ``ball_joint`` pin and with the pin
 refitted the same way, and every vtcal model (``--model`` full, mdh, poe,
-offsets, each registered model, and the shipped default). Then the same with
+offsets, each registered model, and the shipped default). A model a URDF cannot
+carry (``elastic``) is judged by its own forward map with the values of its
+``parameters.parquet``, and its ``calibrated.urdf`` (the rigid part) alone on a
+second line. Then the same with
 TWO training placements (the named one and the one farthest from it), judged
 on the rest.
 

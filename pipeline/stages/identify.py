@@ -14,7 +14,7 @@ and ``B`` adds the residual ``w_D (|p_A - p_B| - D)`` with a strong weight
 Solver: Levenberg-Marquardt (MINPACK through ``scipy.optimize.least_squares``;
 TRF when a robust loss is asked for) with the analytic Jacobian of (1):
 ``d/dx`` from the model, ``d/dp_pin = R_base_flange``, ``d/dp_target = -I``.
-Radian parameters are scaled by the working radius ``L`` (``x_scale = 1/L``)
+Parameters are scaled by ``ErrorModel.column_scale`` (radians by the working radius ``L``, ``x_scale = 1/L``)
 so a radian and the metre it moves the pin by weigh alike. The pin and targets
 start from the exact linear least-squares solution of (1) at nominal kinematics.
 
@@ -86,7 +86,7 @@ class IdentifyConfig:
 
     Attributes
     ----------
-    model : error model name (``full``, ``mdh``, ``poe``, ``offsets``), ``all`` (fit each), or
+    model : error model name (``full``, ``mdh``, ``poe``, ``offsets``, ``elastic``), ``all`` (fit each), or
         ``auto`` (``full`` if the touch-ups suffice, else ``offsets``; the summary says which)
     distances : known distances ``(label A, label B, metres)`` between targets
     robust_loss : ``scipy.optimize.least_squares`` loss (``linear``, ``soft_l1``, ``huber``, ``cauchy``, ...)
