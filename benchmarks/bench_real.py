@@ -23,7 +23,10 @@ the nominal robot with the pin refitted on the training placement (linear
 least squares of the pin and the two sockets at fixed kinematics), MUKCa's
 calibrated URDF of the dataset with its own ``ball_joint`` pin and with the pin
 refitted the same way, and every vtcal model (``--model`` full, mdh, poe,
-offsets, each registered model, and the shipped default). Then the same with
+offsets, each registered model, and the shipped default). A model a URDF cannot
+carry (``elastic``) is judged by its own forward map with the values of its
+``parameters.parquet``, and its ``calibrated.urdf`` (the rigid part) alone on a
+second line. Then the same with
 TWO training placements (the named one and the one farthest from it), judged
 on the rest.
 
@@ -38,6 +41,7 @@ import argparse
 import tempfile
 import time
 import xml.etree.ElementTree as ET
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -136,10 +140,14 @@ class Judge:
         return refit_pin(chain, q, s)
 
     def __call__(self, chain: Chain, pin: np.ndarray) -> dict[str, Kpi]:
+        return self.predictor(lambda q: pin_points(chain, pin, q))
+
+    def predictor(self, predict: Callable[[np.ndarray], np.ndarray]) -> dict[str, Kpi]:
+        """KPIs of a pin predictor ``q (N, 7) -> (N, 3)`` on the held-out placements."""
         out = {}
         for p in self.test:
             q, s = self.sub(p)
-            out[p] = kpis(pin_points(chain, pin, q), s)
+            out[p] = kpis(predict(q), s)
         return out
 
 
@@ -150,11 +158,22 @@ def mean_kpi(per: dict[str, Kpi]) -> Kpi:
     )
 
 
+Predictor = Callable[[np.ndarray], np.ndarray]
+
+
 def vtcal_identify(
     df: pd.DataFrame, train: list[str], model: str, work: Path, extra: tuple[str, ...] = ()
-) -> tuple[Chain, float, str]:
-    """``vtcal identify`` on the training placements; the shipped chain to the virtual pin."""
+) -> tuple[Predictor, float, str]:
+    """``vtcal identify`` on the training placements; the pin predictor it delivers.
+
+    A model a URDF can carry is judged by the shipped ``calibrated.urdf`` (to the
+    virtual pin), as a URDF consumer uses it. One that it cannot (``elastic``) is
+    judged by its own forward map with the identified values of ``parameters.parquet``
+    (what a consumer of vtcal's model gets); its rigid part alone is also judged
+    (``MODEL urdf``) by the caller through ``calibrated.urdf``.
+    """
     from pipeline.cli import cli
+    from pipeline.models import get_model
 
     tag = "+".join(train) + "_" + model
     table = work / f"{tag}.csv"
@@ -186,8 +205,21 @@ def vtcal_identify(
     for line in res.output.splitlines():
         if line.startswith("calibrated.urdf from model"):
             shipped = line.split()[-1]
-    chain = load_chain((out / "calibrated.urdf").read_text(), BASE, "virtual_pin")
-    return chain, seconds, shipped or model
+    urdf_chain = load_chain((out / "calibrated.urdf").read_text(), BASE, "virtual_pin")
+    if model == "default" or get_model(model).urdf_exact:
+        return (lambda q: pin_points(urdf_chain, np.zeros(3), q)), seconds, shipped or model
+    params = pd.read_parquet(out / "parameters.parquet")
+    params = params[params["model"] == model]
+    em = get_model(model)(load_chain((DATA / "nominal_panda.urdf").read_text(), BASE, TCP))
+    value = dict(zip(params["name"], params["value"], strict=True))
+    x = np.array([value[n] for n in em.param_names])
+    pin = np.array([value[f"pin.{a}"] for a in "xyz"])
+
+    def predict(q: np.ndarray) -> np.ndarray:
+        return em.pin_and_jacobian(x, q, pin, jac=False)[0]
+
+    predict.urdf_chain = urdf_chain  # type: ignore[attr-defined]
+    return predict, seconds, model
 
 
 def farthest_placement(df: pd.DataFrame, first: str) -> str:
@@ -224,10 +256,13 @@ def evaluate(
     if "all" in models:
         names = ["default", *BASE_MODELS, *[m for m in model_names() if m not in BASE_MODELS]]
     for m in names:
-        chain, seconds, shipped = vtcal_identify(df, train, m, work)
+        predict, seconds, shipped = vtcal_identify(df, train, m, work)
         label = f"vtcal {m}" + (f" (-> {shipped})" if m == "default" else "")
-        rows[label] = judge(chain, np.zeros(3))
+        rows[label] = judge.predictor(predict)
         notes[label] = f"{seconds:.1f} s"
+        rigid = getattr(predict, "urdf_chain", None)
+        if rigid is not None:  # a model a URDF cannot carry: its calibrated.urdf alone too
+            rows[f"vtcal {m} (urdf only)"] = judge(rigid, np.zeros(3))
     return rows, notes
 
 

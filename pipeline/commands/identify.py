@@ -152,9 +152,10 @@ def _integer_target_ids(df: pd.DataFrame, cfg: Any) -> tuple[pd.DataFrame, Any]:
     "--model",
     default="all",
     show_default=True,
-    help="Error model: full, mdh, poe, offsets; 'all' fits each and ships the one with the "
-    "smallest held-out (cross-validated) error; 'auto' takes full if the touch-ups suffice, "
-    "else offsets (and says so).",
+    help="Error model: full, mdh, poe, offsets, elastic (joint compliance on the gravity "
+    "torque; its URDF holds the rigid part only); 'all' fits each and ships the one with the "
+    "smallest held-out (cross-validated) error among those a URDF can carry; 'auto' takes "
+    "full if the touch-ups suffice, else offsets (and says so).",
 )
 @click.option("--no-crossval", is_flag=True, help="Skip cross-validation (crossval.parquet).")
 @click.option("--no-report", is_flag=True, help="Skip report.html and run.rrd.")

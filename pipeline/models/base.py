@@ -133,6 +133,9 @@ class ErrorModel(ABC):
 
     name: str = ""
     description: str = ""
+    #: :meth:`origins` reproduce the model exactly (False: the model has
+    #: configuration-dependent terms a URDF cannot carry; never shipped as calibrated.urdf)
+    urdf_exact: bool = True
 
     def __init__(self, chain: Chain) -> None:
         self.nominal = chain
@@ -144,6 +147,15 @@ class ErrorModel(ABC):
     @property
     def n_params(self) -> int:
         return len(self.param_names)
+
+    def column_scale(self, length: float) -> F64:
+        """Roughly the metres a unit of each parameter moves the pin by, (P,).
+
+        Identification scales its Jacobian columns (and the solver's steps) by it so
+        every parameter weighs alike: ``length`` (the working radius) for radians,
+        1 for metres. Models with other units override it.
+        """
+        return np.where(np.array(self.param_units) == "rad", float(length), 1.0)
 
     def zero(self) -> F64:
         """The nominal robot's parameter vector (all corrections zero)."""

@@ -212,7 +212,7 @@ def build_design(
     pin = np.asarray(p_flange_pin, dtype=float)
     _, R, Jx = model.pin_and_jacobian(model.zero(), q, pin)
     assert Jx is not None
-    pscale = np.where(np.array(model.param_units) == "rad", length, 1.0)
+    pscale = model.column_scale(length)
     Js = Jx * pscale
     P = model.n_params
     full = Design(

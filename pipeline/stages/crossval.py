@@ -50,7 +50,7 @@ import numpy as np
 import pandas as pd
 
 from pipeline.errors import BadInput, CalibrationFailed
-from pipeline.kinematics.chain import fk, load_chain
+from pipeline.kinematics.chain import load_chain
 from pipeline.kinematics.se3 import F64
 from pipeline.stages.identify import IdentifyConfig, IdentifyResult, identify
 
@@ -109,10 +109,11 @@ def fold_assignment(targets: np.ndarray, k: int, rng: np.random.Generator) -> np
 
 
 def _predict(res: IdentifyResult, q: F64, d: F64) -> F64:
-    """Pin positions of the fitted model, ``T(q_i) (pin + d_i)`` -> (N, 3)."""
-    T = fk(res.chain, q)
-    pts = res.p_flange_pin[None, :] + d
-    return np.asarray(np.einsum("nij,nj->ni", T[:, :3, :3], pts) + T[:, :3, 3])
+    """Pin positions of the fitted model, ``T(q_i) (pin + d_i)`` -> (N, 3).
+
+    The model's own map (a model a URDF cannot carry, e.g. ``elastic``, is
+    judged as it predicts, not by its rigid part)."""
+    return res.predict(q, d)
 
 
 def _target_positions(targets: pd.DataFrame) -> dict[int, F64]:
@@ -308,7 +309,7 @@ def cross_validate(
 
     for m in models:
         mcfg = dataclasses.replace(base_cfg, model=m)
-        info: dict[str, Any] = {"k": k}
+        info: dict[str, Any] = {"k": k, "urdf_exact": _urdf_exact(m)}
         try:
             full = _fit(df, use, urdf, base_link, flange_link, mcfg)
             info["train_rms_mm"] = float(full.summary["rms_mm"])
@@ -382,11 +383,17 @@ def cross_validate(
             float(np.sqrt(max(kf**2 - nz**2, 0.0))) if np.isfinite(kf) and np.isfinite(nz) else kf
         )
     chosen, choice = _choose(summary_models)
+    scored = {
+        m: v["kfold_rms_mm"]
+        for m, v in summary_models.items()
+        if v.get("kfold_failed_folds", 1) == 0 and np.isfinite(v.get("kfold_rms_mm", math.nan))
+    }
     summary = {
         "k": k,
         "seed": config.seed,
         "models": summary_models,
         "chosen_model": chosen,
+        "best_predictor": min(scored, key=lambda m: scored[m]) if scored else None,
         "choice": choice,
         "note": (
             "held-out residual: pin position predicted by the kinematics and pin fitted "
@@ -411,13 +418,32 @@ def _strict(obj: Any) -> Any:
     return obj
 
 
+def _urdf_exact(name: str) -> bool:
+    """Whether the calibrated URDF of model ``name`` reproduces it (True for a rule like auto)."""
+    from pipeline.models import get_model
+
+    try:
+        return bool(get_model(name).urdf_exact)
+    except KeyError:
+        return True
+
+
 def _choose(models: dict[str, dict[str, Any]]) -> tuple[str | None, str]:
-    """Smallest k-fold RMS among completely cross-validated models (ties: fewer parameters)."""
-    ok = {
+    """Smallest k-fold RMS among completely cross-validated models (ties: fewer parameters).
+
+    A model whose URDF cannot carry it (``urdf_exact`` false, e.g. ``elastic``) is
+    never chosen over one whose URDF can: the chosen model becomes
+    ``calibrated.urdf``, and its rigid part alone may predict worse than a rigid
+    model. When it predicts best, the sentence says so, with both figures.
+    """
+    complete = {
         m: v
         for m, v in models.items()
         if v.get("kfold_failed_folds", 1) == 0 and np.isfinite(v.get("kfold_rms_mm", math.nan))
     }
+    exact = {m: v for m, v in complete.items() if v.get("urdf_exact", True)}
+    ok = exact or complete
+    best_any = min(complete, key=lambda m: complete[m]["kfold_rms_mm"]) if complete else None
     if not ok:
         return None, (
             "no error model could be cross-validated on every fold: none chosen by held-out "
@@ -444,4 +470,16 @@ def _choose(models: dict[str, dict[str, Any]]) -> tuple[str | None, str]:
                 )
     else:
         text += "; only one model was cross-validated"
+    if best_any is not None and best_any != chosen and not models[best_any].get("urdf_exact", True):
+        b = models[best_any]
+        text += (
+            f"; {best_any} predicts held-out touch-ups better ({b['kfold_rms_mm']:.4f} mm) but a "
+            "URDF cannot carry its configuration-dependent terms, so calibrated.urdf is "
+            f"{chosen}'s; {best_any}'s values are in parameters.parquet"
+        )
+    if not v.get("urdf_exact", True):
+        text += (
+            f"; calibrated.urdf holds only {chosen}'s rigid part (a URDF cannot carry the rest): "
+            "use its parameters.parquet values to predict as it does"
+        )
     return chosen, text

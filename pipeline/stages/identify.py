@@ -14,7 +14,7 @@ and ``B`` adds the residual ``w_D (|p_A - p_B| - D)`` with a strong weight
 Solver: Levenberg-Marquardt (MINPACK through ``scipy.optimize.least_squares``;
 TRF when a robust loss is asked for) with the analytic Jacobian of (1):
 ``d/dx`` from the model, ``d/dp_pin = R_base_flange``, ``d/dp_target = -I``.
-Radian parameters are scaled by the working radius ``L`` (``x_scale = 1/L``)
+Parameters are scaled by ``ErrorModel.column_scale`` (radians by the working radius ``L``, ``x_scale = 1/L``)
 so a radian and the metre it moves the pin by weigh alike. The pin and targets
 start from the exact linear least-squares solution of (1) at nominal kinematics.
 
@@ -86,7 +86,7 @@ class IdentifyConfig:
 
     Attributes
     ----------
-    model : error model name (``full``, ``mdh``, ``poe``, ``offsets``), ``all`` (fit each), or
+    model : error model name (``full``, ``mdh``, ``poe``, ``offsets``, ``elastic``), ``all`` (fit each), or
         ``auto`` (``full`` if the touch-ups suffice, else ``offsets``; the summary says which)
     distances : known distances ``(label A, label B, metres)`` between targets
     robust_loss : ``scipy.optimize.least_squares`` loss (``linear``, ``soft_l1``, ``huber``, ``cauchy``, ...)
@@ -157,6 +157,9 @@ class IdentifyResult:
     chain : calibrated chain, base link to flange link
     p_flange_pin : (3,) identified virtual pin, flange frame
     x : (P,) model parameters (held ones 0)
+    error_model : the fitted model: ``error_model.pin_and_jacobian(x, q, pin)`` predicts
+        the pin exactly, also where ``chain`` (the URDF's rigid kinematics) cannot
+        (a model with ``urdf_exact = False``)
     """
 
     model: str
@@ -168,6 +171,18 @@ class IdentifyResult:
     chain: Chain
     p_flange_pin: F64
     x: F64 = field(repr=False, default_factory=lambda: np.zeros(0))
+    error_model: ErrorModel | None = field(repr=False, default=None)
+
+    def predict(self, q: F64, d: F64) -> F64:
+        """Pin positions ``T_base_flange(q_i; x) (p_pin + d_i)`` of the fitted model, (N, 3)."""
+        pts = self.p_flange_pin[None, :] + d
+        if self.error_model is not None:
+            p, _, _ = self.error_model.pin_and_jacobian(self.x, q, pts, jac=False)
+            return p
+        from pipeline.kinematics.chain import fk
+
+        T = fk(self.chain, q)
+        return np.asarray(np.einsum("nij,nj->ni", T[:, :3, :3], pts) + T[:, :3, 3])
 
 
 # ----------------------------------------------------------------------------- input
@@ -599,7 +614,7 @@ def _structure(
     _, J = prob.full_eval(model.zero(), p_c, tg)
     assert J is not None
     Lc = float(np.sqrt(np.mean(np.sum(tg**2, axis=1))))
-    pscale = np.where(np.array(model.param_units) == "rad", Lc, 1.0)
+    pscale = model.column_scale(Lc)
     prio = np.asarray(getattr(model, "param_priority", np.ones(P)), dtype=float)
     A = project_out(J[:, :P] * pscale, J[:, P:])
     kept, held, _ = _select(A * prio, tol)
@@ -1014,14 +1029,13 @@ def _identify_one(
 
     # -- scaling and identifiability
     Lc = float(max(np.sqrt(np.mean(np.sum(tg0**2, axis=1))), 0.1))
-    units = np.array(model.param_units)
-    pscale = np.where(units == "rad", Lc, 1.0)  # column scale: J[:, j] * pscale[j]
+    pscale = model.column_scale(Lc)  # column scale: J[:, j] * pscale[j]
     st = _structure(
         name, urdf, chain.base_link, chain.tip_link, bool(data.dist), float(config.rank_tol)
     )
     if st.gauge is not None:
         # the gauge row is defined in the structure's scaling; x_scaled = x * pscale
-        g = st.gauge * np.where(units == "rad", st.length, 1.0)
+        g = st.gauge * model.column_scale(st.length)
         prob = _Problem(model, data, config, gauge=g / np.linalg.norm(g))
     r0, J0 = prob.full_eval(x0, pin0, tg0)
     e0 = r0[: 3 * N].reshape(N, 3) / data.sw[:, None]
@@ -1312,6 +1326,13 @@ def _identify_one(
         f"{summary['predicted_absolute_rms_mm']:.4f} mm (absolute); cond {obs['cond']:.3g}",
         "scale: " + summary["scale_note"],
     ] + (["conditioning: " + summary["conditioning_note"]] if weak else [])
+    if not model.urdf_exact:
+        summary["urdf_note"] = (
+            f"calibrated URDF of model {name}: its rigid part only (a URDF cannot carry its "
+            "configuration-dependent terms); the residuals and figures above are the whole "
+            "model's, its values are in parameters.parquet"
+        )
+        summary["headline"].insert(1, summary["urdf_note"])
     return IdentifyResult(
         model=name,
         parameters=parameters,
@@ -1322,6 +1343,7 @@ def _identify_one(
         chain=calibrated,
         p_flange_pin=pin,
         x=x,
+        error_model=model,
     )
 
 
@@ -1408,7 +1430,7 @@ def design_jacobian(
     tg = np.array([p[data.tk == k].mean(axis=0) for k in range(data.K)])
     st = _structure(model, urdf, base_link, flange_link, bool(dist), IdentifyConfig().rank_tol)
     Lc = float(max(np.sqrt(np.mean(np.sum(tg**2, axis=1))), 0.1))
-    pscale = np.where(np.array(m.param_units) == "rad", Lc, 1.0)
+    pscale = m.column_scale(Lc)
     prob = _Problem(m, data, IdentifyConfig())
     _, J = prob.full_eval(m.zero(), pin, tg)
     assert J is not None
