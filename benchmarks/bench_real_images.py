@@ -19,7 +19,7 @@ Per detector, in one run:
   the crop offset added back. Grey as vtcal's ingest makes it from colour
   (``cv2.cvtColor``, BT.601 weights).
 - **vtcal, response estimated**: the camera's response curve estimated from the
-  crops (:func:`pipeline.stages.response.estimate_response`), then detection on
+  crops (:func:`pipeline.stages.response_estimate.estimate_response`), then detection on
   linearised grey (``DetectConfig(response=...)``).
 
 Figures:
@@ -67,7 +67,7 @@ import cv2
 import numpy as np
 
 from pipeline.stages.detect import DetectConfig, conic_to_params, detect_target, fit_conic
-from pipeline.stages.response import estimate_response
+from pipeline.stages.response_estimate import estimate_response
 
 DATA = Path(__file__).resolve().parents[1] / "datasets" / "real" / "dots"
 ROWS = COLS = 10

@@ -1131,7 +1131,7 @@ def write_summary(
 ) -> Path:
     """Write ``out_dir/summary.parquet`` (schema ``batch_summary``); return its path."""
     from pipeline.artefacts import write_artefact
-    from pipeline.orchestrator import _jsonable
+    from pipeline.orchestrator import jsonable
 
     path = out_dir / "summary.parquet"
     write_artefact(
@@ -1139,7 +1139,7 @@ def write_summary(
         summary,
         "batch_summary",
         stage="batch",
-        config={"until": until, "force": force, "run": _jsonable(config)},
+        config={"until": until, "force": force, "run": jsonable(config)},
         inputs={},
         extra_meta={"recordings": json.dumps(list(summary["recording"]) if len(summary) else [])},
     )

@@ -36,6 +36,7 @@ from pathlib import Path
 from typing import Any
 
 from pipeline import __version__
+from pipeline.catalog import run_paths
 from pipeline.code_key import stage_code_digest
 from pipeline.errors import BadInput, CalibrationFailed
 from pipeline.fileio import atomic_write_bytes, config_hash, file_hash
@@ -67,22 +68,22 @@ class RunResult:
     summary: dict[str, Any]
 
 
-def _jsonable(obj: Any) -> Any:
+def jsonable(obj: Any) -> Any:
     """JSON form of configs and summaries; numpy arrays (bulk data) are left out."""
     np = sys.modules.get("numpy")  # not loaded: nothing here can be a numpy value
 
     if dataclasses.is_dataclass(obj) and not isinstance(obj, type):
         return {
-            f.name: _jsonable(getattr(obj, f.name))
+            f.name: jsonable(getattr(obj, f.name))
             for f in dataclasses.fields(obj)
             if np is None or not isinstance(getattr(obj, f.name), np.ndarray)
         }
     if np is not None and isinstance(obj, np.generic):
         return obj.item()
     if isinstance(obj, Mapping):
-        return {str(k): _jsonable(v) for k, v in obj.items()}
+        return {str(k): jsonable(v) for k, v in obj.items()}
     if isinstance(obj, (list, tuple)):
-        return [_jsonable(v) for v in obj]
+        return [jsonable(v) for v in obj]
     if isinstance(obj, Path):
         return str(obj)
     return obj
@@ -90,7 +91,7 @@ def _jsonable(obj: Any) -> Any:
 
 def json_bytes(obj: Any) -> bytes:
     """The bytes of a JSON side file (sorted keys, one-space indent: byte-stable)."""
-    return (json.dumps(_jsonable(obj), indent=1, sort_keys=True) + "\n").encode()
+    return (json.dumps(jsonable(obj), indent=1, sort_keys=True) + "\n").encode()
 
 
 def write_json(path: Path, obj: Any) -> None:
@@ -156,30 +157,6 @@ class RunConfig:
     stage_options: dict[str, dict[str, Any]] = field(default_factory=dict)
     report: bool = True
     tolerance_mm: float | None = None
-
-
-#: artefact name -> file name inside a run folder (``../shared/spec/outputs.md``)
-RUN_FILES = {
-    "recording": "recording.json",
-    "frames": "frames.parquet",
-    "detections": "detections.parquet",
-    "touchups": "touchups.parquet",
-    "inliers": "inliers.parquet",
-    "parameters": "parameters.parquet",
-    "residuals": "residuals.parquet",
-    "targets": "targets.parquet",
-    "calibrated_urdf": "calibrated.urdf",
-    "identify": "identify.json",
-    "crossval": "crossval.parquet",
-    "report": "report.html",
-    "rrd": "run.rrd",
-    "run": "run.json",
-}
-
-
-def run_paths(out: Path) -> dict[str, Path]:
-    """The files a run folder holds, as paths under ``out``."""
-    return {k: out / v for k, v in RUN_FILES.items()}
 
 
 def _build(cls: Any, options: Mapping[str, Any], **base: Any) -> Any:
@@ -271,7 +248,7 @@ def run_pipeline(
     opts = cfg.stage_options
 
     def stage(name: str, outputs: list[Path], inputs: dict[str, str], conf: Any, fn: Any) -> None:
-        conf_dict = {"stage": name, "config": _jsonable(conf), "code": stage_code_digest(name)}
+        conf_dict = {"stage": name, "config": jsonable(conf), "code": stage_code_digest(name)}
         t0 = time.perf_counter()
         if not force and is_fresh(outputs, inputs, conf_dict):
             records.append(StageRecord(name, "cached", [p.name for p in outputs]))

@@ -22,7 +22,7 @@ from pipeline.plan.design import build_design
 from pipeline.plan.ik import rotation_log, solve_ik_batch
 from pipeline.plan.order import order_visits, path_length, travel_costs
 from pipeline.plan.planner import PlanConfig, plan_poses
-from pipeline.plan.select import _State, criterion_value, select_poses
+from pipeline.plan.select import SelectionState, criterion_value, select_poses
 from pipeline.plan.targets import PlanTargets, read_targets, targets_from_frame
 from pipeline.robots import load_urdf
 
@@ -114,7 +114,7 @@ def test_rank3_update_equals_direct_schur_complement(small_design) -> None:  # t
     _, _, d = small_design
     rng = np.random.default_rng(0)
     sel = rng.choice(len(d), 15, replace=False).tolist()
-    st = _State(d, sel, 0.0)
+    st = SelectionState(d, sel, 0.0)
     cand = np.array([c for c in rng.choice(len(d), 6, replace=False) if c not in sel])
     At, C = st.update_terms(cand)
     gD = st.add_gains(cand, "O1")

@@ -10,7 +10,8 @@ from test_detect import pose
 from pipeline.sim.camera import CameraModel
 from pipeline.sim.render import projected_ellipse, render_ideal
 from pipeline.stages.detect import DetectConfig, detect_target
-from pipeline.stages.response import Response, estimate_response, parse_response
+from pipeline.stages.response import Response, parse_response
+from pipeline.stages.response_estimate import estimate_response
 
 CAM = CameraModel(fx=900.0, fy=900.0, cx=318.2, cy=256.9, k1=-0.05, k2=0.005)
 

@@ -10,7 +10,7 @@ from __future__ import annotations
 import importlib
 import pkgutil
 
-from pipeline.models.base import ErrorModel, get_model, model_names, register
+from pipeline.models.base import REGISTRY, ErrorModel, register
 
 _NOT_MODELS = {"base", "observability"}
 
@@ -19,3 +19,21 @@ for _info in pkgutil.iter_modules(__path__):
         importlib.import_module(f"{__name__}.{_info.name}")
 
 __all__ = ["ErrorModel", "get_model", "model_names", "register"]
+
+
+def model_names() -> list[str]:
+    """Registered model names, in registration order."""
+    return list(REGISTRY)
+
+
+def get_model(name: str) -> type[ErrorModel]:
+    """The model class registered as ``name``.
+
+    Raises
+    ------
+    KeyError
+        With the known names, if ``name`` is not registered.
+    """
+    if name not in REGISTRY:
+        raise KeyError(f"unknown error model {name!r}; known: {', '.join(REGISTRY)}")
+    return REGISTRY[name]

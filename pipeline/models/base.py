@@ -23,7 +23,8 @@ Li & Sastry 1994, ch. 2). Every parameter of every model is such a twist (or a
 sum of them), so each model only records the frames and twists of its factors.
 
 A new model is one new module in :mod:`pipeline.models` that subclasses
-:class:`ErrorModel` and decorates it with :func:`register`.
+:class:`ErrorModel` and decorates it with :func:`register`; the package imports
+every such module and answers ``get_model`` / ``model_names``.
 """
 
 from __future__ import annotations
@@ -38,37 +39,15 @@ from numpy.typing import ArrayLike
 from pipeline.kinematics.chain import Chain
 from pipeline.kinematics.se3 import F64
 
-_REGISTRY: dict[str, type[ErrorModel]] = {}
+REGISTRY: dict[str, type[ErrorModel]] = {}
 _I3 = np.eye(3)
 _I4 = np.eye(4)
 
 
 def register(cls: type[ErrorModel]) -> type[ErrorModel]:
     """Class decorator: make an error model available by its ``name``."""
-    _REGISTRY[cls.name] = cls
+    REGISTRY[cls.name] = cls
     return cls
-
-
-def model_names() -> list[str]:
-    """Registered model names, in registration order."""
-    import pipeline.models  # noqa: F401  (imports every model module)
-
-    return list(_REGISTRY)
-
-
-def get_model(name: str) -> type[ErrorModel]:
-    """The model class registered as ``name``.
-
-    Raises
-    ------
-    KeyError
-        With the known names, if ``name`` is not registered.
-    """
-    import pipeline.models  # noqa: F401
-
-    if name not in _REGISTRY:
-        raise KeyError(f"unknown error model {name!r}; known: {', '.join(_REGISTRY)}")
-    return _REGISTRY[name]
 
 
 @dataclass(frozen=True)

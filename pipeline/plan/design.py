@@ -159,13 +159,13 @@ class Design:
         ``dp(q) = [J_x(q) D V, R(q)] de`` with ``de ~ N(0, cov_e)``
         (:meth:`kinematic_covariance`), over the evaluation poses ``q_eval``, after the best
         similarity (shape) or rigid (absolute) registration, exactly as identification
-        predicts it (:func:`pipeline.stages.identify._predicted_errors`).
+        predicts it (:func:`pipeline.stages.identify.predicted_errors`).
 
         Returns
         -------
         dict ``shape_rms_m, shape_max_m, absolute_rms_m, absolute_max_m``
         """
-        from pipeline.stages.identify import _predicted_errors
+        from pipeline.stages.identify import predicted_errors
 
         cov = self.kinematic_covariance(idx, sigma_m)
         q_eval = np.asarray(q_eval, dtype=float)
@@ -174,7 +174,7 @@ class Design:
         Jwe = np.concatenate([(Jw * self.pscale) @ self.V, Rw], axis=2)
         out: dict[str, float] = {}
         for kind in ("shape", "absolute"):
-            e = _predicted_errors(Jwe, cov, pw, kind)
+            e = predicted_errors(Jwe, cov, pw, kind)
             out[f"{kind}_rms_m"] = float(np.sqrt(np.mean(e**2)))
             out[f"{kind}_max_m"] = float(e.max())
         return out

@@ -320,7 +320,7 @@ def _ensure_per_target(design: Design, chosen: np.ndarray, config: PlanConfig, K
     """Give every target at least ``min_per_target`` poses (one pose on a target tells nothing:
     its position absorbs it), swapping in the D-best candidates of a short target for the
     poses whose removal costs least. Usually a no-op: the criterion already spreads poses."""
-    from pipeline.plan.select import _removal_values, _State
+    from pipeline.plan.select import SelectionState, removal_values
 
     need = min(config.min_per_target, max(config.n_poses // K, 1))
     chosen = np.array(chosen, dtype=np.int64)
@@ -330,14 +330,14 @@ def _ensure_per_target(design: Design, chosen: np.ndarray, config: PlanConfig, K
         if short.size == 0:
             break
         k = int(short[0])
-        st = _State(design, chosen.tolist(), 1e-12)
+        st = SelectionState(design, chosen.tolist(), 1e-12)
         cand = np.flatnonzero((design.tk == k) & ~np.isin(np.arange(len(design)), chosen))
         if cand.size == 0:
             break
         a = int(cand[int(np.argmax(st.add_gains(cand, "O1")))])
         plus = np.append(chosen, a)
         M = design.information(plus)
-        rem = _removal_values(design, M, plus, "O1")
+        rem = removal_values(design, M, plus, "O1")
         movable = counts[design.tk[plus]] > need
         movable[-1] = False
         if not movable.any():

@@ -86,7 +86,7 @@ def criterion_value(S: F64, criterion: str) -> F64:
     raise ValueError(f"unknown criterion {criterion!r} (known: {', '.join(CRITERIA)})")
 
 
-class _State:
+class SelectionState:
     """Information of the current set and the quantities the rank-3 update needs."""
 
     def __init__(self, design: Design, chosen: list[int], delta: float) -> None:
@@ -140,7 +140,7 @@ class _State:
         return criterion_value(S1, criterion)
 
 
-def _removal_values(design: Design, M: F64, chosen: np.ndarray, criterion: str) -> F64:
+def removal_values(design: Design, M: F64, chosen: np.ndarray, criterion: str) -> F64:
     """Criterion of the set without each of its poses (exact, batched)."""
     A = design.rows(chosen)
     Mj = M[None] - np.swapaxes(A, 1, 2) @ A
@@ -175,7 +175,7 @@ def _exchange(
     """DETMAX exchanges of one pose from ``chosen`` until none improves ``criterion``."""
     free = allowed.copy()
     free[chosen] = False
-    st = _State(design, chosen, delta)
+    st = SelectionState(design, chosen, delta)
     value = float(criterion_value(design.schur(st.M), criterion))
     history: list[float] = []
     n_ex = 0
@@ -194,7 +194,7 @@ def _exchange(
             )
             a = int(short[int(np.argmax(st.added_values(short, criterion)))])
         plus = np.array(chosen + [a], dtype=np.int64)
-        rem = _removal_values(design, st.M + design.information([a]), plus, criterion)
+        rem = removal_values(design, st.M + design.information([a]), plus, criterion)
         j = int(np.argmax(rem))
         if plus[j] == a or not rem[j] > value + 1e-12 * max(abs(value), 1.0):
             break
@@ -205,7 +205,7 @@ def _exchange(
         value = float(rem[j])
         history.append(value)
         n_ex += 1
-        st = _State(design, chosen, delta)
+        st = SelectionState(design, chosen, delta)
     return chosen, value, n_ex, history
 
 

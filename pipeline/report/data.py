@@ -24,9 +24,9 @@ import pandas as pd
 import pyarrow.parquet as pq
 
 from pipeline.artefacts import SCHEMA_DIR, file_hash, read_artefact
+from pipeline.catalog import RUN_FILES
 from pipeline.kinematics.chain import Chain, fk_frames, load_chain
 from pipeline.kinematics.urdf import RobotDescription, parse_urdf
-from pipeline.orchestrator import RUN_FILES
 
 #: artefact name -> file name inside a run folder, by kind (names from the orchestrator)
 PARQUET = {k: v for k, v in RUN_FILES.items() if v.endswith(".parquet")}

@@ -49,6 +49,7 @@ import cv2
 import numpy as np
 from scipy.special import ndtr
 
+from pipeline.stages.ellipse_distance import approx_distance
 from pipeline.stages.response import Response, parse_response
 
 try:  # the compiled fine stage (same steps, loops compiled by numba)
@@ -95,7 +96,7 @@ class DetectConfig:
         linearised with its inverse before the sub-pixel stage, so that the
         halfway level is halfway in irradiance. ``auto`` (the default): ingest
         takes the recording's ``camera_response`` metadata or estimates the
-        curve from the first images (:func:`pipeline.stages.response.estimate_response`);
+        curve from the first images (:func:`pipeline.stages.response_estimate.estimate_response`);
         :func:`detect_target` called alone treats ``auto`` as ``linear``.
     clip_correction : bool
         Where the bright side of the edge is clipped at the image type's top code
@@ -146,7 +147,7 @@ RESULT_KEYS = (
 )
 
 
-def _empty(reason: str, n_blobs: int = 0) -> dict[str, Any]:
+def empty_result(reason: str, n_blobs: int = 0) -> dict[str, Any]:
     nan = float("nan")
     return {
         "found": False,
@@ -489,19 +490,6 @@ def _unbias_crossings(
     return out
 
 
-def _approx_distance(pts: np.ndarray, p: tuple[float, float, float, float, float]) -> np.ndarray:
-    """First-order signed distance to an ellipse, ``(rho - 1) / |grad rho|``."""
-    u0, v0, a, b, th = p
-    c, s = np.cos(th), np.sin(th)
-    du = pts[:, 0] - u0
-    dv = pts[:, 1] - v0
-    x = (c * du + s * dv) / a
-    y = (-s * du + c * dv) / b
-    rho = np.sqrt(x * x + y * y) + 1e-12
-    g = np.sqrt((x / a) ** 2 + (y / b) ** 2) / rho
-    return (rho - 1.0) / g
-
-
 def _completeness(t: np.ndarray, bins: int = 36) -> float:
     """Share of ``bins`` equal sectors of the parameter angle holding an edge point."""
     idx = ((np.mod(t, 2 * np.pi) / (2 * np.pi)) * bins).astype(int) % bins
@@ -667,7 +655,7 @@ def _detect(
     dark = pol == "dark_on_light"
     ext = lo if dark else hi
     if abs(bg - ext) / max(bg, ext, 1e-9) < cfg.min_contrast_frac:
-        out = _empty("low_contrast")
+        out = empty_result("low_contrast")
         out["contrast"] = abs(bg - ext)
         return out
     thr = 0.5 * (bg + ext)
@@ -688,7 +676,7 @@ def _detect(
             cx, cy = x0c + 0.5 * (wc - 1), y0c + 0.5 * (hc - 1)
         cand.append((area, cx * k + k // 2, cy * k + k // 2, (x0c, y0c, wc, hc), c))
     if not cand:
-        return _empty("no_blob")
+        return empty_result("no_blob")
     # a handful of candidates: plain floats (NumPy calls on 1-element arrays cost more)
     areas = [c[0] for c in cand]
     use_exp = expected is not None and all(math.isfinite(float(e)) for e in expected)
@@ -731,7 +719,7 @@ def _detect(
     outer = cv2.dilate(inside, _KER3, iterations=3) == 0
     core_b = core.astype(bool) if core.any() else inside.astype(bool)
     if not core_b.any() or int(outer.sum()) < 6:
-        return _empty("fit_failed", n_blobs)
+        return empty_result("fit_failed", n_blobs)
     resp = _response(cfg.response)
     if resp is not None:
         # sub-pixel stage on irradiance: the halfway level is halfway in light, not in grey
@@ -759,7 +747,7 @@ def _detect(
     amp = np.abs(g_out - g_in)
     contrast = float(abs(lvl_out - lvl_in))
     if contrast / max(abs(lvl_out), abs(lvl_in), 1e-9) < cfg.min_contrast_frac:
-        out = _empty("low_contrast", n_blobs)
+        out = empty_result("low_contrast", n_blobs)
         out["contrast"] = contrast
         return out
     rows, cols = _crossings(roi, mid, amp, 0.15)
@@ -773,14 +761,14 @@ def _detect(
         k0 = fit_conic(contour)
         p0 = conic_to_params(k0) if k0 is not None else None
     if p0 is not None:
-        near = np.abs(_approx_distance(pts, p0)) < 0.75 * k + 1.0
+        near = np.abs(approx_distance(pts, p0)) < 0.75 * k + 1.0
         k0 = fit_conic(pts[near]) if near.sum() >= 8 else None
         p0 = conic_to_params(k0) if k0 is not None else None
     if p0 is None:
         k0 = fit_conic(pts) if pts.shape[0] >= 8 else None
         p0 = conic_to_params(k0) if k0 is not None else None
     if p0 is None:
-        return _empty("fit_failed", n_blobs)
+        return empty_result("fit_failed", n_blobs)
     # choose crossings by the contour normal of the first fit, drop outliers
     d0, t0, kap0 = ellipse_foot(pts, p0, newton=2)
     n0 = ellipse_normals(p0, t0)
@@ -790,7 +778,7 @@ def _detect(
     is_row = (np.arange(len(pts)) < nr)[keep]
     pts, t0, kap0, n0 = pts[keep], t0[keep], kap0[keep], n0[keep]
     if pts.shape[0] < 8:
-        return _empty("fit_failed", n_blobs)
+        return empty_result("fit_failed", n_blobs)
     completeness = _completeness(t0)
     sigma, noise = _edge_width(roi, ua[None, :], va[:, None], g_in, g_out, outer, p0, completeness)
     if cfg.curvature_correction and np.isfinite(sigma) and sigma > 0:
@@ -800,7 +788,7 @@ def _detect(
     k1 = fit_conic(pts)
     p1 = conic_to_params(k1) if k1 is not None else None
     if p1 is None:
-        return _empty("fit_failed", n_blobs)
+        return empty_result("fit_failed", n_blobs)
     res, _, _ = ellipse_foot(pts, p1, newton=2)
     return _result(
         p1,
@@ -892,11 +880,11 @@ def _finish_compiled(
     lvl_in, lvl_out = float(r[10]), float(r[11])
     contrast = abs(lvl_out - lvl_in)
     if contrast / max(abs(lvl_out), abs(lvl_in), 1e-9) < cfg.min_contrast_frac:
-        out = _empty("low_contrast", n_blobs)
+        out = empty_result("low_contrast", n_blobs)
         out["contrast"] = contrast
         return out
     if r[0] != 0:
-        return _empty("fit_failed", n_blobs)
+        return empty_result("fit_failed", n_blobs)
     return _result(
         (r[1], r[2], r[3], r[4], r[5]),
         float(r[6]),

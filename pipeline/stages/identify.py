@@ -906,7 +906,7 @@ def _partial_loss(name: str, n_robust: int) -> Any:
     return loss
 
 
-def _predicted_errors(Jw: F64, cov: F64, p: F64, kind: str) -> F64:
+def predicted_errors(Jw: F64, cov: F64, p: F64, kind: str) -> F64:
     """Per-pose standard pin error the covariance predicts after a registration.
 
     The error field ``dp = J_w dz`` (``J_w`` (N, 3, p), ``dz ~ N(0, cov)``) minus its
@@ -1133,7 +1133,7 @@ def _identify_one(
     pw, Rw, Jw = model.pin_and_jacobian(x, q_ws, pin, jac=True)
     assert Jw is not None
     Jwe = np.concatenate([Jw[:, :, kept], Rw], axis=2)
-    pred = {kind: _predicted_errors(Jwe, cov_e, pw, kind) for kind in ("shape", "absolute", "raw")}
+    pred = {kind: predicted_errors(Jwe, cov_e, pw, kind) for kind in ("shape", "absolute", "raw")}
 
     # -- tables
     calibrated = model.chain(x)

@@ -44,7 +44,8 @@ from pipeline.io_mcap import (
 from pipeline.kinematics.urdf import RobotDescription, chain_joints, parse_urdf
 from pipeline.stages.detect import RESULT_KEYS, DetectConfig, detect_target
 from pipeline.stages.plausibility import joints_outside_chain
-from pipeline.stages.response import ResponseEstimate, estimate_response, parse_response
+from pipeline.stages.response import parse_response
+from pipeline.stages.response_estimate import ResponseEstimate, estimate_response
 
 #: images held back at the start of a recording to estimate the camera response from
 RESPONSE_PROBE_IMAGES = 24
@@ -570,9 +571,9 @@ def _resolve_response(
 
 
 def _nan_row() -> list[Any]:
-    from pipeline.stages.detect import _empty
+    from pipeline.stages.detect import empty_result
 
-    d = _empty("")
+    d = empty_result("")
     return [d[k] for k in RESULT_KEYS]
 
 

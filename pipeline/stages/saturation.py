@@ -41,6 +41,8 @@ import numpy as np
 from scipy.optimize import least_squares
 from scipy.special import ndtr
 
+from pipeline.stages.ellipse_distance import approx_distance
+
 #: the share of band pixels at the top code from which the plate counts as clipped
 MIN_CLIPPED_SHARE = 0.05
 #: the fitted bright level must exceed the clip by this share of the seen contrast
@@ -77,13 +79,12 @@ def _signed_distance(
 ) -> np.ndarray:
     """(H, W) first-order signed distance (px, outward) of a window's pixels to an ellipse.
 
-    The detector's own :func:`pipeline.stages.detect._approx_distance`, on the pixel grid.
+    The detector's own :func:`pipeline.stages.ellipse_distance.approx_distance`, on the pixel grid.
     """
-    from pipeline.stages.detect import _approx_distance
 
     vv, uu = np.mgrid[0:H, 0:W]
     pts = np.stack([uu.ravel() + u0, vv.ravel() + v0], axis=1).astype(np.float64)
-    return np.asarray(_approx_distance(pts, ellipse)).reshape(H, W)
+    return np.asarray(approx_distance(pts, ellipse)).reshape(H, W)
 
 
 def fit_clipped_edge(

@@ -1,0 +1,133 @@
+"""The package's import graph: no cycle, no private name taken from another module (issue 20).
+
+Every ``import`` and ``from ... import`` in ``pipeline/`` counts, at module level
+and inside functions (a lazy import hides a cycle from Python, not from a reader):
+the graph of ``pipeline`` modules must be acyclic. A name starting with one
+underscore belongs to its module; no other module imports it or reaches it as
+``module._name``. Both checks read the sources (``ast``), so they also cover
+modules no test imports. Negative controls feed each check a cycle and a private
+import, so the test can fail.
+"""
+
+from __future__ import annotations
+
+import ast
+from pathlib import Path
+
+PACKAGE = Path(__file__).resolve().parent.parent / "pipeline"
+
+
+def _modules(root: Path) -> dict[str, Path]:
+    out = {}
+    for p in root.rglob("*.py"):
+        parts = p.relative_to(root.parent).with_suffix("").parts
+        name = ".".join(parts[:-1] if parts[-1] == "__init__" else parts)
+        out[name] = p
+    return out
+
+
+def _source_of(node: ast.ImportFrom, module: str, is_package: bool) -> str:
+    if not node.level:
+        return node.module or ""
+    base = module.split(".") if is_package else module.split(".")[:-1]
+    base = base[: len(base) - node.level + 1]
+    return ".".join(base + ([node.module] if node.module else []))
+
+
+def analyse(sources: dict[str, tuple[str, bool]]) -> tuple[dict[str, set[str]], list[str]]:
+    """Import edges between the given modules, and the private names imported across them.
+
+    Parameters
+    ----------
+    sources : module name -> (source text, is a package ``__init__``)
+
+    Returns
+    -------
+    edges : module -> modules of ``sources`` it imports
+    private : one ``"importer: module._name"`` line per private name taken from another module
+    """
+    edges: dict[str, set[str]] = {m: set() for m in sources}
+    private: list[str] = []
+    for mod, (text, is_pkg) in sources.items():
+        bound: dict[str, str] = {}  # local name -> module it names
+        tree = ast.parse(text)
+        for node in ast.walk(tree):
+            if isinstance(node, ast.Import):
+                for a in node.names:
+                    if a.name in sources:
+                        edges[mod].add(a.name)
+                        bound[a.asname or a.name] = a.name
+            elif isinstance(node, ast.ImportFrom):
+                src = _source_of(node, mod, is_pkg)
+                for a in node.names:
+                    full = f"{src}.{a.name}"
+                    if full in sources:
+                        edges[mod].add(full)
+                        bound[a.asname or a.name] = full
+                    elif src in sources:
+                        edges[mod].add(src)
+                        if _private(a.name) and src != mod:
+                            private.append(f"{mod}: {src}.{a.name}")
+        for node in ast.walk(tree):
+            if (
+                isinstance(node, ast.Attribute)
+                and isinstance(node.value, ast.Name)
+                and bound.get(node.value.id, mod) != mod
+                and _private(node.attr)
+            ):
+                private.append(f"{mod}: {bound[node.value.id]}.{node.attr}")
+        edges[mod].discard(mod)
+    return edges, sorted(set(private))
+
+
+def _private(name: str) -> bool:
+    return name.startswith("_") and not name.startswith("__")
+
+
+def cycles(edges: dict[str, set[str]]) -> list[list[str]]:
+    """One cycle per back edge a depth-first search meets (empty when acyclic)."""
+    state: dict[str, int] = {}
+    found: list[list[str]] = []
+
+    def visit(u: str, stack: list[str]) -> None:
+        state[u] = 1
+        stack.append(u)
+        for v in sorted(edges.get(u, ())):
+            if state.get(v) == 1:
+                found.append(stack[stack.index(v) :] + [v])
+            elif v not in state:
+                visit(v, stack)
+        stack.pop()
+        state[u] = 2
+
+    for m in sorted(edges):
+        if m not in state:
+            visit(m, [])
+    return found
+
+
+def _package_sources() -> dict[str, tuple[str, bool]]:
+    return {m: (p.read_text(), p.name == "__init__.py") for m, p in _modules(PACKAGE).items()}
+
+
+def test_the_package_has_no_import_cycle() -> None:
+    edges, _ = analyse(_package_sources())
+    assert len(edges) > 50
+    assert cycles(edges) == []
+
+
+def test_no_module_takes_another_modules_private_names() -> None:
+    _, private = analyse(_package_sources())
+    assert private == []
+
+
+def test_the_checks_can_fail() -> None:
+    fake = {
+        "pipeline": ("", True),
+        "pipeline.a": ("from pipeline.b import helper\n", False),
+        "pipeline.b": ("def helper():\n    from pipeline import a\n", False),
+        "pipeline.c": ("from pipeline.a import _hidden\nimport pipeline.b as b\nb._x\n", False),
+    }
+    edges, private = analyse(fake)
+    assert cycles(edges) == [["pipeline.a", "pipeline.b", "pipeline.a"]]
+    assert private == ["pipeline.c: pipeline.a._hidden", "pipeline.c: pipeline.b._x"]
