@@ -28,6 +28,10 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "plan": ("pipeline.commands.plan", "Plan well-conditioned measuring poses."),
     "compare": ("pipeline.commands.compare", "Compare runs: held-out error, parameters, drift."),
     "batch": ("pipeline.commands.batch", "Run many recordings, cached, in parallel."),
+    "validate": (
+        "pipeline.commands.validate",
+        "Judge a calibrated URDF on another recording's touch-ups.",
+    ),
     "export": ("pipeline.commands.export", "Write a run's calibration for a controller or ROS."),
 }
 

@@ -36,7 +36,8 @@ from pathlib import Path
 from typing import Any
 
 from pipeline import __version__
-from pipeline.errors import BadInput
+from pipeline.code_key import stage_code_digest
+from pipeline.errors import BadInput, CalibrationFailed
 from pipeline.fileio import atomic_write_bytes, config_hash, file_hash
 from pipeline.known_distances import parse_distances
 
@@ -144,7 +145,8 @@ class RunConfig:
     ``overrides`` replace keys of the recording's ``touchup`` metadata
     (``base_link``, ``polarity``, ``known_distances``, ...). ``stage_options``
     holds per-stage keyword overrides for the stage config dataclasses
-    (``{"identify": {"model": "full"}}``).
+    (``{"identify": {"model": "full"}}``). ``tolerance_mm`` (``--tolerance-mm``) is
+    written to ``run.json`` and judged in the report's verdict (PASS / FAIL).
     """
 
     image_topic: str | None = None
@@ -153,6 +155,7 @@ class RunConfig:
     overrides: dict[str, str] = field(default_factory=dict)
     stage_options: dict[str, dict[str, Any]] = field(default_factory=dict)
     report: bool = True
+    tolerance_mm: float | None = None
 
 
 #: artefact name -> file name inside a run folder (``../shared/spec/outputs.md``)
@@ -195,6 +198,17 @@ def _diameter(text: str | None) -> float | None:
     except ValueError:
         return None
     return d if math.isfinite(d) and d > 0 else None
+
+
+def _implied_diameter(touchups: Path) -> float | None:
+    """The image-implied target diameter the touch-up stage recorded (None if absent)."""
+    from pipeline.artefacts import read_meta
+
+    try:
+        value = float(read_meta(touchups).get("implied_target_diameter_m", "nan"))
+    except (OSError, ValueError):
+        return None
+    return value if math.isfinite(value) else None
 
 
 def run_pipeline(
@@ -257,7 +271,7 @@ def run_pipeline(
     opts = cfg.stage_options
 
     def stage(name: str, outputs: list[Path], inputs: dict[str, str], conf: Any, fn: Any) -> None:
-        conf_dict = {"stage": name, "config": _jsonable(conf)}
+        conf_dict = {"stage": name, "config": _jsonable(conf), "code": stage_code_digest(name)}
         t0 = time.perf_counter()
         if not force and is_fresh(outputs, inputs, conf_dict):
             records.append(StageRecord(name, "cached", [p.name for p in outputs]))
@@ -319,6 +333,12 @@ def run_pipeline(
 
     info = ingest.RecordingInfo(**json.loads(P["recording"].read_text()))
     parse_distances(info.metadata.get("known_distances", ""))  # bad values fail now, not late
+    if info.implausible and not opts.get("identify", {}).get("accept_implausible", False):
+        raise CalibrationFailed(
+            f"{recording}: implausible input: "
+            + "; ".join(info.implausible)
+            + " (rerun with --accept-implausible if it is right)"
+        )
 
     # -- touch-up extraction ---------------------------------------------------
     touchup_cfg = _build(touchup.TouchupConfig, opts.get("touchups", {}))
@@ -328,8 +348,15 @@ def run_pipeline(
         frames = read_artefact(P["frames"], "frames")
         detections = read_artefact(P["detections"], "detections")
         table = touchup.extract_touchups(frames, detections, info, touchup_cfg)
+        implied = table.attrs.get("implied_target_diameter_m", float("nan"))
         write_artefact(
-            P["touchups"], table, "touchups", stage="touchups", config=conf, inputs=tu_inputs
+            P["touchups"],
+            table,
+            "touchups",
+            stage="touchups",
+            config=conf,
+            inputs=tu_inputs,
+            extra_meta={"implied_target_diameter_m": repr(float(implied))},
         )
 
     stage("touchups", [P["touchups"]], tu_inputs, touchup_cfg, do_touchups)
@@ -359,6 +386,7 @@ def run_pipeline(
         distances=parse_distances(info.metadata.get("known_distances", "")),
         strict_distances=False,  # a truncated recording may not reach every target
         target_diameter_m=_diameter(info.metadata.get("target_diameter_m")),
+        implied_target_diameter_m=_implied_diameter(P["touchups"]),
     )
     id_inputs = hashes({"inliers": P["inliers"]})
 
@@ -422,6 +450,8 @@ def run_pipeline(
             )
         }
     )
+    report_inputs["code"] = stage_code_digest("report")  # the report's code is an input too
+    report_inputs["tolerance_mm"] = repr(cfg.tolerance_mm)  # the verdict it shows
     previous = json.loads(P["run"].read_text()) if P["run"].exists() else {}
     if (
         not force
@@ -436,7 +466,10 @@ def run_pipeline(
         from pipeline.report.rrd import build_rrd
 
         # the report shows the stage table: give it this run's, not the previous one
-        write_json(P["run"], {"version": __version__, "stages": records})
+        write_json(
+            P["run"],
+            {"version": __version__, "stages": records, "tolerance_mm": cfg.tolerance_mm},
+        )
 
         t0 = time.perf_counter()
         build_report(out)
@@ -445,7 +478,7 @@ def run_pipeline(
             StageRecord("report", "ran", ["report.html", "run.rrd"], time.perf_counter() - t0)
         )
     del pd
-    return _finish(out, P, records, report_inputs, fingerprint=fp)
+    return _finish(out, P, records, report_inputs, fingerprint=fp, tolerance_mm=cfg.tolerance_mm)
 
 
 def crossval_and_choose(
@@ -546,12 +579,12 @@ def stamp_provenance(out: Path, source: Any) -> None:
         atomic_write_bytes(P["calibrated_urdf"], new.encode())
 
 
-def render_outputs(out: Path) -> None:
+def render_outputs(out: Path, tolerance_mm: float | None = None) -> None:
     """``report.html`` and ``run.rrd`` from the artefacts in ``out`` alone."""
     from pipeline.report.html import build_report
     from pipeline.report.rrd import build_rrd
 
-    build_report(out)
+    build_report(out, tolerance_mm=tolerance_mm)
     build_rrd(out)
 
 
@@ -562,6 +595,7 @@ def _finish(
     report_inputs: dict[str, str] | None = None,
     *,
     fingerprint: dict[str, Any] | None = None,
+    tolerance_mm: float | None = None,
 ) -> RunResult:
     """Write ``run.json`` (what each stage did, and the run ledger's entry) and the result."""
     from pipeline import run_ledger
@@ -573,6 +607,7 @@ def _finish(
         "version": __version__,
         "stages": records,
         "report_inputs": report_inputs,
+        "tolerance_mm": tolerance_mm,
     }
     if fingerprint is not None:
         run[run_ledger.KEY] = run_ledger.entry(
@@ -606,6 +641,7 @@ def _from_ledger(out: Path, fp: dict[str, Any]) -> RunResult | None:
             "version": __version__,
             "stages": records,
             "report_inputs": run.get("report_inputs"),
+            "tolerance_mm": run.get("tolerance_mm"),
             run_ledger.KEY: run[run_ledger.KEY],
         }
         blob = json_bytes(now)

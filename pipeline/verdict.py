@@ -23,6 +23,19 @@ def _num(v: Any) -> float | None:
     return float(v) if isinstance(v, (int, float)) and math.isfinite(float(v)) else None
 
 
+def improvement(
+    validated_mm: float | None, nominal_mm: float | None
+) -> tuple[float | None, bool | None]:
+    """``(ratio, improved)``: nominal / validated and whether validated < IMPROVED_BELOW x nominal.
+
+    Both None when either figure is unknown (or zero). The one rule of "improved", used by
+    :func:`verdict` (a run) and :mod:`pipeline.validate` (a calibration on a new recording).
+    """
+    if not nominal_mm or not validated_mm:
+        return None, None
+    return nominal_mm / validated_mm, bool(validated_mm < IMPROVED_BELOW * nominal_mm)
+
+
 def tolerance_from_metadata(meta: dict[str, Any] | None) -> float | None:
     """The recording's ``tolerance_mm`` metadata key (mm) if it holds a positive number."""
     try:
@@ -72,8 +85,7 @@ def verdict(
         if nominal_mm is not None
         else _num((summary.get("solver") or {}).get("initial_rms_mm"))
     )
-    ratio = nominal / validated if nominal and validated else None
-    improved = None if ratio is None else bool(validated < IMPROVED_BELOW * nominal)  # type: ignore[operator]
+    ratio, improved = improvement(validated, nominal)
     fit = _num(summary.get("rms_mm"))
     if validated is None:
         line = f"verdict: model {model}: no validated error (fit residual {fit} mm, training)"

@@ -3,11 +3,11 @@
 Twins of one simulated cell (same seed: same robot, targets, plan and noise
 draws), each calibrated by the whole pipeline and judged against the truth:
 
-* sRGB-encoded images calibrate to under 0.06 mm shape RMS (before vtcal
-  linearised its grey levels, every long axis read ~0.4-0.8 px short and the
-  pin sat millimetres off along the view: ~1.2 mm here). Not yet within 1.5x of
-  the linear twin: 0.035 / 0.024 / 0.060 mm against 0.011 / 0.018 / 0.009 mm on
-  seeds 7 / 8 / 9 (24 touch-ups). The controller's own detector reads the encoded
+* sRGB-encoded images calibrate within 1.5x of the linear twin on the standard
+  cell's 36 touch-ups (before vtcal linearised its grey levels, every long axis
+  read ~0.4-0.8 px short and the pin sat millimetres off along the view: ~1.2 mm
+  here). With 24 touch-ups they do not yet: 0.035 / 0.024 / 0.060 mm against
+  0.011 / 0.018 / 0.009 mm on seeds 7 / 8 / 9. The controller's own detector reads the encoded
   image ~0.43 px short, every touch-up is corrected by ~1.3 mm along the view, and
   the image Jacobian's size row is known to ~1 % per target (with an unbiased
   controller the same images give 0.019 / 0.021 mm on seeds 7 / 9);
@@ -48,10 +48,14 @@ SEED = 7
 
 
 def calibrate(
-    work: Path, name: str, optics: dict[str, Any], touchup: dict[str, Any] | None = None
+    work: Path,
+    name: str,
+    optics: dict[str, Any],
+    touchup: dict[str, Any] | None = None,
+    per_target: int = 8,
 ) -> dict[str, float]:
     raw = tomllib.loads((ROOT / "datasets" / "scenarios" / "standard.toml").read_text())
-    raw["poses"]["per_target"] = 8
+    raw["poses"]["per_target"] = per_target
     raw["optics"] = optics
     if touchup:
         raw["touchup"] = touchup
@@ -80,12 +84,13 @@ def linear(tmp_path_factory: pytest.TempPathFactory) -> dict[str, float]:
     return calibrate(tmp_path_factory.mktemp("optics"), "linear", {})
 
 
-def test_srgb_cell_calibrates_like_its_linear_twin(
-    linear: dict[str, float], tmp_path: Path
-) -> None:
-    srgb = calibrate(tmp_path, "srgb", {"response": "srgb"})
+def test_srgb_cell_calibrates_like_its_linear_twin(tmp_path: Path) -> None:
+    # the standard cell's 36 touch-ups: with 24 the relative print sizes that absorb the
+    # controller's per-target size-row error are not found (docs/detection.md, limits)
+    linear36 = calibrate(tmp_path, "linear36", {}, per_target=12)
+    srgb = calibrate(tmp_path, "srgb", {"response": "srgb"}, per_target=12)
     assert srgb["kept"] == srgb["n"]
-    assert srgb["shape_mm"] <= 0.06, (srgb, linear)
+    assert srgb["shape_mm"] <= 1.5 * linear36["shape_mm"], (srgb, linear36)
 
 
 def test_unevenly_lit_cell_keeps_its_touchups(linear: dict[str, float], tmp_path: Path) -> None:

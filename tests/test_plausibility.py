@@ -7,6 +7,8 @@ each of them ended in a fit and a sub-0.1 mm residual claim.
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 import pytest
 from test_identify import LRMATE_CENTRE, PIN, _case
@@ -16,7 +18,9 @@ from pipeline.evaluate import synthetic_touchups
 from pipeline.kinematics import load_chain
 from pipeline.robots import builtin_urdf
 from pipeline.stages import plausibility as pl
-from pipeline.stages.identify import IdentifyConfig, identify
+from pipeline.stages.identify import IdentifyConfig, conditioning_note, identify
+
+REPO = Path(__file__).resolve().parent.parent
 
 
 @pytest.fixture(scope="module")
@@ -108,3 +112,141 @@ def test_the_cli_exits_3_with_one_line(cell, tmp_path, capsys):
     assert exc.value.code == 3
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "millimetres" in err[0], err
+
+
+# -- wrong inputs that stay inside the joint limits (the nominal fit, the chain's ends) --------
+
+
+def _refused(cell, table, match, **kw):
+    urdf, _, _, d02 = cell
+    cfg = IdentifyConfig(model="full", distances=[(0, 2, d02)], **kw)
+    with pytest.raises(CalibrationFailed, match=match) as exc:
+        identify(table, kw.pop("urdf", urdf), "base_link", kw.pop("flange", "flange"), cfg)
+    assert "\n" not in str(exc.value) and "--accept-implausible" in str(exc.value)
+    return str(exc.value)
+
+
+@pytest.mark.parametrize("joint", [1, 2, 3])
+def test_a_joint_with_its_sign_flipped_is_refused(cell, joint):
+    _, nominal, table, _ = cell
+    flipped = table.copy()
+    name = nominal.joint_names[joint]
+    flipped[name] = -flipped[name]
+    assert not pl.joint_values(flipped[nominal.joint_names].to_numpy(), nominal)  # in limits
+    msg = _refused(cell, flipped, "the nominal robot fits these touch-ups to")
+    assert "mm RMS" in msg and "signs" in msg
+
+
+def test_two_joint_columns_swapped_within_their_limits_are_refused(cell):
+    _, nominal, table, _ = cell
+    j = nominal.joint_names
+    sw = table.copy()
+    sw[[j[3], j[5]]] = sw[[j[5], j[3]]].to_numpy()
+    assert not pl.joint_values(sw[j].to_numpy(), nominal)
+    _refused(cell, sw, "the nominal robot fits these touch-ups to")
+
+
+def test_touchups_labelled_with_the_wrong_target_are_refused(cell):
+    _, _, table, _ = cell
+    wrong = table.copy()
+    tk = wrong["target_id"].to_numpy().copy()
+    tk[np.flatnonzero(tk == 0)[:3]] = 1  # three touch-ups of target 0 filed under 1
+    wrong["target_id"] = tk
+    _refused(cell, wrong, "target labels")
+
+
+def test_another_robots_urdf_is_refused(cell):
+    _, nominal, table, d02 = cell
+    ur = builtin_urdf("ur5e")
+    other = load_chain(ur, "base_link", "flange")
+    renamed = table.rename(columns=dict(zip(nominal.joint_names, other.joint_names, strict=True)))
+    cfg = IdentifyConfig(model="full", distances=[(0, 2, d02)])
+    with pytest.raises(CalibrationFailed, match="that the URDF is this robot's"):
+        identify(renamed, ur, "base_link", "flange", cfg)
+
+
+def test_a_flange_link_one_joint_short_is_refused(cell):
+    urdf, nominal, table, d02 = cell
+    cfg = IdentifyConfig(model="offsets", distances=[(0, 2, d02)])
+    with pytest.raises(CalibrationFailed, match=r"joint joint_6 moves .* after the flange link"):
+        identify(table, urdf, "base_link", "link_5", cfg)
+
+
+def test_a_moving_joint_above_the_base_link_is_refused(cell):
+    urdf, nominal, table, d02 = cell
+    cfg = IdentifyConfig(model="offsets", distances=[(0, 2, d02)])
+    with pytest.raises(CalibrationFailed, match=r"joint joint_1 moves .* above the base link"):
+        identify(table, urdf, "link_1", "flange", cfg)
+
+
+def test_an_equivalent_flange_link_passes(cell):
+    urdf, _, table, d02 = cell  # link_6 -> flange is a fixed joint: the pin absorbs it
+    res = identify(
+        table, urdf, "base_link", "link_6", IdentifyConfig(model="full", distances=[(0, 2, d02)])
+    )
+    assert res.summary["implausible"] == []
+
+
+@pytest.mark.parametrize(
+    ("declared", "words"), [(10.0, "millimetres"), (0.0125, "typo"), (0.0101, None)]
+)
+def test_the_target_diameter_against_the_image_jacobian(declared, words):
+    lines = pl.target_diameter(declared, 0.01003)
+    if words is None:
+        assert lines == []
+    else:
+        assert len(lines) == 1 and words in lines[0] and "image Jacobian" in lines[0]
+
+
+def test_the_implied_diameter_matches_the_print_on_both_samples(tmp_path, conformance_sample):
+    from pipeline.artefacts import read_meta
+    from pipeline.orchestrator import run_pipeline
+
+    sample = REPO / "datasets" / "samples" / "sample_lrmate.mcap"
+    for rec in (sample, conformance_sample):
+        out = tmp_path / rec.stem
+        run_pipeline(rec, out, until="touchups")
+        implied = float(read_meta(out / "touchups.parquet")["implied_target_diameter_m"])
+        assert abs(implied / 0.010 - 1.0) < 0.02, (rec.name, implied)
+
+
+@pytest.mark.parametrize(
+    ("args", "needle"),
+    [
+        (["--set", "target_diameter_m=10"], "target_diameter_m = 10 m"),
+        (["--flange-link", "link_5"], "joint joint_6 moves"),
+    ],
+)
+def test_the_run_refuses_a_wrong_diameter_or_flange_link(tmp_path, capsys, args, needle):
+    from pipeline.cli import main
+
+    sample = REPO / "datasets" / "samples" / "sample_lrmate.mcap"
+    with pytest.raises(SystemExit) as exc:
+        main(["run", str(sample), "--out", str(tmp_path / "o"), "--no-report", "-q", *args])
+    assert exc.value.code == 3
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and needle in err[0], err
+
+
+@pytest.mark.parametrize(("spread", "weak"), [(0.35, False), (0.01, True)])
+def test_a_weakly_excited_identification_says_so_with_its_figure(spread, weak):
+    urdf = builtin_urdf("lrmate")
+    nominal = load_chain(urdf, "base_link", "flange")
+    rng = np.random.default_rng(2)
+    table, tg = synthetic_touchups(
+        nominal, PIN, 3, 12, rng, spread_rad=spread, centre_spread_rad=spread,
+        q_centre=LRMATE_CENTRE, noise_pin_m=5e-6,
+    )  # fmt: skip
+    d02 = float(np.linalg.norm(tg[0] - tg[2]))
+    res = identify(table, urdf, "base_link", "flange", IdentifyConfig(model="full", distances=[(0, 2, d02)]))  # fmt: skip
+    lines = [h for h in res.summary["headline"] if h.startswith("conditioning:")]
+    if weak:
+        assert len(lines) == 1 and "cond 4.01e+04 > 1e+04" in lines[0], res.summary["headline"]
+    else:
+        assert lines == [] and res.summary["conditioning_note"].startswith("every identifiable")
+
+
+def test_parameters_the_poses_do_not_excite_are_named():
+    note, weak = conditioning_note(["joint_6.theta", "joint_6.d"], 18, 900.0)
+    assert weak and "2 of 18 identifiable parameters are not excited" in note
+    assert "joint_6.theta" in note and "> 1e+04" not in note

@@ -124,3 +124,19 @@ def test_the_report_shows_pass_or_fail_from_the_metadata(sample_run, tmp_path):
     rec["metadata"]["tolerance_mm"] = "1"
     p.write_text(json.dumps(rec))
     assert "<b>PASS</b>" in build_report(run).read_text()
+
+
+def test_the_report_shows_the_cli_tolerance_and_keeps_it(sample_run, tmp_path):
+    run = tmp_path / "run"
+    shutil.copytree(sample_run, run)
+    args = ["run", str(SAMPLE), "--out", str(run), "-q"]
+    res = CliRunner().invoke(cli, [*args, "--tolerance-mm", "0.001"])
+    assert res.exception is not None  # FAIL, exit 3
+    text = (run / "report.html").read_text()
+    assert "<b>FAIL</b>" in text and "0.001 mm" in text, "the report judges the CLI's tolerance"
+    assert json.loads((run / "run.json").read_text())["tolerance_mm"] == 0.001
+    # re-rendered later, the report keeps the run's tolerance; --tolerance-mm replaces it
+    assert "<b>FAIL</b>" in build_report(run).read_text()
+    assert "<b>PASS</b>" in build_report(run, tolerance_mm=1.0).read_text()
+    res = CliRunner().invoke(cli, [*args, "--tolerance-mm", "1.0"])
+    assert res.exit_code == 0 and "<b>PASS</b>" in (run / "report.html").read_text()

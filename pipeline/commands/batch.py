@@ -82,7 +82,8 @@ Examples:
     "--accept-implausible",
     is_flag=True,
     help="Identify even where an input contradicts the nominal robot (joint values outside "
-    "the URDF's limits, a known distance beyond the nominal robot's own error).",
+    "the URDF's limits, a nominal fit worse than 25 mm, a moving joint outside the chain, "
+    "a known distance or target diameter the nominal robot or the images contradict).",
 )
 @click.option("--quiet", "-q", is_flag=True, help="No progress bar, no per-recording lines.")
 def command(

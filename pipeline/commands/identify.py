@@ -202,7 +202,8 @@ def _table_source(table: Path, urdf_path: Path, df: pd.DataFrame, conf: dict[str
     "--accept-implausible",
     is_flag=True,
     help="Identify even where an input contradicts the nominal robot (joint values outside "
-    "the URDF's limits, a known distance beyond the nominal robot's own error); the lines "
+    "the URDF's limits, a nominal fit worse than 25 mm, a moving joint outside the chain, "
+    "a known distance beyond the nominal robot's own error); the lines "
     "are kept in identify.json as 'implausible'.",
 )
 def command(
@@ -291,7 +292,7 @@ def command(
     if not no_report:
         from pipeline.orchestrator import render_outputs
 
-        render_outputs(out_dir)
+        render_outputs(out_dir, tolerance_mm)
         written += ["report.html", "run.rrd"]
     summary = json.loads((out_dir / "identify.json").read_text())
     for line in summary.get("headline", []):

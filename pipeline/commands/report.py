@@ -25,8 +25,16 @@ Examples:
               help="Where to write the Rerun recording (default RUN_DIR/run.rrd).")  # fmt: skip
 @click.option("--no-html", is_flag=True, help="Do not write the HTML report.")
 @click.option("--no-rrd", is_flag=True, help="Do not write the Rerun recording.")
+@click.option("--tolerance-mm", type=click.FloatRange(min=0, min_open=True), default=None,
+              help="Judge the verdict against this tolerance (default: the one the run was "
+              "given, else the recording's tolerance_mm key).")  # fmt: skip
 def command(
-    run_dir: Path, html_path: Path | None, rrd_path: Path | None, no_html: bool, no_rrd: bool
+    run_dir: Path,
+    html_path: Path | None,
+    rrd_path: Path | None,
+    no_html: bool,
+    no_rrd: bool,
+    tolerance_mm: float | None,
 ) -> None:
     """Re-render report.html and run.rrd of RUN_DIR from its saved artefacts.
 
@@ -42,7 +50,7 @@ def command(
     if not no_html:
         from pipeline.report.html import build_report
 
-        out = build_report(run_dir, html_path)
+        out = build_report(run_dir, html_path, tolerance_mm)
         click.echo(f"report: {out} ({out.stat().st_size / 1e6:.2f} MB)")
     if not no_rrd:
         from pipeline.report.rrd import build_rrd

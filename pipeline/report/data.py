@@ -81,6 +81,15 @@ class RunData:
         return {str(k): str(v) for k, v in m.items()}
 
     @property
+    def tolerance_mm(self) -> float | None:
+        """The accuracy the run had to reach (mm): run.json's ``tolerance_mm`` (the
+        ``--tolerance-mm`` the run was given), else the recording's ``tolerance_mm`` key."""
+        from pipeline.verdict import tolerance_from_metadata
+
+        given = tolerance_from_metadata(self.run)
+        return given if given is not None else tolerance_from_metadata(self.meta)
+
+    @property
     def joint_names(self) -> list[str]:
         names = (self.recording or {}).get("joint_names")
         if names:

@@ -122,9 +122,9 @@ def _verdict(data: RunData) -> dict[str, Any]:
     else:
         scale_text = ""
     rpath = rec.get("path")
-    from pipeline.verdict import IMPROVED_BELOW, tolerance_from_metadata, verdict
+    from pipeline.verdict import IMPROVED_BELOW, verdict
 
-    tol = tolerance_from_metadata(data.meta)
+    tol = data.tolerance_mm
     v = verdict(idf, tol, nominal_mm=before[0] if before else None) or {}
     validated = None
     if v.get("validated_mm") is not None:
@@ -334,6 +334,7 @@ SUMMARY_FIELDS = (
     ("dof", "degrees of freedom (redundancy)"),
     ("sigma_mm", "residual standard deviation (mm)"),
     ("scale_note", "length scale"),
+    ("conditioning_note", "conditioning"),
     ("base_note", "base frame"),
 )
 
@@ -635,13 +636,16 @@ def _report_images(data: RunData) -> dict[int, np.ndarray] | None:
     return load_frames(path, (data.recording or {}).get("image_topic"), want[:MAX_THUMBS])
 
 
-def build_report(run_dir: Path, out_path: Path | None = None) -> Path:
+def build_report(
+    run_dir: Path, out_path: Path | None = None, tolerance_mm: float | None = None
+) -> Path:
     """Write ``report.html`` of a run folder from its artefacts; return its path.
 
     Parameters
     ----------
     run_dir : the run folder (``vtcal run --out``)
     out_path : destination (default ``run_dir / "report.html"``)
+    tolerance_mm : the PASS/FAIL tolerance (default: run.json's, else the recording's key)
 
     Sections whose artefacts are missing say "not available". Images are read
     again from the recording only if the path in ``recording.json`` exists.
@@ -649,6 +653,8 @@ def build_report(run_dir: Path, out_path: Path | None = None) -> Path:
     run_dir = Path(run_dir)
     out = Path(out_path) if out_path is not None else run_dir / "report.html"
     data = load_run(run_dir)
+    if tolerance_mm is not None:
+        data.run = {**(data.run or {}), "tolerance_mm": tolerance_mm}
     html = render(report_context(data, _report_images(data)))
     atomic_write_bytes(out, html.encode("utf-8"))
     out.chmod(0o644)  # a report is for sharing (the temporary file was private)

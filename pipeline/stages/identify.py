@@ -111,6 +111,9 @@ class IdentifyConfig:
         fitted at p = 7.6e-4 and lost 5 % of shape accuracy; 20 um out-of-round prints
         give p ~ 1e-34.
     target_diameter_m : printed diameter, to state print errors in micrometres (else relative)
+    implied_target_diameter_m : the diameter the touch-up stage's image Jacobian implies
+        (:func:`pipeline.stages.touchup.diameter_from_jacobian`), checked against
+        ``target_diameter_m`` by the guardrails; None for a table without images
     accept_implausible : identify even where :mod:`pipeline.stages.plausibility` finds an
         input the nominal robot contradicts (joint values outside the URDF's limits, a
         known distance off by more than the nominal robot's own error); the lines are
@@ -137,6 +140,7 @@ class IdentifyConfig:
     shape_alpha: float = 1e-4
     shape_min_touchups: int = 6
     target_diameter_m: float | None = None
+    implied_target_diameter_m: float | None = None
     accept_implausible: bool = False
 
 
@@ -373,13 +377,33 @@ def _numeric_columns(df: pd.DataFrame, names: list[str]) -> pd.DataFrame:
     return df
 
 
-def _implausible(chain: Chain, data: _Data) -> list[str]:
+def _implausible(
+    chain: Chain,
+    data: _Data,
+    touchups: pd.DataFrame,
+    urdf: str,
+    base_link: str,
+    flange_link: str,
+    config: IdentifyConfig,
+) -> list[str]:
     """The guardrails of :mod:`pipeline.stages.plausibility` on the used touch-ups."""
+    from pipeline.kinematics.urdf import parse_urdf
     from pipeline.stages import plausibility as pl
 
-    return pl.joint_values(data.q, chain) + pl.known_distances(
+    limits = pl.joint_values(data.q, chain)
+    used = touchups.reset_index(drop=True).iloc[data.used_idx]
+    values = {
+        c: pd.to_numeric(used[c], errors="coerce").to_numpy(dtype=float)
+        for c in used.columns
+        if c not in chain.joint_names
+    }
+    lines = limits + pl.joints_outside_chain(values, parse_urdf(urdf), base_link, flange_link)
+    if not limits:  # joints outside their limits already explain a bad nominal fit
+        lines += pl.nominal_fit(chain, data.q, data.d, data.tk, data.K, data.sw)
+    lines += pl.known_distances(
         chain, data.q, data.d, data.tk, data.K, data.sw, data.dist, data.target_labels
     )
+    return lines + pl.target_diameter(config.target_diameter_m, config.implied_target_diameter_m)
 
 
 def _refuse_early(data: _Data, source_rows: int) -> None:
@@ -933,7 +957,7 @@ def identify(
     chain = load_chain(urdf, base_link, flange_link)
     data = _prepare(touchups, chain, config)
     _refuse_early(data, len(touchups))
-    implausible = _implausible(chain, data)
+    implausible = _implausible(chain, data, touchups, urdf, base_link, flange_link, config)
     if implausible and not config.accept_implausible:
         raise CalibrationFailed(
             "implausible input: "
@@ -1276,13 +1300,18 @@ def _identify_one(
         },
         "seconds": seconds,
     }
+    not_excited = [model.param_names[int(j)] for j in st.kept[h_loc]]
+    summary["conditioning_note"], weak = conditioning_note(
+        not_excited, int(r_struct), float(obs["cond"])
+    )
+    summary["not_excited"] = not_excited
     summary["headline"] = [
         f"identify [{name}]: {N} touch-ups, {K} targets, {len(kept)}/{P} parameters identified; "
         f"residual RMS {rms * 1e3:.4f} mm, covariance-predicted pin error RMS "
         f"{summary['predicted_shape_rms_mm']:.4f} mm (shape), "
         f"{summary['predicted_absolute_rms_mm']:.4f} mm (absolute); cond {obs['cond']:.3g}",
         "scale: " + summary["scale_note"],
-    ]
+    ] + (["conditioning: " + summary["conditioning_note"]] if weak else [])
     return IdentifyResult(
         model=name,
         parameters=parameters,
@@ -1293,6 +1322,43 @@ def _identify_one(
         chain=calibrated,
         p_flange_pin=pin,
         x=x,
+    )
+
+
+#: condition number of the scaled, reduced identification Jacobian above which a run warns
+COND_WARN = 1e4
+
+
+def conditioning_note(not_excited: list[str], n_structural: int, cond: float) -> tuple[str, bool]:
+    """What the identification's conditioning says, and whether it is a warning.
+
+    The touch-ups' own pivoted QR (``data_tol``) holds the structurally
+    identifiable parameters they fail to excite at nominal, so the fitted problem
+    stays solvable; what those parameters do to the robot is then simply not
+    calibrated. That, or a condition number above :data:`COND_WARN` (the
+    sample's 18 touch-ups give 800-1,200), is worth a line.
+
+    Parameters
+    ----------
+    not_excited : names of the structurally identifiable parameters held for lack of excitation
+    n_structural : number of structurally identifiable parameters
+    cond : condition number of the scaled identification Jacobian of the fitted parameters
+    """
+    if not not_excited and cond <= COND_WARN:
+        return f"every identifiable parameter excited (cond {cond:.3g})", False
+    parts = []
+    if not_excited:
+        names = ", ".join(not_excited[:6]) + (", ..." if len(not_excited) > 6 else "")
+        parts.append(
+            f"{len(not_excited)} of {n_structural} identifiable parameters are not excited by "
+            f"these touch-ups and stay at nominal ({names})"
+        )
+    if cond > COND_WARN:
+        parts.append(f"cond {cond:.3g} > {COND_WARN:.0e}")
+    return (
+        "; ".join(parts) + ": add touch-ups in more varied arm orientations (`vtcal plan` "
+        "chooses well-conditioned poses)",
+        True,
     )
 
 

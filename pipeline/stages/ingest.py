@@ -43,6 +43,7 @@ from pipeline.io_mcap import (
 )
 from pipeline.kinematics.urdf import RobotDescription, chain_joints, parse_urdf
 from pipeline.stages.detect import RESULT_KEYS, DetectConfig, detect_target
+from pipeline.stages.plausibility import joints_outside_chain
 from pipeline.stages.response import ResponseEstimate, estimate_response, parse_response
 
 #: images held back at the start of a recording to estimate the camera response from
@@ -117,6 +118,9 @@ class RecordingInfo:
     camera : what was found about the camera: ``response`` (the curve detection used,
         :mod:`pipeline.stages.response`), ``response_source`` (option, metadata,
         estimated), and the estimate's figures (``ResponseEstimate.to_dict``)
+    implausible : guardrail lines on the joint states
+        (:func:`pipeline.stages.plausibility.joints_outside_chain`: a joint above the base
+        or after the flange link that moves); the run refuses them before extraction
     """
 
     path: str
@@ -134,6 +138,7 @@ class RecordingInfo:
     image_width: int = 0
     image_height: int = 0
     camera: dict[str, Any] = field(default_factory=dict)
+    implausible: list[str] = field(default_factory=list)
 
 
 def _prescan(path: str) -> tuple[dict[str, tuple[str, str]], dict[str, dict[str, str]]]:
@@ -481,6 +486,11 @@ def ingest_recording(
         )
     idx = [j_names.index(n) for n in chain_names]
     Q = np.asarray(j_pos)[:, idx]
+    P_all = np.asarray(j_pos, dtype=float)
+    outside = {n: P_all[:, k] for k, n in enumerate(j_names) if n not in chain_names}
+    implausible = joints_outside_chain(
+        outside, robot, metadata["base_link"], metadata["flange_link"], over="the recording"
+    )
     J_t = np.asarray(j_stamp, dtype=np.int64)
     o = np.argsort(J_t, kind="stable")
     J_t, Q = J_t[o], Q[o]
@@ -524,6 +534,7 @@ def ingest_recording(
         metadata=metadata,
         inferred=inferred,
         joint_names=chain_names,
+        implausible=implausible,
         base_link=metadata["base_link"],
         flange_link=metadata["flange_link"],
         image_topic=str(image_topic),

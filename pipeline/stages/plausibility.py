@@ -25,6 +25,27 @@ Checks:
   nominal robot's error on these touch-ups. A distance in the wrong unit is off
   by a factor of 1000. A typo or the wrong bar is off by per cents. The line
   states the implied scale change in ppm.
+* **the nominal robot's own fit** of these touch-ups: the RMS residual ``rho_0``
+  above may be a few millimetres (10.7 mm on the worst real Panda placement,
+  ``bench_real.py``) but not ``NOMINAL_RMS_MAX``. Beyond it the joint columns
+  and the robot do not belong together: a joint's sign or zero flipped, two
+  columns swapped within their limits, touch-ups labelled with the wrong target,
+  another robot's URDF (25-100 mm on a simulated LR Mate, see
+  ``docs/robustness.md``).
+* **joints outside the chain that move**: a revolute or prismatic joint above
+  the base link, or a revolute joint below the flange link, whose values in the
+  touch-ups span more than ``JOINT_MOVE``. The camera is fixed to the flange and
+  the targets stand still, so such a joint means the base or flange link is
+  wrong (a flange link one joint short drops that joint's motion silently).
+* **the printed target diameter** against the one the image Jacobian implies.
+  Near the optical axis a flange translation moves the image by ``g = f / z``
+  pixels per metre, and the long axis at the designated size is
+  ``s_0 = f D / z``, so ``D_img = s_0 / g``
+  (:func:`pipeline.stages.touchup.diameter_from_jacobian`). ``D_img`` agrees
+  with the print to 0.3-1 % on the shipped and conformance samples; a declared
+  diameter more than ``DIAMETER_REL_TOL`` off is a typo, a unit slip or another
+  target set (the diameter states print errors in micrometres and scales the
+  targets drawn in run.rrd).
 """
 
 from __future__ import annotations
@@ -34,6 +55,7 @@ import numpy as np
 from pipeline.evaluate import fit_pin_and_targets
 from pipeline.kinematics.chain import Chain
 from pipeline.kinematics.se3 import F64
+from pipeline.kinematics.urdf import Joint, RobotDescription
 
 #: rad (or m for a prismatic joint) beyond a URDF limit that counts as implausible
 JOINT_MARGIN = 0.05
@@ -43,6 +65,12 @@ REL_TOL = 0.01
 RESID_FACTOR = 3.0
 #: ... and never tighter than this (m)
 ABS_TOL_M = 2e-3
+#: RMS residual (m) of the nominal fit beyond which joints and robot do not belong together
+NOMINAL_RMS_MAX = 0.025
+#: span (rad, or m for prismatic) above which a joint outside the chain counts as moving
+JOINT_MOVE = 0.05
+#: relative difference between the declared and the image-implied target diameter
+DIAMETER_REL_TOL = 0.10
 
 
 def joint_values(q: F64, chain: Chain) -> list[str]:
@@ -129,3 +157,116 @@ def known_distances(
             f"(RMS {1e3 * rho:.2f} mm on these touch-ups): {hint}"
         )
     return out
+
+
+def nominal_fit(chain: Chain, q: F64, d: F64, tk: np.ndarray, K: int, sw: F64) -> list[str]:
+    """One line if the nominal robot fits these touch-ups worse than ``NOMINAL_RMS_MAX``.
+
+    Parameters
+    ----------
+    chain : nominal chain; q : (N, n) joints; d : (N, 3) flange corrections;
+    tk : (N,) target index; K : number of targets; sw : (N,) sqrt weights
+    """
+    if K < 1 or len(q) < 2:
+        return []
+    _, _, rho = nominal_targets(chain, q, d, tk, K, sw)
+    if rho <= NOMINAL_RMS_MAX:
+        return []
+    return [
+        f"the nominal robot fits these touch-ups to {1e3 * rho:.1f} mm RMS (pin and targets "
+        f"solved at nominal kinematics), beyond the {1e3 * NOMINAL_RMS_MAX:.0f} mm an "
+        "uncalibrated robot is off: check the joint columns (order, signs, zeros), the "
+        "target labels and that the URDF is this robot's (if its mastering is known to be "
+        "lost, this is expected)"
+    ]
+
+
+def _parent_joints(robot: RobotDescription) -> dict[str, Joint]:
+    return {j.child: j for j in robot.joints.values()}
+
+
+def _above(robot: RobotDescription, link: str) -> list[Joint]:
+    """Joints between the URDF's root and ``link``."""
+    parent_of, out = _parent_joints(robot), []
+    while link in parent_of:
+        out.append(parent_of[link])
+        link = parent_of[link].parent
+    return out
+
+
+def _below(robot: RobotDescription, link: str) -> list[Joint]:
+    """Joints of the subtree under ``link``."""
+    out, todo = [], [link]
+    while todo:
+        here = todo.pop()
+        for j in robot.joints.values():
+            if j.parent == here:
+                out.append(j)
+                todo.append(j.child)
+    return out
+
+
+def joints_outside_chain(
+    values: dict[str, F64],
+    robot: RobotDescription,
+    base_link: str,
+    flange_link: str,
+    over: str = "the touch-ups",
+) -> list[str]:
+    """One line per joint outside base -> flange whose touch-up values span > ``JOINT_MOVE``.
+
+    Parameters
+    ----------
+    values : joint name -> (N,) values over the used touch-ups, for every column the
+        table holds (joints of the chain and others)
+    robot : the parsed URDF
+    base_link, flange_link : the chain's ends
+    over : what the values span, for the line ("the touch-ups", "the recording")
+    """
+    suspects = [(j, f"above the base link {base_link!r}") for j in _above(robot, base_link)]
+    suspects += [
+        (j, f"after the flange link {flange_link!r}")
+        for j in _below(robot, flange_link)
+        if j.type in ("revolute", "continuous")
+    ]
+    out = []
+    for j, where in suspects:
+        v = values.get(j.name)
+        if v is None or not j.actuated:
+            continue
+        v = v[np.isfinite(v)]
+        span = float(np.ptp(v)) if len(v) else 0.0
+        if span > JOINT_MOVE:
+            unit = "m" if j.type == "prismatic" else "rad"
+            out.append(
+                f"joint {j.name} moves (span {span:.3g} {unit} over {over}) but lies "
+                f"{where}: the camera is fixed to the flange and the targets stand still, "
+                "so check --base-link / --flange-link"
+            )
+    return out
+
+
+def target_diameter(declared_m: float | None, implied_m: float | None) -> list[str]:
+    """One line if the declared target diameter is ``DIAMETER_REL_TOL`` off the image's.
+
+    Parameters
+    ----------
+    declared_m : ``target_diameter_m`` of the recording (or None)
+    implied_m : ``s_0 / g`` from the image Jacobian (or None when unknown)
+    """
+    if declared_m is None or implied_m is None:
+        return []
+    if not (np.isfinite(declared_m) and np.isfinite(implied_m) and implied_m > 0):
+        return []
+    rel = declared_m / implied_m - 1.0
+    if abs(rel) <= DIAMETER_REL_TOL:
+        return []
+    hint = (
+        "in millimetres? the diameter is in metres"
+        if 300.0 < declared_m / implied_m < 3000.0
+        else "a typo, or another target set?"
+    )
+    return [
+        f"target_diameter_m = {declared_m:.6g} m, but the image Jacobian implies "
+        f"{implied_m:.4g} m ({100 * rel:+.0f} %, beyond {100 * DIAMETER_REL_TOL:.0f} %): {hint}"
+    ]

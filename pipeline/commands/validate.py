@@ -1,0 +1,262 @@
+"""``vtcal validate``: a calibration's accuracy on touch-ups it was not fitted on.
+
+    vtcal validate CALIBRATED.urdf REC.mcap|TABLE.{csv,parquet} [--urdf NOMINAL.urdf]
+        [--out DIR] [--tolerance-mm X] [--distance A:B=METRES ...] [--flange-link L]
+
+The figures and the verdict rule are :mod:`pipeline.validate`'s; see docs/validate.md.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import tempfile
+from collections.abc import Iterator
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import click
+
+from pipeline.commands._common import distance_option, progress_bars
+from pipeline.errors import BadInput
+
+TABLE_SUFFIXES = (".csv", ".parquet", ".pq")
+
+
+@dataclass
+class _Input:
+    """What the input gives: the touch-up table, the nominal URDF, links, metadata."""
+
+    table: Any
+    nominal_urdf: str | None
+    base_link: str | None
+    flange_link: str | None
+    metadata: dict[str, str]
+    source: str
+
+
+def _read_text(path: Path, what: str) -> str:
+    try:
+        return path.read_text()
+    except (OSError, UnicodeDecodeError) as exc:
+        raise BadInput(f"{path}: cannot read the {what}: {exc}") from exc
+
+
+@contextlib.contextmanager
+def _run_folder(out: Path | None) -> Iterator[Path]:
+    if out is not None:
+        yield out
+        return
+    with tempfile.TemporaryDirectory(prefix="vtcal_validate_") as tmp:
+        yield Path(tmp)
+
+
+def _from_recording(recording: Path, folder: Path, flange_link: str | None, quiet: bool) -> _Input:
+    """Ingest, touch-ups and outliers of a recording into ``folder`` (cached stages reused)."""
+    import json
+
+    from pipeline.artefacts import read_artefact
+    from pipeline.orchestrator import RunConfig, run_paths, run_pipeline
+
+    overrides = {"flange_link": flange_link} if flange_link else {}
+    with progress_bars(enabled=not quiet) as progress:
+        run_pipeline(
+            recording, folder, RunConfig(overrides=overrides), until="outliers", progress=progress
+        )
+    P = run_paths(folder)
+    info = json.loads(P["recording"].read_text())
+    return _Input(
+        table=read_artefact(P["inliers"], "inliers"),
+        nominal_urdf=info.get("urdf"),
+        base_link=info.get("base_link"),
+        flange_link=info.get("flange_link"),
+        metadata=dict(info.get("metadata") or {}),
+        source=str(recording),
+    )
+
+
+def _chain(urdf: Any, base: str, flange: str, path: Path) -> Any:
+    from pipeline.kinematics import load_chain
+
+    try:
+        return load_chain(urdf, base, flange)
+    except BadInput as exc:
+        raise BadInput(f"{path}: no chain from {base!r} to {flange!r}: {exc}") from exc
+
+
+@click.command(
+    "validate",
+    epilog="""\b
+Examples:
+  vtcal validate runs/rec1/calibrated.urdf rec2.mcap --out runs/rec2_check --tolerance-mm 0.1
+  vtcal validate cal/calibrated.urdf touchups2.csv --urdf nominal.urdf --distance 0:2=0.25
+""",
+)
+@click.argument("calibrated", type=click.Path(exists=True, dir_okay=False, path_type=Path))
+@click.argument("input_path", type=click.Path(exists=True, dir_okay=False, path_type=Path))
+@click.option(
+    "--urdf",
+    "urdf_path",
+    type=click.Path(exists=True, dir_okay=False, path_type=Path),
+    default=None,
+    help="Nominal URDF for the 'before' figures (default: the recording's /robot_description; "
+    "required for a touch-up table).",
+)
+@click.option(
+    "--out",
+    "-o",
+    type=click.Path(file_okay=False, path_type=Path),
+    default=None,
+    help="Folder for validate.json and validate.html (and, for a recording, its ingest, "
+    "touchups and outliers artefacts, reused when fresh). Default: print only.",
+)
+@click.option(
+    "--tolerance-mm",
+    type=float,
+    default=None,
+    help="PASS when the calibrated robot's consistency on the new touch-ups and every "
+    "known-distance error are at most this and it improved on the nominal robot, else FAIL "
+    "and exit 3. Default: the recording's tolerance_mm metadata key, if any.",
+)
+@distance_option
+@click.option(
+    "--base-link", default=None, help="Base link (default: the recording's, or the root)."
+)
+@click.option(
+    "--flange-link",
+    default=None,
+    help="Link the pin is fixed to (default: the parent of the calibrated URDF's "
+    "virtual_pin_joint).",
+)
+@click.option("--quiet", "-q", is_flag=True, help="No progress bars.")
+def command(
+    calibrated: Path,
+    input_path: Path,
+    urdf_path: Path | None,
+    out: Path | None,
+    tolerance_mm: float | None,
+    distance: tuple[str, ...],
+    base_link: str | None,
+    flange_link: str | None,
+    quiet: bool,
+) -> None:
+    """Judge CALIBRATED.urdf on INPUT, touch-ups it was NOT fitted on.
+
+    INPUT is another recording of the same cell (MCAP) or a touch-up table
+    (CSV/Parquet). Per target, the consistency of the pins the calibrated robot
+    predicts, and the known-distance errors, against the nominal robot with a
+    refitted pin. Exit 3 when not improved or FAIL.
+    """
+    from pipeline.commands.identify import infer_links, read_table
+    from pipeline.kinematics import parse_urdf
+    from pipeline.known_distances import parse_distances
+    from pipeline.validate import match_distances, pin_of, refusal, usable_touchups, validate
+    from pipeline.verdict import tolerance_from_metadata
+
+    cal_text = _read_text(calibrated, "calibrated URDF")
+    try:
+        cal_robot = parse_urdf(cal_text)
+    except BadInput as exc:
+        raise BadInput(f"{calibrated}: {exc}") from exc
+    given = [d for item in distance for d in parse_distances(item)]
+    suffix = input_path.suffix.lower()
+    if suffix not in (".mcap", *TABLE_SUFFIXES):
+        raise BadInput(
+            f"{input_path}: input must be a recording (.mcap) or a touch-up table (.csv, "
+            f".parquet), not {suffix or 'a file without a suffix'!r}"
+        )
+    if suffix != ".mcap" and urdf_path is None:
+        raise BadInput(
+            f"{input_path}: a touch-up table needs --urdf NOMINAL.urdf for the nominal robot"
+        )
+    pin = pin_of(cal_robot)
+    flange = flange_link or (pin[0] if pin else None)
+    with _run_folder(out) as folder:
+        if suffix == ".mcap":
+            inp = _from_recording(input_path, folder, flange_link, quiet)
+        else:
+            inp = _Input(read_table(input_path), None, None, None, {}, str(input_path))
+        nominal_text = _read_text(urdf_path, "nominal URDF") if urdf_path else inp.nominal_urdf
+        nominal_src = urdf_path or Path(f"{input_path} (/robot_description)")
+        if not nominal_text:
+            raise BadInput(f"{input_path}: the recording carries no robot description: give --urdf")
+        try:
+            base = base_link or inp.base_link or infer_links(cal_text)[0]
+            flange = flange or inp.flange_link or infer_links(nominal_text)[1]
+        except BadInput as exc:
+            raise BadInput(f"{calibrated}: {exc}") from exc
+        cal_chain = _chain(cal_robot, base, flange, calibrated)
+        nom_chain = _chain(nominal_text, base, flange, nominal_src)
+        if nom_chain.joint_names != cal_chain.joint_names:
+            raise BadInput(
+                f"{nominal_src}: joints {nom_chain.joint_names} from {base} to {flange} differ "
+                f"from the calibrated URDF's {cal_chain.joint_names}: not the same robot"
+            )
+        cal_pin = pin[1] if pin and pin[0] == flange else None
+        if pin is None:
+            click.echo(
+                f"{calibrated.name} has no virtual_pin_joint: its pin is refitted on these "
+                "touch-ups (the headline then holds no pin error)"
+            )
+        elif cal_pin is None:
+            click.echo(
+                f"the virtual pin of {calibrated.name} is on {pin[0]!r}, not {flange!r}: "
+                "its pin is refitted on these touch-ups"
+            )
+        data = usable_touchups(inp.table, cal_chain.joint_names, inp.source)
+        if given:
+            kept, dropped = match_distances(given, data.labels, inp.source)
+            if dropped:
+                raise BadInput(f"--distance: {dropped[0]}")
+        else:
+            meta = parse_distances(inp.metadata.get("known_distances", ""))
+            kept, dropped = match_distances(meta, data.labels, inp.source)
+            for line in dropped:
+                click.echo(f"note: {line}")
+        if tolerance_mm is None:
+            tolerance_mm = tolerance_from_metadata(inp.metadata)
+        result = validate(cal_chain, cal_pin, nom_chain, data, kept, tolerance_mm)
+        result.update(
+            calibrated=str(calibrated),
+            input=inp.source,
+            nominal=str(nominal_src),
+            base_link=base,
+            flange_link=flange,
+            notes=dropped,
+        )
+        _echo(result)
+        if out is not None:
+            _write(result, out)
+    err = refusal(result)
+    if err is not None:
+        raise err
+
+
+def _echo(result: dict[str, Any]) -> None:
+    """The short table and the verdict line."""
+    click.echo(
+        f"validate {Path(result['calibrated']).name} on {result['input']}: "
+        f"{result['n_touchups']} usable touch-ups of {len(result['targets'])} targets"
+        f" ({result['n_unusable']} rejected or unusable, not judged)"
+    )
+    heads = [f"error {r['pair']}" for r in result["robots"][0]["distances"]]
+    widths = [max(14, len(h) + 2) for h in heads]
+    head = f"  {'robot':<27}{'consistency':>13}{'max':>9}"
+    click.echo(head + "".join(f"{h:>{w}}" for h, w in zip(heads, widths, strict=True)) + "   (mm)")
+    for r in result["robots"]:
+        cells = "".join(
+            f"{d['error_mm']:>{w}.4f}" for d, w in zip(r["distances"], widths, strict=True)
+        )
+        click.echo(f"  {r['label']:<27}{r['consistency_mm']:>13.4f}{r['max_mm']:>9.4f}{cells}")
+    click.echo(result["verdict"]["line"])
+
+
+def _write(result: dict[str, Any], out: Path) -> None:
+    from pipeline.fileio import atomic_write_bytes
+    from pipeline.orchestrator import write_json
+    from pipeline.report.validate_html import render_validation
+
+    out.mkdir(parents=True, exist_ok=True)
+    write_json(out / "validate.json", result)
+    atomic_write_bytes(out / "validate.html", render_validation(result).encode())
+    click.echo(f"wrote validate.json, validate.html to {out}")

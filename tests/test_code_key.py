@@ -1,0 +1,140 @@
+"""Stage cache keys include the stage's code (issue 15: no stale artefacts after a code change).
+
+The central test changes what a stage computes in a copy of the package's
+source, reruns into the same run folder in a fresh process, and checks that
+exactly that stage and everything downstream ran again, while the stages
+upstream stayed cached. Before stage keys held the code, every stage said
+"cached" and the old artefacts stayed.
+"""
+
+from __future__ import annotations
+
+import json
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from pipeline import code_key
+from pipeline.orchestrator import run_pipeline
+
+REPO = Path(__file__).resolve().parent.parent
+SAMPLE = REPO / "datasets" / "samples" / "sample_lrmate.mcap"
+
+#: appended to outliers.py in the copy: the stage now rejects one more touch-up
+CHANGED_OUTLIERS = """
+
+_flag_outliers_before = flag_outliers
+
+
+def flag_outliers(table, info, config):  # noqa: F811  (a changed stage, for the test)
+    out = _flag_outliers_before(table, info, config)
+    first = out.index[out["inlier"]][0]
+    out.loc[first, "inlier"] = False
+    out.loc[first, "reason"] = "changed_code"
+    return out
+"""
+
+RUN = """
+import json, sys
+from pipeline.orchestrator import RunConfig, run_pipeline
+res = run_pipeline(sys.argv[1], sys.argv[2], RunConfig(report=False), until=sys.argv[3])
+print(json.dumps({s.stage: s.status for s in res.stages}))
+"""
+
+
+@pytest.fixture(scope="module")
+def sample_run(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, Path]:
+    """(recording, run folder) of the sample run up to crossval with this package."""
+    if not SAMPLE.exists():
+        pytest.skip(f"shipped sample missing: {SAMPLE}")
+    d = tmp_path_factory.mktemp("codekey")
+    out = d / "run"
+    res = run_pipeline(SAMPLE, out, until="crossval")
+    assert all(s.status == "ran" for s in res.stages)
+    return SAMPLE, out
+
+
+def _package_copy(root: Path) -> Path:
+    """A copy of ``pipeline/`` and ``schemas/`` under ``root`` (sources only)."""
+    ignore = shutil.ignore_patterns("__pycache__", "*.pyc", "*.nbi", "*.nbc")
+    shutil.copytree(REPO / "pipeline", root / "pipeline", ignore=ignore)
+    shutil.copytree(REPO / "schemas", root / "schemas", ignore=ignore)
+    return root
+
+
+def _run_with(pkg_root: Path, rec: Path, out: Path, until: str) -> dict[str, str]:
+    proc = subprocess.run(
+        [sys.executable, "-c", RUN, str(rec), str(out), until],
+        cwd=pkg_root,
+        env={"PYTHONPATH": str(pkg_root), "PATH": "/usr/bin:/bin"},
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    return json.loads(proc.stdout.strip().splitlines()[-1])
+
+
+def test_a_changed_stage_and_everything_downstream_rerun(sample_run, tmp_path) -> None:
+    rec, first = sample_run
+    out = tmp_path / "run"
+    shutil.copytree(first, out)
+    pkg = _package_copy(tmp_path / "src")
+    assert _run_with(pkg, rec, out, "crossval") == dict.fromkeys(
+        ["ingest", "touchups", "outliers", "identify", "crossval"], "cached"
+    ), "an identical copy of the code must find every stage fresh"
+
+    target = pkg / "pipeline" / "stages" / "outliers.py"
+    target.write_text(target.read_text() + CHANGED_OUTLIERS)
+    status = _run_with(pkg, rec, out, "crossval")
+    assert status == {
+        "ingest": "cached",
+        "touchups": "cached",
+        "outliers": "ran",
+        "identify": "ran",
+        "crossval": "ran",
+    }
+    import pandas as pd
+
+    inliers = pd.read_parquet(out / "inliers.parquet")
+    assert (inliers["reason"] == "changed_code").sum() == 1, "the new code's artefact is on disk"
+
+
+def test_a_change_outside_a_stages_code_leaves_it_cached(sample_run, tmp_path) -> None:
+    rec, first = sample_run
+    out = tmp_path / "run"
+    shutil.copytree(first, out)
+    pkg = _package_copy(tmp_path / "src")
+    plots = pkg / "pipeline" / "report" / "plots.py"
+    plots.write_text(plots.read_text() + "\n\nREPORT_ONLY_CHANGE = 1\n")
+    status = _run_with(pkg, rec, out, "identify")
+    assert status == dict.fromkeys(["ingest", "touchups", "outliers", "identify"], "cached")
+
+
+def test_the_digest_sees_a_function_replaced_at_run_time(monkeypatch) -> None:
+    before = {s: code_key.stage_code_digest(s) for s in code_key.ENTRY_POINTS}
+    from pipeline.stages import outliers
+
+    original = outliers.flag_outliers
+
+    def replaced(table, info, config):
+        return original(table, info, config).iloc[:-1]
+
+    monkeypatch.setattr(outliers, "flag_outliers", replaced)
+    after = {s: code_key.stage_code_digest(s) for s in code_key.ENTRY_POINTS}
+    assert after["outliers"] != before["outliers"]
+    assert {s: d for s, d in after.items() if s != "outliers"} == {
+        s: d for s, d in before.items() if s != "outliers"
+    }
+
+
+def test_the_closure_follows_imports_and_stops_at_the_stage() -> None:
+    touchup = set(code_key.module_closure("pipeline.stages.touchup"))
+    assert {"pipeline.stages.touchup", "pipeline.kinematics.chain", "pipeline"} <= touchup
+    assert not any(m.startswith("pipeline.report") for m in touchup)
+    identify = set(code_key.module_closure("pipeline.stages.identify"))
+    # the error models are imported by the registry at run time: every one is code of identify
+    assert {"pipeline.models.full", "pipeline.models.offsets", "pipeline.models.base"} <= identify
