@@ -32,6 +32,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
         "pipeline.commands.validate",
         "Judge a calibrated URDF on another recording's touch-ups.",
     ),
+    "export": ("pipeline.commands.export", "Write a run's calibration for a controller or ROS."),
 }
 
 

@@ -19,3 +19,9 @@ class CalibrationFailed(VtcalError):
     """The calibration ran but cannot be trusted (too few touch-ups, ...). Exit code 3."""
 
     exit_code = 3
+
+
+class ExportRefused(VtcalError):
+    """A calibration cannot be written in the asked format (wrong robot kind). Exit code 3."""
+
+    exit_code = 3

@@ -379,6 +379,8 @@ def run_pipeline(
         id_cfg,
         do_identify,
     )
+    source = _recording_source(recording, P["frames"], fp)
+    stamp_provenance(out, source)
     if last < STAGES.index("crossval"):
         return _finish(out, P, records, fingerprint=fp)
 
@@ -404,6 +406,7 @@ def run_pipeline(
         )
 
     stage("crossval", [P["crossval"]], cv_inputs, cv_cfg, do_crossval)
+    stamp_provenance(out, source)  # now with the shipped model's held-out error
     if last < STAGES.index("report") or not cfg.report:
         return _finish(out, P, records, fingerprint=fp)
 
@@ -515,6 +518,42 @@ def crossval_and_choose(
         summary["headline"] = [*lines, choice]
     write_json(P["identify"], summary)
     return result
+
+
+def _recording_source(recording: Path, frames: Path, fp: Mapping[str, Any]) -> Any:
+    """Provenance source of a run: the recording's name, hash, time and the run id."""
+    import pyarrow.parquet as pq
+
+    from pipeline.provenance import Source, recorded_utc
+
+    stamps = pq.read_table(frames, columns=["stamp_ns"]).column("stamp_ns").to_pylist()
+    return Source(
+        kind="recording",
+        name=recording.name,
+        sha256=str(fp["recording"]),
+        run_id=config_hash(dict(fp)),
+        recorded_utc=recorded_utc(stamps),
+    )
+
+
+def stamp_provenance(out: Path, source: Any) -> None:
+    """Write the provenance block into ``out/calibrated.urdf`` (:mod:`pipeline.provenance`).
+
+    From ``identify.json`` as it stands (the shipped model, and its held-out error
+    once cross-validated) and ``source`` (a :class:`pipeline.provenance.Source`).
+    Idempotent: the file is rewritten only when its bytes change. Nothing to do
+    when either file is missing.
+    """
+    from pipeline.provenance import provenance_lines, stamp_urdf
+
+    P = run_paths(out)
+    if not (P["calibrated_urdf"].is_file() and P["identify"].is_file()):
+        return
+    summary = json.loads(P["identify"].read_text())
+    old = P["calibrated_urdf"].read_text()
+    new = stamp_urdf(old, provenance_lines(summary, source, __version__))
+    if new != old:
+        atomic_write_bytes(P["calibrated_urdf"], new.encode())
 
 
 def render_outputs(out: Path, tolerance_mm: float | None = None) -> None:

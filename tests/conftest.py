@@ -29,3 +29,41 @@ def conformance_truth(conformance_sample: Path) -> dict:
     import json
 
     return json.loads(Path(str(conformance_sample) + ".truth.json").read_text())
+
+
+@pytest.fixture(scope="session")
+def lrmate_run(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """A small run folder: `vtcal identify` on the sample's converged touch-ups (about a second).
+
+    Beside it: ``table.csv`` (integer target ids, no stamps) and ``nominal.urdf``;
+    the sample's known distance is given, so the scale is identified.
+    """
+    import json
+
+    import pandas as pd
+
+    from pipeline.cli import main
+
+    truth_path = REPO / "datasets" / "samples" / "sample_lrmate.mcap.truth.json"
+    truth = json.loads(truth_path.read_text())
+    tmp = tmp_path_factory.mktemp("lrmate")
+    rows = [
+        {
+            "touchup_id": i,
+            "target_id": tu["label"],
+            **dict(zip(truth["joint_names"], tu["q"], strict=True)),
+        }
+        for i, tu in enumerate(truth["touchups"])
+        if tu["converged"]
+    ]
+    pd.DataFrame(rows).to_csv(tmp / "table.csv", index=False)
+    (tmp / "nominal.urdf").write_text(truth["nominal_urdf"])
+    kd = truth["known_distances"][0]
+    a, b = kd["labels"]
+    out = tmp / "run"
+    try:
+        main(["identify", str(tmp / "table.csv"), "--urdf", str(tmp / "nominal.urdf"),
+              "--out", str(out), "--distance", f"{a}:{b}={kd['metres']}", "--no-report"])  # fmt: skip
+    except SystemExit as exc:
+        assert not exc.code, exc.code
+    return out

@@ -13,6 +13,7 @@ from pipeline.artefacts import read_artefact
 from pipeline.cli import main
 from pipeline.evaluate import pin_accuracy, workspace_poses
 from pipeline.kinematics import load_chain, parse_urdf
+from pipeline.provenance import read_provenance, strip_provenance
 
 REPO = Path(__file__).resolve().parent.parent
 SAMPLE = REPO / "datasets" / "samples" / "sample_lrmate.mcap"
@@ -72,9 +73,10 @@ def test_run_ships_the_model_with_the_smallest_held_out_error(sample_run: Path) 
     cv = {m: v for m, v in cv.items() if v["urdf_exact"]}
     best = min(cv, key=lambda m: cv[m]["kfold_rms_mm"])
     assert summary["best_model"] == best
-    assert (sample_run / "calibrated.urdf").read_bytes() == (
-        sample_run / f"calibrated_{best}.urdf"
-    ).read_bytes()
+    # the shipped file is that model's, plus the provenance block naming it
+    shipped = (sample_run / "calibrated.urdf").read_text()
+    assert strip_provenance(shipped) == (sample_run / f"calibrated_{best}.urdf").read_text()
+    assert read_provenance(shipped)["shipped model"].startswith(best)
     assert "held-out" in summary["headline"][-1]
     assert (sample_run / "report.html").stat().st_size > 10_000
     assert (sample_run / "run.rrd").stat().st_size > 10_000

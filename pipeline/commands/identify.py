@@ -124,6 +124,38 @@ def _integer_target_ids(df: pd.DataFrame, cfg: Any) -> tuple[pd.DataFrame, Any]:
     return out, dataclasses.replace(cfg, distances=distances)
 
 
+def _table_source(table: Path, urdf_path: Path, df: pd.DataFrame, conf: dict[str, Any]) -> Any:
+    """Provenance source of an identification from a table (:mod:`pipeline.provenance`).
+
+    The run id hashes what decides the result: the table's and the URDF's bytes,
+    the options, vtcal's version and code. The date is the table's earliest
+    ``stamp_ns`` when it has that column (a run's touchups.parquet does), else unknown.
+    """
+    from pipeline import __version__
+    from pipeline.fileio import config_hash, file_hash
+    from pipeline.provenance import Source, recorded_utc
+    from pipeline.run_ledger import code_digest
+
+    sha = file_hash(table)
+    request = {
+        "table": sha,
+        "urdf": file_hash(urdf_path),
+        "options": json.loads(json.dumps(conf, default=str)),
+        "version": __version__,
+        "code": code_digest(),
+    }
+    stamps: list[Any] = (
+        list(pd.to_numeric(df["stamp_ns"], errors="coerce")) if "stamp_ns" in df else []
+    )
+    return Source(
+        kind="touch-up table",
+        name=table.name,
+        sha256=sha,
+        run_id=config_hash(request),
+        recorded_utc=recorded_utc(stamps),
+    )
+
+
 @click.command("identify")
 @click.argument("table", type=click.Path(exists=True, dir_okay=False, path_type=Path))
 @click.option(
@@ -255,6 +287,9 @@ def command(
             inputs={},
         )
         written.append("crossval.parquet")
+    from pipeline.orchestrator import stamp_provenance
+
+    stamp_provenance(out_dir, _table_source(table, urdf_path, df, conf))
     if not no_report:
         from pipeline.orchestrator import render_outputs
 

@@ -4,7 +4,9 @@ The original document is edited in place (ElementTree, comments kept), so that
 visuals, collisions, limits, inertias and every link or joint not named stay as
 they were. Only the ``<origin>`` of the named joints changes, and one fixed joint
 ``virtual_pin_joint`` from the flange link to a new link ``virtual_pin`` is
-added (or replaced, if the input already has one).
+added (or replaced, if the input already has one). The robot's ``name`` becomes
+:func:`calibrated_name` of the nominal one (``lrmate_nominal`` ->
+``lrmate_calibrated``), so a calibrated file never says "nominal".
 
 Joint zero offsets are not a URDF concept: an identified offset ``dq0`` of a
 revolute joint is folded into its origin as ``T_parent_joint' = T_parent_joint
@@ -25,6 +27,18 @@ from pipeline.errors import BadInput
 from pipeline.kinematics.se3 import F64, rpy_from_matrix
 
 PIN_JOINT = "virtual_pin_joint"
+
+
+def calibrated_name(name: str | None) -> str:
+    """The calibrated robot's name: ``nominal`` dropped, ``_calibrated`` appended once.
+
+    ``"ur5e_nominal"`` -> ``"ur5e_calibrated"``, ``"ur5e"`` -> ``"ur5e_calibrated"``,
+    ``"ur5e_calibrated"`` stays (a recalibration), ``""`` -> ``"calibrated"``.
+    """
+    base = re.sub(r"[_\-\s]*nominal[_\-\s]*", "_", name or "", flags=re.IGNORECASE).strip("_")
+    if base.endswith("calibrated"):
+        return base
+    return f"{base}_calibrated" if base else "calibrated"
 
 
 def _fmt(values: ArrayLike) -> str:
@@ -98,6 +112,7 @@ def write_calibrated_urdf(
         raise BadInput(f"URDF has no link {flange_link!r} to fix the virtual pin to")
     for name, T in origins.items():
         _set_origin(joints[name], np.asarray(T, dtype=float))
+    root.set("name", calibrated_name(root.get("name")))
 
     # Drop a virtual pin a previous calibration left, then add the new one.
     old = joints.get(PIN_JOINT)
