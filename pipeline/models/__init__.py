@@ -10,6 +10,7 @@ from __future__ import annotations
 import importlib
 import pkgutil
 
+from pipeline.kinematics.chain import Chain
 from pipeline.models.base import REGISTRY, ErrorModel, register
 
 _NOT_MODELS = {"base", "observability"}
@@ -18,7 +19,7 @@ for _info in pkgutil.iter_modules(__path__):
     if _info.name not in _NOT_MODELS and not _info.name.startswith("_"):
         importlib.import_module(f"{__name__}.{_info.name}")
 
-__all__ = ["ErrorModel", "get_model", "model_names", "register"]
+__all__ = ["ErrorModel", "get_model", "make_model", "model_names", "register"]
 
 
 def model_names() -> list[str]:
@@ -37,3 +38,10 @@ def get_model(name: str) -> type[ErrorModel]:
     if name not in REGISTRY:
         raise KeyError(f"unknown error model {name!r}; known: {', '.join(REGISTRY)}")
     return REGISTRY[name]
+
+
+def make_model(name: str, chain: Chain) -> ErrorModel:
+    """The error model ``name`` of ``chain``, its declared lists checked (:meth:`check_contract`)."""
+    model = get_model(name)(chain)
+    model.check_contract()
+    return model

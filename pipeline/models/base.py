@@ -29,9 +29,11 @@ every such module and answers ``get_model`` / ``model_names``.
 
 from __future__ import annotations
 
+import functools
 from abc import ABC, abstractmethod
 from collections.abc import Callable
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 from numpy.typing import ArrayLike
@@ -107,7 +109,16 @@ class ErrorModel(ABC):
     """A parameterisation of a chain's kinematic errors (see module docstring).
 
     Subclasses set ``name`` and ``description`` and fill ``param_names``,
-    ``param_joints`` and ``param_units`` (``"m"`` or ``"rad"``) in ``__init__``.
+    ``param_joints`` and ``param_units`` (``"m"``, ``"rad"``, ...) in ``__init__``.
+    Everything else a model may provide is declared here with its default:
+
+    * ``param_priority`` (P,): tie-break among exactly dependent columns in the
+      identifiability QR (a larger value is kept); default all 1;
+    * ``param_nominal`` (P,): the nominal value of the quantity each parameter
+      corrects (the DH table for ``mdh``), written to parameters.parquet's
+      ``nominal``; default all 0 (pure corrections);
+    * ``urdf_exact``: :meth:`origins` reproduce the model exactly;
+    * :meth:`column_scale`: the identification's column scaling.
     """
 
     name: str = ""
@@ -116,16 +127,90 @@ class ErrorModel(ABC):
     #: configuration-dependent terms a URDF cannot carry; never shipped as calibrated.urdf)
     urdf_exact: bool = True
 
+    def __init_subclass__(cls, **kwargs: Any) -> None:
+        """Wrap a subclass's :meth:`pin_and_jacobian` with :meth:`check_inputs`.
+
+        The check runs when the method is called on an instance of the class that
+        defines it (a subclass calling ``super().pin_and_jacobian`` with its own
+        slice of ``x`` is not checked against its own parameter count).
+        """
+        super().__init_subclass__(**kwargs)
+        impl = cls.__dict__.get("pin_and_jacobian")
+        if impl is None or getattr(impl, "__isabstractmethod__", False):
+            return
+
+        @functools.wraps(impl)
+        def checked(
+            self: ErrorModel, x: ArrayLike, q: ArrayLike, p_flange: ArrayLike, *, jac: bool = True
+        ) -> tuple[F64, F64, F64 | None]:
+            if type(self).pin_and_jacobian is checked:
+                self.check_inputs(x, q, p_flange)
+            return impl(self, x, q, p_flange, jac=jac)  # type: ignore[no-any-return]
+
+        cls.pin_and_jacobian = checked  # type: ignore[method-assign]
+
     def __init__(self, chain: Chain) -> None:
         self.nominal = chain
         self.layout = ChainLayout.from_chain(chain)
         self.param_names: list[str] = []
         self.param_joints: list[str] = []
         self.param_units: list[str] = []
+        self._priority: F64 | None = None
+        self._nominal: F64 | None = None
 
     @property
     def n_params(self) -> int:
         return len(self.param_names)
+
+    @property
+    def param_priority(self) -> F64:
+        """(P,) pivoting tie-break weights (see the class docstring); default ones."""
+        return np.ones(self.n_params) if self._priority is None else self._priority
+
+    @param_priority.setter
+    def param_priority(self, value: ArrayLike) -> None:
+        self._priority = np.asarray(value, dtype=float)
+
+    @property
+    def param_nominal(self) -> F64:
+        """(P,) nominal value of what each parameter corrects; default zeros."""
+        return np.zeros(self.n_params) if self._nominal is None else self._nominal
+
+    @param_nominal.setter
+    def param_nominal(self, value: ArrayLike) -> None:
+        self._nominal = np.asarray(value, dtype=float)
+
+    def check_contract(self) -> None:
+        """Raise ``ValueError`` if the declared per-parameter lists disagree in length."""
+        P = self.n_params
+        sizes = {
+            "param_joints": len(self.param_joints),
+            "param_units": len(self.param_units),
+            "param_priority": len(self.param_priority),
+            "param_nominal": len(self.param_nominal),
+        }
+        bad = {k: v for k, v in sizes.items() if v != P}
+        if bad:
+            raise ValueError(f"error model {self.name!r}: {P} param_names but {bad}")
+
+    def check_inputs(self, x: ArrayLike, q: ArrayLike, p_flange: ArrayLike) -> None:
+        """Raise ``ValueError`` naming the shape when :meth:`pin_and_jacobian`'s inputs are off.
+
+        ``x`` must be (P,), ``q`` (N, n) or (n,), ``p_flange`` (3,) or (N, 3).
+        """
+        xs, qs, ps = np.shape(x), np.shape(q), np.shape(p_flange)
+        n = self.layout.n
+        if xs != (self.n_params,):
+            raise ValueError(
+                f"error model {self.name!r}: x has shape {xs}, expected ({self.n_params},)"
+            )
+        if not (qs == (n,) or (len(qs) == 2 and qs[1] == n)):
+            raise ValueError(f"error model {self.name!r}: q has shape {qs}, expected (N, {n})")
+        N = qs[0] if len(qs) == 2 else 1
+        if ps not in ((3,), (N, 3)):
+            raise ValueError(
+                f"error model {self.name!r}: p_flange has shape {ps}, expected (3,) or ({N}, 3)"
+            )
 
     def column_scale(self, length: float) -> F64:
         """Roughly the metres a unit of each parameter moves the pin by, (P,).

@@ -175,6 +175,7 @@ class MDHModel(ErrorModel):
                 self.param_names.append(f"{jn}.{names[c]}")
                 self.param_joints.append(jn)
                 self.param_units.append("m" if names[c] in ("a", "d") else "rad")
+        self.param_nominal = [float(self.nom[i, c]) for i, c in self._slots]
 
     @staticmethod
     def _link(i: int, v: F64) -> F64:

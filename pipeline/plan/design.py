@@ -46,7 +46,7 @@ from numpy.typing import ArrayLike
 
 from pipeline.kinematics.chain import Chain
 from pipeline.kinematics.se3 import F64
-from pipeline.models import get_model
+from pipeline.models import make_model
 from pipeline.models.base import ErrorModel
 from pipeline.models.observability import observability
 
@@ -206,7 +206,7 @@ def build_design(
     KeyError
         Unknown model name (the CLI turns it into BadInput).
     """
-    model = get_model(model_name)(chain)
+    model = make_model(model_name, chain)
     q = np.asarray(q, dtype=float)
     tk = np.asarray(target_index, dtype=np.int64)
     pin = np.asarray(p_flange_pin, dtype=float)

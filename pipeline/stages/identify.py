@@ -66,7 +66,7 @@ from pipeline.evaluate import workspace_poses
 from pipeline.kinematics.chain import Chain, load_chain
 from pipeline.kinematics.se3 import F64
 from pipeline.kinematics.urdf_write import write_calibrated_urdf
-from pipeline.models import get_model, model_names
+from pipeline.models import make_model, model_names
 from pipeline.models.base import ErrorModel
 from pipeline.models.observability import indices_from_singular_values, project_out
 from pipeline.stages.print_shape import SHAPE_COLUMNS
@@ -591,7 +591,7 @@ def _structure(
     from pipeline.evaluate import synthetic_touchups
 
     chain = load_chain(urdf, base_link, flange_link)
-    model = get_model(name)(chain)
+    model = make_model(name, chain)
     rng = np.random.default_rng(20240601)
     lo = np.where(np.isfinite(chain.lower), chain.lower, -np.pi)
     hi = np.where(np.isfinite(chain.upper), chain.upper, np.pi)
@@ -615,7 +615,7 @@ def _structure(
     assert J is not None
     Lc = float(np.sqrt(np.mean(np.sum(tg**2, axis=1))))
     pscale = model.column_scale(Lc)
-    prio = np.asarray(getattr(model, "param_priority", np.ones(P)), dtype=float)
+    prio = model.param_priority
     A = project_out(J[:, :P] * pscale, J[:, P:])
     kept, held, _ = _select(A * prio, tol)
     reasons = _held_reasons(A, kept, held, model.param_names, tol)
@@ -1019,7 +1019,7 @@ def _identify_one(
 ) -> IdentifyResult:
     t0 = time.perf_counter()
     try:
-        model = get_model(name)(chain)
+        model = make_model(name, chain)
     except KeyError as exc:
         raise BadInput(f"--model {name!r}: {exc.args[0]}") from exc
     x0 = model.zero()
@@ -1146,7 +1146,7 @@ def _identify_one(
     rms = float(np.sqrt(np.sum(norms_used**2 * data.sw**2) / wsum))
     est_index = -np.ones(P, dtype=np.int64)
     est_index[kept] = np.arange(len(kept))
-    nominal_vals = np.asarray(getattr(model, "param_nominal", np.zeros(P)), dtype=float)
+    nominal_vals = model.param_nominal
     prow = []
     for j in range(P):
         i = int(est_index[j])
@@ -1424,7 +1424,7 @@ def design_jacobian(
         [(0, 1, 1.0)] if known_distance and len(labels) > 1 else []
     )
     data = _prepare(table, chain, IdentifyConfig(distances=dist))
-    m = get_model(model)(chain)
+    m = make_model(model, chain)
     pin = np.asarray(p_flange_pin, dtype=float)
     p, _, _ = m.pin_and_jacobian(m.zero(), data.q, pin, jac=False)
     tg = np.array([p[data.tk == k].mean(axis=0) for k in range(data.K)])

@@ -313,7 +313,7 @@ def _target_positions(targets: pd.DataFrame) -> dict[int, F64]:
 def _fit(out: pd.DataFrame, info: Any, model: str, config: OutlierConfig) -> _Fit:
     """Identify on the current inliers and build the linearised problem."""
     from pipeline.kinematics.chain import load_chain
-    from pipeline.models import get_model
+    from pipeline.models import make_model
     from pipeline.stages.identify import IdentifyConfig, IdentifyResult, identify
 
     dist = _distances(info)
@@ -325,7 +325,7 @@ def _fit(out: pd.DataFrame, info: Any, model: str, config: OutlierConfig) -> _Fi
     res = identify(out, info.urdf, info.base_link, info.flange_link, icfg)
     assert isinstance(res, IdentifyResult)
     chain = load_chain(info.urdf, info.base_link, info.flange_link)
-    em = get_model(model)(chain)
+    em = make_model(model, chain)
     par = res.parameters
     kin = par[par["kind"] == "kinematic"].reset_index(drop=True)
     kept = np.flatnonzero(kin["identifiable"].to_numpy(dtype=bool))
@@ -461,13 +461,13 @@ def _prediction_test(f: _Fit, out: pd.DataFrame, i: int, info: Any) -> tuple[flo
     returns ``(p-value of F(3, dof), sigma)``.
     """
     from pipeline.kinematics.chain import load_chain
-    from pipeline.models import get_model
+    from pipeline.models import make_model
 
     tid = int(out["target_id"].to_numpy(dtype=np.int64)[i])
     if tid not in f.targets or not f.dof > 0:
         return 1.0, 0.0
     chain = load_chain(info.urdf, info.base_link, info.flange_link)
-    em = get_model(f.model)(chain)
+    em = make_model(f.model, chain)
     q = out.iloc[[i]][list(chain.joint_names)].to_numpy(dtype=float)
     d = out.iloc[[i]][["dx_flange", "dy_flange", "dz_flange"]].to_numpy(dtype=float)
     w = float(out["weight"].iloc[i])
