@@ -261,3 +261,25 @@ def test_bad_bags_one_line(short_msgs: list[Msg], tmp_path: Path) -> None:
             _ingest(rec)
         msg = str(exc.value)
         assert "\n" not in msg and needle in msg and str(rec) in msg, msg
+
+
+def test_split_bag_run_is_cached_by_content(short_msgs: list[Msg], tmp_path: Path) -> None:
+    """A bag directory is hashed over its data files: same bytes -> every stage cached;
+    one file changed -> a new hash (metadata.yaml itself is not hashed)."""
+    from pipeline.fileio import file_hash
+    from pipeline.recording_layout import locate, recording_hash
+
+    bag = write_split_mcap_bag(tmp_path / "split", short_msgs, 2)
+    cfg = RunConfig(report=False)
+    run_pipeline(bag, tmp_path / "run", cfg, until="ingest")
+    again = run_pipeline(bag, tmp_path / "run", cfg, until="ingest")
+    assert [r.status for r in again.stages] == ["cached"]
+    h0 = recording_hash(locate(bag))
+    (bag / "metadata.yaml").write_text((bag / "metadata.yaml").read_text() + "\n")
+    assert recording_hash(locate(bag)) == h0
+    part = bag / "split_1.mcap"
+    part.write_bytes(part.read_bytes() + b"\0")
+    assert recording_hash(locate(bag)) != h0
+    single = tmp_path / "one.bag"
+    write_ros1_bag(single, short_msgs)
+    assert recording_hash(locate(single)) == file_hash(single)
