@@ -10,7 +10,7 @@ and small hand-written decoders for the few message types a recording holds:
   arrays) and never parse the schema text: ``MSG: pkg/Type`` and
   ``MSG: pkg/msg/Type`` lines, comments and constants are all equally fine.
 - Foxglove ``foxglove.RawImage`` / ``foxglove.CompressedImage`` in JSON, and in
-  protobuf when ``foxglove-schemas-protobuf`` is installed.
+  protobuf when ``foxglove-schemas-protobuf`` is installed (the ``foxglove`` extra).
 
 A truncated file (recorder killed) ends the stream early; :class:`StreamState`
 records that and how many bytes were read.
@@ -309,7 +309,9 @@ def _foxglove_object(schema_name: str, msg_encoding: str, data: bytes) -> dict[s
         try:
             mod = importlib.import_module(f"foxglove_schemas_protobuf.{name}_pb2")
         except ImportError as exc:
-            raise ValueError("protobuf images need foxglove-schemas-protobuf installed") from exc
+            raise ValueError(
+                "Foxglove protobuf images need the foxglove extra: pip install 'vtcal[foxglove]'"
+            ) from exc
         m: Any = getattr(mod, name)()
         m.ParseFromString(bytes(data))
         res: dict[str, Any] = {

@@ -41,6 +41,7 @@ from pipeline.code_key import stage_code_digest
 from pipeline.errors import BadInput, CalibrationFailed
 from pipeline.fileio import atomic_write_bytes, config_hash, file_hash
 from pipeline.known_distances import parse_distances
+from pipeline.recording_layout import locate
 
 STAGES = ("ingest", "touchups", "outliers", "identify", "crossval", "report")
 
@@ -201,7 +202,7 @@ def run_pipeline(
 
     Parameters
     ----------
-    recording : MCAP file (``../shared/spec/recording.md``)
+    recording : MCAP file (``../shared/spec/recording.md``) or ROS bag (docs/ros-bags.md)
     out : run folder (created)
     config : stage options; defaults are the embedded defaults
     until : last stage to run (one of :data:`STAGES`)
@@ -224,8 +225,7 @@ def run_pipeline(
     last = STAGES.index(until) if until else len(STAGES) - 1
     recording = Path(recording)
     out = Path(out)
-    if not recording.is_file():
-        raise BadInput(f"{recording}: no such recording file")
+    locate(recording)  # a missing file, a directory that is not a bag: BadInput now
     parse_distances(cfg.overrides.get("known_distances", ""))  # before the long ingest
     fp = run_ledger.fingerprint(recording, cfg, until)
     if not force:
@@ -650,9 +650,9 @@ def cached_run(
 
     try:
         recording, out = Path(recording), Path(out)
-        if (until is not None and until not in STAGES) or not recording.is_file():
+        if (until is not None and until not in STAGES) or not recording.exists():
             return None
         fp = run_ledger.fingerprint(recording, config or RunConfig(), until)
         return _from_ledger(out, fp)
-    except (OSError, ValueError):
+    except (OSError, ValueError, BadInput):
         return None

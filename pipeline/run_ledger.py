@@ -35,6 +35,7 @@ from typing import Any
 
 from pipeline import __version__
 from pipeline.fileio import file_hash
+from pipeline.recording_layout import locate, recording_hash
 
 PACKAGE_DIR = Path(__file__).resolve().parent
 SCHEMA_DIR = PACKAGE_DIR.parent / "schemas"
@@ -83,12 +84,13 @@ def fingerprint(recording: Path, config: Any, until: str | None) -> dict[str, An
 
     Parameters
     ----------
-    recording : the MCAP file (hashed: its bytes, not its name, count)
+    recording : the MCAP file or ROS bag (hashed: its bytes, not its name, count;
+        :func:`pipeline.recording_layout.recording_hash`)
     config : the run's :class:`~pipeline.orchestrator.RunConfig`
     until : last stage asked for, or None
     """
     return {
-        "recording": file_hash(recording),
+        "recording": recording_hash(locate(recording)),
         "config": config_json(config),
         "until": until,
         "version": __version__,

@@ -110,6 +110,10 @@ def test_not_an_mcap_empty_file_and_header_only(tmp_path, capsys):
         _one_error(code, err, 2, str(p), needle)
     code, err = _run(tmp_path / "nope.mcap", tmp_path / "o", capsys)
     _one_error(code, err, 2, "nope.mcap", "no such recording file")
+    folder = tmp_path / "not_a_bag"
+    folder.mkdir()
+    code, err = _run(folder, tmp_path / "o", capsys)
+    _one_error(code, err, 2, str(folder), "not a rosbag2 bag (no metadata.yaml)")
 
 
 def test_wrong_topics_name_what_is_there(tmp_path, capsys):
@@ -427,7 +431,6 @@ def test_usage_errors_are_one_line_exit_2(tmp_path, capsys):
     f.write_text("touchup_id\n1\n")
     for args, needle in [
         (["identify", str(f), "--urdf", str(f), "--out", str(f)], "is a file"),
-        (["run", str(tmp_path), "--out", str(tmp_path / "o")], "is a directory"),
         (["run", str(f), "--out", str(tmp_path / "o"), "--until", "nope"], "'nope'"),
         (["run", str(f), "--bogus"], "No such option"),
         (["frobnicate"], "No such command"),

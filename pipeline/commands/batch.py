@@ -23,7 +23,7 @@ Examples:
   vtcal batch --manifest fleet.toml --out /shared/runs --executor dask --scheduler tcp://head:8786
 """,
 )
-@click.argument("recordings", nargs=-1, type=click.Path(dir_okay=False, path_type=Path))
+@click.argument("recordings", nargs=-1, type=click.Path(path_type=Path))
 @click.option(
     "--manifest",
     "-m",

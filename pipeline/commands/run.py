@@ -29,9 +29,11 @@ Examples:
   vtcal run rec.mcap --out runs/rec --until touchups      # stop after extraction
   vtcal run rec.mcap --out runs/rec --model all           # fit every error model
   vtcal run rec.mcap --out runs/rec --set polarity=light_on_dark --distance 0:2=0.25
+  vtcal run my_bag/ --out runs/bag --joint-prefix robot1/   # ros2 bag record directory
+  vtcal run cell.bag --out runs/cell --set target_diameter_m=0.02   # ROS 1 bag
 """,
 )
-@click.argument("recording", type=click.Path(dir_okay=False, path_type=Path))
+@click.argument("recording", type=click.Path(path_type=Path))
 @click.option(
     "--out",
     "-o",
@@ -51,6 +53,13 @@ Examples:
 @click.option("--image-topic", default=None, help="Image topic (default: auto-detect).")
 @click.option("--joint-topic", default="/joint_states", show_default=True)
 @click.option("--description-topic", default="/robot_description", show_default=True)
+@click.option(
+    "--joint-prefix",
+    default="",
+    metavar="PREFIX",
+    help="Strip PREFIX from joint-state names before matching them with the URDF's "
+    "(robot1/ makes robot1/joint_1 joint_1).",
+)
 @click.option("--base-link", default=None, help="URDF base link (overrides the metadata).")
 @click.option("--flange-link", default=None, help="URDF flange link (overrides the metadata).")
 @click.option("--no-report", is_flag=True, help="Skip report.html and run.rrd.")
@@ -74,6 +83,7 @@ def command(
     image_topic: str | None,
     joint_topic: str,
     description_topic: str,
+    joint_prefix: str,
     base_link: str | None,
     flange_link: str | None,
     no_report: bool,
@@ -81,7 +91,8 @@ def command(
     tolerance_mm: float | None,
     quiet: bool,
 ) -> None:
-    """Calibrate from RECORDING (an MCAP file per shared/spec/recording.md).
+    """Calibrate from RECORDING: an MCAP file per shared/spec/recording.md, or a ROS bag
+    (rosbag2 directory of .mcap or .db3 files, a .db3 file, a ROS 1 .bag; docs/ros-bags.md).
 
     Writes into --out one Parquet artefact per stage (frames, detections,
     touchups, inliers, parameters, residuals, targets, crossval), calibrated.urdf
@@ -98,6 +109,8 @@ def command(
     overrides, stage_options = split_stage_options(overrides)
     if model:
         stage_options.setdefault("identify", {})["model"] = model
+    if joint_prefix:
+        stage_options.setdefault("ingest", {})["joint_prefix"] = joint_prefix
     if accept_implausible:
         stage_options.setdefault("identify", {})["accept_implausible"] = True
     cfg = RunConfig(

@@ -23,8 +23,9 @@ from pipeline.io_mcap import (
     StreamState,
     decode_image_message,
     image_to_gray,
-    iter_messages,
 )
+from pipeline.io_recording import iter_recording
+from pipeline.recording_layout import locate
 
 
 @dataclass
@@ -61,7 +62,7 @@ def load_images(path: Path, image_topic: str | None, indices: Iterable[int]) -> 
     topic = image_topic
     count = 0
     try:
-        for msg in iter_messages(path, state):
+        for msg in iter_recording(locate(path), state):
             t, schema, enc = state.topic_type(msg.channel_id)
             if schema not in IMAGE_TYPES:
                 continue

@@ -1,7 +1,8 @@
 """Ingest: one streaming pass over a recording -> frames, detections, recording info.
 
 The recording contract is ../shared/spec/recording.md. The file is read once,
-in file order (:func:`pipeline.io_mcap.iter_messages`); every image is decoded
+in file order (:func:`pipeline.io_recording.iter_recording`: an MCAP file or a
+ROS bag); every image is decoded
 and handed to :func:`pipeline.stages.detect.detect_target` at once, so only one
 image is in memory at a time. Joint states (small) are kept, and after the
 pass every image stamp gets
@@ -39,9 +40,10 @@ from pipeline.io_mcap import (
     decode_joint_state,
     decode_string,
     image_to_gray,
-    iter_messages,
 )
+from pipeline.io_recording import TOUCHUP_TOPIC, iter_recording, summarize, touchup_from_message
 from pipeline.kinematics.urdf import RobotDescription, chain_joints, parse_urdf
+from pipeline.recording_layout import locate
 from pipeline.stages.detect import RESULT_KEYS, DetectConfig, detect_target
 from pipeline.stages.plausibility import joints_outside_chain
 from pipeline.stages.response import parse_response
@@ -80,6 +82,9 @@ class IngestConfig:
         None: automatic (``/camera/image_raw``, ``/camera/image_raw/compressed``,
         else the only image-typed topic, Foxglove types included).
     joint_topic, description_topic : str
+    joint_prefix : str
+        Stripped from the start of joint-state names before they are matched
+        with the URDF's (``robot1/`` makes ``robot1/joint_1`` ``joint_1``).
     overrides : dict
         Command-line values of the ``touchup`` metadata keys (win over the file).
     still_window_s : float
@@ -93,6 +98,7 @@ class IngestConfig:
     image_topic: str | None = None
     joint_topic: str = "/joint_states"
     description_topic: str = "/robot_description"
+    joint_prefix: str = ""
     overrides: dict[str, str] = field(default_factory=dict)
     still_window_s: float = 0.06
     moving_speed_rad_s: float = 2e-3
@@ -142,35 +148,22 @@ class RecordingInfo:
     implausible: list[str] = field(default_factory=list)
 
 
-def _prescan(path: str) -> tuple[dict[str, tuple[str, str]], dict[str, dict[str, str]]]:
-    """Channels ``{topic: (schema, encoding)}`` and metadata from the summary, if any."""
-    from mcap.reader import make_reader
+def _choose_image_topic(
+    path: str, topics: dict[str, tuple[str, str]], requested: str | None
+) -> str | None:
+    """The image topic: the requested one, a spec default, or the only image-typed topic.
 
-    topics: dict[str, tuple[str, str]] = {}
-    meta: dict[str, dict[str, str]] = {}
-    try:
-        with open(path, "rb") as f:
-            r = make_reader(f)
-            s = r.get_summary()
-            if s is None:
-                return topics, meta
-            for ch in s.channels.values():
-                sc = s.schemas.get(ch.schema_id)
-                topics[ch.topic] = (sc.name if sc else "", ch.message_encoding)
-            for m in r.iter_metadata():
-                meta[m.name] = dict(m.metadata)
-    except Exception:  # noqa: BLE001 - a broken summary just means: stream
-        return {}, {}
-    return topics, meta
-
-
-def _choose_image_topic(topics: dict[str, tuple[str, str]], requested: str | None) -> str | None:
+    Raises BadInput listing the candidates when there are several and none is a
+    spec default (``/camera/image_raw``, ``/camera/image_raw/compressed``).
+    """
     if requested:
         return requested
     for t in DEFAULT_IMAGE_TOPICS:
         if t in topics and topics[t][0] in IMAGE_TYPES:
             return t
     imgs = sorted(t for t, (sn, _) in topics.items() if sn in IMAGE_TYPES)
+    if len(imgs) > 1:
+        raise BadInput(f"{path}: {len(imgs)} image topics {imgs}: choose one with --image-topic")
     return imgs[0] if imgs else None
 
 
@@ -215,7 +208,8 @@ def ingest_recording(
 
     Parameters
     ----------
-    path : recording (../shared/spec/recording.md)
+    path : recording (../shared/spec/recording.md): an MCAP file or a ROS bag
+        (:mod:`pipeline.io_recording`, docs/ros-bags.md)
     config : IngestConfig
     detect_config : DetectConfig
         ``polarity`` None takes the metadata's, else automatic per image.
@@ -236,29 +230,21 @@ def ingest_recording(
     Raises
     ------
     BadInput
-        One line naming the file and the topic/value: no images, no joint
-        states, no URDF, unknown image encoding, joint names not in the URDF,
-        non-finite joint positions.
+        One line naming the file and the topic/value: no images, several image
+        topics and none chosen, no joint states, no URDF, unknown image
+        encoding, no joint-state name in the URDF (a prefix to strip?), a chain
+        joint missing from a message, non-finite joint positions, a bag that
+        does not open. Joint-state names the URDF lacks are ignored with a warning.
     """
     path = os.fspath(path)
-    topics, pre_meta = _prescan(path)
-    image_topic = _choose_image_topic(topics, config.image_topic)
+    layout = locate(path)
+    summary = summarize(layout)
+    topics = summary.topics
+    image_topic = _choose_image_topic(path, topics, config.image_topic)
     n_total: int | None = None
-    if topics and image_topic:
-        try:
-            from mcap.reader import make_reader
-
-            with open(path, "rb") as f:
-                s = make_reader(f).get_summary()
-            if s is not None and s.statistics is not None:
-                n_total = sum(
-                    int(s.statistics.channel_message_counts.get(cid, 0))
-                    for cid, ch in s.channels.items()
-                    if ch.topic == image_topic
-                )
-        except Exception:  # noqa: BLE001
-            n_total = None
-    metadata: dict[str, str] = dict(pre_meta.get("touchup", {}))
+    if topics and image_topic and summary.counts:
+        n_total = summary.counts.get(image_topic, 0)
+    metadata: dict[str, str] = dict(summary.metadata.get("touchup", {}))
     polarity = (
         detect_config.polarity or config.overrides.get("polarity") or metadata.get("polarity")
     )
@@ -289,10 +275,9 @@ def ingest_recording(
 
     state = StreamState(path)
     urdf: str | None = None
-    j_stamp: list[int] = []
-    j_pos: list[np.ndarray] = []
-    j_names: list[str] | None = None
-    name_orders: dict[tuple[str, ...], np.ndarray] = {}
+    # joint states grouped by their name lists: {names: (stamps, message indices, positions)}
+    j_groups: dict[tuple[str, ...], tuple[list[int], list[int], list[np.ndarray]]] = {}
+    stream_touchup: dict[str, str] = {}
     rows: list[dict[str, Any]] = []
     img_log: list[int] = []
     img_stamp: list[int] = []
@@ -300,7 +285,7 @@ def ingest_recording(
     width = height = 0
     seen_image_topics: set[str] = set()
     n_joint_msgs = 0
-    for msg in iter_messages(path, state):
+    for msg in iter_recording(layout, state):
         topic, sname, menc = state.topic_type(msg.channel_id)
         if menc != "cdr" and sname.startswith(("sensor_msgs/", "std_msgs/")):
             if topic in (image_topic, config.joint_topic, config.description_topic):
@@ -309,7 +294,7 @@ def ingest_recording(
                     f"{sname} (ROS 2 messages are read as cdr)"
                 )
         if image_topic is None and sname in IMAGE_TYPES:
-            image_topic = _choose_image_topic({topic: (sname, menc)}, None)
+            image_topic = topic  # no index (truncated file): the first image topic seen
         if topic == image_topic:
             if sname not in IMAGE_TYPES:
                 raise BadInput(f"{path}: topic {topic}: type {sname!r} is not an image type")
@@ -357,50 +342,35 @@ def ingest_recording(
                 raise BadInput(
                     f"{path}: {topic} message {n_joint_msgs}: undecodable: {exc}"
                 ) from exc
-            if j_names is None:
-                if urdf is None:
-                    # the URDF normally comes first; keep names as they come
-                    j_names = list(names)
-                else:
-                    j_names = _arm_joint_names(path, urdf, names, config)
-            key = tuple(names)
-            order = name_orders.get(key)
-            if order is None:
-                missing = [n for n in j_names if n not in names]
-                if missing:
-                    raise BadInput(
-                        f"{path}: {topic} message {n_joint_msgs}: joints {missing} missing "
-                        f"(has {list(names)})"
-                    )
-                order = np.array([names.index(n) for n in j_names])
-                name_orders[key] = order
             if len(pos) != len(names):
                 raise BadInput(
                     f"{path}: {topic} message {n_joint_msgs}: {len(names)} names but "
                     f"{len(pos)} positions"
                 )
-            q = pos[order]
-            if not np.all(np.isfinite(q)):
-                raise BadInput(f"{path}: {topic} message {n_joint_msgs}: non-finite position {q}")
-            j_stamp.append(stamp if stamp > 0 else int(msg.log_time))
-            j_pos.append(q)
+            group = j_groups.setdefault(_strip_prefix(names, config.joint_prefix), ([], [], []))
+            group[0].append(stamp if stamp > 0 else int(msg.log_time))
+            group[1].append(n_joint_msgs)
+            group[2].append(pos)
             n_joint_msgs += 1
         elif topic == config.description_topic and urdf is None:
             if sname not in STRING_TYPES:
                 raise BadInput(f"{path}: topic {topic}: type {sname!r} is not std_msgs/String")
             urdf = decode_string(msg.data)
+        elif topic == TOUCHUP_TOPIC and not stream_touchup and sname in STRING_TYPES:
+            stream_touchup = touchup_from_message(layout.path, msg.data)
     if probing is not None:
         dcfg, response_est, expected = _resolve_response(probing, rows, dcfg)
     if progress is not None:
         progress(len(rows), n_total)
     # metadata seen while streaming (summary-less files)
-    for k2, v2 in state.metadata.get("touchup", {}).items():
+    for k2, v2 in [*state.metadata.get("touchup", {}).items(), *stream_touchup.items()]:
         metadata.setdefault(k2, v2)
     warnings: list[str] = []
     if state.truncated:
         pct = 100.0 * state.bytes_read / max(state.file_size, 1)
-        times = [*img_log[-1:], *j_stamp[-1:]]
-        t_first = min([*img_log[:1], *j_stamp[:1]], default=0)
+        j_ends = [t for g in j_groups.values() for t in (g[0][0], g[0][-1])]
+        times = [*img_log[-1:], *j_ends]
+        t_first = min([*img_log[:1], *j_ends], default=0)
         span = f", {1e-9 * (max(times) - t_first):.1f} s of data" if times else ""
         warnings.append(
             f"{path}: truncated recording (recorder killed? {state.error}): read "
@@ -416,11 +386,6 @@ def ingest_recording(
         raise BadInput(f"{path}: no image messages on {image_topic or 'any image topic'}{extra}")
     if n_joint_msgs == 0:
         raise BadInput(f"{path}: no joint states on {config.joint_topic}")
-    if n_joint_msgs < 2:
-        raise BadInput(
-            f"{path}: only one joint state on {config.joint_topic}: at least two are needed to "
-            "interpolate the joints at the image stamps"
-        )
     if state.bad_chunks:
         warnings.append(
             f"{path}: {len(state.bad_chunks)} chunk(s) failed their CRC or did not decompress "
@@ -438,14 +403,6 @@ def ingest_recording(
             f"{path}: {n_undecoded} of {len(rows)} images on {image_topic} do not decode "
             f"(kept, flagged); first: {first}"
         )
-    js_t = np.asarray(j_stamp, dtype=np.int64)
-    n_back = int(np.sum(np.diff(js_t) < 0))
-    n_dup = int(np.sum(np.diff(np.sort(js_t)) == 0))
-    if n_back or n_dup:
-        warnings.append(
-            f"{path}: {config.joint_topic}: {n_back} header stamps go backwards and {n_dup} "
-            "repeat an earlier stamp (joint states are sorted by stamp)"
-        )
     im_t = np.asarray(img_stamp, dtype=np.int64)[np.argsort(np.asarray(img_log), kind="stable")]
     n_back_i = int(np.sum(np.diff(im_t) < 0))
     n_dup_i = int(np.sum(np.diff(np.sort(im_t)) == 0))
@@ -454,13 +411,15 @@ def ingest_recording(
             f"{path}: {image_topic}: {n_back_i} image stamps go backwards in log-time order and "
             f"{n_dup_i} repeat an earlier stamp"
         )
-    assert j_names is not None
     robot = _parse(path, urdf)
-    arm = _arm_joint_names(path, urdf, j_names, config)
-    if arm != j_names:
-        idx = [j_names.index(n) for n in arm]
-        j_pos = [q[idx] for q in j_pos]
-        j_names = arm
+    seen_names = list(dict.fromkeys(n for key in j_groups for n in key))
+    j_names = _arm_joint_names(path, robot, seen_names, config)
+    unknown = [n for n in seen_names if n not in robot.joints]
+    if unknown:
+        warnings.append(
+            f"{path}: {config.joint_topic} also names joints {unknown} that the URDF does "
+            "not have (ignored)"
+        )
     # metadata: overrides win; inferred keys filled and reported
     metadata.update({k: str(v) for k, v in config.overrides.items() if v is not None})
     inferred: dict[str, str] = {}
@@ -485,16 +444,20 @@ def ingest_recording(
             f"{path}: {config.joint_topic} lacks URDF chain joints {missing} "
             f"(joint states name {j_names})"
         )
-    idx = [j_names.index(n) for n in chain_names]
-    Q = np.asarray(j_pos)[:, idx]
-    P_all = np.asarray(j_pos, dtype=float)
-    outside = {n: P_all[:, k] for k, n in enumerate(j_names) if n not in chain_names}
+    J_t, Q, n_back = _chain_joint_states(path, j_groups, chain_names, config, warnings)
+    n_dup = int(np.sum(np.diff(J_t) == 0))
+    if n_back or n_dup:
+        warnings.append(
+            f"{path}: {config.joint_topic}: {n_back} header stamps go backwards and {n_dup} "
+            "repeat an earlier stamp (joint states are sorted by stamp)"
+        )
     implausible = joints_outside_chain(
-        outside, robot, metadata["base_link"], metadata["flange_link"], over="the recording"
+        _other_joints(j_groups, chain_names),
+        robot,
+        metadata["base_link"],
+        metadata["flange_link"],
+        over="the recording",
     )
-    J_t = np.asarray(j_stamp, dtype=np.int64)
-    o = np.argsort(J_t, kind="stable")
-    J_t, Q = J_t[o], Q[o]
     if "polarity" not in metadata:
         pols = [r for r in rows if r["found"]]
         metadata["polarity"] = polarity or "dark_on_light"
@@ -540,7 +503,7 @@ def ingest_recording(
         flange_link=metadata["flange_link"],
         image_topic=str(image_topic),
         n_images=len(rows),
-        n_joint_states=n_joint_msgs,
+        n_joint_states=len(J_t),
         truncated=state.truncated,
         warnings=warnings,
         image_width=width,
@@ -586,20 +549,121 @@ def _parse(path: str, urdf: str) -> RobotDescription:
         raise BadInput(f"{path}: /robot_description is not a readable URDF: {exc}") from exc
 
 
-def _arm_joint_names(path: str, urdf: str, names: list[str], config: IngestConfig) -> list[str]:
-    """The joint-state names that are actuated URDF joints (order of the message).
+def _strip_prefix(names: list[str], prefix: str) -> tuple[str, ...]:
+    """Joint-state names without ``prefix`` (``robot1/joint_1 -> joint_1``); others as they are."""
+    if not prefix:
+        return tuple(names)
+    k = len(prefix)
+    return tuple(n[k:] if n.startswith(prefix) else n for n in names)
 
-    Raises BadInput when none match, or when a joint-state name is not in the URDF.
+
+def _arm_joint_names(
+    path: str, robot: RobotDescription, names: list[str], config: IngestConfig
+) -> list[str]:
+    """The joint-state names that are actuated URDF joints (in the order first seen).
+
+    Names the URDF does not have (a gripper's fingers, another robot's joints)
+    are left to the caller to note. Raises BadInput when no name is an actuated
+    URDF joint (wrong URDF, or a name prefix that ``--joint-prefix`` should strip).
     """
-    robot = _parse(path, urdf)
-    act = {n for n, j in robot.joints.items() if j.actuated}
-    unknown = [n for n in names if n not in robot.joints]
-    if unknown:
-        raise BadInput(
-            f"{path}: {config.joint_topic} names joints {unknown} that the URDF on "
-            f"{config.description_topic} does not have (URDF joints: {sorted(act)})"
+    act = [n for n, j in robot.joints.items() if j.actuated]
+    arm = [n for n in names if n in act]
+    if arm:
+        return arm
+    hint = ""
+    prefixes = {n[: n.rfind("/") + 1] for n in names if "/" in n}
+    if len(prefixes) == 1 and not config.joint_prefix:
+        hint = f"; the names carry the prefix {prefixes.pop()!r}: give it with --joint-prefix"
+    raise BadInput(
+        f"{path}: {config.joint_topic} names joints {names} that the URDF on "
+        f"{config.description_topic} does not have (URDF joints: {sorted(act)}){hint}"
+    )
+
+
+def _other_joints(
+    groups: dict[tuple[str, ...], tuple[list[int], list[int], list[np.ndarray]]],
+    chain_names: list[str],
+) -> dict[str, np.ndarray]:
+    """Every joint-state value of the joints outside the chain, by joint name (for the guardrails)."""
+    out: dict[str, list[np.ndarray]] = {}
+    for key, (_ts, _ks, ps) in groups.items():
+        arr = np.asarray(ps, dtype=float).reshape(len(ps), len(key))
+        for k, name in enumerate(key):
+            if name not in chain_names:
+                out.setdefault(name, []).append(arr[:, k])
+    return {n: np.concatenate(v) for n, v in out.items()}
+
+
+def _chain_joint_states(
+    path: str,
+    groups: dict[tuple[str, ...], tuple[list[int], list[int], list[np.ndarray]]],
+    chain_names: list[str],
+    config: IngestConfig,
+    warnings: list[str],
+) -> tuple[np.ndarray, np.ndarray, int]:
+    """The chain's joint positions from joint-state messages of any name order.
+
+    Each message's positions are picked by name (``q_j = position[name.index(j)]``),
+    so joint order and extra joints do not matter. Messages naming none of the
+    chain joints (a gripper published on the same topic) are skipped and noted
+    in ``warnings``.
+
+    Returns
+    -------
+    J_t : (m,) int64, the stamps sorted (stable)
+    Q : (m, n) float64, the chain joints at ``J_t`` (columns in ``chain_names`` order)
+    n_back : how many stamps go backwards in message order
+
+    Raises
+    ------
+    BadInput
+        A message naming some but not all chain joints; a non-finite chain joint position.
+    """
+    idx: list[np.ndarray] = []
+    stamps: list[np.ndarray] = []
+    rows: list[np.ndarray] = []
+    skipped = 0
+    for key, (ts, ks, ps) in groups.items():
+        have = [n for n in chain_names if n in key]
+        if not have:
+            skipped += len(ts)
+            continue
+        if len(have) < len(chain_names):
+            missing = [n for n in chain_names if n not in key]
+            raise BadInput(
+                f"{path}: {config.joint_topic} message {ks[0]}: joints {missing} missing "
+                f"(has {list(key)})"
+            )
+        cols = np.array([key.index(n) for n in chain_names])
+        q = np.asarray(ps)[:, cols]
+        bad = np.flatnonzero(~np.all(np.isfinite(q), axis=1))
+        if bad.size:
+            raise BadInput(
+                f"{path}: {config.joint_topic} message {ks[bad[0]]}: non-finite position "
+                f"{q[bad[0]]}"
+            )
+        idx.append(np.asarray(ks))
+        stamps.append(np.asarray(ts, dtype=np.int64))
+        rows.append(q)
+    if skipped:
+        warnings.append(
+            f"{path}: {config.joint_topic}: {skipped} messages name none of the chain joints "
+            f"{chain_names} (another device's joint states) and were skipped"
         )
-    return [n for n in names if n in act]
+    if not rows:
+        raise BadInput(f"{path}: no joint states of the chain joints {chain_names}")
+    k_all = np.concatenate(idx)
+    t_all = np.concatenate(stamps)
+    q_all = np.concatenate(rows)
+    in_order = np.argsort(k_all, kind="stable")
+    n_back = int(np.sum(np.diff(t_all[in_order]) < 0))
+    if len(t_all) < 2:
+        raise BadInput(
+            f"{path}: only one joint state on {config.joint_topic}: at least two are needed to "
+            "interpolate the joints at the image stamps"
+        )
+    o = in_order[np.argsort(t_all[in_order], kind="stable")]
+    return t_all[o], q_all[o], n_back
 
 
 def _frame_table(
@@ -666,7 +730,10 @@ def load_image(path: str | os.PathLike[str], image_topic: str, frame_index: int)
     Returns the grey image ``(H, W)``. Raises BadInput when there is no such frame.
     """
     path = os.fspath(path)
+    layout = locate(path)
     try:
+        if layout.kind != "mcap":
+            raise LookupError("not one MCAP file: stream it")
         from mcap.reader import make_reader
 
         with open(path, "rb") as f:
@@ -687,7 +754,7 @@ def load_image(path: str | os.PathLike[str], image_topic: str, frame_index: int)
         pass
     state = StreamState(path)
     i = 0
-    for msg in iter_messages(path, state):
+    for msg in iter_recording(layout, state):
         topic, sname, menc = state.topic_type(msg.channel_id)
         if topic != image_topic:
             continue
