@@ -31,7 +31,6 @@ import os
 from collections.abc import Mapping
 from dataclasses import dataclass
 from functools import cache
-from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -39,7 +38,7 @@ import pandas as pd
 import pyarrow as pa
 import pyarrow.parquet as pq
 
-from pipeline import __version__
+from pipeline import __version__, resources
 from pipeline.errors import BadInput, VtcalError
 from pipeline.fileio import atomic_write_bytes, config_hash, file_hash
 
@@ -59,7 +58,7 @@ __all__ = [
     "write_artefact",
 ]
 
-SCHEMA_DIR = Path(__file__).resolve().parent.parent / "schemas"
+SCHEMA_DIR = resources.SCHEMA_DIR
 
 TYPES: dict[str, pa.DataType] = {
     "int64": pa.int64(),

@@ -33,8 +33,10 @@ import types
 from functools import cache
 from pathlib import Path
 
+from pipeline import resources
+
 PACKAGE_DIR = Path(__file__).resolve().parent
-SCHEMA_DIR = PACKAGE_DIR.parent / "schemas"
+SCHEMA_DIR = resources.SCHEMA_DIR
 
 #: stage -> ``module:function`` entry points that compute it
 ENTRY_POINTS: dict[str, tuple[str, ...]] = {

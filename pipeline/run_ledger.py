@@ -33,12 +33,12 @@ from functools import cache
 from pathlib import Path
 from typing import Any
 
-from pipeline import __version__
+from pipeline import __version__, resources
 from pipeline.fileio import file_hash
 from pipeline.recording_layout import locate, recording_hash
 
 PACKAGE_DIR = Path(__file__).resolve().parent
-SCHEMA_DIR = PACKAGE_DIR.parent / "schemas"
+SCHEMA_DIR = resources.SCHEMA_DIR
 
 #: key of the ledger entry in ``run.json``
 KEY = "ledger"

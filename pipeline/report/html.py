@@ -31,7 +31,7 @@ import jinja2
 import numpy as np
 import pandas as pd
 
-from pipeline import __version__
+from pipeline import __version__, resources
 from pipeline.artefacts import atomic_write_bytes
 from pipeline.report import plots
 from pipeline.report.data import (
@@ -55,7 +55,7 @@ from pipeline.report.data import (
 )
 from pipeline.report.diagnosis import camera_section
 
-TEMPLATE_DIR = Path(__file__).resolve().parent.parent.parent / "reports"
+TEMPLATE_DIR = resources.TEMPLATE_DIR
 TEMPLATE = "report.html.j2"
 #: at most this many thumbnails / convergence traces (keeps the file small)
 MAX_THUMBS = 40

@@ -6,16 +6,15 @@ Self-contained: the report's stylesheet inlined, no scripts, no external request
 
 from __future__ import annotations
 
-from pathlib import Path
 from typing import Any
 
 import jinja2
 
-from pipeline import __version__
+from pipeline import __version__, resources
 from pipeline.verdict import IMPROVED_BELOW
 
 #: the report's templates (``reports/``); not imported from report.html, which loads matplotlib
-TEMPLATE_DIR = Path(__file__).resolve().parent.parent.parent / "reports"
+TEMPLATE_DIR = resources.TEMPLATE_DIR
 TEMPLATE = "validate.html.j2"
 
 

@@ -19,7 +19,9 @@ from typing import IO, Any
 from mcap.writer import CompressionType
 from mcap_ros2.writer import Writer
 
-MSG_DIR = Path(__file__).resolve().parents[2] / "schemas" / "ros2"
+from pipeline import resources
+
+MSG_DIR = resources.SCHEMA_DIR / "ros2"
 _BUILTIN = {
     "bool", "byte", "char", "float32", "float64", "int8", "uint8", "int16", "uint16",
     "int32", "uint32", "int64", "uint64", "string", "wstring",

@@ -1,0 +1,25 @@
+"""Where the project's data folders are: ``schemas/`` and ``reports/`` (templates).
+
+They live at the top of the repository (the brief's layout), beside ``pipeline/``.
+An editable install or a checkout finds them there; a built wheel carries copies
+inside the package as ``pipeline/_data/schemas`` and ``pipeline/_data/reports``
+(``setup.py`` maps them), so a plain ``pip install .`` runs too.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+PACKAGE_DIR = Path(__file__).resolve().parent
+
+
+def data_dir(name: str) -> Path:
+    """The folder ``name`` (``"schemas"`` or ``"reports"``): the checkout's, else the wheel's."""
+    checkout = PACKAGE_DIR.parent / name
+    if checkout.is_dir():
+        return checkout
+    return PACKAGE_DIR / "_data" / name
+
+
+SCHEMA_DIR = data_dir("schemas")
+TEMPLATE_DIR = data_dir("reports")
