@@ -233,8 +233,8 @@ def test_real_panda_held_out_placement_matches_bench_real(tmp_path: Path) -> Non
     sys.modules["bench_real"] = bench
     spec.loader.exec_module(bench)
     df = bench.load_table("panda_3")
-    chain, _, _ = bench.vtcal_identify(df, ["frontcenter"], "full", tmp_path)
-    reference = bench.Judge(df, ["frontcenter"])(chain, np.zeros(3))["backleft"]
+    predict, _, _ = bench.vtcal_identify(df, ["frontcenter"], "full", tmp_path)
+    reference = bench.Judge(df, ["frontcenter"]).predictor(predict)["backleft"]
     table = tmp_path / "backleft.csv"
     df[df["placement"] == "backleft"].drop(columns="placement").to_csv(table, index=False)
     out = tmp_path / "val"
