@@ -45,6 +45,7 @@ from pipeline.kinematics.urdf import RobotDescription, chain_joints, parse_urdf
 from pipeline.stages.detect import RESULT_KEYS, DetectConfig, detect_target
 from pipeline.stages.plausibility import joints_outside_chain
 from pipeline.stages.response import ResponseEstimate, estimate_response, parse_response
+from pipeline.stages.row_buffer import RowBuffer
 
 #: images held back at the start of a recording to estimate the camera response from
 RESPONSE_PROBE_IMAGES = 24
@@ -288,8 +289,9 @@ def ingest_recording(
 
     state = StreamState(path)
     urdf: str | None = None
-    j_stamp: list[int] = []
-    j_pos: list[np.ndarray] = []
+    # joint states (hundreds per image): one int64 / float64 block each, not lists of arrays
+    j_stamp = RowBuffer(0, np.int64)
+    j_pos: RowBuffer | None = None
     j_names: list[str] | None = None
     name_orders: dict[tuple[str, ...], np.ndarray] = {}
     rows: list[dict[str, Any]] = []
@@ -382,6 +384,8 @@ def ingest_recording(
             if not np.all(np.isfinite(q)):
                 raise BadInput(f"{path}: {topic} message {n_joint_msgs}: non-finite position {q}")
             j_stamp.append(stamp if stamp > 0 else int(msg.log_time))
+            if j_pos is None:
+                j_pos = RowBuffer(len(q))
             j_pos.append(q)
             n_joint_msgs += 1
         elif topic == config.description_topic and urdf is None:
@@ -398,8 +402,9 @@ def ingest_recording(
     warnings: list[str] = []
     if state.truncated:
         pct = 100.0 * state.bytes_read / max(state.file_size, 1)
-        times = [*img_log[-1:], *j_stamp[-1:]]
-        t_first = min([*img_log[:1], *j_stamp[:1]], default=0)
+        js = j_stamp.array().tolist()
+        times = [*img_log[-1:], *js[-1:]]
+        t_first = min([*img_log[:1], *js[:1]], default=0)
         span = f", {1e-9 * (max(times) - t_first):.1f} s of data" if times else ""
         warnings.append(
             f"{path}: truncated recording (recorder killed? {state.error}): read "
@@ -437,7 +442,7 @@ def ingest_recording(
             f"{path}: {n_undecoded} of {len(rows)} images on {image_topic} do not decode "
             f"(kept, flagged); first: {first}"
         )
-    js_t = np.asarray(j_stamp, dtype=np.int64)
+    js_t = j_stamp.array()
     n_back = int(np.sum(np.diff(js_t) < 0))
     n_dup = int(np.sum(np.diff(np.sort(js_t)) == 0))
     if n_back or n_dup:
@@ -453,12 +458,13 @@ def ingest_recording(
             f"{path}: {image_topic}: {n_back_i} image stamps go backwards in log-time order and "
             f"{n_dup_i} repeat an earlier stamp"
         )
-    assert j_names is not None
+    assert j_names is not None and j_pos is not None
+    P_all = j_pos.array()  # (n_joint_states, len(j_names))
     robot = _parse(path, urdf)
     arm = _arm_joint_names(path, urdf, j_names, config)
     if arm != j_names:
         idx = [j_names.index(n) for n in arm]
-        j_pos = [q[idx] for q in j_pos]
+        P_all = P_all[:, idx]
         j_names = arm
     # metadata: overrides win; inferred keys filled and reported
     metadata.update({k: str(v) for k, v in config.overrides.items() if v is not None})
@@ -485,13 +491,12 @@ def ingest_recording(
             f"(joint states name {j_names})"
         )
     idx = [j_names.index(n) for n in chain_names]
-    Q = np.asarray(j_pos)[:, idx]
-    P_all = np.asarray(j_pos, dtype=float)
+    Q = P_all[:, idx]
     outside = {n: P_all[:, k] for k, n in enumerate(j_names) if n not in chain_names}
     implausible = joints_outside_chain(
         outside, robot, metadata["base_link"], metadata["flange_link"], over="the recording"
     )
-    J_t = np.asarray(j_stamp, dtype=np.int64)
+    J_t = js_t
     o = np.argsort(J_t, kind="stable")
     J_t, Q = J_t[o], Q[o]
     if "polarity" not in metadata:
