@@ -33,7 +33,6 @@ import os
 import sys
 import tempfile
 import time
-import warnings
 from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 
@@ -132,8 +131,6 @@ def main() -> None:
     from distributed import Client, LocalCluster
 
     logging.getLogger("distributed").setLevel(logging.ERROR)  # start/stop chatter
-    # the second cluster's scheduler finds its HTTP port 8787 taken by the first's
-    warnings.filterwarnings("ignore", message="Port 8787 is already in use")
 
     from pipeline.batch import items_from_paths
     from pipeline.orchestrator import RunConfig
@@ -161,6 +158,7 @@ def main() -> None:
         cluster = LocalCluster(
             n_workers=n, threads_per_worker=1, processes=True, dashboard_address=None,
             host="127.0.0.1", silence_logs=logging.CRITICAL,
+            scheduler_kwargs={"dashboard_address": "127.0.0.1:0"},  # HTTP port: any free one
         )  # fmt: skip
         client = Client(cluster)
         client.run(warm, str(paths[0]), str(runs / "warm"))

@@ -570,6 +570,10 @@ def open_executor(
                     processes=True,
                     dashboard_address=None,
                     host="127.0.0.1",
+                    # the scheduler's HTTP server (health, metrics) serves even without
+                    # the dashboard, by default on 8787: a free port instead, so that two
+                    # batches at once do not collide (nor warn)
+                    scheduler_kwargs={"dashboard_address": "127.0.0.1:0"},
                     # a throwaway cluster: its shutdown chatter (heartbeats to a
                     # closed scheduler) is noise; task errors come back as outcomes
                     silence_logs=logging.CRITICAL,
