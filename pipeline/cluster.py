@@ -67,10 +67,10 @@ def worker_facts(out_dir: str, probe_name: str, token: str) -> dict[str, Any]:
     }
 
 
-def preflight(client: Any, scheduler: str, out_dir: Path, wait_s: float = WORKER_WAIT_S) -> int:
+def preflight(client: Any, scheduler: str, out_dir: Path, wait_s: float | None = None) -> int:
     """Check that a cluster's workers can run this batch; return how many there are.
 
-    Waits up to ``wait_s`` for a first worker, writes a probe file into
+    Waits up to ``wait_s`` (default :data:`WORKER_WAIT_S`) for a first worker, writes a probe file into
     ``out_dir`` (removed again before returning), and runs :func:`worker_facts`
     on every connected worker (``Client.run``).
 
@@ -85,6 +85,7 @@ def preflight(client: Any, scheduler: str, out_dir: Path, wait_s: float = WORKER
     from pipeline.run_ledger import code_digest
 
     where = f"--scheduler {scheduler}"
+    wait_s = WORKER_WAIT_S if wait_s is None else wait_s
     try:
         client.wait_for_workers(1, timeout=wait_s)
     except (TimeoutError, OSError) as exc:

@@ -176,8 +176,20 @@ def test_cluster_batch_gives_the_process_pools_artefacts(
     assert not list(out.glob(f"{PROBE_PREFIX}*"))
 
 
-def test_preflight_on_the_cluster(cluster: str, tmp_path: Path) -> None:
-    """Two workers found and checked; the probe file removed; a folder without the
+@pytest.fixture(scope="module")
+def lonely(tmp_path_factory: pytest.TempPathFactory) -> Iterator[str]:
+    """Address of a scheduler that no worker ever joins."""
+    tmp = tmp_path_factory.mktemp("lonely")
+    procs: list[subprocess.Popen[bytes]] = []
+    try:
+        yield _scheduler(tmp, "lonely", procs)[0]
+    finally:
+        for proc in procs:
+            _stop(proc)
+
+
+def test_preflight_on_the_cluster(cluster: str, lonely: str, tmp_path: Path) -> None:
+    """Two workers found and checked, the probe file removed; a folder without the
     probe is reported unseen; a scheduler without workers is bad input."""
     from distributed import Client
 
@@ -186,13 +198,23 @@ def test_preflight_on_the_cluster(cluster: str, tmp_path: Path) -> None:
     assert not list(tmp_path.iterdir())
     facts = worker_facts(str(tmp_path), f"{PROBE_PREFIX}none", "x")
     assert facts["sees_out"] is False and facts["pid"] == os.getpid()
+    with Client(lonely, timeout="30s") as client:
+        with pytest.raises(BadInput, match="no worker connected within 1 s"):
+            preflight(client, lonely, tmp_path, wait_s=1)
 
-    procs: list[subprocess.Popen[bytes]] = []
-    try:
-        lonely, _ = _scheduler(tmp_path, "lonely", procs)
-        with Client(lonely, timeout="30s") as client:
-            with pytest.raises(BadInput, match="no worker connected within 1 s"):
-                preflight(client, lonely, tmp_path, wait_s=1)
-    finally:
-        for proc in procs:
-            _stop(proc)
+
+def test_cli_scheduler_without_workers_is_bad_input(
+    lonely: str, tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture
+) -> None:
+    """One stderr line naming the scheduler, exit 2, nothing written in the batch folder."""
+    import pipeline.cluster
+
+    monkeypatch.setattr(pipeline.cluster, "WORKER_WAIT_S", 1.0)
+    out = tmp_path / "fleet"
+    with pytest.raises(SystemExit) as ex:
+        main(["batch", str(SAMPLE), "--out", str(out), "--executor", "dask",
+              "--scheduler", lonely, "-q"])  # fmt: skip
+    assert ex.value.code == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert err == [f"vtcal: error: --scheduler {lonely}: no worker connected within 1 s"]
+    assert not list(out.iterdir())
