@@ -506,7 +506,10 @@ def default_workers() -> int:
 
 @contextlib.contextmanager
 def open_executor(
-    kind: str = "processes", workers: int | None = None, scheduler: str | None = None
+    kind: str = "processes",
+    workers: int | None = None,
+    scheduler: str | None = None,
+    out_dir: Path | None = None,
 ) -> Iterator[Executor]:
     """An :class:`~concurrent.futures.Executor` for a batch, shut down on exit.
 
@@ -521,12 +524,16 @@ def open_executor(
         ``scheduler`` the cluster's own workers are used and this is ignored
     scheduler : Dask scheduler address (``tcp://host:8786``); without it a
         ``LocalCluster`` of ``workers`` single-threaded processes is started on loopback
+    out_dir : the batch folder; with a ``scheduler``, the cluster's workers are
+        first checked to run the same vtcal code and to see this folder
+        (:func:`pipeline.cluster.preflight`)
 
     Raises
     ------
     BadInput
         Unknown executor, ``workers < 1``, ``scheduler`` without Dask, Dask not
-        installed, or a scheduler that cannot be reached.
+        installed, a scheduler that cannot be reached, or (with ``out_dir``) a
+        cluster without workers, with other vtcal code, or not sharing ``out_dir``.
     """
     if kind not in EXECUTORS:
         raise BadInput(f"--executor {kind!r}: not one of {', '.join(EXECUTORS)}")
@@ -551,6 +558,10 @@ def open_executor(
                 client = stack.enter_context(Client(scheduler, timeout="10s"))
             except (OSError, TimeoutError) as exc:
                 raise BadInput(f"--scheduler {scheduler}: cannot connect: {exc}") from exc
+            if out_dir is not None:
+                from pipeline.cluster import preflight
+
+                preflight(client, scheduler, out_dir)
         else:
             cluster = stack.enter_context(
                 LocalCluster(
@@ -559,6 +570,10 @@ def open_executor(
                     processes=True,
                     dashboard_address=None,
                     host="127.0.0.1",
+                    # the scheduler's HTTP server (health, metrics) serves even without
+                    # the dashboard, by default on 8787: a free port instead, so that two
+                    # batches at once do not collide (nor warn)
+                    scheduler_kwargs={"dashboard_address": "127.0.0.1:0"},
                     # a throwaway cluster: its shutdown chatter (heartbeats to a
                     # closed scheduler) is noise; task errors come back as outcomes
                     silence_logs=logging.CRITICAL,
@@ -830,7 +845,7 @@ def run_batch(
                     for slot in slots:
                         stack.callback(slot.close)
                 else:
-                    ex = stack.enter_context(open_executor(kind, workers, scheduler))
+                    ex = stack.enter_context(open_executor(kind, workers, scheduler, out_dir))
                     slots = [_Slot(ex, max(1, len(pending)))]
                 try:
                     _fan_out(

@@ -49,7 +49,9 @@ Examples:
     "--scheduler",
     default=None,
     metavar="ADDRESS",
-    help="Dask scheduler (tcp://host:8786); without it Dask starts a local cluster.",
+    help="Dask scheduler (tcp://host:8786) of a cluster started apart; its workers must run "
+    "the same vtcal and see --out at the same path (checked first). Without it Dask starts "
+    "a local cluster.",
 )
 @click.option(
     "--workers",

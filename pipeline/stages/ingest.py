@@ -48,6 +48,7 @@ from pipeline.stages.detect import RESULT_KEYS, DetectConfig, detect_target
 from pipeline.stages.plausibility import joints_outside_chain
 from pipeline.stages.response import parse_response
 from pipeline.stages.response_estimate import ResponseEstimate, estimate_response
+from pipeline.stages.row_buffer import RowBuffer
 
 #: images held back at the start of a recording to estimate the camera response from
 RESPONSE_PROBE_IMAGES = 24
@@ -276,7 +277,7 @@ def ingest_recording(
     state = StreamState(path)
     urdf: str | None = None
     # joint states grouped by their name lists: {names: (stamps, message indices, positions)}
-    j_groups: dict[tuple[str, ...], tuple[list[int], list[int], list[np.ndarray]]] = {}
+    j_groups: dict[tuple[str, ...], tuple[RowBuffer, RowBuffer, RowBuffer]] = {}
     stream_touchup: dict[str, str] = {}
     rows: list[dict[str, Any]] = []
     img_log: list[int] = []
@@ -347,7 +348,11 @@ def ingest_recording(
                     f"{path}: {topic} message {n_joint_msgs}: {len(names)} names but "
                     f"{len(pos)} positions"
                 )
-            group = j_groups.setdefault(_strip_prefix(names, config.joint_prefix), ([], [], []))
+            key = _strip_prefix(names, config.joint_prefix)
+            group = j_groups.get(key)
+            if group is None:  # stamps, message indices, positions: one numpy block each
+                group = (RowBuffer(0, np.int64), RowBuffer(0, np.int64), RowBuffer(len(key)))
+                j_groups[key] = group
             group[0].append(stamp if stamp > 0 else int(msg.log_time))
             group[1].append(n_joint_msgs)
             group[2].append(pos)
@@ -368,7 +373,7 @@ def ingest_recording(
     warnings: list[str] = []
     if state.truncated:
         pct = 100.0 * state.bytes_read / max(state.file_size, 1)
-        j_ends = [t for g in j_groups.values() for t in (g[0][0], g[0][-1])]
+        j_ends = [int(t) for g in j_groups.values() for t in g[0].array()[[0, -1]]]
         times = [*img_log[-1:], *j_ends]
         t_first = min([*img_log[:1], *j_ends], default=0)
         span = f", {1e-9 * (max(times) - t_first):.1f} s of data" if times else ""
@@ -581,13 +586,13 @@ def _arm_joint_names(
 
 
 def _other_joints(
-    groups: dict[tuple[str, ...], tuple[list[int], list[int], list[np.ndarray]]],
+    groups: dict[tuple[str, ...], tuple[RowBuffer, RowBuffer, RowBuffer]],
     chain_names: list[str],
 ) -> dict[str, np.ndarray]:
     """Every joint-state value of the joints outside the chain, by joint name (for the guardrails)."""
     out: dict[str, list[np.ndarray]] = {}
     for key, (_ts, _ks, ps) in groups.items():
-        arr = np.asarray(ps, dtype=float).reshape(len(ps), len(key))
+        arr = ps.array()
         for k, name in enumerate(key):
             if name not in chain_names:
                 out.setdefault(name, []).append(arr[:, k])
@@ -596,7 +601,7 @@ def _other_joints(
 
 def _chain_joint_states(
     path: str,
-    groups: dict[tuple[str, ...], tuple[list[int], list[int], list[np.ndarray]]],
+    groups: dict[tuple[str, ...], tuple[RowBuffer, RowBuffer, RowBuffer]],
     chain_names: list[str],
     config: IngestConfig,
     warnings: list[str],
@@ -623,7 +628,8 @@ def _chain_joint_states(
     stamps: list[np.ndarray] = []
     rows: list[np.ndarray] = []
     skipped = 0
-    for key, (ts, ks, ps) in groups.items():
+    for key, buffers in groups.items():
+        ts, ks, ps = (b.array() for b in buffers)
         have = [n for n in chain_names if n in key]
         if not have:
             skipped += len(ts)
