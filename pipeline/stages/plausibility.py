@@ -59,8 +59,10 @@ from pipeline.kinematics.urdf import Joint, RobotDescription
 
 #: rad (or m for a prismatic joint) beyond a URDF limit that counts as implausible
 JOINT_MARGIN = 0.05
-#: known distance vs the nominal robot's estimate: relative bound
-REL_TOL = 0.01
+#: known distance vs the nominal robot's estimate: relative bound. 1 % refused a right bar
+#: on a simulated 6-touch-up cell (bench_fleet seed 56: the nominal fit put the targets
+#: 1.07 % apart from the bar with 1.2 mm RMS residual); no robot is 2 % off in scale
+REL_TOL = 0.02
 #: ... in units of the nominal fit's RMS residual
 RESID_FACTOR = 3.0
 #: ... and never tighter than this (m)
