@@ -52,7 +52,8 @@ import pandas as pd
 from pipeline.errors import BadInput, CalibrationFailed
 from pipeline.kinematics.chain import load_chain
 from pipeline.kinematics.se3 import F64
-from pipeline.stages.identify import IdentifyConfig, IdentifyResult, identify
+from pipeline.stages.identify import IdentifyConfig, IdentifyResult, WarmStart, identify
+from pipeline.stages.parallel_map import parallel_map
 
 
 @dataclass
@@ -66,12 +67,17 @@ class CrossvalConfig:
         registered model when it is ``"all"``
     seed : seed of the fold assignment
     loto : also run leave-one-target-out
+    workers : processes the error models are cross-validated in (each model's fits in
+        one); 1 runs them in this process, 0 picks 2 when the machine has a core to spare
+        (see :func:`pipeline.stages.parallel_map.parallel_map`). The results are the same;
+        on this project's shared 2-core machine 2 processes were slower (load 4-6).
     """
 
     k: int = 5
     models: list[str] = field(default_factory=list)
     seed: int = 0
     loto: bool = True
+    workers: int = 0
 
 
 @dataclass
@@ -124,13 +130,38 @@ def _target_positions(targets: pd.DataFrame) -> dict[int, F64]:
 
 
 def _fit(
-    table: pd.DataFrame, use: np.ndarray, urdf: str, base: str, flange: str, cfg: IdentifyConfig
+    table: pd.DataFrame,
+    use: np.ndarray,
+    urdf: str,
+    base: str,
+    flange: str,
+    cfg: IdentifyConfig,
+    start: WarmStart | None = None,
 ) -> IdentifyResult:
     t = table.copy()
     t["inlier"] = use
-    res = identify(t, urdf, base, flange, cfg)
+    res = identify(t, urdf, base, flange, cfg, start=start)
     assert isinstance(res, IdentifyResult)
     return res
+
+
+def refit_config(config: IdentifyConfig, full: IdentifyResult) -> IdentifyConfig:
+    """Settings of the refits on part of the touch-ups, from the fit on all of them.
+
+    Two checks of the full fit are not repeated on each subset: the plausibility
+    guardrails (the full table passed them, or the user accepted it), and the
+    print-shape F-test when it found no print shape on every touch-up (a subset
+    has less evidence): the refits then fit none (``target_shape="none"``)
+    instead of fitting it twice per refit to test it. When the full fit kept a
+    print shape, each refit tests it again as the identify stage does.
+    """
+    shape = full.summary.get("print_shape")
+    no_shape = isinstance(shape, dict) and not shape.get("fitted")
+    return dataclasses.replace(
+        config,
+        accept_implausible=True,
+        target_shape="none" if no_shape else config.target_shape,
+    )
 
 
 def heldout_predictions(
@@ -143,6 +174,7 @@ def heldout_predictions(
     config: IdentifyConfig,
     *,
     every_row: bool = False,
+    start: WarmStart | None = None,
 ) -> pd.DataFrame:
     """Fit without each fold; predict the pin at the fold's touch-ups (k-fold core).
 
@@ -155,6 +187,7 @@ def heldout_predictions(
     config : identification settings (one model)
     every_row : also predict at the fold fit's training rows (``held`` false), e.g. to
         register a fold's model to a reference before judging its held-out rows
+    start : where each fold's solver starts (the fit on every usable row); default nominal
 
     Returns
     -------
@@ -179,7 +212,7 @@ def heldout_predictions(
         train = use & (fold != f)
         hi = np.flatnonzero(use if every_row else held)
         try:
-            res = _fit(table, train, urdf, base_link, flange_link, config)
+            res = _fit(table, train, urdf, base_link, flange_link, config, start)
         except (BadInput, CalibrationFailed) as exc:
             for i in hi:
                 out.append(
@@ -287,38 +320,43 @@ def cross_validate(
     fold[use] = fold_assignment(tid[use], k, np.random.default_rng(config.seed))
     base_cfg = dataclasses.replace(identify_config, n_workspace=4)
 
-    rows: list[dict[str, Any]] = []
-    summary_models: dict[str, Any] = {}
+    def one_model(m: str) -> tuple[list[dict[str, Any]], dict[str, Any]]:
+        """Held-out rows and the summary of model ``m`` (the full fit, k folds, LOTO)."""
+        rows: list[dict[str, Any]] = []
 
-    def add(model: str, scheme: str, f: int, i: int, n_train: int, e: F64 | None, why: str) -> None:
-        rows.append(
-            {
-                "model": model,
-                "scheme": scheme,
-                "fold": f,
-                "touchup_id": int(tu[i]),
-                "target_id": int(tid[i]),
-                "n_train": n_train,
-                "ex": float(e[0]) if e is not None else math.nan,
-                "ey": float(e[1]) if e is not None else math.nan,
-                "ez": float(e[2]) if e is not None else math.nan,
-                "error_mm": float(np.linalg.norm(e) * 1e3) if e is not None else math.nan,
-                "status": why,
-            }
-        )
+        def add(
+            model: str, scheme: str, f: int, i: int, n_train: int, e: F64 | None, why: str
+        ) -> None:
+            rows.append(
+                {
+                    "model": model,
+                    "scheme": scheme,
+                    "fold": f,
+                    "touchup_id": int(tu[i]),
+                    "target_id": int(tid[i]),
+                    "n_train": n_train,
+                    "ex": float(e[0]) if e is not None else math.nan,
+                    "ey": float(e[1]) if e is not None else math.nan,
+                    "ez": float(e[2]) if e is not None else math.nan,
+                    "error_mm": float(np.linalg.norm(e) * 1e3) if e is not None else math.nan,
+                    "status": why,
+                }
+            )
 
-    for m in models:
         mcfg = dataclasses.replace(base_cfg, model=m)
         info: dict[str, Any] = {"k": k, "urdf_exact": _urdf_exact(m)}
+        start = None
         try:
             full = _fit(df, use, urdf, base_link, flange_link, mcfg)
             info["train_rms_mm"] = float(full.summary["rms_mm"])
             info["n_identified"] = int(full.summary["n_identified"])
+            start = WarmStart.from_result(full)  # every refit starts from the full fit
+            mcfg = refit_config(mcfg, full)
         except (BadInput, CalibrationFailed) as exc:
             info["train_rms_mm"] = math.nan
             info["error"] = str(exc)
         # -- k-fold
-        pred = heldout_predictions(df, use, fold, urdf, base_link, flange_link, mcfg)
+        pred = heldout_predictions(df, use, fold, urdf, base_link, flange_link, mcfg, start=start)
         failed = int(pred.loc[pred["status"].str.startswith("fold not fitted"), "fold"].nunique())
         pv = pred[["px", "py", "pz"]].to_numpy(dtype=float)
         tv = pred[["tx", "ty", "tz"]].to_numpy(dtype=float)
@@ -343,7 +381,7 @@ def cross_validate(
                         add(m, "loto", f, int(i), int(train.sum()), None, "single touch-up")
                     continue
                 try:
-                    res = _fit(df, train, urdf, base_link, flange_link, mcfg)
+                    res = _fit(df, train, urdf, base_link, flange_link, mcfg, start)
                 except (BadInput, CalibrationFailed) as exc:
                     loto_failed += 1
                     for i in hi:
@@ -354,6 +392,14 @@ def cross_validate(
                 for j, i in enumerate(hi):
                     add(m, "loto", f, int(i), int(train.sum()), dev[j], "")
         info["loto_failed_targets"] = loto_failed
+        return rows, info
+
+    rows: list[dict[str, Any]] = []
+    summary_models: dict[str, Any] = {}
+    for m, (m_rows, info) in zip(
+        models, parallel_map(one_model, models, config.workers), strict=True
+    ):
+        rows += m_rows
         summary_models[m] = info
 
     out = pd.DataFrame(

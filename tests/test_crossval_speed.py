@@ -1,0 +1,83 @@
+"""Cross-validation's shortcuts change no figure: warm starts, refit settings, forked models."""
+
+from __future__ import annotations
+
+import dataclasses
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+
+from pipeline.evaluate import perturbed_chain, random_deviations
+from pipeline.evaluate import synthetic_touchups as synth
+from pipeline.kinematics.chain import load_chain
+from pipeline.stages.crossval import CrossvalConfig, cross_validate, refit_config
+from pipeline.stages.identify import IdentifyConfig, IdentifyResult, WarmStart, identify
+from pipeline.stages.parallel_map import parallel_map
+
+URDF = (Path(__file__).resolve().parent.parent / "pipeline/robots/lrmate.urdf").read_text()
+PIN = np.array([0.01, -0.02, 0.2])
+Q_CENTRE = [0.0, 0.3, -0.3, 0.0, -0.8, 0.0]
+
+
+def cell(seed: int, per_target: int = 8) -> tuple[pd.DataFrame, list[tuple[int, int, float]]]:
+    chain = load_chain(URDF, "base_link", "flange")
+    rng = np.random.default_rng(seed)
+    true = perturbed_chain(chain, random_deviations(chain, rng))
+    tab, tg = synth(true, PIN, 3, per_target, rng, noise_pin_m=3e-5, q_centre=Q_CENTRE)
+    return tab, [(0, 2, float(np.linalg.norm(tg[0] - tg[2])))]
+
+
+def fit(tab: pd.DataFrame, cfg: IdentifyConfig, start: WarmStart | None = None) -> IdentifyResult:
+    res = identify(tab, URDF, "base_link", "flange", cfg, start=start)
+    assert isinstance(res, IdentifyResult)
+    return res
+
+
+def test_warm_start_reaches_the_cold_fits_minimum() -> None:
+    tab, dist = cell(5)
+    cfg = IdentifyConfig(model="full", distances=dist)
+    full = fit(tab, cfg)
+    sub = tab.copy()
+    sub["inlier"] = np.arange(len(sub)) % 4 != 0  # a fold's training rows
+    cold = fit(sub, cfg)
+    warm = fit(sub, cfg, WarmStart.from_result(full))
+    # a different start, the same least-squares minimum (the solver's tolerance: 1e-10)
+    assert np.max(np.abs(warm.x - cold.x)) < 1e-7
+    assert np.max(np.abs(warm.p_flange_pin - cold.p_flange_pin)) < 1e-9
+    assert abs(warm.summary["rms_mm"] - cold.summary["rms_mm"]) < 1e-9
+    # the start is the full fit's, not the nominal robot's: the first solve needs fewer steps
+    assert warm.summary["solver"]["initial_rms_mm"] == cold.summary["solver"]["initial_rms_mm"]
+    assert not np.allclose(full.x, cold.x, atol=1e-12)  # the subset's minimum moved
+
+
+def test_refits_skip_a_print_shape_the_full_fit_did_not_find() -> None:
+    tab, dist = cell(6)
+    cfg = IdentifyConfig(model="full", distances=dist)
+    full = fit(tab, cfg)
+    assert full.summary.get("print_shape") is None  # no print-shape columns: nothing to test
+
+    def with_shape(shape: object) -> IdentifyResult:
+        return dataclasses.replace(full, summary={**full.summary, "print_shape": shape})
+
+    assert refit_config(cfg, full).target_shape == "auto"
+    assert (
+        refit_config(cfg, with_shape({"fitted": False, "note": "p = 0.3"})).target_shape == "none"
+    )
+    assert refit_config(cfg, with_shape({"fitted": True})).target_shape == "auto"
+    assert refit_config(cfg, full).accept_implausible  # the full table passed the guardrails
+
+
+def test_models_in_forked_processes_give_the_serial_results() -> None:
+    tab, dist = cell(7, per_target=6)
+    idc = IdentifyConfig(model="all", distances=dist)
+
+    def run(workers: int) -> object:
+        cfg = CrossvalConfig(models=["offsets", "full"], k=3, loto=False, workers=workers)
+        return cross_validate(tab, URDF, "base_link", "flange", idc, cfg)
+
+    one, two = run(1), run(2)
+    pd.testing.assert_frame_equal(one.table, two.table)  # type: ignore[attr-defined]
+    assert one.summary == two.summary  # type: ignore[attr-defined]
+    offset = 10
+    assert parallel_map(lambda t: t * t + offset, [3, 1, 2], workers=2) == [19, 11, 14]
