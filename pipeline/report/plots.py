@@ -20,6 +20,7 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 from matplotlib.figure import Figure  # noqa: E402
+from matplotlib.ticker import FuncFormatter, NullLocator  # noqa: E402
 
 _RC: Any = {
     "svg.hashsalt": "vtcal-report",
@@ -62,6 +63,11 @@ def to_svg(fig: Figure) -> str:
     return re.sub(r"\s*<metadata>.*?</metadata>", "", text, count=1, flags=re.DOTALL)
 
 
+def _plain(v: float, _pos: Any = None) -> str:
+    """A tick label as a plain number (``0.01``, ``1``, ``1e+03``), no mathtext."""
+    return f"{v:g}"
+
+
 def histogram(groups: Mapping[str, np.ndarray], xlabel: str, title: str = "") -> str:
     """Overlaid histograms of one quantity per group (e.g. residual mm, before/after)."""
     with plt.rc_context(_RC):
@@ -77,7 +83,15 @@ def histogram(groups: Mapping[str, np.ndarray], xlabel: str, title: str = "") ->
             v = v[np.isfinite(v)]
             color = _group_color(name, ci)
             ci += color != BEFORE
-            ax.hist(v, bins=list(bins), alpha=0.6, color=color, label=f"{name} (n={len(v)})")
+            # one filled outline per group (a patch per bar costs a draw call each)
+            ax.hist(
+                v,
+                bins=list(bins),
+                histtype="stepfilled",
+                alpha=0.6,
+                color=color,
+                label=f"{name} (n={len(v)})",
+            )
         ax.set_xlabel(xlabel)
         ax.set_ylabel("touch-ups")
         if title:
@@ -159,26 +173,28 @@ def convergence(
         fig = _figure(6.8, 2.6)
         axes = fig.subplots(1, 3, sharex=True)
         for k, ax in enumerate(axes):
-            for i, (label, tr) in enumerate(traces.items()):
+            # one line per colour, the touch-ups joined by NaN breaks: 7 artists a panel,
+            # not one per touch-up (rendering time grows with the artists, not the points)
+            runs: dict[int, list[np.ndarray]] = {}
+            for i, tr in enumerate(traces.values()):
                 tr = np.asarray(tr, dtype=float)
                 if tr.ndim != 2 or tr.shape[1] <= k:
                     continue
                 y = np.abs(tr[:, k])
                 y = np.where(y > 0, y, np.nan)
-                ax.plot(
-                    np.arange(len(y)),
-                    y,
-                    marker=".",
-                    lw=0.8,
-                    ms=3,
-                    color=COLORS[i % len(COLORS)],
-                    alpha=0.8,
-                    label=label,
-                )
+                xy = np.column_stack([np.arange(len(y), dtype=float), y])
+                runs.setdefault(i % len(COLORS), []).append(np.vstack([xy, [np.nan, np.nan]]))
+            for c, parts in sorted(runs.items()):
+                xy = np.vstack(parts)
+                ax.plot(xy[:, 0], xy[:, 1], marker=".", lw=0.8, ms=3, color=COLORS[c], alpha=0.8)
             th = thresholds[k] if k < len(thresholds) else None
             if th:
                 ax.axhline(th, color=REJECT, lw=0.8, ls="--")
             ax.set_yscale("log")
+            # minor ticks of a log axis are a third of the plot's rendering time, and its
+            # default labels (10^k) go through the mathtext parser: plain numbers instead
+            ax.yaxis.set_minor_locator(NullLocator())
+            ax.yaxis.set_major_formatter(FuncFormatter(_plain))
             ax.set_title(f"|{names[k]}| ({units[k] if k < len(units) else ''})")
             ax.set_xlabel("iteration")
         return to_svg(fig)
