@@ -10,9 +10,8 @@ map: each task runs the same code on the same inputs.
 It runs serially when asked to (``workers=1``), when there is one task, where
 forking is unavailable or not allowed (a daemonic process such as a
 ``vtcal batch`` worker may not have children), and when ``workers=0`` (auto)
-finds no core to spare or the process was limited to one thread
-(``OMP_NUM_THREADS=1``, as ``vtcal batch`` sets in its workers: the batch
-already uses the cores, one recording per worker).
+finds no core to spare or runs in a child process (a ``vtcal batch`` or Dask
+worker: the batch already uses the cores, one recording per worker).
 """
 
 from __future__ import annotations
@@ -62,7 +61,7 @@ def parallel_map(fn: Callable[[T], R], tasks: Sequence[T], workers: int = 1) -> 
     """
     global _TASK
     if workers == 0:
-        n = 1 if os.environ.get("OMP_NUM_THREADS") == "1" else free_workers()
+        n = 1 if multiprocessing.parent_process() is not None else free_workers()
     else:
         n = workers
     n = min(n, len(tasks))
