@@ -298,6 +298,20 @@ def run_pipeline(
             if progress:
                 progress("ingest", done, total)
 
+        # a fresh install compiles the detector first (~10-20 s): never a silent wait
+        from pipeline.stages.detect_compile import compile_detector
+
+        slow: list[bool] = []
+
+        def announce() -> None:
+            slow.append(True)
+            if progress:
+                progress("compile", 0, None)
+
+        compile_detector(detect_cfg, on_slow=announce)
+        if slow and progress:
+            progress("compile", 1, 1)
+
         frames, detections, info = ingest.ingest_recording(
             recording.resolve(), ingest_cfg, detect_cfg, progress=cb
         )
