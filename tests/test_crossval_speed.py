@@ -64,8 +64,9 @@ def test_refits_skip_a_print_shape_the_full_fit_did_not_find() -> None:
     assert (
         refit_config(cfg, with_shape({"fitted": False, "note": "p = 0.3"})).target_shape == "none"
     )
-    assert refit_config(cfg, with_shape({"fitted": True})).target_shape == "auto"
-    assert refit_config(cfg, full).accept_implausible  # the full table passed the guardrails
+    whole = {"fitted": True, "parameters": "size and out-of-roundness"}
+    assert refit_config(cfg, with_shape(whole)).target_shape == "auto"  # tested again
+    assert not refit_config(cfg, full).check_plausibility  # the full table passed them
 
 
 def test_models_in_forked_processes_give_the_serial_results() -> None:

@@ -152,14 +152,17 @@ def refit_config(config: IdentifyConfig, full: IdentifyResult) -> IdentifyConfig
     guardrails (the full table passed them, or the user accepted it), and the
     print-shape F-test when it found no print shape on every touch-up (a subset
     has less evidence): the refits then fit none (``target_shape="none"``)
-    instead of fitting it twice per refit to test it. When the full fit kept a
-    print shape, each refit tests it again as the identify stage does.
+    instead of fitting it to test it. When the full fit kept a print shape,
+    each refit tests it again as the identify stage does: fitting it without
+    the test would leave the test's choice, made with the held-out touch-ups,
+    out of what is validated (measured: 3.5 % lower held-out RMS on the
+    standard LR Mate-like cell, an optimistic figure).
     """
     shape = full.summary.get("print_shape")
-    no_shape = isinstance(shape, dict) and not shape.get("fitted")
+    no_shape = isinstance(shape, dict) and shape.get("fitted") is False
     return dataclasses.replace(
         config,
-        accept_implausible=True,
+        check_plausibility=False,
         target_shape="none" if no_shape else config.target_shape,
     )
 
