@@ -78,7 +78,7 @@ def cli() -> None:
 def _caused_by_interrupt(exc: BaseException) -> bool:
     """True if a KeyboardInterrupt is in the exception's cause/context chain.
 
-    Ctrl-C landing inside a C extension's import (matplotlib, numba, ...) surfaces
+    Ctrl-C landing inside a C extension's import (rerun, numba, ...) surfaces
     as an ImportError whose context is the KeyboardInterrupt.
     """
     seen: set[int] = set()

@@ -473,7 +473,7 @@ def run_pipeline(
     ):
         records.append(StageRecord("report", "cached", ["report.html", "run.rrd"]))
     else:
-        t0 = time.perf_counter()  # the report's imports (matplotlib, rerun) are waited for too
+        t0 = time.perf_counter()  # the report's imports (rerun, pandas) are waited for too
         from pipeline.report.outputs import build_outputs
 
         # the report shows the stage table: give it this run's, not the previous one

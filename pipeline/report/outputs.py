@@ -12,10 +12,24 @@ from __future__ import annotations
 
 from pathlib import Path
 
+import numpy as np
+
 from pipeline.report.data import load_run
 from pipeline.report.html import build_report, thumbnail_frames
 from pipeline.report.images import Frame, load_images
 from pipeline.report.rrd import build_rrd, image_frames
+
+
+def _grey(frames: dict[int, Frame], wanted: list[int]) -> dict[int, np.ndarray]:
+    """The decoded grey images of the wanted frames (undecodable ones left out)."""
+    out = {}
+    for k in wanted:
+        if k in frames:
+            try:
+                out[k] = frames[k].gray
+            except Exception:  # noqa: BLE001 - an undecodable frame is just not shown
+                continue
+    return out
 
 
 def build_outputs(
@@ -47,7 +61,7 @@ def build_outputs(
         html_path,
         tolerance_mm,
         data=data,
-        images=None if frames is None else {k: frames[k].gray for k in thumbs if k in frames},
+        images=None if frames is None else _grey(frames, thumbs),
     )
     rrd = build_rrd(
         run_dir,

@@ -258,8 +258,12 @@ def log_run(
                 T_flange[:, :3, 3] -= np.einsum("nij,j->ni", T_pin[:, :3, :3], p_pin)
         if cam is not None:
             T_fc, f, (w, h) = cam
-            if images:  # the real image size when an image is at hand
-                h, w = next(iter(images.values())).gray.shape[:2]
+            for im in (images or {}).values():  # the real image size when one decodes
+                try:
+                    h, w = im.gray.shape[:2]
+                    break
+                except Exception:  # noqa: BLE001 - an undecodable frame is just not shown
+                    continue
             rec.log(
                 "world/robot/calibrated/flange/camera",
                 rr.Transform3D(translation=T_fc[:3, 3], mat3x3=T_fc[:3, :3]),

@@ -14,7 +14,7 @@ import jinja2
 from pipeline import __version__
 from pipeline.verdict import IMPROVED_BELOW
 
-#: the report's templates (``reports/``); not imported from report.html, which loads matplotlib
+#: the report's templates (``reports/``); not imported from report.html, which loads pandas and the report data
 TEMPLATE_DIR = Path(__file__).resolve().parent.parent.parent / "reports"
 TEMPLATE = "validate.html.j2"
 
