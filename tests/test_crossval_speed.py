@@ -1,4 +1,4 @@
-"""Cross-validation's shortcuts change no figure: warm starts, refit settings, forked models."""
+"""Cross-validation's shortcuts: refit settings from the full fit, models in forked processes."""
 
 from __future__ import annotations
 
@@ -12,7 +12,7 @@ from pipeline.evaluate import perturbed_chain, random_deviations
 from pipeline.evaluate import synthetic_touchups as synth
 from pipeline.kinematics.chain import load_chain
 from pipeline.stages.crossval import CrossvalConfig, cross_validate, refit_config
-from pipeline.stages.identify import IdentifyConfig, IdentifyResult, WarmStart, identify
+from pipeline.stages.identify import IdentifyConfig, IdentifyResult, identify
 from pipeline.stages.parallel_map import parallel_map
 
 URDF = (Path(__file__).resolve().parent.parent / "pipeline/robots/lrmate.urdf").read_text()
@@ -28,27 +28,10 @@ def cell(seed: int, per_target: int = 8) -> tuple[pd.DataFrame, list[tuple[int, 
     return tab, [(0, 2, float(np.linalg.norm(tg[0] - tg[2])))]
 
 
-def fit(tab: pd.DataFrame, cfg: IdentifyConfig, start: WarmStart | None = None) -> IdentifyResult:
-    res = identify(tab, URDF, "base_link", "flange", cfg, start=start)
+def fit(tab: pd.DataFrame, cfg: IdentifyConfig) -> IdentifyResult:
+    res = identify(tab, URDF, "base_link", "flange", cfg)
     assert isinstance(res, IdentifyResult)
     return res
-
-
-def test_warm_start_reaches_the_cold_fits_minimum() -> None:
-    tab, dist = cell(5)
-    cfg = IdentifyConfig(model="full", distances=dist)
-    full = fit(tab, cfg)
-    sub = tab.copy()
-    sub["inlier"] = np.arange(len(sub)) % 4 != 0  # a fold's training rows
-    cold = fit(sub, cfg)
-    warm = fit(sub, cfg, WarmStart.from_result(full))
-    # a different start, the same least-squares minimum (the solver's tolerance: 1e-10)
-    assert np.max(np.abs(warm.x - cold.x)) < 1e-7
-    assert np.max(np.abs(warm.p_flange_pin - cold.p_flange_pin)) < 1e-9
-    assert abs(warm.summary["rms_mm"] - cold.summary["rms_mm"]) < 1e-9
-    # the start is the full fit's, not the nominal robot's: the first solve needs fewer steps
-    assert warm.summary["solver"]["initial_rms_mm"] == cold.summary["solver"]["initial_rms_mm"]
-    assert not np.allclose(full.x, cold.x, atol=1e-12)  # the subset's minimum moved
 
 
 def test_refits_skip_a_print_shape_the_full_fit_did_not_find() -> None:

@@ -52,7 +52,7 @@ import pandas as pd
 from pipeline.errors import BadInput, CalibrationFailed
 from pipeline.kinematics.chain import load_chain
 from pipeline.kinematics.se3 import F64
-from pipeline.stages.identify import IdentifyConfig, IdentifyResult, WarmStart, identify
+from pipeline.stages.identify import IdentifyConfig, IdentifyResult, identify
 from pipeline.stages.parallel_map import parallel_map
 
 
@@ -136,11 +136,10 @@ def _fit(
     base: str,
     flange: str,
     cfg: IdentifyConfig,
-    start: WarmStart | None = None,
 ) -> IdentifyResult:
     t = table.copy()
     t["inlier"] = use
-    res = identify(t, urdf, base, flange, cfg, start=start)
+    res = identify(t, urdf, base, flange, cfg)
     assert isinstance(res, IdentifyResult)
     return res
 
@@ -177,7 +176,6 @@ def heldout_predictions(
     config: IdentifyConfig,
     *,
     every_row: bool = False,
-    start: WarmStart | None = None,
 ) -> pd.DataFrame:
     """Fit without each fold; predict the pin at the fold's touch-ups (k-fold core).
 
@@ -190,7 +188,6 @@ def heldout_predictions(
     config : identification settings (one model)
     every_row : also predict at the fold fit's training rows (``held`` false), e.g. to
         register a fold's model to a reference before judging its held-out rows
-    start : where each fold's solver starts (the fit on every usable row); default nominal
 
     Returns
     -------
@@ -215,7 +212,7 @@ def heldout_predictions(
         train = use & (fold != f)
         hi = np.flatnonzero(use if every_row else held)
         try:
-            res = _fit(table, train, urdf, base_link, flange_link, config, start)
+            res = _fit(table, train, urdf, base_link, flange_link, config)
         except (BadInput, CalibrationFailed) as exc:
             for i in hi:
                 out.append(
@@ -348,18 +345,16 @@ def cross_validate(
 
         mcfg = dataclasses.replace(base_cfg, model=m)
         info: dict[str, Any] = {"k": k, "urdf_exact": _urdf_exact(m)}
-        start = None
         try:
             full = _fit(df, use, urdf, base_link, flange_link, mcfg)
             info["train_rms_mm"] = float(full.summary["rms_mm"])
             info["n_identified"] = int(full.summary["n_identified"])
-            start = WarmStart.from_result(full)  # every refit starts from the full fit
             mcfg = refit_config(mcfg, full)
         except (BadInput, CalibrationFailed) as exc:
             info["train_rms_mm"] = math.nan
             info["error"] = str(exc)
         # -- k-fold
-        pred = heldout_predictions(df, use, fold, urdf, base_link, flange_link, mcfg, start=start)
+        pred = heldout_predictions(df, use, fold, urdf, base_link, flange_link, mcfg)
         failed = int(pred.loc[pred["status"].str.startswith("fold not fitted"), "fold"].nunique())
         pv = pred[["px", "py", "pz"]].to_numpy(dtype=float)
         tv = pred[["tx", "ty", "tz"]].to_numpy(dtype=float)
@@ -384,7 +379,7 @@ def cross_validate(
                         add(m, "loto", f, int(i), int(train.sum()), None, "single touch-up")
                     continue
                 try:
-                    res = _fit(df, train, urdf, base_link, flange_link, mcfg, start)
+                    res = _fit(df, train, urdf, base_link, flange_link, mcfg)
                 except (BadInput, CalibrationFailed) as exc:
                     loto_failed += 1
                     for i in hi:

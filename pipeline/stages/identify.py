@@ -147,39 +147,6 @@ class IdentifyConfig:
     check_plausibility: bool = True
 
 
-@dataclass(frozen=True)
-class WarmStart:
-    """Where a refit's solver starts: a previous fit of the same model on more touch-ups.
-
-    Cross-validation refits each fold from the full fit: the fold's minimum is
-    near it, so Levenberg-Marquardt needs fewer steps than from the nominal robot.
-    Only the solver's starting point changes; the identifiability analysis, the
-    initial residual and every figure are computed as without it.
-
-    Attributes
-    ----------
-    x : (P,) model parameters of the previous fit (held ones 0)
-    p_flange_pin : (3,) virtual pin of the previous fit, flange frame, m
-    p_base_target : ``{target_id: (3,)}`` target centres of the previous fit, base frame, m;
-        a target it does not hold starts where the linear least squares of (1) puts it
-    """
-
-    x: F64
-    p_flange_pin: F64
-    p_base_target: dict[int, F64]
-
-    @classmethod
-    def from_result(cls, res: IdentifyResult) -> WarmStart:
-        """The start a fit's result gives (its ``x``, pin and targets table)."""
-        ids = res.targets["target_id"].to_numpy(dtype=np.int64)
-        xyz = res.targets[["x", "y", "z"]].to_numpy(dtype=float)
-        return cls(
-            np.asarray(res.x, dtype=float).copy(),
-            np.asarray(res.p_flange_pin, dtype=float).copy(),
-            {int(t): xyz[i] for i, t in enumerate(ids)},
-        )
-
-
 @dataclass
 class IdentifyResult:
     """Everything identification produces for one error model.
@@ -978,8 +945,6 @@ def identify(
     base_link: str,
     flange_link: str,
     config: IdentifyConfig | None = None,
-    *,
-    start: WarmStart | None = None,
 ) -> IdentifyResult | dict[str, IdentifyResult]:
     """Identify kinematic corrections, the virtual pin and the targets from touch-ups.
 
@@ -993,8 +958,6 @@ def identify(
     base_link, flange_link : the chain (``flange_link`` may be a tool link; its
         fixed joints stay nominal and the pin is found in its frame)
     config : IdentifyConfig
-    start : where the solver starts (:class:`WarmStart`, a previous fit of the same
-        model); only for a single named model; default the nominal robot
 
     Returns
     -------
@@ -1053,7 +1016,7 @@ def identify(
             res.summary["implausible"] = implausible
             return res
         raise TooFewTouchups(" | ".join(refusals))
-    one = _identify_one(config.model, chain, data, urdf, flange_link, config, start)
+    one = _identify_one(config.model, chain, data, urdf, flange_link, config)
     one.summary["implausible"] = implausible
     return one
 
@@ -1065,7 +1028,6 @@ def _identify_one(
     urdf: str,
     flange_link: str,
     config: IdentifyConfig,
-    start: WarmStart | None = None,
 ) -> IdentifyResult:
     t0 = time.perf_counter()
     try:
@@ -1116,11 +1078,6 @@ def _identify_one(
 
     # -- solve
     z0 = prob.join(x0, pin0, tg0)
-    if start is not None and start.x.shape == x0.shape:
-        tg_w = np.array(
-            [start.p_base_target.get(int(t), tg0[k]) for k, t in enumerate(data.target_ids)]
-        )
-        z0 = prob.join(start.x, start.p_flange_pin, tg_w.reshape(tg0.shape))
     xs = np.concatenate([1.0 / pscale[kept], np.ones(3 + 3 * K)])
     linear = config.robust_loss == "linear"
 
