@@ -184,8 +184,18 @@ def png_data_uri(img: np.ndarray) -> str:
 
 
 def png_bytes(img: np.ndarray) -> bytes:
-    """PNG bytes of an image (for Rerun's EncodedImage)."""
-    ok, buf = cv2.imencode(".png", img, [cv2.IMWRITE_PNG_COMPRESSION, 6])
+    """PNG bytes of an image (for Rerun's EncodedImage; a raw recording's frames).
+
+    Run-length deflate at level 1: on a 640 x 512 camera frame 4 ms and 142 kB,
+    against 28 ms and 159 kB at the default level 6 (the report wrote 36-200 such).
+    """
+    params = [
+        cv2.IMWRITE_PNG_COMPRESSION,
+        1,
+        cv2.IMWRITE_PNG_STRATEGY,
+        cv2.IMWRITE_PNG_STRATEGY_RLE,
+    ]
+    ok, buf = cv2.imencode(".png", img, params)
     if not ok:  # pragma: no cover
         raise ValueError("PNG encoding failed")
     return bytes(buf.tobytes())
