@@ -513,8 +513,15 @@ def crossval_and_choose(
 
     P = run_paths(out)
     summary = json.loads(P["identify"].read_text())
+    models = summary.get("models")
     result = crossval.cross_validate(
-        table, urdf, base_link, flange_link, identify_config, crossval_config
+        table,
+        urdf,
+        base_link,
+        flange_link,
+        identify_config,
+        crossval_config,
+        full_fits=models if isinstance(models, dict) else None,
     )
     write_artefact(
         P["crossval"],

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import dataclasses
 from pathlib import Path
 
 import numpy as np
@@ -40,16 +39,16 @@ def test_refits_skip_a_print_shape_the_full_fit_did_not_find() -> None:
     full = fit(tab, cfg)
     assert full.summary.get("print_shape") is None  # no print-shape columns: nothing to test
 
-    def with_shape(shape: object) -> IdentifyResult:
-        return dataclasses.replace(full, summary={**full.summary, "print_shape": shape})
+    def with_shape(shape: object) -> dict[str, object]:
+        return {**full.summary, "print_shape": shape}
 
-    assert refit_config(cfg, full).target_shape == "auto"
+    assert refit_config(cfg, full.summary).target_shape == "auto"
     assert (
         refit_config(cfg, with_shape({"fitted": False, "note": "p = 0.3"})).target_shape == "none"
     )
     whole = {"fitted": True, "parameters": "size and out-of-roundness"}
     assert refit_config(cfg, with_shape(whole)).target_shape == "auto"  # tested again
-    assert not refit_config(cfg, full).check_plausibility  # the full table passed them
+    assert not refit_config(cfg, full.summary).check_plausibility  # the full table passed them
 
 
 def test_models_in_forked_processes_give_the_serial_results() -> None:
@@ -65,3 +64,20 @@ def test_models_in_forked_processes_give_the_serial_results() -> None:
     assert one.summary == two.summary  # type: ignore[attr-defined]
     offset = 10
     assert parallel_map(lambda t: t * t + offset, [3, 1, 2], workers=2) == [19, 11, 14]
+
+
+def test_the_identify_stages_own_fits_stand_in_for_the_full_refits() -> None:
+    tab, dist = cell(8, per_target=6)
+    idc = IdentifyConfig(model="all", distances=dist)
+    fits = identify(tab, URDF, "base_link", "flange", idc)
+    assert isinstance(fits, dict)
+    cfg = CrossvalConfig(models=["offsets", "full"], k=3, workers=1)
+    fresh = cross_validate(tab, URDF, "base_link", "flange", idc, cfg)
+    given = {m: r.summary for m, r in fits.items()}
+    reused = cross_validate(tab, URDF, "base_link", "flange", idc, cfg, full_fits=given)
+    pd.testing.assert_frame_equal(fresh.table, reused.table)
+    assert fresh.summary == reused.summary
+    # the figures do come from what was given (not a refit)
+    doctored = {**given, "full": {**given["full"], "rms_mm": 123.0}}
+    odd = cross_validate(tab, URDF, "base_link", "flange", idc, cfg, full_fits=doctored)
+    assert odd.summary["models"]["full"]["train_rms_mm"] == 123.0

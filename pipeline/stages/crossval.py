@@ -43,6 +43,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+from collections.abc import Mapping
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -144,8 +145,11 @@ def _fit(
     return res
 
 
-def refit_config(config: IdentifyConfig, full: IdentifyResult) -> IdentifyConfig:
+def refit_config(config: IdentifyConfig, full: Mapping[str, Any]) -> IdentifyConfig:
     """Settings of the refits on part of the touch-ups, from the fit on all of them.
+
+    ``full`` is that fit's summary (:attr:`IdentifyResult.summary`, or its entry in
+    ``identify.json["models"]``).
 
     Two checks of the full fit are not repeated on each subset: the plausibility
     guardrails (the full table passed them, or the user accepted it), and the
@@ -157,7 +161,7 @@ def refit_config(config: IdentifyConfig, full: IdentifyResult) -> IdentifyConfig
     out of what is validated (measured: 3.5 % lower held-out RMS on the
     standard LR Mate-like cell, an optimistic figure).
     """
-    shape = full.summary.get("print_shape")
+    shape = full.get("print_shape")
     no_shape = isinstance(shape, dict) and shape.get("fitted") is False
     return dataclasses.replace(
         config,
@@ -273,6 +277,7 @@ def cross_validate(
     flange_link: str,
     identify_config: IdentifyConfig,
     config: CrossvalConfig,
+    full_fits: Mapping[str, Mapping[str, Any]] | None = None,
 ) -> CrossvalResult:
     """k-fold and leave-one-target-out held-out residuals per error model.
 
@@ -283,6 +288,10 @@ def cross_validate(
     identify_config : settings of the identify stage (distances, loss, ...);
         its ``model`` picks the models when ``config.models`` is empty
     config : CrossvalConfig
+    full_fits : ``{model: summary}`` of the fits on every usable touch-up with these
+        settings, when the identify stage already made them (``identify.json["models"]``):
+        their training RMS, parameter count and print-shape decision are taken from
+        there instead of fitting again; a model without one is fitted here
 
     Returns
     -------
@@ -345,11 +354,15 @@ def cross_validate(
 
         mcfg = dataclasses.replace(base_cfg, model=m)
         info: dict[str, Any] = {"k": k, "urdf_exact": _urdf_exact(m)}
+        known = (full_fits or {}).get(m)
         try:
-            full = _fit(df, use, urdf, base_link, flange_link, mcfg)
-            info["train_rms_mm"] = float(full.summary["rms_mm"])
-            info["n_identified"] = int(full.summary["n_identified"])
-            mcfg = refit_config(mcfg, full)
+            if isinstance(known, Mapping) and {"rms_mm", "n_identified"} <= set(known):
+                full_summary: Mapping[str, Any] = known  # the identify stage's own fit
+            else:
+                full_summary = _fit(df, use, urdf, base_link, flange_link, mcfg).summary
+            info["train_rms_mm"] = float(full_summary["rms_mm"])
+            info["n_identified"] = int(full_summary["n_identified"])
+            mcfg = refit_config(mcfg, full_summary)
         except (BadInput, CalibrationFailed) as exc:
             info["train_rms_mm"] = math.nan
             info["error"] = str(exc)
