@@ -8,8 +8,9 @@ reused when already there), then measures in this one run:
    per cell: per-stage wall time from ``run.json`` (median over the repeats),
    the ingest time and the ratio (everything after ingest) / ingest
    (goal <= 0.5) and the report stage (goal < 0.5 s);
-2. a cProfile of the report stage (``build_report`` + ``build_rrd``) on the
-   first cell's run folder, top ``--top`` functions by cumulative time;
+2. the report stage (``pipeline.report.outputs.build_outputs``) in this process
+   with warm imports, and its cProfile on the first cell's run folder, top
+   ``--top`` functions by cumulative time;
 3. start-up, as fresh processes, median of ``--repeat-startup`` (5): ``vtcal
    --help`` (goal < 0.3 s), a cached ``vtcal run`` of the first cell (goal
    < 0.5 s), ``vtcal report`` of it; and the heaviest imports of each from
@@ -129,22 +130,19 @@ def bench_stages(recs: dict[str, Path], workdir: Path, repeat: int) -> None:
 
 def profile_report(out: Path, top: int) -> None:
     """cProfile of the report stage on one run folder: top functions by cumulative time."""
-    from pipeline.report.html import build_report
-    from pipeline.report.rrd import build_rrd
+    from pipeline.report.outputs import build_outputs
 
-    build_report(out)  # imports and first-call costs out of the profile
-    build_rrd(out)
-    prof = cProfile.Profile()
+    build_outputs(out)  # imports and first-call costs out of the profile
     t0 = time.perf_counter()
-    prof.enable()
-    build_report(out)
+    build_outputs(out)
     t1 = time.perf_counter()
-    build_rrd(out)
+    prof = cProfile.Profile()
+    prof.enable()
+    build_outputs(out)
     prof.disable()
-    t2 = time.perf_counter()
     print(
-        f"\n== report stage in process (warm imports): report.html {t1 - t0:.3f} s, "
-        f"run.rrd {t2 - t1:.3f} s (under cProfile)"
+        f"\n== report stage in process (warm imports): report.html + run.rrd {t1 - t0:.3f} s; "
+        "profiled:"
     )
     s = io.StringIO()
     pstats.Stats(prof, stream=s).sort_stats("cumulative").print_stats(top)
