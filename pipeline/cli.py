@@ -14,10 +14,14 @@ import os
 import sys
 from typing import Any
 
-import click
+from pipeline.threads import prefer_one_thread
 
-from pipeline import __version__
-from pipeline.errors import VtcalError
+prefer_one_thread()  # before numpy loads: see pipeline/threads.py
+
+import click  # noqa: E402
+
+from pipeline import __version__  # noqa: E402
+from pipeline.errors import VtcalError  # noqa: E402
 
 #: command name -> (module, one-line help shown in ``vtcal --help``)
 COMMANDS: dict[str, tuple[str, str]] = {
@@ -75,7 +79,7 @@ def cli() -> None:
 def _caused_by_interrupt(exc: BaseException) -> bool:
     """True if a KeyboardInterrupt is in the exception's cause/context chain.
 
-    Ctrl-C landing inside a C extension's import (matplotlib, numba, ...) surfaces
+    Ctrl-C landing inside a C extension's import (rerun, numba, ...) surfaces
     as an ImportError whose context is the KeyboardInterrupt.
     """
     seen: set[int] = set()

@@ -45,7 +45,11 @@ ENTRY_POINTS: dict[str, tuple[str, ...]] = {
     "outliers": ("pipeline.stages.outliers:flag_outliers",),
     "identify": ("pipeline.stages.identify:identify", "pipeline.stages.identify:write_outputs"),
     "crossval": ("pipeline.orchestrator:crossval_and_choose",),
-    "report": ("pipeline.report.html:build_report", "pipeline.report.rrd:build_rrd"),
+    "report": (
+        "pipeline.report.html:build_report",
+        "pipeline.report.rrd:build_rrd",
+        "pipeline.report.outputs:build_outputs",
+    ),
 }
 
 #: packages whose ``__init__`` imports every module of the package at run time
@@ -71,11 +75,15 @@ def _is_package(name: str) -> bool:
     return path is not None and path.name == "__init__.py"
 
 
-def _imports(name: str) -> set[str]:
-    """``pipeline`` modules that module ``name`` imports anywhere in its source."""
+@cache
+def _imports(name: str) -> frozenset[str]:
+    """``pipeline`` modules that module ``name`` imports anywhere in its source.
+
+    Parsed once per process: the stages' closures share most modules.
+    """
     path = _module_path(name)
     if path is None:
-        return set()
+        return frozenset()
     package = name if _is_package(name) else name.rsplit(".", 1)[0]
     found: set[str] = set()
     for node in ast.walk(ast.parse(path.read_bytes())):
@@ -90,7 +98,9 @@ def _imports(name: str) -> set[str]:
                 mod = node.module or ""
             found.add(mod)
             found.update(f"{mod}.{a.name}" for a in node.names)  # `from pkg import module`
-    return {m for m in found if m.split(".")[0] == "pipeline" and _module_path(m) is not None}
+    return frozenset(
+        m for m in found if m.split(".")[0] == "pipeline" and _module_path(m) is not None
+    )
 
 
 @cache

@@ -275,6 +275,20 @@ def run_pipeline(
             if progress:
                 progress("ingest", done, total)
 
+        # a fresh install compiles the detector first (~10-20 s): never a silent wait
+        from pipeline.stages.detect_compile import compile_detector
+
+        slow: list[bool] = []
+
+        def announce() -> None:
+            slow.append(True)
+            if progress:
+                progress("compile", 0, None)
+
+        compile_detector(detect_cfg, on_slow=announce)
+        if slow and progress:
+            progress("compile", 1, 1)
+
         frames, detections, info = ingest.ingest_recording(
             recording.resolve(), ingest_cfg, detect_cfg, progress=cb
         )
@@ -439,18 +453,15 @@ def run_pipeline(
     ):
         records.append(StageRecord("report", "cached", ["report.html", "run.rrd"]))
     else:
-        from pipeline.report.html import build_report
-        from pipeline.report.rrd import build_rrd
+        t0 = time.perf_counter()  # the report's imports (rerun, pandas) are waited for too
+        from pipeline.report.outputs import build_outputs
 
         # the report shows the stage table: give it this run's, not the previous one
         write_json(
             P["run"],
             {"version": __version__, "stages": records, "tolerance_mm": cfg.tolerance_mm},
         )
-
-        t0 = time.perf_counter()
-        build_report(out)
-        build_rrd(out)
+        build_outputs(out)
         records.append(
             StageRecord("report", "ran", ["report.html", "run.rrd"], time.perf_counter() - t0)
         )
@@ -482,8 +493,15 @@ def crossval_and_choose(
 
     P = run_paths(out)
     summary = json.loads(P["identify"].read_text())
+    models = summary.get("models")
     result = crossval.cross_validate(
-        table, urdf, base_link, flange_link, identify_config, crossval_config
+        table,
+        urdf,
+        base_link,
+        flange_link,
+        identify_config,
+        crossval_config,
+        full_fits=models if isinstance(models, dict) else None,
     )
     write_artefact(
         P["crossval"],
@@ -558,11 +576,9 @@ def stamp_provenance(out: Path, source: Any) -> None:
 
 def render_outputs(out: Path, tolerance_mm: float | None = None) -> None:
     """``report.html`` and ``run.rrd`` from the artefacts in ``out`` alone."""
-    from pipeline.report.html import build_report
-    from pipeline.report.rrd import build_rrd
+    from pipeline.report.outputs import build_outputs
 
-    build_report(out, tolerance_mm=tolerance_mm)
-    build_rrd(out)
+    build_outputs(out, tolerance_mm)
 
 
 def _finish(

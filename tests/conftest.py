@@ -8,6 +8,10 @@ from pathlib import Path
 
 import pytest
 
+from pipeline.threads import prefer_one_thread
+
+prefer_one_thread()  # as the CLI does, before numpy loads: in-process runs match vtcal's own
+
 REPO = Path(__file__).resolve().parent.parent
 SHARED = REPO.parent / "shared"
 SAMPLE = SHARED / "samples" / "conformance_lrmate_small.mcap"

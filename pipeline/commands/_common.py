@@ -105,6 +105,8 @@ def progress_bars(enabled: bool = True) -> Iterator[Callable[[str, int, int | No
 
         def update(stage: str, done: int, total: int | None) -> None:
             if stage not in tasks:
+                if stage == "compile":  # the orchestrator's first-run detector compilation
+                    bars.console.print("vtcal: first run: compiling the detector once (~10-20 s)")
                 tasks[stage] = bars.add_task(stage, total=total)
             bars.update(tasks[stage], completed=done, total=total)
 

@@ -47,6 +47,13 @@ def command(
     known = ("recording.json", "touchups.parquet", "inliers.parquet", "identify.json")
     if not any((run_dir / n).exists() for n in known):
         raise BadInput(f"{run_dir}: not a run folder (none of {', '.join(known)})")
+    if not no_html and not no_rrd:  # both from one load of the run folder
+        from pipeline.report.outputs import build_outputs
+
+        html, rrd = build_outputs(run_dir, tolerance_mm, html_path=html_path, rrd_path=rrd_path)
+        click.echo(f"report: {html} ({html.stat().st_size / 1e6:.2f} MB)")
+        click.echo(f"rerun:  {rrd} ({rrd.stat().st_size / 1e6:.2f} MB)  open with: rerun {rrd}")
+        return
     if not no_html:
         from pipeline.report.html import build_report
 

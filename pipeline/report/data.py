@@ -56,6 +56,9 @@ class RunData:
         XML of ``calibrated.urdf``.
     problems : list of str
         One line per artefact that exists but could not be read.
+    derived : dict
+        Figures derived from the artefacts, computed once per load and shared by the
+        sections that show them (e.g. ``nominal_fit``: the report's "before").
     """
 
     run_dir: Path
@@ -72,6 +75,7 @@ class RunData:
     crossval: pd.DataFrame | None = None
     calibrated_urdf: str | None = None
     problems: list[str] = field(default_factory=list)
+    derived: dict[str, Any] = field(default_factory=dict, repr=False)
 
     # ------------------------------------------------------------- metadata
     @property
@@ -705,7 +709,19 @@ def nominal_fit(data: RunData) -> pd.DataFrame | None:
     ``(dx, dy, dz)_flange``. Its residuals are what the nominal model leaves
     before any kinematic parameter is touched. Returns a table ``touchup_id,
     target_id, rx, ry, rz, norm`` (m) or None when inputs are missing.
+
+    No artefact holds these residuals (identify.json keeps only each model's
+    initial RMS), so they are computed here, once per loaded run folder
+    (``data.derived``): the verdict, the residual plots and the accuracy table share them.
     """
+    if "nominal_fit" not in data.derived:
+        data.derived["nominal_fit"] = _nominal_fit(data)
+    got: pd.DataFrame | None = data.derived["nominal_fit"]
+    return got
+
+
+def _nominal_fit(data: RunData) -> pd.DataFrame | None:
+    """:func:`nominal_fit`, computed."""
     chain = data.nominal_chain()
     tu = data.touchup_table()
     if chain is None or tu is None or "target_id" not in tu:

@@ -22,6 +22,7 @@ Content-Security-Policy forbids any request, so the file opens offline.
 
 from __future__ import annotations
 
+import copy
 import json
 import math
 from pathlib import Path
@@ -622,22 +623,35 @@ def render(context: dict[str, Any]) -> str:
     return env.get_template(TEMPLATE).render(css=css, **context)
 
 
-def _report_images(data: RunData) -> dict[int, np.ndarray] | None:
-    """Images of the rejected touch-ups' last captures, if the recording is reachable."""
-    path = data.recording_path()
+def thumbnail_frames(data: RunData) -> list[int]:
+    """Frame indices of the images the page shows: the rejected touch-ups' last captures."""
     tu = data.touchup_table()
-    if path is None or tu is None:
-        return None
-    from pipeline.report.images import load_frames
-
+    if tu is None:
+        return []
     inl = tu["inlier"].astype(bool) if "inlier" in tu else pd.Series(True, index=tu.index)
     frames = touchup_frames(data)
     want = [frames[t][-1] for t in tu.loc[~inl, "touchup_id"].astype(int) if frames.get(t)]
-    return load_frames(path, (data.recording or {}).get("image_topic"), want[:MAX_THUMBS])
+    return want[:MAX_THUMBS]
+
+
+def _report_images(data: RunData) -> dict[int, np.ndarray] | None:
+    """Images of the rejected touch-ups' last captures, if the recording is reachable."""
+    path = data.recording_path()
+    if path is None or data.touchup_table() is None:
+        return None
+    from pipeline.report.images import load_frames
+
+    image_topic = (data.recording or {}).get("image_topic")
+    return load_frames(path, image_topic, thumbnail_frames(data))
 
 
 def build_report(
-    run_dir: Path, out_path: Path | None = None, tolerance_mm: float | None = None
+    run_dir: Path,
+    out_path: Path | None = None,
+    tolerance_mm: float | None = None,
+    *,
+    data: RunData | None = None,
+    images: dict[int, np.ndarray] | None = None,
 ) -> Path:
     """Write ``report.html`` of a run folder from its artefacts; return its path.
 
@@ -646,16 +660,21 @@ def build_report(
     run_dir : the run folder (``vtcal run --out``)
     out_path : destination (default ``run_dir / "report.html"``)
     tolerance_mm : the PASS/FAIL tolerance (default: run.json's, else the recording's key)
+    data, images : the run folder already loaded (:func:`load_run`) and the thumbnails'
+        images (:func:`thumbnail_frames`), when the caller has them (one load and one pass
+        over the recording for both outputs: :func:`pipeline.report.outputs.build_outputs`)
 
     Sections whose artefacts are missing say "not available". Images are read
     again from the recording only if the path in ``recording.json`` exists.
     """
     run_dir = Path(run_dir)
     out = Path(out_path) if out_path is not None else run_dir / "report.html"
-    data = load_run(run_dir)
+    loaded = data is not None
+    data = data if data is not None else load_run(run_dir)
     if tolerance_mm is not None:
+        data = copy.copy(data)
         data.run = {**(data.run or {}), "tolerance_mm": tolerance_mm}
-    html = render(report_context(data, _report_images(data)))
+    html = render(report_context(data, images if loaded else _report_images(data)))
     atomic_write_bytes(out, html.encode("utf-8"))
     out.chmod(0o644)  # a report is for sharing (the temporary file was private)
     return out

@@ -11,7 +11,8 @@ from __future__ import annotations
 
 import base64
 from collections.abc import Iterable
-from dataclasses import dataclass
+from dataclasses import dataclass, field
+from functools import cached_property
 from pathlib import Path
 
 import cv2
@@ -20,6 +21,7 @@ import numpy as np
 from pipeline.io_mcap import (
     DEFAULT_IMAGE_TOPICS,
     IMAGE_TYPES,
+    EncodedImage,
     StreamState,
     decode_image_message,
     image_to_gray,
@@ -34,7 +36,8 @@ class Frame:
 
     Attributes
     ----------
-    gray : (H, W) uint8
+    gray : (H, W) uint8, decoded on first use (the Rerun recording passes a
+        PNG/JPEG's own bytes on and never needs the pixels)
     encoded : bytes or None
         The message's own PNG/JPEG bytes for a compressed image (re-used as
         they are by the Rerun recording), None for a raw image.
@@ -42,9 +45,14 @@ class Frame:
         ``image/png`` or ``image/jpeg`` when ``encoded`` is set.
     """
 
-    gray: np.ndarray
+    message: EncodedImage = field(repr=False)
     encoded: bytes | None = None
     media_type: str = ""
+
+    @cached_property
+    def gray(self) -> np.ndarray:
+        """The grey image, (H, W) uint8."""
+        return _to_u8(image_to_gray(self.message))
 
 
 def load_images(path: Path, image_topic: str | None, indices: Iterable[int]) -> dict[int, Frame]:
@@ -78,15 +86,19 @@ def load_images(path: Path, image_topic: str | None, indices: Iterable[int]) -> 
                 continue
             try:
                 em = decode_image_message(schema, enc, msg.data)
-                g = _to_u8(image_to_gray(em))
             except Exception:  # noqa: BLE001 - an undecodable frame is just not shown
                 continue
             fmt = em.encoding.lower()
             media = {"png": "image/png", "jpeg": "image/jpeg", "jpg": "image/jpeg"}.get(fmt, "")
             if em.kind == "compressed" and media:
-                out[idx] = Frame(g, bytes(em.data), media)
+                out[idx] = Frame(em, bytes(em.data), media)
             else:
-                out[idx] = Frame(g)
+                try:  # a raw image is checked now (its pixels are what gets shown)
+                    frame = Frame(em)
+                    _ = frame.gray
+                except Exception:  # noqa: BLE001 - an undecodable frame is just not shown
+                    continue
+                out[idx] = frame
             if len(out) == len(want) or count > max(want):
                 break
     except Exception:  # noqa: BLE001 - unreachable/damaged recording: no images
@@ -98,7 +110,13 @@ def load_frames(
     path: Path, image_topic: str | None, indices: Iterable[int]
 ) -> dict[int, np.ndarray]:
     """Grey images ``{frame index: (H, W) uint8}`` of the wanted frames (see :func:`load_images`)."""
-    return {k: f.gray for k, f in load_images(path, image_topic, indices).items()}
+    out = {}
+    for k, f in load_images(path, image_topic, indices).items():
+        try:
+            out[k] = f.gray
+        except Exception:  # noqa: BLE001 - an undecodable frame is just not shown
+            continue
+    return out
 
 
 def _to_u8(g: np.ndarray) -> np.ndarray:
@@ -167,8 +185,18 @@ def png_data_uri(img: np.ndarray) -> str:
 
 
 def png_bytes(img: np.ndarray) -> bytes:
-    """PNG bytes of an image (for Rerun's EncodedImage)."""
-    ok, buf = cv2.imencode(".png", img, [cv2.IMWRITE_PNG_COMPRESSION, 6])
+    """PNG bytes of an image (for Rerun's EncodedImage; a raw recording's frames).
+
+    Run-length deflate at level 1: on a 640 x 512 camera frame 4 ms and 142 kB,
+    against 28 ms and 159 kB at the default level 6 (the report wrote 36-200 such).
+    """
+    params = [
+        cv2.IMWRITE_PNG_COMPRESSION,
+        1,
+        cv2.IMWRITE_PNG_STRATEGY,
+        cv2.IMWRITE_PNG_STRATEGY_RLE,
+    ]
+    ok, buf = cv2.imencode(".png", img, params)
     if not ok:  # pragma: no cover
         raise ValueError("PNG encoding failed")
     return bytes(buf.tobytes())

@@ -1,90 +1,43 @@
-"""Inline SVG plots of the report (matplotlib, byte-stable output).
+"""Inline SVG plots of the report (drawn with :mod:`pipeline.report.svg`, byte-stable).
 
 Every function takes plain arrays and returns an ``<svg>`` element as text,
-ready to be placed in the HTML as it is. Output is deterministic: the SVG
-hash salt is fixed, the date metadata is dropped and fonts are drawn as
-paths-free text (``svg.fonttype = none``), so the same inputs give the same bytes.
+ready to be placed in the HTML as it is. Output is deterministic: the same
+inputs give the same bytes (coordinates are written with a fixed precision,
+nothing depends on the date or the machine). No plotting library is loaded:
+the report renders in milliseconds and ``vtcal report`` starts without one.
 """
 
 from __future__ import annotations
 
-import io
-import re
+import math
 from collections.abc import Mapping, Sequence
-from typing import Any
 
-import matplotlib
+import numpy as np
 
-matplotlib.use("Agg")
+from pipeline.report.svg import Panel, canvas, padded
 
-import matplotlib.pyplot as plt  # noqa: E402
-import numpy as np  # noqa: E402
-from matplotlib.figure import Figure  # noqa: E402
-
-_RC: Any = {
-    "svg.hashsalt": "vtcal-report",
-    "svg.fonttype": "none",
-    "font.family": "sans-serif",
-    "font.size": 9.0,
-    "axes.spines.top": False,
-    "axes.spines.right": False,
-    "axes.grid": True,
-    "grid.alpha": 0.3,
-    "figure.dpi": 96,
-}
 #: colours: before / after / rejected / other
 BEFORE = "#b0b7c3"
 AFTER = "#1f6feb"
 REJECT = "#d1242f"
 COLORS = ["#1f6feb", "#e36209", "#2da44e", "#8250df", "#bf3989", "#0a7d8c", "#6e7781"]
+#: margins of a panel in px: left, right, top, bottom
+MARGIN = (62.0, 12.0, 22.0, 40.0)
 
 
-def _figure(w: float = 6.4, h: float = 2.8) -> Figure:
-    """A figure with fixed margins (constrained layout doubles the rendering time)."""
-    with plt.rc_context(_RC):
-        fig = Figure(figsize=(w, h))
-    # margins in inches, so every plot's text has the same room whatever its size
-    fig.subplots_adjust(
-        left=0.75 / w, right=1 - 0.15 / w, bottom=0.5 / h, top=1 - 0.3 / h, wspace=0.45
-    )
-    return fig
+def _box(
+    width: float, height: float, col: int = 0, cols: int = 1
+) -> tuple[float, float, float, float]:
+    """Pixel box ``(left, top, width, height)`` of panel ``col`` of ``cols`` side by side."""
+    ml, mr, mt, mb = MARGIN
+    cell = width / cols
+    return (cell * col + ml, mt, cell - ml - mr, height - mt - mb)
 
 
-def to_svg(fig: Figure) -> str:
-    """Render a figure to an inline ``<svg>`` string (no XML prolog, no date)."""
-    buf = io.StringIO()
-    with plt.rc_context(_RC):
-        fig.savefig(buf, format="svg", metadata={"Date": None})
-    text = buf.getvalue()
-    start = text.find("<svg")
-    text = text[start:] if start >= 0 else text
-    # drop the RDF metadata block (creator links): the page needs none of it
-    return re.sub(r"\s*<metadata>.*?</metadata>", "", text, count=1, flags=re.DOTALL)
-
-
-def histogram(groups: Mapping[str, np.ndarray], xlabel: str, title: str = "") -> str:
-    """Overlaid histograms of one quantity per group (e.g. residual mm, before/after)."""
-    with plt.rc_context(_RC):
-        fig = _figure()
-        ax = fig.add_subplot()
-        vals = [np.asarray(v, dtype=float) for v in groups.values()]
-        allv = np.concatenate([v[np.isfinite(v)] for v in vals]) if vals else np.zeros(0)
-        hi = float(np.max(allv)) if allv.size else 1.0
-        bins = np.linspace(0.0, hi * 1.05 if hi > 0 else 1.0, 25)
-        ci = 0
-        for name, v in groups.items():
-            v = np.asarray(v, dtype=float)
-            v = v[np.isfinite(v)]
-            color = _group_color(name, ci)
-            ci += color != BEFORE
-            ax.hist(v, bins=list(bins), alpha=0.6, color=color, label=f"{name} (n={len(v)})")
-        ax.set_xlabel(xlabel)
-        ax.set_ylabel("touch-ups")
-        if title:
-            ax.set_title(title)
-        if groups:
-            ax.legend(frameon=False)
-        return to_svg(fig)
+def _finite(values: Sequence[np.ndarray] | list[np.ndarray]) -> np.ndarray:
+    parts = [np.asarray(v, dtype=float).ravel() for v in values]
+    allv = np.concatenate(parts) if parts else np.zeros(0)
+    return allv[np.isfinite(allv)]
 
 
 def _group_color(name: str, i: int) -> str:
@@ -94,146 +47,172 @@ def _group_color(name: str, i: int) -> str:
     return COLORS[i % len(COLORS)]
 
 
+def histogram(groups: Mapping[str, np.ndarray], xlabel: str, title: str = "") -> str:
+    """Overlaid histograms of one quantity per group (e.g. residual mm, before/after)."""
+    vals = {k: _finite([v]) for k, v in groups.items()}
+    allv = _finite(list(vals.values()))
+    hi = float(np.max(allv)) if allv.size else 1.0
+    bins = np.linspace(0.0, hi * 1.05 if hi > 0 else 1.0, 25)
+    counts = {k: np.histogram(v, bins=bins)[0] for k, v in vals.items()}
+    top = max([int(c.max()) for c in counts.values() if c.size] + [1])
+    W, H = 614.0, 269.0
+    p = Panel(_box(W, H), (0.0, float(bins[-1])), (0.0, top * 1.15))
+    ci = 0
+    for name, c in counts.items():
+        color = _group_color(name, ci)
+        ci += color != BEFORE
+        x = np.repeat(bins, 2)
+        y = np.concatenate([[0.0], np.repeat(c.astype(float), 2), [0.0]])
+        p.polygon(x, y, color, 0.6)
+        p.key(f"{name} (n={len(vals[name])})", color, "box")
+    return canvas(W, H, [p.render(xlabel=xlabel, ylabel="touch-ups", title=title)])
+
+
 def per_target(
     target_ids: Sequence[str], values_mm: Mapping[str, Sequence[np.ndarray]], ylabel: str
 ) -> str:
     """Per-target strip plot: each touch-up's residual (mm) as a dot, one column per target."""
-    with plt.rc_context(_RC):
-        fig = _figure(6.4, 2.8)
-        ax = fig.add_subplot()
-        ng = max(len(values_mm), 1)
-        width = 0.7 / ng
-        ci = 0
-        for gi, (name, per) in enumerate(values_mm.items()):
-            color = _group_color(name, ci)
-            ci += color != BEFORE
-            for ti, v in enumerate(per):
-                v = np.asarray(v, dtype=float)
-                x = ti + (gi - (ng - 1) / 2) * width + np.linspace(-0.25, 0.25, len(v)) * width
-                ax.scatter(x, v, s=14, color=color, label=name if ti == 0 else None, zorder=3)
-                if len(v):
-                    rms = float(np.sqrt(np.mean(v * v)))
-                    xc = ti + (gi - (ng - 1) / 2) * width
-                    ax.hlines(rms, xc - width / 2, xc + width / 2, color=color, lw=2)
-        ax.set_xticks(range(len(target_ids)), [f"target {t}" for t in target_ids])
-        ax.set_ylabel(ylabel)
-        ax.set_ylim(bottom=0)
-        ax.legend(frameon=False, title="dots: touch-ups, bars: RMS", title_fontsize=8)
-        return to_svg(fig)
+    allv = _finite([v for per in values_mm.values() for v in per])
+    top = float(np.max(allv)) if allv.size else 1.0
+    W, H = 614.0, 269.0
+    p = Panel(_box(W, H), (-0.6, len(target_ids) - 0.4), (0.0, top * 1.1 if top > 0 else 1.0))
+    ng = max(len(values_mm), 1)
+    width = 0.7 / ng
+    ci = 0
+    for gi, (name, per) in enumerate(values_mm.items()):
+        color = _group_color(name, ci)
+        ci += color != BEFORE
+        for ti, v in enumerate(per):
+            v = np.asarray(v, dtype=float)
+            xc = ti + (gi - (ng - 1) / 2) * width
+            x = xc + np.linspace(-0.25, 0.25, len(v)) * width
+            p.dots(x, v, color, 5.0)
+            if len(v):
+                rms = float(np.sqrt(np.mean(v * v)))
+                p.line([xc - width / 2, xc + width / 2], [rms, rms], color, 2.0)
+        p.key(name, color, "dot")
+    ticks = [(float(i), f"target {t}") for i, t in enumerate(target_ids)]
+    return canvas(
+        W,
+        H,
+        [p.render(ylabel=ylabel, xticks=ticks, legend_title="dots: touch-ups, bars: RMS")],
+    )
 
 
-def bars(labels: Sequence[str], series: Mapping[str, Sequence[float]], ylabel: str) -> str:
+def bars(labels: Sequence[str], series: Mapping[str, Sequence[float | None]], ylabel: str) -> str:
     """Grouped bar chart (e.g. held-out RMS and max per error model)."""
-    with plt.rc_context(_RC):
-        fig = _figure(6.4, 2.6)
-        ax = fig.add_subplot()
-        x = np.arange(len(labels))
-        ng = max(len(series), 1)
-        w = 0.8 / ng
-        for i, (name, vals) in enumerate(series.items()):
-            v = np.array([np.nan if a is None else a for a in vals], dtype=float)
-            ax.bar(
-                x + (i - (ng - 1) / 2) * w, v, width=w, color=COLORS[i % len(COLORS)], label=name
-            )
-        ax.set_xticks(x, list(labels))
-        ax.set_ylabel(ylabel)
-        allv = np.array([a for vals in series.values() for a in vals if a is not None], float)
-        top = float(np.nanmax(allv)) if allv.size and np.isfinite(allv).any() else 1.0
-        ax.set_ylim(0, top * 1.3 if top > 0 else 1.0)  # headroom for the legend
-        ax.set_xlim(-0.6, len(labels) - 0.4 + (0.6 if len(labels) == 1 else 0.0))
+    allv = np.array([a for vals in series.values() for a in vals if a is not None], float)
+    top = float(np.nanmax(allv)) if allv.size and np.isfinite(allv).any() else 1.0
+    W, H = 614.0, 250.0
+    xmax = len(labels) - 0.4 + (0.6 if len(labels) == 1 else 0.0)
+    p = Panel(_box(W, H), (-0.6, xmax), (0.0, top * 1.3 if top > 0 else 1.0))
+    ng = max(len(series), 1)
+    w = 0.8 / ng
+    for i, (name, vals) in enumerate(series.items()):
+        color = COLORS[i % len(COLORS)]
+        for j, a in enumerate(vals):
+            if a is not None and math.isfinite(a):
+                xc = j + (i - (ng - 1) / 2) * w
+                p.rect(xc - w / 2, xc + w / 2, 0.0, float(a), color)
         if len(series) > 1:
-            ax.legend(frameon=False, loc="upper right", ncols=len(series))
-        return to_svg(fig)
+            p.key(name, color, "box")
+    ticks = [(float(j), str(s)) for j, s in enumerate(labels)]
+    return canvas(W, H, [p.render(ylabel=ylabel, xticks=ticks)])
 
 
 def convergence(
     traces: Mapping[str, np.ndarray], thresholds: Sequence[float | None], units: Sequence[str]
 ) -> str:
-    """e_T per iteration, one panel per component, one line per touch-up.
+    """e_T per iteration, one panel per component, one line per touch-up (log scale).
 
     ``traces[label]`` is ``(k, 3)``: ``(du, dv, ds)`` of each capture of the
-    touch-up, in px. The convergence thresholds are drawn as bands.
+    touch-up, in px. The convergence thresholds are drawn as dashed lines.
     """
     names = ("du", "dv", "ds")
-    with plt.rc_context(_RC):
-        fig = _figure(6.8, 2.6)
-        axes = fig.subplots(1, 3, sharex=True)
-        for k, ax in enumerate(axes):
-            for i, (label, tr) in enumerate(traces.items()):
-                tr = np.asarray(tr, dtype=float)
-                if tr.ndim != 2 or tr.shape[1] <= k:
-                    continue
-                y = np.abs(tr[:, k])
-                y = np.where(y > 0, y, np.nan)
-                ax.plot(
-                    np.arange(len(y)),
-                    y,
-                    marker=".",
-                    lw=0.8,
-                    ms=3,
-                    color=COLORS[i % len(COLORS)],
-                    alpha=0.8,
-                    label=label,
-                )
-            th = thresholds[k] if k < len(thresholds) else None
-            if th:
-                ax.axhline(th, color=REJECT, lw=0.8, ls="--")
-            ax.set_yscale("log")
-            ax.set_title(f"|{names[k]}| ({units[k] if k < len(units) else ''})")
-            ax.set_xlabel("iteration")
-        return to_svg(fig)
+    W, H = 653.0, 250.0
+    body = []
+    arrs = [np.asarray(t, dtype=float) for t in traces.values()]
+    n_it = max([len(t) for t in arrs] + [2])
+    for k in range(3):
+        ys = [np.abs(t[:, k]) for t in arrs if t.ndim == 2 and t.shape[1] > k]
+        th = thresholds[k] if k < len(thresholds) else None
+        pos = _finite([y[y > 0] for y in ys] + ([np.array([th])] if th else []))
+        lo, hi = (float(pos.min()), float(pos.max())) if pos.size else (0.1, 10.0)
+        lo, hi = (lo / 1.5, hi * 1.5) if hi > lo else (lo / 10, lo * 10)
+        p = Panel(_box(W, H, k, 3), (-0.3, n_it - 0.7), (lo, hi), ylog=True)
+        for i, y in enumerate(ys):
+            y = np.where(y > 0, y, np.nan)
+            p.line(np.arange(len(y)), y, COLORS[i % len(COLORS)], 0.8, markers=3.0, opacity=0.8)
+        if th:
+            p.line([-0.3, n_it - 0.7], [th, th], REJECT, 0.8, dash="4 3")
+        unit = units[k] if k < len(units) else ""
+        body.append(p.render(xlabel="iteration", title=f"|{names[k]}| ({unit})"))
+    return canvas(W, H, body)
 
 
 def scatter_xy(
     points: Mapping[str, np.ndarray], xlabel: str, ylabel: str, labels: Mapping[str, list[str]]
 ) -> str:
-    """Top view (x, y) of point sets in the base frame, in m (targets, pin positions)."""
-    with plt.rc_context(_RC):
-        fig = _figure(4.2, 3.6)
-        ax = fig.add_subplot()
-        for i, (name, p) in enumerate(points.items()):
-            p = np.asarray(p, dtype=float).reshape(-1, 3)
-            first = i == 0  # the first set (targets) on top, as crosses
-            ax.scatter(
-                p[:, 0],
-                p[:, 1],
-                s=60 if first else 14,
-                marker="x" if first else "o",
-                color=COLORS[i % len(COLORS)],
-                label=name,
-                zorder=4 if first else 3,
-            )
-            for txt, (x, y) in zip(labels.get(name, []), p[:, :2], strict=False):
-                ax.annotate(txt, (x, y), fontsize=7, xytext=(3, 3), textcoords="offset points")
-        ax.set_aspect("equal", adjustable="datalim")
-        ax.set_xlabel(xlabel)
-        ax.set_ylabel(ylabel)
-        ax.legend(frameon=False, fontsize=7)
-        return to_svg(fig)
+    """Top view (x, y) of point sets in the base frame, in m (targets, pin positions).
+
+    Equal scale on both axes (the limits widen to fill the panel).
+    """
+    W, H = 403.0, 346.0
+    box = _box(W, H)
+    sets = {k: np.asarray(v, dtype=float).reshape(-1, 3) for k, v in points.items()}
+    allp = np.vstack(list(sets.values())) if sets else np.zeros((0, 3))
+    allp = allp[np.all(np.isfinite(allp[:, :2]), axis=1)]
+    if len(allp):
+        x0, x1 = padded(float(allp[:, 0].min()), float(allp[:, 0].max()), 0.1)
+        y0, y1 = padded(float(allp[:, 1].min()), float(allp[:, 1].max()), 0.1)
+    else:
+        x0, x1, y0, y1 = 0.0, 1.0, 0.0, 1.0
+    # equal aspect: the axis with less data per pixel widens about its centre
+    per_px = max((x1 - x0) / box[2], (y1 - y0) / box[3])
+    cx, cy = (x0 + x1) / 2, (y0 + y1) / 2
+    xlim = (cx - per_px * box[2] / 2, cx + per_px * box[2] / 2)
+    ylim = (cy - per_px * box[3] / 2, cy + per_px * box[3] / 2)
+    p = Panel(box, xlim, ylim)
+    names = list(sets)
+    for i, name in enumerate(names):
+        p.key(name, COLORS[i % len(COLORS)], "line" if i == 0 else "dot")
+    for i in [*range(1, len(names)), 0][: len(names)]:  # the first set (targets) on top
+        name, pts = names[i], sets[names[i]]
+        color = COLORS[i % len(COLORS)]
+        if i == 0:
+            p.crosses(pts[:, 0], pts[:, 1], color)
+        else:
+            p.dots(pts[:, 0], pts[:, 1], color, 5.0)
+        for txt, (x, y) in zip(labels.get(name, []), pts[:, :2], strict=False):
+            p.text(float(x), float(y), txt)
+    return canvas(W, H, [p.render(xlabel=xlabel, ylabel=ylabel)])
 
 
 def singular_values(sv: np.ndarray) -> str:
     """Singular values of the scaled identification Jacobian, log scale."""
-    with plt.rc_context(_RC):
-        fig = _figure(6.4, 2.4)
-        ax = fig.add_subplot()
-        s = np.asarray(sv, dtype=float)
-        ax.semilogy(np.arange(1, len(s) + 1), s, marker="o", ms=3, color=AFTER)
-        ax.set_xlabel("index")
-        ax.set_ylabel("singular value")
-        return to_svg(fig)
+    s = np.asarray(sv, dtype=float)
+    pos = s[np.isfinite(s) & (s > 0)]
+    lo, hi = (float(pos.min()) / 2, float(pos.max()) * 2) if pos.size else (0.1, 10.0)
+    W, H = 614.0, 230.0
+    p = Panel(_box(W, H), padded(1.0, float(max(len(s), 2))), (lo, hi), ylog=True)
+    p.line(np.arange(1, len(s) + 1), np.where(s > 0, s, np.nan), AFTER, 1.2, markers=5.0)
+    return canvas(W, H, [p.render(xlabel="index", ylabel="singular value")])
 
 
 def along_view(tilt_deg: np.ndarray, beta_deg: np.ndarray, r_view_um: np.ndarray) -> str:
     """Touch-ups' residuals along the view (um) against the plate tilt and the long axis' direction."""
-    with plt.rc_context(_RC):
-        fig = _figure(6.4, 2.6)
-        ax1, ax2 = fig.subplots(1, 2, sharey=True)
-        ax1.scatter(tilt_deg, r_view_um, s=12, color=AFTER)
-        ax1.set_xlabel("plate tilt to the view (deg)")
-        ax1.set_ylabel("residual along the view (um)")
-        ax2.scatter(np.mod(beta_deg, 180.0), r_view_um, s=12, color=AFTER)
-        ax2.set_xlabel("long axis on the plate, beta mod 180 (deg)")
-        for ax in (ax1, ax2):
-            ax.axhline(0.0, color=BEFORE, lw=0.8)
-        return to_svg(fig)
+    r = np.asarray(r_view_um, dtype=float)
+    fin = r[np.isfinite(r)]
+    ylim = padded(min(float(fin.min()), 0.0), max(float(fin.max()), 0.0)) if fin.size else (-1, 1)
+    W, H = 614.0, 250.0
+    body = []
+    xs = (np.asarray(tilt_deg, dtype=float), np.mod(np.asarray(beta_deg, dtype=float), 180.0))
+    xlabels = ("plate tilt to the view (deg)", "long axis on the plate, beta mod 180 (deg)")
+    for k, (x, xl) in enumerate(zip(xs, xlabels, strict=True)):
+        fx = x[np.isfinite(x)]
+        xlim = padded(float(fx.min()), float(fx.max())) if fx.size else (0.0, 1.0)
+        p = Panel(_box(W, H, k, 2), xlim, ylim)
+        p.line(list(xlim), [0.0, 0.0], BEFORE, 0.8)
+        p.dots(x, r, AFTER, 5.0)
+        body.append(p.render(xlabel=xl, ylabel="residual along the view (um)" if k == 0 else ""))
+    return canvas(W, H, body)

@@ -38,7 +38,6 @@ from __future__ import annotations
 from pathlib import Path
 
 import numpy as np
-import pandas as pd
 import rerun as rr
 import rerun.blueprint as rrb
 
@@ -105,7 +104,14 @@ def camera_guess(
     return T, f, size
 
 
-def build_rrd(run_dir: Path, out_path: Path | None = None, recording_id: str | None = None) -> Path:
+def build_rrd(
+    run_dir: Path,
+    out_path: Path | None = None,
+    recording_id: str | None = None,
+    *,
+    data: RunData | None = None,
+    images: dict[int, Frame] | None = None,
+) -> Path:
     """Write ``run.rrd`` of a run folder from its artefacts; return its path.
 
     Parameters
@@ -114,13 +120,16 @@ def build_rrd(run_dir: Path, out_path: Path | None = None, recording_id: str | N
     out_path : destination (default ``run_dir / "run.rrd"``)
     recording_id : Rerun recording id (default :func:`run_uuid` of the folder,
         so the same artefacts always give the same id)
+    data, images : the run folder already loaded (:func:`load_run`) and the camera
+        images (:func:`image_frames`; None: not reachable), when the caller has them
 
     The file is written to a temporary sibling, finalised by
     ``RecordingStream.disconnect()`` and then moved into place.
     """
     run_dir = Path(run_dir)
     out = Path(out_path) if out_path is not None else run_dir / "run.rrd"
-    data = load_run(run_dir)
+    loaded = data is not None
+    data = data if data is not None else load_run(run_dir)
     rid = recording_id or run_uuid(run_dir)
     out.parent.mkdir(parents=True, exist_ok=True)
     tmp = out.with_name(f".{out.name}.partial")
@@ -129,7 +138,7 @@ def build_rrd(run_dir: Path, out_path: Path | None = None, recording_id: str | N
     rec.save(str(tmp))
     try:
         try:
-            log_run(rec, data)
+            log_run(rec, data, images, loaded)
         finally:
             rec.disconnect()  # finalises the file (flush alone does not)
         atomic_write_bytes(out, tmp.read_bytes())
@@ -139,8 +148,17 @@ def build_rrd(run_dir: Path, out_path: Path | None = None, recording_id: str | N
     return out
 
 
-def log_run(rec: rr.RecordingStream, data: RunData) -> list[str]:
-    """Log everything of a run into an open recording stream; return notes (what was skipped)."""
+def log_run(
+    rec: rr.RecordingStream,
+    data: RunData,
+    images: dict[int, Frame] | None = None,
+    loaded: bool = False,
+) -> list[str]:
+    """Log everything of a run into an open recording stream; return notes (what was skipped).
+
+    ``images`` are the camera images when ``loaded`` (already read from the
+    recording, :func:`image_frames`); else they are read here.
+    """
     notes: list[str] = []
     rec.send_blueprint(_blueprint())
     rec.log("world", rr.ViewCoordinates.RIGHT_HAND_Z_UP, static=True)
@@ -222,7 +240,8 @@ def log_run(rec: rr.RecordingStream, data: RunData) -> list[str]:
     if cam is None:
         notes.append("camera frustum: not shown (no virtual pin or no designated pixel)")
     frames = touchup_frames(data)
-    images = _images(data, tu, frames)
+    if not loaded:
+        images = _images(data)
     if images is None:
         notes.append("images: not shown (the recording in recording.json is not reachable)")
     d0 = designated(data)
@@ -239,8 +258,12 @@ def log_run(rec: rr.RecordingStream, data: RunData) -> list[str]:
                 T_flange[:, :3, 3] -= np.einsum("nij,j->ni", T_pin[:, :3, :3], p_pin)
         if cam is not None:
             T_fc, f, (w, h) = cam
-            if images:  # the real image size when an image is at hand
-                h, w = next(iter(images.values())).gray.shape[:2]
+            for im in (images or {}).values():  # the real image size when one decodes
+                try:
+                    h, w = im.gray.shape[:2]
+                    break
+                except Exception:  # noqa: BLE001 - an undecodable frame is just not shown
+                    continue
             rec.log(
                 "world/robot/calibrated/flange/camera",
                 rr.Transform3D(translation=T_fc[:3, 3], mat3x3=T_fc[:3, :3]),
@@ -266,73 +289,105 @@ def log_run(rec: rr.RecordingStream, data: RunData) -> list[str]:
                 static=True,
             )
         stamps = tu["stamp_ns"].to_numpy(dtype=np.int64) if "stamp_ns" in tu else None
-        for i, (tid, target, reason) in enumerate(
-            zip(tu["touchup_id"].astype(int), tu["target_id"], tu["reason"], strict=True)
-        ):
-            rec.set_time("touchup", sequence=tid)
-            if stamps is not None and stamps[i] > 0:
-                rec.set_time("stamp", timestamp=np.datetime64(int(stamps[i]), "ns"))
-            status = "used" if inl[i] else f"rejected: {reason}"
-            if not inl[i]:
-                rec.log(
-                    "log/rejected",
-                    rr.TextLog(
-                        f"touch-up {tid} (target {target}) rejected: {reason}", level="WARN"
-                    ),
-                )
-            if not np.all(np.isfinite(q[i])):
-                continue  # no joint vector for this touch-up: nothing to draw
-            if sk_nom is not None:
-                rec.log(
-                    "world/robot/nominal",
-                    rr.LineStrips3D([sk_nom[i]], radii=0.003, colors=[GREY], labels=["nominal"]),
-                )
-            if sk_cal is not None:
-                rec.log(
-                    "world/robot/calibrated",
-                    rr.LineStrips3D(
-                        [sk_cal[i]],
-                        radii=0.004,
-                        colors=[BLUE if inl[i] else RED],
-                        labels=[f"#{tid} target {target} ({status})"],
-                    ),
-                )
-            if T_flange is not None:
-                rec.log(
-                    "world/robot/calibrated/flange",
-                    rr.Transform3D(translation=T_flange[i, :3, 3], mat3x3=T_flange[i, :3, :3]),
-                )
-            fr = frames.get(tid, [])
-            img_path = "world/robot/calibrated/flange/camera/image"
-            if images is not None and fr and fr[-1] in images:
-                from pipeline.report.images import ellipse_polyline, png_bytes
+        touch = tu["touchup_id"].to_numpy().astype(np.int64)
+        # a stamp timeline only when every touch-up has a stamp (a column has no gaps)
+        stamped = stamps is not None and bool(np.all(stamps > 0))
 
-                im = images[fr[-1]]
-                if im.encoded is not None:
-                    blob, media = im.encoded, im.media_type
-                else:
-                    blob, media = png_bytes(im.gray), "image/png"
-                rec.log(img_path, rr.EncodedImage(contents=blob, media_type=media))
-                ell = detection_ellipse(data, fr[-1])
-                if ell is not None:
-                    rec.log(
-                        f"{img_path}/ellipse",
-                        rr.LineStrips2D(
-                            [ellipse_polyline(*ell) + PX], colors=[GREEN], labels=["fitted ellipse"]
-                        ),
-                    )
-                else:
-                    rec.log(f"{img_path}/ellipse", rr.Clear(recursive=False))
-                if d0 is not None:
-                    rec.log(
-                        f"{img_path}/designated",
-                        rr.Points2D(
-                            [np.asarray(d0[:2]) + PX],
-                            radii=2.0,
-                            colors=[RED],
-                            labels=["designated"],
-                        ),
-                    )
+        def index(rows: np.ndarray) -> list[rr.TimeColumn]:
+            """The time columns of the touch-ups at positions ``rows``."""
+            cols = [rr.TimeColumn("touchup", sequence=touch[rows])]
+            if stamped:
+                assert stamps is not None
+                cols.append(rr.TimeColumn("stamp", timestamp=stamps[rows].astype("M8[ns]")))
+            return cols
+
+        # one columnar chunk per entity (rr.send_columns), not one log call per touch-up
+        targets_col = tu["target_id"].tolist()
+        reasons = tu["reason"].tolist()
+        rej_rows = np.flatnonzero(~inl)
+        if rej_rows.size:
+            rec.send_columns(
+                "log/rejected",
+                indexes=index(rej_rows),
+                columns=rr.TextLog.columns(
+                    text=[
+                        f"touch-up {touch[i]} (target {targets_col[i]}) rejected: {reasons[i]}"
+                        for i in rej_rows
+                    ],
+                    level=["WARN"] * rej_rows.size,
+                ),
+            )
+        drawn = np.flatnonzero(np.all(np.isfinite(q), axis=1))  # rows with a joint vector
+        n = int(drawn.size)
+        if n and sk_nom is not None:
+            rec.send_columns(
+                "world/robot/nominal",
+                indexes=index(drawn),
+                columns=rr.LineStrips3D.columns(
+                    strips=[sk_nom[i] for i in drawn],
+                    radii=[0.003] * n,
+                    colors=[GREY] * n,
+                    labels=["nominal"] * n,
+                ),
+            )
+        if n and sk_cal is not None:
+            status = ["used" if inl[i] else f"rejected: {reasons[i]}" for i in range(len(touch))]
+            rec.send_columns(
+                "world/robot/calibrated",
+                indexes=index(drawn),
+                columns=rr.LineStrips3D.columns(
+                    strips=[sk_cal[i] for i in drawn],
+                    radii=[0.004] * n,
+                    colors=[BLUE if inl[i] else RED for i in drawn],
+                    labels=[f"#{touch[i]} target {targets_col[i]} ({status[i]})" for i in drawn],
+                ),
+            )
+        if n and T_flange is not None:
+            rec.send_columns(
+                "world/robot/calibrated/flange",
+                indexes=index(drawn),
+                columns=rr.Transform3D.columns(
+                    translation=T_flange[drawn, :3, 3], mat3x3=T_flange[drawn, :3, :3]
+                ),
+            )
+        img_path = "world/robot/calibrated/flange/camera/image"
+        shown = images or {}
+        for i in drawn:
+            fr = frames.get(int(touch[i]), [])
+            if not fr or fr[-1] not in shown:
+                continue
+            from pipeline.report.images import ellipse_polyline, png_bytes
+
+            rec.set_time("touchup", sequence=int(touch[i]))
+            if stamped:
+                assert stamps is not None
+                rec.set_time("stamp", timestamp=np.datetime64(int(stamps[i]), "ns"))
+            im = shown[fr[-1]]
+            if im.encoded is not None:
+                blob, media = im.encoded, im.media_type
+            else:
+                blob, media = png_bytes(im.gray), "image/png"
+            rec.log(img_path, rr.EncodedImage(contents=blob, media_type=media))
+            ell = detection_ellipse(data, fr[-1])
+            if ell is not None:
+                rec.log(
+                    f"{img_path}/ellipse",
+                    rr.LineStrips2D(
+                        [ellipse_polyline(*ell) + PX], colors=[GREEN], labels=["fitted ellipse"]
+                    ),
+                )
+            else:
+                rec.log(f"{img_path}/ellipse", rr.Clear(recursive=False))
+            if d0 is not None:
+                rec.log(
+                    f"{img_path}/designated",
+                    rr.Points2D(
+                        [np.asarray(d0[:2]) + PX],
+                        radii=2.0,
+                        colors=[RED],
+                        labels=["designated"],
+                    ),
+                )
     else:
         notes.append("robot poses: not available (no joint columns or no URDF)")
 
@@ -370,14 +425,20 @@ def _blueprint() -> rrb.Blueprint:
     )
 
 
-def _images(
-    data: RunData, tu: pd.DataFrame, frames: dict[int, list[int]]
-) -> dict[int, Frame] | None:
+def image_frames(data: RunData) -> list[int]:
+    """Frame indices of the camera images logged: each touch-up's last capture (at most 200)."""
+    tu = data.touchup_table()
+    if tu is None:
+        return []
+    frames = touchup_frames(data)
+    return [frames[int(t)][-1] for t in tu["touchup_id"] if frames.get(int(t))][:MAX_IMAGES]
+
+
+def _images(data: RunData) -> dict[int, Frame] | None:
     path = data.recording_path()
     if path is None:
         return None
-    want = [frames[int(t)][-1] for t in tu["touchup_id"] if frames.get(int(t))]
-    return load_images(path, (data.recording or {}).get("image_topic"), want[:MAX_IMAGES])
+    return load_images(path, (data.recording or {}).get("image_topic"), image_frames(data))
 
 
 def _notes(

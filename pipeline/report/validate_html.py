@@ -13,7 +13,7 @@ import jinja2
 from pipeline import __version__, resources
 from pipeline.verdict import IMPROVED_BELOW
 
-#: the report's templates (``reports/``); not imported from report.html, which loads matplotlib
+#: the report's templates (``reports/``); not imported from report.html, which loads pandas and the report data
 TEMPLATE_DIR = resources.TEMPLATE_DIR
 TEMPLATE = "validate.html.j2"
 

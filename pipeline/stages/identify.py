@@ -118,6 +118,8 @@ class IdentifyConfig:
         input the nominal robot contradicts (joint values outside the URDF's limits, a
         known distance off by more than the nominal robot's own error); the lines are
         then kept in the summary as ``implausible``
+    check_plausibility : run those guardrails at all; False for refits on a subset of
+        touch-ups whose full table passed them (cross-validation), ``implausible`` then []
     strict_distances : a known distance naming a target absent from the table is bad input
         (``vtcal identify``); False drops it with a note (``vtcal run``: the recording's
         metadata names every target of the cell, a truncated run may not have reached them all)
@@ -142,6 +144,7 @@ class IdentifyConfig:
     target_diameter_m: float | None = None
     implied_target_diameter_m: float | None = None
     accept_implausible: bool = False
+    check_plausibility: bool = True
 
 
 @dataclass
@@ -972,7 +975,11 @@ def identify(
     chain = load_chain(urdf, base_link, flange_link)
     data = _prepare(touchups, chain, config)
     _refuse_early(data, len(touchups))
-    implausible = _implausible(chain, data, touchups, urdf, base_link, flange_link, config)
+    implausible = (
+        _implausible(chain, data, touchups, urdf, base_link, flange_link, config)
+        if config.check_plausibility
+        else []
+    )
     if implausible and not config.accept_implausible:
         raise CalibrationFailed(
             "implausible input: "
@@ -1015,7 +1022,12 @@ def identify(
 
 
 def _identify_one(
-    name: str, chain: Chain, data: _Data, urdf: str, flange_link: str, config: IdentifyConfig
+    name: str,
+    chain: Chain,
+    data: _Data,
+    urdf: str,
+    flange_link: str,
+    config: IdentifyConfig,
 ) -> IdentifyResult:
     t0 = time.perf_counter()
     try:

@@ -1,0 +1,263 @@
+"""Benchmark: where the user waits in ``vtcal run`` (issue 19, the single-run part).
+
+Simulates the standard cells once (LR Mate-like ``standard.toml`` and UR5e-like
+``ur.toml`` at 36 touch-ups, LR Mate-like at 72; seed 7, into ``--workdir``,
+reused when already there), then measures in this one run:
+
+1. ``vtcal run REC --out DIR --force -q`` as a fresh process, ``--repeat`` times
+   per cell: per-stage wall time from ``run.json`` (median over the repeats),
+   the ingest time and the ratio (everything after ingest) / ingest
+   (goal <= 0.5) and the report stage (goal < 0.5 s);
+2. the report stage (``pipeline.report.outputs.build_outputs``) in this process
+   with warm imports, and its cProfile on the first cell's run folder, top
+   ``--top`` functions by cumulative time;
+3. start-up, as fresh processes, median of ``--repeat-startup`` (5): ``vtcal
+   --help`` (goal < 0.3 s), a cached ``vtcal run`` of the first cell (goal
+   < 0.5 s), ``vtcal report`` of it; and the heaviest imports of each from
+   ``python -X importtime``;
+4. ``--first-run``: the shipped sample's ``vtcal run`` in a fresh process with
+   the detector's compiled cache removed (first run after a fresh install)
+   against the same run warm (compiled cache present), both ``--force``.
+
+The machine's load average is printed before and after: timings on a shared
+machine are noisy, medians are what to compare.
+
+    python benchmarks/bench_run_stages.py [--workdir DIR] [--repeat 3] [--first-run]
+"""
+
+from __future__ import annotations
+
+import argparse
+import cProfile
+import io
+import json
+import os
+import pstats
+import shutil
+import statistics
+import subprocess
+import sys
+import tempfile
+import time
+import tomllib
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+SAMPLE = ROOT / "datasets" / "samples" / "sample_lrmate.mcap"
+#: (label, scenario file, poses per target): 3 targets each
+CELLS = (
+    ("lrmate-36", "standard.toml", 12),
+    ("ur5e-36", "ur.toml", 12),
+    ("lrmate-72", "standard.toml", 24),
+)
+SEED = 7
+
+
+def env() -> dict[str, str]:
+    """Environment of the child processes: this checkout first on the path."""
+    e = dict(os.environ)
+    e["PYTHONPATH"] = str(ROOT) + (os.pathsep + e["PYTHONPATH"] if e.get("PYTHONPATH") else "")
+    return e
+
+
+def load() -> str:
+    """The 1, 5 and 15 minute load averages."""
+    return " ".join(f"{x:.2f}" for x in os.getloadavg())
+
+
+def simulate(workdir: Path) -> dict[str, Path]:
+    """The cells' recordings, simulated when not in ``workdir`` yet."""
+    from pipeline.sim.scenario import scenario_from_dict
+    from pipeline.sim.simulator import write_recording
+
+    recs = {}
+    for label, scenario, per_target in CELLS:
+        rec = workdir / f"{label}_s{SEED}.mcap"
+        if not rec.exists():
+            raw = tomllib.loads((ROOT / "datasets" / "scenarios" / scenario).read_text())
+            raw.setdefault("poses", {})["per_target"] = per_target
+            sc = scenario_from_dict(raw, where=label, base_dir=str(ROOT))
+            t0 = time.perf_counter()
+            write_recording(sc, SEED, rec)
+            print(f"simulated {label}: {time.perf_counter() - t0:.1f} s", flush=True)
+        recs[label] = rec
+    return recs
+
+
+def vtcal(*args: str) -> float:
+    """Wall time of one ``python -m pipeline ARGS`` process (it must succeed)."""
+    t0 = time.perf_counter()
+    proc = subprocess.run(
+        [sys.executable, "-m", "pipeline", *args], env=env(), capture_output=True, text=True
+    )
+    took = time.perf_counter() - t0
+    if proc.returncode != 0:
+        raise SystemExit(f"vtcal {' '.join(args)} failed ({proc.returncode}): {proc.stderr}")
+    return took
+
+
+def stage_seconds(out: Path) -> dict[str, float]:
+    """``{stage: seconds}`` of the stages that ran, from ``run.json``."""
+    run = json.loads((out / "run.json").read_text())
+    return {s["stage"]: float(s["seconds"]) for s in run["stages"] if s["status"] == "ran"}
+
+
+def bench_stages(recs: dict[str, Path], workdir: Path, repeat: int) -> None:
+    """Per-stage wall time of ``vtcal run --force`` per cell, median over ``repeat`` runs."""
+    print(f"\n== vtcal run --force, fresh process, median of {repeat} (load {load()})")
+    names = ("ingest", "touchups", "outliers", "identify", "crossval", "report")
+    print(
+        f"{'cell':<10}" + "".join(f"{n:>9}" for n in names) + f"{'after':>8}{'after/ingest':>13}"
+        f"{'wall':>7}"
+    )
+    for label, rec in recs.items():
+        out = workdir / f"run_{label}"
+        per: dict[str, list[float]] = {n: [] for n in names}
+        walls = []
+        for _ in range(repeat):
+            walls.append(vtcal("run", str(rec), "--out", str(out), "--force", "-q"))
+            for n, s in stage_seconds(out).items():
+                per[n].append(s)
+        med = {n: statistics.median(v) for n, v in per.items() if v}
+        after = sum(v for n, v in med.items() if n != "ingest")
+        print(
+            f"{label:<10}"
+            + "".join(f"{med.get(n, float('nan')):9.3f}" for n in names)
+            + f"{after:8.3f}{after / med['ingest']:13.2f}{statistics.median(walls):7.2f}"
+        )
+    print("goals: after/ingest <= 0.5, report < 0.5 s")
+
+
+def profile_report(out: Path, top: int) -> None:
+    """cProfile of the report stage on one run folder: top functions by cumulative time."""
+    from pipeline.report.outputs import build_outputs
+
+    build_outputs(out)  # imports and first-call costs out of the profile
+    t0 = time.perf_counter()
+    build_outputs(out)
+    t1 = time.perf_counter()
+    prof = cProfile.Profile()
+    prof.enable()
+    build_outputs(out)
+    prof.disable()
+    print(
+        f"\n== report stage in process (warm imports): report.html + run.rrd {t1 - t0:.3f} s; "
+        "profiled:"
+    )
+    s = io.StringIO()
+    pstats.Stats(prof, stream=s).sort_stats("cumulative").print_stats(top)
+    lines = s.getvalue().splitlines()
+    start = next(i for i, line in enumerate(lines) if "ncalls" in line)
+    print("\n".join(line[:150] for line in lines[start : start + top + 1]))
+
+
+def importtime(*args: str, top: int = 6) -> str:
+    """The ``top`` heaviest imports (cumulative us) of ``python -X importtime -m pipeline ARGS``."""
+    proc = subprocess.run(
+        [sys.executable, "-X", "importtime", "-m", "pipeline", *args],
+        env=env(),
+        capture_output=True,
+        text=True,
+    )
+    rows = []
+    for line in proc.stderr.splitlines():
+        if not line.startswith("import time:") or "cumulative" in line:
+            continue
+        _, cum_us, name = line[len("import time:") :].split("|")
+        rows.append((int(cum_us), name.rstrip()))
+    indent = min(len(n) - len(n.lstrip()) for _, n in rows)
+    total = sum(c for c, n in rows if len(n) - len(n.lstrip()) == indent)
+    heavy = sorted(rows, reverse=True)[:top]
+    return f"imports {total / 1e6:.3f} s; heaviest: " + ", ".join(
+        f"{n.strip()} {c / 1e6:.3f}" for c, n in heavy
+    )
+
+
+def bench_startup(rec: Path, out: Path, repeat: int) -> None:
+    """Fresh-process wall time of --help, a cached run and vtcal report (median of ``repeat``)."""
+    print(f"\n== start-up, fresh process, median of {repeat} (load {load()})")
+    vtcal("run", str(rec), "--out", str(out), "-q")  # make sure the ledger vouches for it
+    cases = {
+        "vtcal --help": (("--help",), 0.3),
+        "cached vtcal run": (("run", str(rec), "--out", str(out), "-q"), 0.5),
+        "vtcal report": (("report", str(out)), None),
+    }
+    for name, (args, goal) in cases.items():
+        times = [vtcal(*args) for _ in range(repeat)]
+        med = statistics.median(times)
+        verdict = "" if goal is None else f"  goal < {goal} s: {'met' if med < goal else 'NOT met'}"
+        print(
+            f"{name:<18} median {med:.3f} s (min {min(times):.3f}, max {max(times):.3f}){verdict}"
+        )
+        print(f"{'':<18} {importtime(*args)}")
+
+
+def jit_cache_files() -> list[Path]:
+    """The detector's compiled-code cache files (numba ``cache=True``).
+
+    Beside the module in ``__pycache__`` (``_detect_jit.*.nbi`` index, ``*.nbc`` code),
+    or under ``NUMBA_CACHE_DIR`` when that is set.
+    """
+    import importlib.util
+
+    spec = importlib.util.find_spec("pipeline.stages._detect_jit")
+    assert spec is not None and spec.origin is not None
+    found = [*(Path(spec.origin).parent / "__pycache__").glob("_detect_jit.*.nb[ic]")]
+    if os.environ.get("NUMBA_CACHE_DIR"):
+        found += [*Path(os.environ["NUMBA_CACHE_DIR"]).rglob("_detect_jit.*.nb[ic]")]
+    return found
+
+
+def bench_first_run(workdir: Path, repeat: int) -> None:
+    """The sample's run with the compiled cache removed vs warm (fresh processes, --force)."""
+    out = workdir / "run_sample"
+    print(f"\n== first run vs warm run of the sample, fresh process (load {load()})")
+    cold, cold_compile, warm = [], [], []
+    for _ in range(repeat):
+        for p in jit_cache_files():
+            p.unlink()
+        cold.append(vtcal("run", str(SAMPLE), "--out", str(out), "--force", "-q"))
+        cold_compile.append(stage_seconds(out).get("ingest", float("nan")))
+        warm.append(vtcal("run", str(SAMPLE), "--out", str(out), "--force", "-q"))
+    c, w = statistics.median(cold), statistics.median(warm)
+    print(
+        f"first run (no compiled cache) median {c:.2f} s (ingest stage "
+        f"{statistics.median(cold_compile):.2f} s); warm run {w:.2f} s; ratio {c / w:.2f} "
+        f"(goal <= 1.5 or announced with progress); runs: cold {[round(x, 2) for x in cold]}, "
+        f"warm {[round(x, 2) for x in warm]}"
+    )
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--workdir", type=Path, default=None, help="keep recordings and runs here")
+    ap.add_argument("--repeat", type=int, default=3, help="vtcal run repeats per cell")
+    ap.add_argument("--repeat-startup", type=int, default=5)
+    ap.add_argument("--top", type=int, default=25, help="profile rows")
+    ap.add_argument("--first-run", action="store_true", help="also time a first run (cold JIT)")
+    ap.add_argument("--only", default=None, help="one cell label (e.g. lrmate-36)")
+    args = ap.parse_args()
+    tmp = None
+    if args.workdir is None:
+        tmp = tempfile.TemporaryDirectory(prefix="bench_run_stages_")
+        workdir = Path(tmp.name)
+    else:
+        workdir = args.workdir
+        workdir.mkdir(parents=True, exist_ok=True)
+    print(f"load before: {load()}  (cores: {os.cpu_count()})")
+    recs = simulate(workdir)
+    if args.only:
+        recs = {args.only: recs[args.only]}
+    bench_stages(recs, workdir, args.repeat)
+    first = next(iter(recs))
+    profile_report(workdir / f"run_{first}", args.top)
+    bench_startup(recs[first], workdir / f"run_{first}", args.repeat_startup)
+    if args.first_run:
+        bench_first_run(workdir, 1 if args.repeat < 2 else 2)
+    print(f"\nload after: {load()}")
+    if tmp is not None:
+        shutil.rmtree(workdir, ignore_errors=True)
+
+
+if __name__ == "__main__":
+    main()

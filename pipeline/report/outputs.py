@@ -1,0 +1,72 @@
+"""Both outputs of a run folder, ``report.html`` and ``run.rrd``, from one load.
+
+:func:`pipeline.report.html.build_report` and :func:`pipeline.report.rrd.build_rrd`
+each work alone (``vtcal report --no-rrd``); together they would each read the
+artefacts and each stream the recording for images. Here the artefacts are
+read once and the recording is streamed once, for the union of the frames
+the two show (the thumbnails of rejected touch-ups, the last capture of every
+touch-up). The files are the same as the two functions write alone.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from pipeline.report.data import load_run
+from pipeline.report.html import build_report, thumbnail_frames
+from pipeline.report.images import Frame, load_images
+from pipeline.report.rrd import build_rrd, image_frames
+
+
+def _grey(frames: dict[int, Frame], wanted: list[int]) -> dict[int, np.ndarray]:
+    """The decoded grey images of the wanted frames (undecodable ones left out)."""
+    out = {}
+    for k in wanted:
+        if k in frames:
+            try:
+                out[k] = frames[k].gray
+            except Exception:  # noqa: BLE001 - an undecodable frame is just not shown
+                continue
+    return out
+
+
+def build_outputs(
+    run_dir: Path,
+    tolerance_mm: float | None = None,
+    *,
+    html_path: Path | None = None,
+    rrd_path: Path | None = None,
+) -> tuple[Path, Path]:
+    """Write ``report.html`` and ``run.rrd`` of ``run_dir``; return their paths.
+
+    Parameters
+    ----------
+    run_dir : the run folder
+    tolerance_mm : the report's PASS/FAIL tolerance (default: run.json's, else the
+        recording's key)
+    html_path, rrd_path : destinations (default inside ``run_dir``)
+    """
+    run_dir = Path(run_dir)
+    data = load_run(run_dir)
+    thumbs, shots = thumbnail_frames(data), image_frames(data)
+    path = data.recording_path()
+    frames: dict[int, Frame] | None = None
+    if path is not None:
+        topic = (data.recording or {}).get("image_topic")
+        frames = load_images(path, topic, sorted({*thumbs, *shots}))
+    html = build_report(
+        run_dir,
+        html_path,
+        tolerance_mm,
+        data=data,
+        images=None if frames is None else _grey(frames, thumbs),
+    )
+    rrd = build_rrd(
+        run_dir,
+        rrd_path,
+        data=data,
+        images=None if frames is None else {k: frames[k] for k in shots if k in frames},
+    )
+    return html, rrd

@@ -1,0 +1,286 @@
+"""A small SVG canvas for the report's plots: axes, ticks, lines, markers, bars, legends.
+
+The report's plots are a few hundred points each; a plotting library would cost
+a second to import and a fraction of one per figure to lay out. This writes the
+``<svg>`` text directly: every coordinate is formatted with a fixed precision,
+so the same inputs give the same bytes (the report is deterministic).
+
+Conventions: sizes in CSS pixels, text in the page's sans-serif font; a panel
+maps data ``(x, y)`` to pixels by ``px = left + (x - x0) / (x1 - x0) * width``
+(``log10`` of the values on a log axis), ``y`` upwards.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from html import escape
+
+import numpy as np
+
+FONT = 'font-family="sans-serif" font-size="11"'
+GRID = "#d0d7de"
+AXIS = "#57606a"
+
+
+def _f(v: float) -> str:
+    """A pixel coordinate as text (0.1 px is finer than any screen shows)."""
+    return f"{v:.1f}"
+
+
+def label(v: float) -> str:
+    """A tick value as a short plain number (``0.25``, ``10``, ``1e-05``)."""
+    return f"{float(f'{v:.6g}'):g}"
+
+
+def nice_ticks(lo: float, hi: float, n: int = 5) -> list[float]:
+    """About ``n`` round tick values (steps 1, 2, 2.5 or 5 times a power of ten) in [lo, hi]."""
+    if not (math.isfinite(lo) and math.isfinite(hi)) or hi <= lo:
+        return [lo] if math.isfinite(lo) else []
+    raw = (hi - lo) / max(n, 1)
+    mag = 10.0 ** math.floor(math.log10(raw))
+    step = next(m * mag for m in (1.0, 2.0, 2.5, 5.0, 10.0) if m * mag >= raw)
+    first = math.ceil(lo / step - 1e-9)
+    ticks = []
+    k = first
+    while k * step <= hi + step * 1e-9:
+        ticks.append(round(k * step, 12))
+        k += 1
+    return ticks
+
+
+def log_ticks(lo: float, hi: float) -> list[float]:
+    """Powers of ten in [lo, hi]; with fewer than two, also their 2x and 5x multiples."""
+    a, b = math.floor(math.log10(lo)), math.ceil(math.log10(hi))
+    dec = [10.0**k for k in range(a, b + 1) if lo * (1 - 1e-9) <= 10.0**k <= hi * (1 + 1e-9)]
+    if len(dec) >= 2:
+        return dec
+    out = [m * 10.0**k for k in range(a, b + 1) for m in (1.0, 2.0, 5.0)]
+    return [v for v in out if lo * (1 - 1e-9) <= v <= hi * (1 + 1e-9)]
+
+
+def padded(lo: float, hi: float, frac: float = 0.05) -> tuple[float, float]:
+    """``[lo, hi]`` widened by ``frac`` of its span each side (a unit span if empty)."""
+    if not (math.isfinite(lo) and math.isfinite(hi)):
+        return 0.0, 1.0
+    if hi <= lo:
+        d = abs(lo) * 0.1 or 1.0
+        return lo - d, hi + d
+    d = (hi - lo) * frac
+    return lo - d, hi + d
+
+
+class Panel:
+    """One set of axes on a canvas: limits, scales, and the elements drawn in it."""
+
+    def __init__(
+        self,
+        box: tuple[float, float, float, float],
+        xlim: tuple[float, float],
+        ylim: tuple[float, float],
+        *,
+        ylog: bool = False,
+    ) -> None:
+        self.left, self.top, self.width, self.height = box
+        self.xlim, self.ylim, self.ylog = xlim, ylim, ylog
+        self.parts: list[str] = []
+        self.legend: list[tuple[str, str, str]] = []  # (label, colour, kind)
+
+    def X(self, x: np.ndarray | float) -> np.ndarray:
+        """Data x to pixels."""
+        x0, x1 = self.xlim
+        return np.asarray(self.left + (np.asarray(x, dtype=float) - x0) / (x1 - x0) * self.width)
+
+    def Y(self, y: np.ndarray | float) -> np.ndarray:
+        """Data y to pixels (y up; log10 on a log axis)."""
+        v = np.asarray(y, dtype=float)
+        y0, y1 = self.ylim
+        if self.ylog:
+            with np.errstate(divide="ignore", invalid="ignore"):
+                v, y0, y1 = np.log10(v), math.log10(y0), math.log10(y1)
+        return np.asarray(self.top + self.height - (v - y0) / (y1 - y0) * self.height)
+
+    def line(
+        self,
+        x: Sequence[float] | np.ndarray,
+        y: Sequence[float] | np.ndarray,
+        color: str,
+        width: float = 1.2,
+        *,
+        dash: str = "",
+        markers: float = 0.0,
+        opacity: float = 1.0,
+    ) -> None:
+        """A polyline broken at non-finite points; ``markers`` > 0 adds dots of that diameter."""
+        px, py = self.X(np.asarray(x, float)), self.Y(np.asarray(y, float))
+        ok = np.isfinite(px) & np.isfinite(py)
+        d, pen = [], False
+        for a, b, good in zip(px, py, ok, strict=True):
+            if not good:
+                pen = False
+                continue
+            d.append(f"{'L' if pen else 'M'}{_f(a)} {_f(b)}")
+            pen = True
+        if d:
+            extra = f' stroke-dasharray="{dash}"' if dash else ""
+            op = f' stroke-opacity="{opacity:g}"' if opacity < 1 else ""
+            self.parts.append(
+                f'<path d="{"".join(d)}" fill="none" stroke="{color}" '
+                f'stroke-width="{width:g}"{extra}{op}/>'
+            )
+        if markers > 0:
+            self.dots(px[ok], py[ok], color, markers, pixels=True, opacity=opacity)
+
+    def dots(
+        self,
+        x: np.ndarray,
+        y: np.ndarray,
+        color: str,
+        size: float,
+        *,
+        pixels: bool = False,
+        opacity: float = 1.0,
+    ) -> None:
+        """Round dots of diameter ``size`` px at the points (one path element for all)."""
+        px, py = (x, y) if pixels else (self.X(x), self.Y(y))
+        ok = np.isfinite(px) & np.isfinite(py)
+        if not ok.any():
+            return
+        d = "".join(f"M{_f(a)} {_f(b)}h0" for a, b in zip(px[ok], py[ok], strict=True))
+        op = f' stroke-opacity="{opacity:g}"' if opacity < 1 else ""
+        self.parts.append(
+            f'<path d="{d}" stroke="{color}" stroke-width="{size:g}" stroke-linecap="round"{op}/>'
+        )
+
+    def crosses(self, x: np.ndarray, y: np.ndarray, color: str, size: float = 8.0) -> None:
+        """``x`` markers of ``size`` px at the points."""
+        px, py = self.X(x), self.Y(y)
+        h = size / 2
+        d = "".join(
+            f"M{_f(a - h)} {_f(b - h)}l{size:g} {size:g}M{_f(a - h)} {_f(b + h)}l{size:g} {-size:g}"
+            for a, b in zip(px, py, strict=True)
+            if math.isfinite(a) and math.isfinite(b)
+        )
+        if d:
+            self.parts.append(f'<path d="{d}" stroke="{color}" stroke-width="1.8"/>')
+
+    def rect(self, x0: float, x1: float, y0: float, y1: float, color: str) -> None:
+        """A filled rectangle between data corners (a bar)."""
+        a, b = self.X(np.array([x0, x1])), self.Y(np.array([y0, y1]))
+        if not (np.all(np.isfinite(a)) and np.all(np.isfinite(b))):
+            return
+        self.parts.append(
+            f'<rect x="{_f(min(a))}" y="{_f(min(b))}" width="{_f(abs(a[1] - a[0]))}" '
+            f'height="{_f(abs(b[1] - b[0]))}" fill="{color}"/>'
+        )
+
+    def polygon(self, x: np.ndarray, y: np.ndarray, color: str, opacity: float) -> None:
+        """A filled closed outline (a step histogram)."""
+        px, py = self.X(x), self.Y(y)
+        d = "".join(
+            f"{'L' if i else 'M'}{_f(a)} {_f(b)}"
+            for i, (a, b) in enumerate(zip(px, py, strict=True))
+        )
+        self.parts.append(
+            f'<path d="{d}Z" fill="{color}" fill-opacity="{opacity:g}" stroke="{color}"/>'
+        )
+
+    def text(
+        self, x: float, y: float, s: str, dx: float = 3, dy: float = -3, size: int = 9
+    ) -> None:
+        """A text label at a data point, offset by ``(dx, dy)`` px."""
+        px, py = float(self.X(x)), float(self.Y(y))
+        if math.isfinite(px) and math.isfinite(py):
+            self.parts.append(
+                f'<text x="{_f(px + dx)}" y="{_f(py + dy)}" font-size="{size}">{escape(s)}</text>'
+            )
+
+    def key(self, name: str, color: str, kind: str = "line") -> None:
+        """Add a legend entry (``kind``: line, dot, box)."""
+        self.legend.append((name, color, kind))
+
+    def render(
+        self,
+        *,
+        xlabel: str = "",
+        ylabel: str = "",
+        title: str = "",
+        xticks: list[tuple[float, str]] | None = None,
+        legend_title: str = "",
+    ) -> str:
+        """The panel: grid, axes, ticks, labels, its elements and legend."""
+        L, T, W, H = self.left, self.top, self.width, self.height
+        out = []
+        if self.ylog:
+            yt = log_ticks(*self.ylim)
+        else:
+            yt = nice_ticks(*self.ylim)
+        xt = xticks if xticks is not None else [(v, label(v)) for v in nice_ticks(*self.xlim)]
+        for v in yt:
+            y = float(self.Y(v))
+            out.append(f'<path d="M{_f(L)} {_f(y)}h{_f(W)}" stroke="{GRID}"/>')
+            out.append(
+                f'<text x="{_f(L - 4)}" y="{_f(y + 3.5)}" text-anchor="end">{label(v)}</text>'
+            )
+        for v, s in xt:
+            x = float(self.X(v))
+            if xticks is None:
+                out.append(f'<path d="M{_f(x)} {_f(T)}v{_f(H)}" stroke="{GRID}"/>')
+            out.append(
+                f'<text x="{_f(x)}" y="{_f(T + H + 13)}" text-anchor="middle">{escape(s)}</text>'
+            )
+        out.append(
+            f'<path d="M{_f(L)} {_f(T)}V{_f(T + H)}H{_f(L + W)}" stroke="{AXIS}" fill="none"/>'
+        )
+        out.append(f"<g>{''.join(self.parts)}</g>")
+        if xlabel:
+            out.append(
+                f'<text x="{_f(L + W / 2)}" y="{_f(T + H + 28)}" text-anchor="middle">'
+                f"{escape(xlabel)}</text>"
+            )
+        if ylabel:
+            cx, cy = L - 42, T + H / 2
+            out.append(
+                f'<text x="{_f(cx)}" y="{_f(cy)}" text-anchor="middle" '
+                f'transform="rotate(-90 {_f(cx)} {_f(cy)})">{escape(ylabel)}</text>'
+            )
+        if title:
+            out.append(
+                f'<text x="{_f(L + W / 2)}" y="{_f(T - 8)}" text-anchor="middle">{escape(title)}</text>'
+            )
+        if self.legend:
+            out.append(self._legend(legend_title))
+        return "".join(out)
+
+    def _legend(self, title: str) -> str:
+        rows = ([(title, "", "title")] if title else []) + self.legend
+        width = 22 + 6.2 * max(len(n) for n, _, _ in rows)
+        x, y = self.left + self.width - width, self.top + 4
+        out = [
+            f'<rect x="{_f(x - 4)}" y="{_f(y - 2)}" width="{_f(width + 4)}" '
+            f'height="{_f(14 * len(rows) + 2)}" fill="white" fill-opacity="0.8"/>'
+        ]
+        for i, (name, color, kind) in enumerate(rows):
+            cy = y + 14 * i + 7
+            if kind == "box":
+                out.append(
+                    f'<rect x="{_f(x)}" y="{_f(cy - 4)}" width="12" height="8" fill="{color}"/>'
+                )
+            elif kind == "dot":
+                out.append(
+                    f'<path d="M{_f(x + 6)} {_f(cy)}h0" stroke="{color}" stroke-width="6" '
+                    'stroke-linecap="round"/>'
+                )
+            elif kind == "line":
+                out.append(f'<path d="M{_f(x)} {_f(cy)}h12" stroke="{color}" stroke-width="2"/>')
+            tx = x if kind == "title" else x + 16
+            out.append(f'<text x="{_f(tx)}" y="{_f(cy + 3.5)}">{escape(name)}</text>')
+        return "".join(out)
+
+
+def canvas(width: float, height: float, body: Sequence[str]) -> str:
+    """The ``<svg>`` element holding the rendered panels."""
+    return (
+        f'<svg xmlns="http://www.w3.org/2000/svg" width="{width:g}" height="{height:g}" '
+        f'viewBox="0 0 {width:g} {height:g}" {FONT} fill="#24292f">{"".join(body)}</svg>'
+    )

@@ -1,0 +1,79 @@
+"""``parallel_map``: a map over a few independent CPU-bound tasks, forked when cores are free.
+
+For work whose tasks each take a fair fraction of a second (cross-validating
+one error model: a few dozen identifications). The tasks run in forked
+children that inherit the function and its data (nothing is pickled but the
+task and its result), so the closure may hold data frames and fitted models.
+The results come back in the order of the tasks, and are those of the serial
+map: each task runs the same code on the same inputs.
+
+It runs serially when asked to (``workers=1``), when there is one task, where
+forking is unavailable or not allowed (a daemonic process such as a
+``vtcal batch`` worker may not have children), and when ``workers=0`` (auto)
+finds no core to spare or runs in a child process (a ``vtcal batch`` or Dask
+worker: the batch already uses the cores, one recording per worker).
+"""
+
+from __future__ import annotations
+
+import multiprocessing
+import os
+from collections.abc import Callable, Sequence
+from typing import Any, TypeVar
+
+T = TypeVar("T")
+R = TypeVar("R")
+
+#: the function the forked children call (set just before the fork, inherited)
+_TASK: Callable[[Any], Any] | None = None
+
+
+def free_workers(limit: int = 2) -> int:
+    """Processes worth starting now: cores not busy by the 1-minute load, at most ``limit``.
+
+    ``os.cpu_count() - load`` rounded down, at least 1 (this process itself).
+    """
+    cores = os.cpu_count() or 1
+    try:
+        load = os.getloadavg()[0]
+    except OSError:  # pragma: no cover - no load average on this platform
+        return 1
+    return max(1, min(limit, int(cores - load + 1)))
+
+
+def _call(arg: Any) -> Any:
+    assert _TASK is not None
+    return _TASK(arg)
+
+
+def parallel_map(fn: Callable[[T], R], tasks: Sequence[T], workers: int = 1) -> list[R]:
+    """``[fn(t) for t in tasks]``, in up to ``workers`` forked processes (0: auto).
+
+    Parameters
+    ----------
+    fn : the task function (a closure is fine: children inherit it by fork)
+    tasks : the task arguments (picklable), results come back in their order
+    workers : processes; 1 serial, 0 :func:`free_workers`
+
+    Returns
+    -------
+    list of results, as the serial map's
+    """
+    global _TASK
+    if workers == 0:
+        n = 1 if multiprocessing.parent_process() is not None else free_workers()
+    else:
+        n = workers
+    n = min(n, len(tasks))
+    if (
+        n <= 1
+        or multiprocessing.current_process().daemon
+        or "fork" not in multiprocessing.get_all_start_methods()
+    ):
+        return [fn(t) for t in tasks]
+    _TASK = fn
+    try:
+        with multiprocessing.get_context("fork").Pool(n) as pool:
+            return list(pool.map(_call, tasks, chunksize=1))
+    finally:
+        _TASK = None

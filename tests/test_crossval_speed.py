@@ -1,0 +1,83 @@
+"""Cross-validation's shortcuts: refit settings from the full fit, models in forked processes."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+
+from pipeline.evaluate import perturbed_chain, random_deviations
+from pipeline.evaluate import synthetic_touchups as synth
+from pipeline.kinematics.chain import load_chain
+from pipeline.stages.crossval import CrossvalConfig, cross_validate, refit_config
+from pipeline.stages.identify import IdentifyConfig, IdentifyResult, identify
+from pipeline.stages.parallel_map import parallel_map
+
+URDF = (Path(__file__).resolve().parent.parent / "pipeline/robots/lrmate.urdf").read_text()
+PIN = np.array([0.01, -0.02, 0.2])
+Q_CENTRE = [0.0, 0.3, -0.3, 0.0, -0.8, 0.0]
+
+
+def cell(seed: int, per_target: int = 8) -> tuple[pd.DataFrame, list[tuple[int, int, float]]]:
+    chain = load_chain(URDF, "base_link", "flange")
+    rng = np.random.default_rng(seed)
+    true = perturbed_chain(chain, random_deviations(chain, rng))
+    tab, tg = synth(true, PIN, 3, per_target, rng, noise_pin_m=3e-5, q_centre=Q_CENTRE)
+    return tab, [(0, 2, float(np.linalg.norm(tg[0] - tg[2])))]
+
+
+def fit(tab: pd.DataFrame, cfg: IdentifyConfig) -> IdentifyResult:
+    res = identify(tab, URDF, "base_link", "flange", cfg)
+    assert isinstance(res, IdentifyResult)
+    return res
+
+
+def test_refits_skip_a_print_shape_the_full_fit_did_not_find() -> None:
+    tab, dist = cell(6)
+    cfg = IdentifyConfig(model="full", distances=dist)
+    full = fit(tab, cfg)
+    assert full.summary.get("print_shape") is None  # no print-shape columns: nothing to test
+
+    def with_shape(shape: object) -> dict[str, object]:
+        return {**full.summary, "print_shape": shape}
+
+    assert refit_config(cfg, full.summary).target_shape == "auto"
+    assert (
+        refit_config(cfg, with_shape({"fitted": False, "note": "p = 0.3"})).target_shape == "none"
+    )
+    whole = {"fitted": True, "parameters": "size and out-of-roundness"}
+    assert refit_config(cfg, with_shape(whole)).target_shape == "auto"  # tested again
+    assert not refit_config(cfg, full.summary).check_plausibility  # the full table passed them
+
+
+def test_models_in_forked_processes_give_the_serial_results() -> None:
+    tab, dist = cell(7, per_target=6)
+    idc = IdentifyConfig(model="all", distances=dist)
+
+    def run(workers: int) -> object:
+        cfg = CrossvalConfig(models=["offsets", "full"], k=3, loto=False, workers=workers)
+        return cross_validate(tab, URDF, "base_link", "flange", idc, cfg)
+
+    one, two = run(1), run(2)
+    pd.testing.assert_frame_equal(one.table, two.table)  # type: ignore[attr-defined]
+    assert one.summary == two.summary  # type: ignore[attr-defined]
+    offset = 10
+    assert parallel_map(lambda t: t * t + offset, [3, 1, 2], workers=2) == [19, 11, 14]
+
+
+def test_the_identify_stages_own_fits_stand_in_for_the_full_refits() -> None:
+    tab, dist = cell(8, per_target=6)
+    idc = IdentifyConfig(model="all", distances=dist)
+    fits = identify(tab, URDF, "base_link", "flange", idc)
+    assert isinstance(fits, dict)
+    cfg = CrossvalConfig(models=["offsets", "full"], k=3, workers=1)
+    fresh = cross_validate(tab, URDF, "base_link", "flange", idc, cfg)
+    given = {m: r.summary for m, r in fits.items()}
+    reused = cross_validate(tab, URDF, "base_link", "flange", idc, cfg, full_fits=given)
+    pd.testing.assert_frame_equal(fresh.table, reused.table)
+    assert fresh.summary == reused.summary
+    # the figures do come from what was given (not a refit)
+    doctored = {**given, "full": {**given["full"], "rms_mm": 123.0}}
+    odd = cross_validate(tab, URDF, "base_link", "flange", idc, cfg, full_fits=doctored)
+    assert odd.summary["models"]["full"]["train_rms_mm"] == 123.0
