@@ -20,7 +20,7 @@ os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 import numpy as np  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "tests"))
-from robots_dh import LRMATE_DH, dh_urdf  # noqa: E402
+from support.robots_dh import LRMATE_DH, dh_urdf  # noqa: E402
 
 from pipeline.kinematics import fk, load_chain  # noqa: E402
 from pipeline.kinematics.se3 import matrix_from_axis_angle, transform_from  # noqa: E402

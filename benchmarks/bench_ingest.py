@@ -36,6 +36,7 @@ import cv2  # noqa: E402
 import numpy as np  # noqa: E402
 
 cv2.setNumThreads(1)
+sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "tests"))  # the test kit
 
 URDF = """<?xml version="1.0"?>
 <robot name="two"><link name="base_link"/><link name="l1"/><link name="flange"/>
@@ -50,10 +51,11 @@ REPEATS = 3  # timings: best of this many interleaved runs
 
 
 def make_recording(path: Path, n_images: int, encoding: str = "mono8") -> None:
+    from support.mcap_write import write_recording
+
     from pipeline.kinematics.se3 import matrix_from_rpy
     from pipeline.sim.camera import CameraModel
     from pipeline.sim.render import render_ideal
-    from pipeline.stages._mcap_write import write_recording
 
     cam = CameraModel(fx=912.0, fy=912.0, cx=317.6, cy=254.2, k1=-0.068, k2=0.0067)
     rng = np.random.default_rng(0)

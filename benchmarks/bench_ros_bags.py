@@ -2,7 +2,7 @@
 rosbag2 sqlite3 and ROS 1 bag.
 
 The sample (75 PNG images 640x512, 9,735 joint states) is converted with
-rosbags' own writers (tests/rosbag_writers.py); then, for each container, in
+rosbags' own writers (tests/support/rosbag_writers.py); then, for each container, in
 one run:
 
 - **stream**: every message through :func:`pipeline.io_recording.iter_recording`
@@ -29,7 +29,7 @@ import time  # noqa: E402
 from pathlib import Path  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "tests"))
-from rosbag_writers import (  # noqa: E402
+from support.rosbag_writers import (  # noqa: E402
     SAMPLE,
     StoragePlugin,
     sample_messages,

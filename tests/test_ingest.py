@@ -5,11 +5,11 @@ from __future__ import annotations
 import numpy as np
 import pytest
 from mcap.writer import CompressionType
+from support.mcap_write import write_recording
 from test_robustness_data import MS, NAMES, T0, URDF
 
 from pipeline.artefacts import write_artefact
 from pipeline.errors import BadInput
-from pipeline.stages._mcap_write import write_recording
 from pipeline.stages.detect import DetectConfig
 from pipeline.stages.ingest import IngestConfig, ingest_recording, load_image
 

@@ -6,8 +6,8 @@ import numpy as np
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
-from robots_dh import IIWA_DH, LRMATE_DH, UR5E_DH, dh_fk, dh_urdf
 from scipy.spatial.transform import Rotation
+from support.robots_dh import IIWA_DH, LRMATE_DH, UR5E_DH, dh_fk, dh_urdf
 
 from pipeline.errors import BadInput
 from pipeline.kinematics import fk, fk_frames, jacobian, load_chain, parse_urdf

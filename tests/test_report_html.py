@@ -1,6 +1,6 @@
 """report.html: content from a synthetic run folder, and a headless-Chromium check that it
 opens offline (no request leaves the file, no console error), with a screenshot
-(:mod:`pipeline.report.browser`: DevTools protocol over a pipe).
+(:mod:`support.browser`: DevTools protocol over a pipe).
 """
 
 from __future__ import annotations
@@ -10,10 +10,10 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from support.browser import CHROMIUM, open_in_chromium
+from support.demo_run import make_demo_run
 
-from pipeline.report.browser import CHROMIUM, open_in_chromium
 from pipeline.report.data import load_run, nominal_fit
-from pipeline.report.demo import make_demo_run
 from pipeline.report.html import build_report
 
 

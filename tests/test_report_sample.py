@@ -7,9 +7,9 @@ from pathlib import Path
 
 import pytest
 from click.testing import CliRunner
+from support.browser import CHROMIUM, open_in_chromium
 
 from pipeline.cli import cli
-from pipeline.report.browser import CHROMIUM, open_in_chromium
 from pipeline.report.html import build_report
 from pipeline.report.rrd import build_rrd
 

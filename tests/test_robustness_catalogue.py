@@ -131,8 +131,7 @@ def test_unknown_message_encoding(tmp_path, capsys):
     import json as _json
 
     from mcap.writer import Writer
-
-    from pipeline.stages._mcap_write import msgdef
+    from support.mcap_write import msgdef
 
     rec = tiny_recording(tmp_path / "rec.mcap", n_img=0)
     bad = tmp_path / "json_images.mcap"

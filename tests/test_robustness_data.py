@@ -19,8 +19,7 @@ import pandas as pd
 import pytest
 from mcap.writer import CompressionType
 from mcap_ros2.writer import Writer as RosWriter
-
-from pipeline.stages._mcap_write import msgdef, write_recording
+from support.mcap_write import msgdef, write_recording
 
 URDF = """<?xml version="1.0"?>
 <robot name="two">

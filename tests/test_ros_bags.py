@@ -3,7 +3,7 @@ to the same figures as the MCAP they were converted from; joint-state quirks; im
 topic choice.
 
 The bags are written with rosbags (rosbag2 MCAP / sqlite3 writers, ROS 1
-writer; tests/rosbag_writers.py), independent of vtcal's MCAP writer and of
+writer; tests/support/rosbag_writers.py), independent of vtcal's MCAP writer and of
 vtcal's readers.
 """
 
@@ -16,7 +16,7 @@ from typing import Any
 import numpy as np
 import pandas as pd
 import pytest
-from rosbag_writers import (
+from support.rosbag_writers import (
     ROS2,
     SAMPLE,
     STRING,

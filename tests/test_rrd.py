@@ -11,11 +11,11 @@ import pyarrow as pa
 import pytest
 from click.testing import CliRunner
 from rerun.chunk import RrdReader
+from support.demo_run import make_demo_run
 
 from pipeline.cli import cli
 from pipeline.kinematics.chain import fk, load_chain
 from pipeline.report.data import load_run, run_uuid
-from pipeline.report.demo import make_demo_run
 from pipeline.report.rrd import RESIDUAL_SCALE, build_rrd
 
 

@@ -24,7 +24,7 @@ from ruamel.yaml import YAML
 
 from pipeline.io_recording import TOUCHUP_TOPIC
 
-REPO = Path(__file__).resolve().parent.parent
+REPO = Path(__file__).resolve().parents[2]
 SAMPLE = REPO / "datasets" / "samples" / "sample_lrmate.mcap"
 ROS2 = get_typestore(Stores.ROS2_HUMBLE)
 ROS1 = get_typestore(Stores.ROS1_NOETIC)

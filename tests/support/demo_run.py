@@ -26,8 +26,8 @@ from pipeline.artefacts import SCHEMA_DIR, load_schema, write_artefact
 from pipeline.kinematics.chain import Chain, fk, jacobian, load_chain
 from pipeline.kinematics.se3 import matrix_from_rpy
 from pipeline.kinematics.urdf_write import write_calibrated_urdf
+from pipeline.robots import builtin_urdf
 
-ROBOTS = Path(__file__).resolve().parent.parent / "robots"
 W, H = 320, 256
 IMAGE_TOPIC = "/camera/image_raw"
 
@@ -133,7 +133,7 @@ def make_demo_run(
     run_dir = Path(run_dir)
     run_dir.mkdir(parents=True, exist_ok=True)
     rng = np.random.default_rng(seed)
-    urdf = (ROBOTS / "lrmate.urdf").read_text()
+    urdf = builtin_urdf("lrmate")
     nominal = load_chain(urdf, "base_link", "flange")
     names = nominal.joint_names
     # the "true" robot: small origin errors on every actuated joint
