@@ -249,3 +249,21 @@ def test_real_panda_held_out_placement_matches_bench_real(tmp_path: Path) -> Non
     assert after["distances"][0]["error_mm"] == pytest.approx(
         reference.distance_error_mm, rel=1e-6, abs=1e-9
     )
+
+
+def test_the_table_it_was_fitted_on_is_refused(
+    cell: dict, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """Judged on its own training touch-ups a calibration would show a training figure as
+    validated (the provenance block names the source's hash; the same bytes are refused)."""
+    copy = tmp_path / "same_bytes.csv"
+    copy.write_bytes(cell["tables"]["a"].read_bytes())
+    capsys.readouterr()
+    code = vtcal(
+        "validate", str(cell["calibrated"]), str(copy), "--urdf", str(cell["nominal"]),
+        "--distance", cell["dist"]["a"], "--out", str(tmp_path / "v"),
+    )  # fmt: skip
+    assert code == 3
+    _one_line(capsys, "was fitted on", "not a validation")
+    assert not (tmp_path / "v").exists()
+    assert _validate(cell) == 0, "another table of the same cell is judged as before"

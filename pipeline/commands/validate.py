@@ -158,6 +158,7 @@ def command(
         cal_robot = parse_urdf(cal_text)
     except BadInput as exc:
         raise BadInput(f"{calibrated}: {exc}") from exc
+    _refuse_its_own_training_data(calibrated, cal_text, input_path)
     given = [d for item in distance for d in parse_distances(item)]
     suffix = input_path.suffix.lower()
     if suffix not in (".mcap", *TABLE_SUFFIXES):
@@ -230,6 +231,29 @@ def command(
     err = refusal(result)
     if err is not None:
         raise err
+
+
+def _refuse_its_own_training_data(calibrated: Path, cal_text: str, input_path: Path) -> None:
+    """Exit 3 when INPUT is the very file the calibration was fitted on (its provenance says).
+
+    Judged on its own touch-ups a calibration shows a training figure, which the
+    verdict would then call validated. The calibrated URDF's provenance block
+    names the source's SHA-256 (16 hex); a file with the same bytes is refused.
+    """
+    from pipeline.errors import CalibrationFailed
+    from pipeline.fileio import file_hash
+    from pipeline.provenance import read_provenance
+
+    source = read_provenance(cal_text).get("source", "")
+    if not source or not input_path.is_file():
+        return
+    sha = file_hash(input_path)
+    if source.split()[-1] == sha:
+        raise CalibrationFailed(
+            f"{input_path}: this is the {source.split()[0]} {calibrated.name} was fitted on "
+            f"(sha256 {sha}, its provenance says): judged on its own touch-ups a calibration "
+            "shows a training figure, not a validation; validate on another recording of the cell"
+        )
 
 
 def _echo(result: dict[str, Any]) -> None:
