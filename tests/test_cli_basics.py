@@ -112,3 +112,12 @@ def test_a_truncation_warning_is_shown_when_the_run_then_fails(tmp_path) -> None
     # still one line: the warning rides in the error line
     assert len(lines) == 1 and lines[0].startswith("vtcal: error:"), lines
     assert "ingest warned:" in lines[0] and "truncated recording" in lines[0], lines
+
+
+@pytest.mark.parametrize("command", ["identify", "plan"])
+def test_model_help_lists_every_registered_model(command: str) -> None:
+    from pipeline.models import model_names
+
+    res = CliRunner().invoke(cli, [command, "--help"], terminal_width=400)
+    assert res.exit_code == 0
+    assert all(name in res.output for name in model_names()), res.output

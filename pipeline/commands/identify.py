@@ -27,6 +27,7 @@ from pipeline.commands._common import (
     tolerance_option,
 )
 from pipeline.errors import BadInput
+from pipeline.models import model_help
 
 
 def read_table(path: Path) -> pd.DataFrame:
@@ -184,10 +185,9 @@ def _table_source(table: Path, urdf_path: Path, df: pd.DataFrame, conf: dict[str
     "--model",
     default="all",
     show_default=True,
-    help="Error model: full, mdh, poe, offsets, elastic (joint compliance on the gravity "
-    "torque; its URDF holds the rigid part only); 'all' fits each and ships the one with the "
-    "smallest held-out (cross-validated) error among those a URDF can carry; 'auto' takes "
-    "full if the touch-ups suffice, else offsets (and says so).",
+    help=f"Error model: {model_help()}; 'all' fits each and ships the one with the smallest "
+    "held-out (cross-validated) error among those a URDF can carry (elastic's URDF holds its "
+    "rigid part only); 'auto' takes full if the touch-ups suffice, else offsets (and says so).",
 )
 @click.option("--no-crossval", is_flag=True, help="Skip cross-validation (crossval.parquet).")
 @click.option("--no-report", is_flag=True, help="Skip report.html and run.rrd.")

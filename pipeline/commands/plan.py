@@ -9,6 +9,7 @@ from typing import Any
 import click
 
 from pipeline.errors import BadInput
+from pipeline.models import model_names
 
 
 def _parse_xyz(ctx: click.Context, param: click.Parameter, value: str) -> tuple[float, ...]:
@@ -95,7 +96,7 @@ MAX_PLAN_COND = 1e8
     help="O1 D-optimal, O3 min singular value, O4 noise amplification, A A-optimal.",
 )
 @click.option(
-    "--model", default="full", show_default=True, help="Error model (full, mdh, poe, offsets)."
+    "--model", default="full", show_default=True, help=f"Error model: {', '.join(model_names())}."
 )
 @click.option(
     "--sigma-mm",

@@ -19,7 +19,7 @@ for _info in pkgutil.iter_modules(__path__):
     if _info.name not in _NOT_MODELS and not _info.name.startswith("_"):
         importlib.import_module(f"{__name__}.{_info.name}")
 
-__all__ = ["ErrorModel", "get_model", "make_model", "model_names", "register"]
+__all__ = ["ErrorModel", "get_model", "make_model", "model_help", "model_names", "register"]
 
 
 def model_names() -> list[str]:
@@ -45,3 +45,8 @@ def make_model(name: str, chain: Chain) -> ErrorModel:
     model = get_model(name)(chain)
     model.check_contract()
     return model
+
+
+def model_help() -> str:
+    """``name (description)`` of every registered model, for the CLI's ``--model`` help."""
+    return ", ".join(f"{n} ({REGISTRY[n].description})" for n in REGISTRY)
