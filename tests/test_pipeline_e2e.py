@@ -10,6 +10,7 @@ import pyarrow.parquet as pq
 import pytest
 
 from pipeline.artefacts import read_artefact
+from pipeline.catalog import RUN_FILES
 from pipeline.cli import main
 from pipeline.evaluate import pin_accuracy, workspace_poses
 from pipeline.kinematics import load_chain, parse_urdf
@@ -18,16 +19,8 @@ from pipeline.provenance import read_provenance, strip_provenance
 REPO = Path(__file__).resolve().parent.parent
 SAMPLE = REPO / "datasets" / "samples" / "sample_lrmate.mcap"
 
-STAGE_ARTEFACTS = {
-    "frames": "frames.parquet",
-    "detections": "detections.parquet",
-    "touchups": "touchups.parquet",
-    "inliers": "inliers.parquet",
-    "parameters": "parameters.parquet",
-    "residuals": "residuals.parquet",
-    "targets": "targets.parquet",
-    "crossval": "crossval.parquet",
-}
+#: the stages' Parquet artefacts, as the run folder's catalogue declares them
+STAGE_ARTEFACTS = {k: v for k, v in RUN_FILES.items() if v.endswith(".parquet")}
 
 
 def vtcal(*args: str) -> None:

@@ -151,6 +151,18 @@ def tolerance_option(fn: Callable[..., Any]) -> Callable[..., Any]:
     )(fn)
 
 
+def accept_implausible_option(fn: Callable[..., Any]) -> Callable[..., Any]:
+    """``--accept-implausible``: identify despite the guardrails (:mod:`pipeline.stages.plausibility`)."""
+    return click.option(
+        "--accept-implausible",
+        is_flag=True,
+        help="Identify even where an input contradicts the nominal robot (joint values outside "
+        "the URDF's limits, a nominal fit worse than 25 mm, a moving joint outside the chain, "
+        "a known distance or target diameter the nominal robot or the images contradict); the "
+        "lines are kept in identify.json as 'implausible'.",
+    )(fn)
+
+
 def fail_on_verdict(v: dict[str, Any] | None) -> None:
     """Raise :class:`CalibrationFailed` (exit 3) when a tolerance was given and not met."""
     from pipeline.errors import CalibrationFailed

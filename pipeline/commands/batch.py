@@ -8,7 +8,12 @@ from typing import Any
 import click
 
 from pipeline.batch import EXECUTORS, BatchIncomplete, BatchResult, RecordingOutcome
-from pipeline.commands._common import distance_option, set_option, split_stage_options
+from pipeline.commands._common import (
+    accept_implausible_option,
+    distance_option,
+    set_option,
+    split_stage_options,
+)
 from pipeline.errors import BadInput
 
 
@@ -80,13 +85,7 @@ Examples:
 @distance_option
 @set_option
 @click.option("--no-report", is_flag=True, help="Skip report.html and run.rrd.")
-@click.option(
-    "--accept-implausible",
-    is_flag=True,
-    help="Identify even where an input contradicts the nominal robot (joint values outside "
-    "the URDF's limits, a nominal fit worse than 25 mm, a moving joint outside the chain, "
-    "a known distance or target diameter the nominal robot or the images contradict).",
-)
+@accept_implausible_option
 @click.option("--quiet", "-q", is_flag=True, help="No progress bar, no per-recording lines.")
 def command(
     recordings: tuple[Path, ...],

@@ -21,6 +21,7 @@ import click
 import pandas as pd
 
 from pipeline.commands._common import (
+    accept_implausible_option,
     distance_option,
     echo_verdict,
     fail_on_verdict,
@@ -199,14 +200,7 @@ def _table_source(table: Path, urdf_path: Path, df: pd.DataFrame, conf: dict[str
     help="Loss on the pin residuals (scipy least_squares).",
 )
 @tolerance_option
-@click.option(
-    "--accept-implausible",
-    is_flag=True,
-    help="Identify even where an input contradicts the nominal robot (joint values outside "
-    "the URDF's limits, a nominal fit worse than 25 mm, a moving joint outside the chain, "
-    "a known distance beyond the nominal robot's own error); the lines "
-    "are kept in identify.json as 'implausible'.",
-)
+@accept_implausible_option
 def command(
     table: Path,
     urdf_path: Path,

@@ -8,6 +8,7 @@ from typing import Any
 import click
 
 from pipeline.commands._common import (
+    accept_implausible_option,
     distance_option,
     echo_summary,
     fail_on_verdict,
@@ -63,13 +64,7 @@ Examples:
 @click.option("--base-link", default=None, help="URDF base link (overrides the metadata).")
 @click.option("--flange-link", default=None, help="URDF flange link (overrides the metadata).")
 @click.option("--no-report", is_flag=True, help="Skip report.html and run.rrd.")
-@click.option(
-    "--accept-implausible",
-    is_flag=True,
-    help="Identify even where an input contradicts the nominal robot (joint values outside "
-    "the URDF's limits, a nominal fit worse than 25 mm, a moving joint outside the chain, "
-    "a known distance or target diameter the nominal robot or the images contradict).",
-)
+@accept_implausible_option
 @tolerance_option
 @click.option("--quiet", "-q", is_flag=True, help="No progress bars.")
 def command(

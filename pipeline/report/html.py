@@ -28,11 +28,10 @@ import math
 from pathlib import Path
 from typing import Any
 
-import jinja2
 import numpy as np
 import pandas as pd
 
-from pipeline import __version__, resources
+from pipeline import __version__
 from pipeline.artefacts import atomic_write_bytes
 from pipeline.report import plots
 from pipeline.report.data import (
@@ -55,8 +54,8 @@ from pipeline.report.data import (
     touchup_frames,
 )
 from pipeline.report.diagnosis import camera_section
+from pipeline.report.templates import render_template
 
-TEMPLATE_DIR = resources.TEMPLATE_DIR
 TEMPLATE = "report.html.j2"
 #: at most this many thumbnails / convergence traces (keeps the file small)
 MAX_THUMBS = 40
@@ -611,16 +610,7 @@ def report_context(data: RunData, images: dict[int, np.ndarray] | None) -> dict[
 
 def render(context: dict[str, Any]) -> str:
     """Render the report template with a context from :func:`report_context`."""
-    env = jinja2.Environment(
-        loader=jinja2.FileSystemLoader(str(TEMPLATE_DIR)),
-        autoescape=True,
-        undefined=jinja2.StrictUndefined,
-        trim_blocks=True,
-        lstrip_blocks=True,
-    )
-    env.filters["fmt"] = _fmt
-    css = (TEMPLATE_DIR / "report.css").read_text()
-    return env.get_template(TEMPLATE).render(css=css, **context)
+    return render_template(TEMPLATE, _fmt, **context)
 
 
 def thumbnail_frames(data: RunData) -> list[int]:

@@ -8,13 +8,10 @@ from __future__ import annotations
 
 from typing import Any
 
-import jinja2
-
-from pipeline import __version__, resources
+from pipeline import __version__
+from pipeline.report.templates import render_template
 from pipeline.verdict import IMPROVED_BELOW
 
-#: the report's templates (``reports/``); not imported from report.html, which loads pandas and the report data
-TEMPLATE_DIR = resources.TEMPLATE_DIR
 TEMPLATE = "validate.html.j2"
 
 
@@ -24,17 +21,9 @@ def _fmt(x: Any, digits: int = 3) -> str:
 
 def render_validation(result: dict[str, Any]) -> str:
     """The page of one validation (:func:`pipeline.validate.validate` plus the command's paths)."""
-    env = jinja2.Environment(
-        loader=jinja2.FileSystemLoader(str(TEMPLATE_DIR)),
-        autoescape=True,
-        undefined=jinja2.StrictUndefined,
-        trim_blocks=True,
-        lstrip_blocks=True,
-    )
-    env.filters["fmt"] = _fmt
-    css = (TEMPLATE_DIR / "report.css").read_text()
-    return env.get_template(TEMPLATE).render(
-        css=css,
+    return render_template(
+        TEMPLATE,
+        _fmt,
         r=result,
         v=result["verdict"],
         nominal=result["robots"][-1],

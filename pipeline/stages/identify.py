@@ -409,18 +409,19 @@ def _implausible(
     from pipeline.stages import plausibility as pl
 
     limits = pl.joint_values(data.q, chain)
+    robot = parse_urdf(urdf)
     used = touchups.reset_index(drop=True).iloc[data.used_idx]
-    values = {
+    values = {  # the table's columns of URDF joints outside the chain
         c: pd.to_numeric(used[c], errors="coerce").to_numpy(dtype=float)
         for c in used.columns
-        if c not in chain.joint_names
+        if c in robot.joints and c not in chain.joint_names
     }
-    lines = limits + pl.joints_outside_chain(values, parse_urdf(urdf), base_link, flange_link)
-    if not limits:  # joints outside their limits already explain a bad nominal fit
-        lines += pl.nominal_fit(chain, data.q, data.d, data.tk, data.K, data.sw)
-    lines += pl.known_distances(
-        chain, data.q, data.d, data.tk, data.K, data.sw, data.dist, data.target_labels
-    )
+    lines = limits + pl.joints_outside_chain(values, robot, base_link, flange_link)
+    if data.K >= 1 and len(data.q) >= 2:  # one nominal fit serves both checks
+        _, tg, rho = pl.nominal_targets(chain, data.q, data.d, data.tk, data.K, data.sw)
+        if not limits:  # joints outside their limits already explain a bad nominal fit
+            lines += pl.nominal_fit(rho)
+        lines += pl.known_distances(tg, rho, data.dist, data.target_labels)
     return lines + pl.target_diameter(config.target_diameter_m, config.implied_target_diameter_m)
 
 

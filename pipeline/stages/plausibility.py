@@ -123,23 +123,19 @@ def nominal_targets(
 
 
 def known_distances(
-    chain: Chain,
-    q: F64,
-    d: F64,
-    tk: np.ndarray,
-    K: int,
-    sw: F64,
-    distances: list[tuple[int, int, float]],
-    labels: list[str],
+    tg: F64, rho: float, distances: list[tuple[int, int, float]], labels: list[str]
 ) -> list[str]:
     """One line per known distance the nominal robot contradicts beyond ``tol``.
 
-    ``distances`` as ``(k_a, k_b, metres)`` over the used targets ``0..K-1``;
-    ``labels`` their names.
+    Parameters
+    ----------
+    tg : (K, 3) targets and ``rho`` the RMS residual (m) of the nominal fit
+        (:func:`nominal_targets`)
+    distances : ``(k_a, k_b, metres)`` over the used targets ``0..K-1``
+    labels : the targets' names
     """
-    if not distances or K < 2:
+    if not distances or len(tg) < 2:
         return []
-    _, tg, rho = nominal_targets(chain, q, d, tk, K, sw)
     out = []
     for a, b, metres in distances:
         d0 = float(np.linalg.norm(tg[a] - tg[b]))
@@ -161,17 +157,13 @@ def known_distances(
     return out
 
 
-def nominal_fit(chain: Chain, q: F64, d: F64, tk: np.ndarray, K: int, sw: F64) -> list[str]:
+def nominal_fit(rho: float) -> list[str]:
     """One line if the nominal robot fits these touch-ups worse than ``NOMINAL_RMS_MAX``.
 
     Parameters
     ----------
-    chain : nominal chain; q : (N, n) joints; d : (N, 3) flange corrections;
-    tk : (N,) target index; K : number of targets; sw : (N,) sqrt weights
+    rho : RMS residual (m) of the nominal fit (:func:`nominal_targets`)
     """
-    if K < 1 or len(q) < 2:
-        return []
-    _, _, rho = nominal_targets(chain, q, d, tk, K, sw)
     if rho <= NOMINAL_RMS_MAX:
         return []
     return [
