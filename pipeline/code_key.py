@@ -34,6 +34,7 @@ from functools import cache
 from pathlib import Path
 
 from pipeline import resources
+from pipeline.fileio import hash_named_files
 
 PACKAGE_DIR = Path(__file__).resolve().parent
 SCHEMA_DIR = resources.SCHEMA_DIR
@@ -144,20 +145,20 @@ def _code_bytes(code: types.CodeType) -> bytes:
     return b"\0".join(parts)
 
 
+def _source_path(mod: str) -> Path:
+    """The source file of a module of an import closure (it exists: the closure checked)."""
+    path = _module_path(mod)
+    assert path is not None, mod
+    return path
+
+
 @cache
 def _sources_digest(modules: tuple[str, ...]) -> bytes:
     h = hashlib.sha256()
-    for mod in modules:
-        path = _module_path(mod)
-        assert path is not None
-        data = path.read_bytes()
-        h.update(f"{mod}\0{len(data)}\0".encode())
-        h.update(data)
+    hash_named_files(h, ((mod, _source_path(mod)) for mod in modules))
     if SCHEMA_DIR.is_dir():
-        for p in sorted(q for q in SCHEMA_DIR.rglob("*") if q.is_file()):
-            data = p.read_bytes()
-            h.update(f"{p.relative_to(SCHEMA_DIR).as_posix()}\0{len(data)}\0".encode())
-            h.update(data)
+        schemas = sorted(q for q in SCHEMA_DIR.rglob("*") if q.is_file())
+        hash_named_files(h, ((p.relative_to(SCHEMA_DIR).as_posix(), p) for p in schemas))
     return h.digest()
 
 

@@ -12,7 +12,7 @@ import hashlib
 import json
 import os
 import tempfile
-from collections.abc import Mapping
+from collections.abc import Iterable, Mapping
 from pathlib import Path
 from typing import Any
 
@@ -30,6 +30,18 @@ def file_hash(path: str | os.PathLike[str]) -> str:
         for block in iter(lambda: f.read(1 << 20), b""):
             h.update(block)
     return h.hexdigest()[:16]
+
+
+def hash_named_files(h: Any, files: Iterable[tuple[str, Path]]) -> None:
+    """Feed the hash ``h`` each file as ``name NUL length NUL bytes``, in the order given.
+
+    Names go in with the contents, so a renamed, added or removed file changes the
+    digest as an edited one does (the run ledger's and the stage cache keys' code digests).
+    """
+    for name, path in files:
+        data = path.read_bytes()
+        h.update(f"{name}\0{len(data)}\0".encode())
+        h.update(data)
 
 
 _UMASK = os.umask(0)

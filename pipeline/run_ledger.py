@@ -34,7 +34,7 @@ from pathlib import Path
 from typing import Any
 
 from pipeline import __version__, resources
-from pipeline.fileio import file_hash
+from pipeline.fileio import file_hash, hash_named_files
 from pipeline.recording_layout import locate, recording_hash
 
 PACKAGE_DIR = Path(__file__).resolve().parent
@@ -60,11 +60,7 @@ def code_digest() -> str:
     if SCHEMA_DIR.is_dir():
         files += sorted(p for p in SCHEMA_DIR.rglob("*") if p.is_file())
     h = hashlib.sha256()
-    for p in files:
-        data = p.read_bytes()
-        rel = p.relative_to(PACKAGE_DIR.parent).as_posix()
-        h.update(f"{rel}\0{len(data)}\0".encode())
-        h.update(data)
+    hash_named_files(h, ((p.relative_to(PACKAGE_DIR.parent).as_posix(), p) for p in files))
     return h.hexdigest()[:16]
 
 
