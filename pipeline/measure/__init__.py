@@ -1,0 +1,6 @@
+"""Measurement on a robot: the visual touch-up loop as a library (issue 18).
+
+One loop serves every client: the simulator's recorder, ``vtcal measure`` on a
+live cell through an adapter, and the tests. The loop sees the robot and the
+camera only through the two small protocols of :mod:`pipeline.measure.protocols`.
+"""
