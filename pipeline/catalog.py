@@ -1,34 +1,209 @@
-"""The run folder's catalogue: every file a run writes, declared once.
+"""The declared pipeline: every run-folder file and every stage, each declared once.
 
-The names follow ``../shared/spec/outputs.md``. The orchestrator writes these
-files; the report, ``vtcal validate``, ``vtcal compare`` and the batch read them.
-Kept apart from the orchestrator so that readers need not import the runner
-(which imports the report: an import cycle otherwise).
+:data:`ARTEFACTS` names each file of a run folder (``../shared/spec/outputs.md``),
+its schema (``schemas/NAME.json`` for Parquet) and the one stage that writes
+it. :data:`STAGES` is the pipeline as a table of :class:`Stage`: the function
+that computes it, the artefacts it reads and those it writes, and the config
+dataclass of its options. The runner (:mod:`pipeline.runner`) walks this
+table; stage functions take data and return data, and only the runner writes.
+``tests/test_catalog.py`` checks that every file has exactly one writer and
+that each stage reads only what an earlier stage wrote.
+
+Standard library only: the report, ``vtcal validate``, ``vtcal compare``, the
+batch and the run ledger read the catalogue without importing the runner or
+a stage (functions and configs are named ``module:attribute``, resolved by
+the runner).
 """
 
 from __future__ import annotations
 
+from collections.abc import Mapping
+from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
-#: artefact name -> file name inside a run folder (``../shared/spec/outputs.md``)
-RUN_FILES = {
-    "recording": "recording.json",
-    "frames": "frames.parquet",
-    "detections": "detections.parquet",
-    "touchups": "touchups.parquet",
-    "inliers": "inliers.parquet",
-    "parameters": "parameters.parquet",
-    "residuals": "residuals.parquet",
-    "targets": "targets.parquet",
-    "calibrated_urdf": "calibrated.urdf",
-    "identify": "identify.json",
-    "crossval": "crossval.parquet",
-    "report": "report.html",
-    "rrd": "run.rrd",
-    "run": "run.json",
-}
+
+@dataclass(frozen=True)
+class Artefact:
+    """One file of a run folder.
+
+    Attributes
+    ----------
+    key : the name stages and readers use (``"parameters"``)
+    file : file name inside the run folder (``"parameters.parquet"``)
+    writer : the stage that writes it (``"runner"``: the runner's own ledger)
+    schema : declared Parquet schema (``schemas/SCHEMA.json``), None for other files
+    keyed : its hash is part of the cache key of the stages that read it. False
+        for a side file whose results its writer's Parquet outputs (read too)
+        already key, and which holds wall-clock timings: keying on it would
+        make a reader's Parquet bytes differ from run to run
+    """
+
+    key: str
+    file: str
+    writer: str
+    schema: str | None = None
+    keyed: bool = True
+
+
+#: every file of a run folder, in the order the stages write them
+ARTEFACTS: tuple[Artefact, ...] = (
+    Artefact("frames", "frames.parquet", "ingest", "frames"),
+    Artefact("detections", "detections.parquet", "ingest", "detections"),
+    Artefact("recording", "recording.json", "ingest"),
+    Artefact("touchups", "touchups.parquet", "touchups", "touchups"),
+    Artefact("inliers", "inliers.parquet", "outliers", "inliers"),
+    Artefact("parameters", "parameters.parquet", "identify", "parameters"),
+    Artefact("residuals", "residuals.parquet", "identify", "residuals"),
+    Artefact("targets", "targets.parquet", "identify", "targets"),
+    Artefact("models", "models.json", "identify", keyed=False),
+    Artefact("model_urdfs", "calibrated_{model}.urdf", "identify"),
+    Artefact("crossval", "crossval.parquet", "crossval", "crossval"),
+    Artefact("calibrated_urdf", "calibrated.urdf", "choose"),
+    Artefact("identify", "identify.json", "choose"),
+    Artefact("report", "report.html", "report"),
+    Artefact("rrd", "run.rrd", "report"),
+    Artefact("run", "run.json", "runner"),
+)
+
+#: the one file pattern: a calibrated URDF per fitted error model (``{model}`` = its name)
+MODEL_URDF = "calibrated_{model}.urdf"
+
+#: artefact key -> file name inside a run folder (``../shared/spec/outputs.md``);
+#: the per-model URDFs (:data:`MODEL_URDF`) are named by the models fitted
+RUN_FILES = {a.key: a.file for a in ARTEFACTS if "{" not in a.file}
+
+#: artefact key -> its declaration
+BY_KEY = {a.key: a for a in ARTEFACTS}
+
+
+@dataclass(frozen=True)
+class Parquet:
+    """A stage's Parquet output: the rows and further ``vtcal.*`` metadata strings."""
+
+    data: Any
+    meta: Mapping[str, str] = field(default_factory=dict)
+
+
+@dataclass(frozen=True)
+class Stage:
+    """One stage of the pipeline.
+
+    Attributes
+    ----------
+    name : the stage's name (``--until`` takes it)
+    fn : ``module:function`` computing it: ``fn(data, config, context) -> {key: value}``
+        with ``data`` the artefacts of ``inputs`` (tables and dicts) and the
+        result holding one value per key of ``outputs``
+    inputs : artefact keys it reads (each written by an earlier stage)
+    outputs : artefact keys it writes (it is their only writer)
+    config : ``module:Class`` of its options dataclass, or None
+    code : further ``module:function`` entry points whose code decides its result
+        (the stage code key, :mod:`pipeline.code_key`)
+    optional : inputs it reads only when their stage is part of the run
+    """
+
+    name: str
+    fn: str
+    inputs: tuple[str, ...]
+    outputs: tuple[str, ...]
+    config: str | None
+    code: tuple[str, ...] = ()
+    optional: tuple[str, ...] = ()
+
+
+#: the pipeline, in run order
+STAGES: tuple[Stage, ...] = (
+    Stage(
+        "ingest",
+        "pipeline.nodes:ingest",
+        (),
+        ("frames", "detections", "recording"),
+        "pipeline.stages.ingest:IngestConfig",
+        ("pipeline.stages.ingest:ingest_recording",),
+    ),
+    Stage(
+        "touchups",
+        "pipeline.nodes:touchups",
+        ("frames", "detections", "recording"),
+        ("touchups",),
+        "pipeline.stages.touchup:TouchupConfig",
+        ("pipeline.stages.touchup:extract_touchups",),
+    ),
+    Stage(
+        "outliers",
+        "pipeline.nodes:outliers",
+        ("touchups", "recording"),
+        ("inliers",),
+        "pipeline.stages.outliers:OutlierConfig",
+        ("pipeline.stages.outliers:flag_outliers",),
+    ),
+    Stage(
+        "identify",
+        "pipeline.nodes:identify",
+        ("inliers",),
+        ("parameters", "residuals", "targets", "model_urdfs", "models"),
+        "pipeline.stages.identify:IdentifyConfig",
+        ("pipeline.stages.identify:identify",),
+    ),
+    Stage(
+        "crossval",
+        "pipeline.nodes:crossval",
+        ("inliers", "parameters", "models"),
+        ("crossval",),
+        "pipeline.stages.crossval:CrossvalConfig",
+        ("pipeline.stages.crossval:cross_validate",),
+    ),
+    Stage(
+        "choose",
+        "pipeline.nodes:choose",
+        ("models", "model_urdfs"),
+        ("calibrated_urdf", "identify"),
+        None,
+        ("pipeline.stages.choose:choose_model",),
+        optional=("crossval",),
+    ),
+    Stage(
+        "report",
+        "pipeline.nodes:report",
+        (
+            "recording",
+            "touchups",
+            "inliers",
+            "parameters",
+            "residuals",
+            "targets",
+            "crossval",
+            "identify",
+            "calibrated_urdf",
+        ),
+        ("report", "rrd"),
+        None,
+        (
+            "pipeline.report.html:build_report",
+            "pipeline.report.rrd:build_rrd",
+            "pipeline.report.outputs:build_outputs",
+        ),
+    ),
+)
+
+#: stage name -> its declaration
+STAGE = {s.name: s for s in STAGES}
+
+#: the stage names, in run order
+STAGE_NAMES = tuple(s.name for s in STAGES)
+
+
+def writer(key: str) -> str:
+    """The stage that writes artefact ``key`` (a KeyError names an undeclared file)."""
+    return BY_KEY[key].writer
 
 
 def run_paths(out: Path) -> dict[str, Path]:
     """The files a run folder holds, as paths under ``out``."""
     return {k: out / v for k, v in RUN_FILES.items()}
+
+
+def model_urdf(out: Path, model: str) -> Path:
+    """The path of error model ``model``'s calibrated URDF in run folder ``out``."""
+    return out / MODEL_URDF.format(model=model)

@@ -16,8 +16,11 @@ configuration *and the same code* (issue 15: a changed stage must not answer
   replaced at run time (a plug-in, or a test's monkeypatch) changes the key
   even though no file changed.
 
-Stages and their entry points are declared in :data:`ENTRY_POINTS`. The digest
-is what :func:`pipeline.orchestrator.run_pipeline` adds to each stage's
+Stages and their entry points are declared once, in :data:`pipeline.catalog.STAGES`
+(``Stage.code``; :data:`ENTRY_POINTS` is that column). The compiled code of the
+stage's own function (``Stage.fn``, in :mod:`pipeline.nodes`) is hashed too,
+but not the import closure of its module (it imports every stage). The digest
+is what the runner (:mod:`pipeline.runner`) adds to each stage's
 configuration hash (``config_hash`` in the Parquet metadata) and to the
 report's key in ``run.json``; the run ledger's ``code`` digest
 (:func:`pipeline.run_ledger.code_digest`) covers every file of the package, so
@@ -34,24 +37,17 @@ from functools import cache
 from pathlib import Path
 
 from pipeline import resources
+from pipeline.catalog import STAGES
 from pipeline.fileio import hash_named_files
 
 PACKAGE_DIR = Path(__file__).resolve().parent
 SCHEMA_DIR = resources.SCHEMA_DIR
 
-#: stage -> ``module:function`` entry points that compute it
-ENTRY_POINTS: dict[str, tuple[str, ...]] = {
-    "ingest": ("pipeline.stages.ingest:ingest_recording",),
-    "touchups": ("pipeline.stages.touchup:extract_touchups",),
-    "outliers": ("pipeline.stages.outliers:flag_outliers",),
-    "identify": ("pipeline.stages.identify:identify", "pipeline.stages.identify:write_outputs"),
-    "crossval": ("pipeline.orchestrator:crossval_and_choose",),
-    "report": (
-        "pipeline.report.html:build_report",
-        "pipeline.report.rrd:build_rrd",
-        "pipeline.report.outputs:build_outputs",
-    ),
-}
+#: stage -> ``module:function`` entry points that compute it (``catalog.STAGES``)
+ENTRY_POINTS: dict[str, tuple[str, ...]] = {s.name: s.code for s in STAGES}
+
+#: stage -> its function in :mod:`pipeline.nodes` (code object hashed, not its closure)
+STAGE_FUNCTIONS: dict[str, str] = {s.name: s.fn for s in STAGES}
 
 #: packages whose ``__init__`` imports every module of the package at run time
 DYNAMIC_PACKAGES = ("pipeline.models",)
@@ -176,6 +172,9 @@ def stage_code_digest(stage: str) -> str:
     """
     h = hashlib.sha256()
     modules: set[str] = set()
+    mod, attr = STAGE_FUNCTIONS[stage].split(":")
+    node = getattr(importlib.import_module(mod), attr)
+    h.update(STAGE_FUNCTIONS[stage].encode() + b"\0" + _code_bytes(node.__code__))
     for entry in ENTRY_POINTS[stage]:
         mod, attr = entry.split(":")
         modules.update(module_closure(mod))

@@ -22,8 +22,8 @@ run request (the run ledger's fingerprint: recording hash, options, vtcal
 version and code), never a path or a time. The wall-clock time a file was
 written is its modification time.
 
-Pure functions on text; the run orchestrator and ``vtcal identify`` write the
-stamped file (:func:`pipeline.orchestrator.stamp_provenance`).
+Pure functions on text; the choose stage (:mod:`pipeline.stages.choose`)
+stamps the shipped URDF and the runner writes it.
 """
 
 from __future__ import annotations

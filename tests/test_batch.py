@@ -169,7 +169,13 @@ def test_corrupt_recordings_reported_good_ones_finish(pool_batch) -> None:
     for name in ("good_a",):
         o = by[name]
         assert o.status == "ok", o.error
-        assert [s for s, _, _ in o.stages] == ["ingest", "touchups", "outliers", "identify"]
+        assert [s for s, _, _ in o.stages] == [
+            "ingest",
+            "touchups",
+            "outliers",
+            "identify",
+            "choose",
+        ]
         assert all(st == "ran" for _, st, _ in o.stages)
         assert (Path(o.run_dir) / "identify.json").exists()
         assert o.figures["rms_mm"] is not None and o.figures["rms_mm"] < 0.1
@@ -196,7 +202,7 @@ def test_summary_parquet_follows_its_schema(pool_batch) -> None:
     assert list(df["status"]) == ["ok", "error", "error"]
     assert list(df["exit_code"]) == [0, 2, 2]
     ok = df[df["status"] == "ok"]
-    assert (ok["stages_ran"] == 4).all() and (ok["model"] == ok["model"].iloc[0]).all()
+    assert (ok["stages_ran"] == 5).all() and (ok["model"] == ok["model"].iloc[0]).all()
     assert ok["n_used"].notna().all() and ok["rms_mm"].notna().all()
     bad = df[df["status"] != "ok"]
     assert bad["model"].isna().all() and (bad["error"].str.len() > 0).all()
@@ -216,12 +222,12 @@ def test_second_batch_is_cached_and_force_reruns(pool_batch, recordings) -> None
     again = run_batch(items, result.out_dir, kind="processes", workers=2, until=UNTIL)
     by = _by_name(again)
     for name in ("good_a",):
-        assert [st for _, st, _ in by[name].stages] == ["cached"] * 4
+        assert [st for _, st, _ in by[name].stages] == ["cached"] * 5
         now = {p.name: p.read_bytes() for p in Path(by[name].run_dir).glob("*.parquet")}
         assert now == files[name]
     assert by["junk"].status == "error" and by["trunc"].status == "error"
     forced = run_batch(items[:1], result.out_dir, workers=1, until=UNTIL, force=True)
-    assert [st for _, st, _ in forced.outcomes[0].stages] == ["ran"] * 4
+    assert [st for _, st, _ in forced.outcomes[0].stages] == ["ran"] * 5
 
 
 def test_interrupted_batch_resumes_where_it_stopped(
@@ -259,7 +265,7 @@ def test_interrupted_batch_resumes_where_it_stopped(
         assert status["good_b"] in ("not_run", "error")
     resumed = run_batch(items_from_paths(recs), out, workers=1, until=UNTIL)
     by = _by_name(resumed)
-    assert [st for _, st, _ in by["good_a"].stages] == ["cached"] * 4
+    assert [st for _, st, _ in by["good_a"].stages] == ["cached"] * 5
     assert by["good_b"].status == "ok"
 
 
@@ -361,7 +367,7 @@ def test_cli_batch_from_manifest(pool_batch, recordings, capsys) -> None:
     df = read_artefact(result.summary_path, "batch_summary")
     assert list(df["name"]) == ["good_a", "junk"]
     assert df["robot"].iloc[0] == "lrmate" and df["notes"].iloc[0] == "first"
-    assert df["stages_cached"].iloc[0] == 4
+    assert df["stages_cached"].iloc[0] == 5
 
 
 def test_cli_batch_needs_recordings(capsys) -> None:
@@ -440,7 +446,7 @@ def test_fully_cached_batch_starts_no_pool_and_keeps_its_files(
         assert [o.status for o in first.outcomes] == ["ok", "ok"]
         for o in first.outcomes:  # answered in this process, from the ledger
             assert o.worker.endswith(f":{os.getpid()}")
-            assert [st for _, st, _ in o.stages] == ["cached"] * 4
+            assert [st for _, st, _ in o.stages] == ["cached"] * 5
             assert o.figures["rms_mm"] is not None and o.figures["rms_mm"] < 0.1
         assert not first.reused and (out / "batch.json").exists()  # summary written once
         assert any("good_b" in line for line in first.compare_lines)
@@ -506,7 +512,7 @@ def test_batch_with_one_changed_recording_rebuilds_the_summary(
     res = run_batch(items, out, workers=2, until=UNTIL)
     assert not res.reused
     a, b = res.outcomes
-    assert a.status == "ok" and [st for _, st, _ in a.stages] == ["cached"] * 4
+    assert a.status == "ok" and [st for _, st, _ in a.stages] == ["cached"] * 5
     assert a.worker.endswith(f":{os.getpid()}")
     assert b.status == "error" and b.error_kind == "bad_input"
     assert not b.worker.endswith(f":{os.getpid()}")  # sent to a worker

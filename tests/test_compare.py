@@ -14,8 +14,9 @@ from pipeline.compare import compare_runs, render_html
 from pipeline.errors import BadInput
 from pipeline.evaluate import perturbed_chain, random_deviations, synthetic_touchups
 from pipeline.kinematics.chain import Chain, load_chain
+from pipeline.runner import write_fits
 from pipeline.stages.crossval import CrossvalConfig, cross_validate
-from pipeline.stages.identify import IdentifyConfig, identify, write_outputs
+from pipeline.stages.identify import IdentifyConfig, identify
 
 URDF = (Path(__file__).resolve().parent.parent / "pipeline/robots/lrmate.urdf").read_text()
 PIN = np.array([0.01, -0.02, 0.2])
@@ -30,7 +31,7 @@ def make_run(out: Path, true: Chain, seed: int, *, crossval: bool = False) -> Pa
                                  spread_rad=0.9, centre_spread_rad=0.9)  # fmt: skip
     cfg = IdentifyConfig(model="full", distances=[(0, 3, float(np.linalg.norm(tg[0] - tg[3])))])
     res = identify(tab, URDF, "base_link", "flange", cfg)
-    write_outputs(res, out)
+    write_fits(res, out)
     (out / "recording.json").write_text(json.dumps({"urdf": URDF}))
     if crossval:
         cv = cross_validate(tab, URDF, "base_link", "flange", cfg, CrossvalConfig(loto=False))

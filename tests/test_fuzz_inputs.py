@@ -298,10 +298,11 @@ def base_table() -> Case:
 
 
 def identify_and_write(df: pd.DataFrame, urdf: str, out: Path) -> None:
-    from pipeline.stages.identify import IdentifyConfig, identify, write_outputs
+    from pipeline.runner import write_fits
+    from pipeline.stages.identify import IdentifyConfig, identify
 
     res = identify(df, urdf, "base_link", "flange", IdentifyConfig(model="offsets", n_workspace=20))
-    write_outputs(res, out)
+    write_fits(res, out)
 
 
 @given(ops=st.lists(_table_op, min_size=1, max_size=4))

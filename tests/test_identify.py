@@ -19,7 +19,8 @@ from pipeline.evaluate import (
 )
 from pipeline.kinematics import load_chain
 from pipeline.robots import builtin_urdf
-from pipeline.stages.identify import IdentifyConfig, identify, write_outputs
+from pipeline.runner import write_fits
+from pipeline.stages.identify import IdentifyConfig, identify
 
 PIN = np.array([0.0167, -0.0101, 0.2524])
 LRMATE_CENTRE = np.array([-0.73, 0.18, -0.45, 0.34, -0.57, -0.32])
@@ -188,7 +189,7 @@ def test_all_models_and_outputs(tmp_path):
     urdf, nominal, true, table, targets = _case(seed=8, per_target=12, noise_q=1e-6, noise_pin=1e-5)
     results = identify(table, urdf, "base_link", "flange", IdentifyConfig(model="all"))
     assert set(results) == {"full", "mdh", "poe", "offsets", "elastic"}
-    paths = write_outputs(results, tmp_path)
+    paths = write_fits(results, tmp_path)
     params = read_artefact(paths["parameters"], "parameters")
     assert set(params.model) == set(results)
     read_artefact(paths["residuals"], "residuals")

@@ -123,6 +123,7 @@ def test_second_run_is_cached_and_identical(sample_run: Path, tmp_path: Path) ->
         "outliers": "cached",
         "identify": "cached",
         "crossval": "cached",
+        "choose": "cached",
         "report": "cached",
     }
     assert {n: (sample_run / n).read_bytes() for n in STAGE_ARTEFACTS.values()} == before

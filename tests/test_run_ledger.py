@@ -24,7 +24,7 @@ from pipeline.orchestrator import RunConfig, cached_run, run_pipeline
 REPO = Path(__file__).resolve().parent.parent
 SAMPLE = REPO / "datasets" / "samples" / "sample_lrmate.mcap"
 UNTIL = "identify"
-STAGES = ["ingest", "touchups", "outliers", "identify"]
+STAGES = ["ingest", "touchups", "outliers", "identify", "choose"]
 #: what a cached run must not load (the point of the ledger)
 HEAVY = ("pandas", "pyarrow", "scipy", "cv2", "numba", "pipeline.stages.ingest")
 
@@ -39,7 +39,7 @@ def first_run(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, Path]:
     shutil.copyfile(SAMPLE, rec)
     out = d / "run"
     res = run_pipeline(rec, out, until=UNTIL)
-    assert [s.status for s in res.stages] == ["ran"] * 4
+    assert [s.status for s in res.stages] == ["ran"] * 5
     return rec, out
 
 
@@ -64,7 +64,8 @@ def test_run_json_records_fingerprint_and_artefact_hashes(first_run) -> None:
     # every output of every stage that ran, with its content hash; run.json itself not
     want = {"frames.parquet", "detections.parquet", "recording.json", "touchups.parquet"}
     want |= {"inliers.parquet", "parameters.parquet", "residuals.parquet", "targets.parquet"}
-    want |= {"calibrated.urdf", "identify.json"}
+    want |= {"calibrated.urdf", "identify.json", "models.json"}
+    want |= {f"calibrated_{m}.urdf" for m in json.loads((out / "models.json").read_text())["order"]}
     assert set(led["artefacts"]) == want
     for name, h in led["artefacts"].items():
         assert h == run_ledger.file_hash(out / name)
@@ -74,12 +75,12 @@ def test_unchanged_run_is_answered_by_the_ledger(run_copy) -> None:
     rec, out = run_copy
     hit = cached_run(rec, out, until=UNTIL)
     assert hit is not None
-    assert [s.stage for s in hit.stages] == STAGES and _statuses(hit) == ["cached"] * 4
+    assert [s.stage for s in hit.stages] == STAGES and _statuses(hit) == ["cached"] * 5
     assert hit.summary == json.loads((out / "identify.json").read_text())
     assert hit.summary["rms_mm"] < 0.1
     # run.json now says what a run with every stage cached says, ledger kept
     run = json.loads((out / "run.json").read_text())
-    assert [s["status"] for s in run["stages"]] == ["cached"] * 4
+    assert [s["status"] for s in run["stages"]] == ["cached"] * 5
     assert cached_run(rec, out, until=UNTIL) is not None
 
 
@@ -113,7 +114,7 @@ def test_one_changed_artefact_byte_misses_and_only_its_stage_reruns(run_copy) ->
     _flip_last_byte(out / "inliers.parquet")  # Parquet footer broken
     assert cached_run(rec, out, until=UNTIL) is None
     res = run_pipeline(rec, out, until=UNTIL)
-    assert _statuses(res) == ["cached", "cached", "ran", "cached"]
+    assert _statuses(res) == ["cached", "cached", "ran", "cached", "cached"]
     assert (out / "inliers.parquet").read_bytes() == before  # deterministic: same bytes again
     assert cached_run(rec, out, until=UNTIL) is not None  # ledger written anew
 
@@ -122,12 +123,13 @@ def test_missing_artefact_or_stale_temporary_misses(run_copy) -> None:
     rec, out = run_copy
     (out / "calibrated.urdf").unlink()
     assert cached_run(rec, out, until=UNTIL) is None
-    assert _statuses(run_pipeline(rec, out, until=UNTIL)) == ["cached"] * 3 + ["ran"]
+    # the choice writes calibrated.urdf again; the fits it is made from stay cached
+    assert _statuses(run_pipeline(rec, out, until=UNTIL)) == ["cached"] * 4 + ["ran"]
     assert cached_run(rec, out, until=UNTIL) is not None
     stale = out / ".frames.parquet.abc123.tmp"  # what a kill mid-write leaves
     stale.write_bytes(b"half")
     assert cached_run(rec, out, until=UNTIL) is None
-    assert _statuses(run_pipeline(rec, out, until=UNTIL)) == ["cached"] * 4
+    assert _statuses(run_pipeline(rec, out, until=UNTIL)) == ["cached"] * 5
     assert not stale.exists()
 
 
@@ -136,13 +138,14 @@ def test_other_options_miss_and_rerun_what_they_change(run_copy) -> None:
     offsets = RunConfig(stage_options={"identify": {"model": "offsets"}})
     assert cached_run(rec, out, offsets, until=UNTIL) is None
     res = run_pipeline(rec, out, offsets, until=UNTIL)
-    assert _statuses(res) == ["cached", "cached", "cached", "ran"]
+    assert _statuses(res) == ["cached", "cached", "cached", "ran", "ran"]
     assert cached_run(rec, out, offsets, until=UNTIL) is not None
     assert cached_run(rec, out, until=UNTIL) is None  # the default options are not this run
-    # an option no stage up to identify reads: a ledger miss, every stage cached
+    # an option no stage up to identify reads: a ledger miss, every fit cached; the
+    # provenance block's run id hashes the request, so calibrated.urdf is restamped
     no_report = RunConfig(report=False, stage_options={"identify": {"model": "offsets"}})
     assert cached_run(rec, out, no_report, until=UNTIL) is None
-    assert _statuses(run_pipeline(rec, out, no_report, until=UNTIL)) == ["cached"] * 4
+    assert _statuses(run_pipeline(rec, out, no_report, until=UNTIL)) == ["cached"] * 4 + ["ran"]
 
 
 def test_other_until_misses_and_the_stages_are_cached(run_copy) -> None:

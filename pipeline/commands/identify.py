@@ -3,14 +3,13 @@
     vtcal identify TABLE.{parquet,csv} --urdf ROBOT.urdf --out DIR
         [--base-link L] [--flange-link L] [--distance A:B=METRES ...] [--model NAME|all]
 
-Writes ``parameters.parquet``, ``residuals.parquet``, ``targets.parquet``,
-``calibrated.urdf`` and ``identify.json`` into ``DIR`` (see
-``docs/identification.md``).
+The runner (:mod:`pipeline.runner`) started at identify with the table given:
+identify, crossval, choose and report write into ``DIR`` what ``vtcal run``
+writes from identification on (see ``docs/identification.md``).
 """
 
 from __future__ import annotations
 
-import dataclasses
 import io
 import json
 import xml.etree.ElementTree as ET
@@ -105,25 +104,6 @@ def infer_links(urdf: str) -> tuple[str, str]:
         path.append(link)
     flange = "flange" if "flange" in path else path[-1]
     return roots[0], flange
-
-
-def _integer_target_ids(df: pd.DataFrame, cfg: Any) -> tuple[pd.DataFrame, Any]:
-    """Table and config with target labels as integers 0, 1, ... in first-appearance order.
-
-    The spec lets ``target_id`` be a string; cross-validation's artefact keys
-    targets by integer, so string labels (and the known distances naming them)
-    are numbered in the order the table first names them.
-    """
-    if pd.api.types.is_integer_dtype(df["target_id"]):
-        return df, cfg
-    labels = list(dict.fromkeys(df["target_id"].astype(str)))
-    code = {lab: i for i, lab in enumerate(labels)}
-    out = df.copy()
-    out["target_id"] = df["target_id"].astype(str).map(code).astype("int64")
-    distances = [
-        (code.get(str(a), a), code.get(str(b), b), metres) for a, b, metres in cfg.distances
-    ]
-    return out, dataclasses.replace(cfg, distances=distances)
 
 
 def _table_source(table: Path, urdf_path: Path, df: pd.DataFrame, conf: dict[str, Any]) -> Any:
@@ -222,7 +202,8 @@ def command(
     virtual_pin), identify.json, crossval.parquet, report.html and run.rrd.
     """
     from pipeline.known_distances import parse_distances
-    from pipeline.stages.identify import IdentifyConfig, identify, write_outputs
+    from pipeline.stages.crossval import CrossvalConfig
+    from pipeline.stages.identify import IdentifyConfig
 
     df = read_table(table)
     try:
@@ -247,8 +228,27 @@ def command(
         robust_loss=robust_loss,
         accept_implausible=accept_implausible,
     )
+    conf = {
+        "model": model,
+        "distances": distances,
+        "robust_loss": robust_loss,
+        "accept_implausible": accept_implausible,
+    }
+    from pipeline.runner import Context, plan, run_stages
+
+    names = plan(None, crossval=not no_crossval, report=not no_report)
+    names = names[names.index("identify") :]
+    ctx = Context(
+        out_dir,
+        configs={"identify": cfg, "crossval": CrossvalConfig()},
+        robot=(urdf, base_link, flange_link),
+        source=_table_source(table, urdf_path, df, conf),
+        tolerance_mm=tolerance_mm,
+        given={"inliers": df},
+        force=True,  # the table is not a run-folder file: nothing to find fresh
+    )
     try:
-        result = identify(df, urdf, base_link, flange_link, cfg)
+        run_stages(names, ctx, names)
     except BadInput as exc:
         msg = str(exc)
         if msg.startswith("touch-up table"):  # name the file
@@ -256,39 +256,7 @@ def command(
         if msg.startswith("URDF"):
             raise BadInput(f"{urdf_path}: {msg}") from exc
         raise
-    conf = {
-        "model": model,
-        "distances": distances,
-        "robust_loss": robust_loss,
-        "accept_implausible": accept_implausible,
-    }
-    paths = write_outputs(result, out_dir, stage_config=conf, inputs={})
-    written = [p.name for p in paths.values()]
-    if not no_crossval:
-        from pipeline.orchestrator import crossval_and_choose
-        from pipeline.stages.crossval import CrossvalConfig
-
-        df_cv, cfg_cv = _integer_target_ids(df, cfg)
-        crossval_and_choose(
-            out_dir,
-            df_cv,
-            urdf,
-            base_link,
-            flange_link,
-            cfg_cv,
-            CrossvalConfig(),
-            stage_config=conf,
-            inputs={},
-        )
-        written.append("crossval.parquet")
-    from pipeline.orchestrator import stamp_provenance
-
-    stamp_provenance(out_dir, _table_source(table, urdf_path, df, conf))
-    if not no_report:
-        from pipeline.orchestrator import render_outputs
-
-        render_outputs(out_dir, tolerance_mm)
-        written += ["report.html", "run.rrd"]
+    written = [name for r in ctx.records for name in r.outputs]
     summary = json.loads((out_dir / "identify.json").read_text())
     for line in summary.get("headline", []):
         click.echo(line)

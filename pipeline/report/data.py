@@ -28,9 +28,10 @@ from pipeline.catalog import RUN_FILES
 from pipeline.kinematics.chain import Chain, fk_frames, load_chain
 from pipeline.kinematics.urdf import RobotDescription, parse_urdf
 
-#: artefact name -> file name inside a run folder, by kind (names from the orchestrator)
+#: artefact name -> file name inside a run folder, by kind (names from the catalogue);
+#: models.json is identify's input to the choice: identify.json holds all it says
 PARQUET = {k: v for k, v in RUN_FILES.items() if v.endswith(".parquet")}
-JSONS = {k: v for k, v in RUN_FILES.items() if v.endswith(".json")}
+JSONS = {k: RUN_FILES[k] for k in ("recording", "identify", "run")}
 TEXTS = {"calibrated_urdf": RUN_FILES["calibrated_urdf"]}
 #: files whose content the outputs show: their hashes make the deterministic recording id
 #: (run.json is left out: it holds wall-clock timings, not results)

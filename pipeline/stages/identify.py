@@ -53,7 +53,6 @@ import math
 import time
 from dataclasses import dataclass, field
 from functools import lru_cache
-from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -1464,88 +1463,39 @@ def best_result(results: IdentifyResult | dict[str, IdentifyResult]) -> Identify
     return min(results.values(), key=lambda r: r.summary["rms_mm"])
 
 
-def write_outputs(
-    results: IdentifyResult | dict[str, IdentifyResult],
-    out_dir: str | Path,
-    *,
-    stage_config: dict[str, Any] | None = None,
-    inputs: dict[str, str] | None = None,
-) -> dict[str, Path]:
-    """Write parameters/residuals/targets artefacts, ``calibrated.urdf`` and ``identify.json``.
+def fit_outputs(results: IdentifyResult | dict[str, IdentifyResult]) -> dict[str, Any]:
+    """What the identify stage writes, as data (the runner writes it).
 
-    With several models every table holds all of them (``model`` column),
-    ``calibrated.urdf`` is the :func:`best_result`'s and each model also gets
-    ``calibrated_MODEL.urdf``.
+    Returns
+    -------
+    dict with ``parameters``, ``residuals``, ``targets``: every model's rows in
+    one table (``model`` column), as :class:`pipeline.catalog.Parquet` with the
+    :func:`best_result`'s ``scale_held`` and ``model`` in the metadata;
+    ``model_urdfs``: ``{model: calibrated URDF text}``; ``models``: the JSON
+    document ``{"models": {model: summary}, "order": [model, ...], "best_model": name}``
+    (NaN as null; ``order``: the order the models were fitted, which headlines follow)
+    from which the choose stage (:mod:`pipeline.stages.choose`) makes identify.json.
     """
-    from pipeline.artefacts import atomic_write_bytes, write_artefact
+    from pipeline.catalog import Parquet
 
-    out = Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
     many = results if isinstance(results, dict) else {results.model: results}
     best = best_result(results)
-    paths = {
-        "parameters": out / "parameters.parquet",
-        "residuals": out / "residuals.parquet",
-        "targets": out / "targets.parquet",
-        "calibrated_urdf": out / "calibrated.urdf",
-        "identify": out / "identify.json",
-    }
-    kw = {"stage": "identify", "config": stage_config or {}, "inputs": inputs or {}}
     meta = {"scale_held": json.dumps(best.summary["scale_held"]), "model": best.model}
-    write_artefact(
-        paths["parameters"],
-        pd.concat([r.parameters for r in many.values()], ignore_index=True),
-        "parameters",
-        extra_meta=meta,
-        **kw,  # type: ignore[arg-type]
-    )
-    write_artefact(
-        paths["residuals"],
-        pd.concat([r.residuals for r in many.values()], ignore_index=True),
-        "residuals",
-        extra_meta=meta,
-        **kw,  # type: ignore[arg-type]
-    )
-    write_artefact(
-        paths["targets"],
-        pd.concat([r.targets for r in many.values()], ignore_index=True),
-        "targets",
-        extra_meta=meta,
-        **kw,  # type: ignore[arg-type]
-    )
-    atomic_write_bytes(paths["calibrated_urdf"], best.calibrated_urdf.encode())
-    if len(many) > 1:
-        for n, r in many.items():
-            p = out / f"calibrated_{n}.urdf"
-            atomic_write_bytes(p, r.calibrated_urdf.encode())
-            paths[f"calibrated_urdf_{n}"] = p
-    summary = shipped_summary({n: r.summary for n, r in many.items()}, best.model)
-    atomic_write_bytes(
-        paths["identify"],
-        json.dumps(_finite(summary), indent=2, default=_json_default, allow_nan=False).encode(),
-    )
-    return paths
-
-
-def shipped_summary(models: dict[str, dict[str, Any]], shipped: str) -> dict[str, Any]:
-    """identify.json: the shipped model's own summary at the top, every model under ``models``.
-
-    Every top-level figure (residual, conditioning, predicted accuracy, counts) is
-    the shipped model's; other models' figures appear only under their names.
-    The headline: each model's first line, the shipped model, then the shipped
-    model's last line.
-    """
-    out = dict(models[shipped])
-    out["models"] = models
-    out["best_model"] = shipped
-    if len(models) > 1:
-        out["headline"] = [
-            line for m in models.values() for line in list(m.get("headline", []))[:1]
-        ] + [
-            f"calibrated.urdf from model {shipped}",
-            *list(models[shipped].get("headline", []))[-1:],
-        ]
-    return out
+    tables = {
+        key: Parquet(pd.concat([getattr(r, key) for r in many.values()], ignore_index=True), meta)
+        for key in ("parameters", "residuals", "targets")
+    }
+    doc = {
+        "models": {n: r.summary for n, r in many.items()},
+        "order": list(many),  # the order fitted (JSON files sort their keys)
+        "best_model": best.model,
+    }
+    text = json.dumps(_finite(doc), default=_json_default, allow_nan=False)
+    return {
+        **tables,
+        "model_urdfs": {n: r.calibrated_urdf for n, r in many.items()},
+        "models": json.loads(text),
+    }
 
 
 def _finite(o: Any) -> Any:

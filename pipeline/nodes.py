@@ -1,0 +1,149 @@
+"""The stage functions the runner calls: data in, data out, one per row of ``catalog.STAGES``.
+
+Each ``NAME(data, config, context)`` takes the artefacts its stage reads
+(``data``: DataFrames for Parquet, dicts for JSON, text for URDFs), its options
+and the run's context (:class:`pipeline.runner.Context`: the recording, the
+robot, the provenance source), calls the stage's computation in
+``pipeline/stages/`` and returns ``{artefact key: value}`` for the runner to
+write. Nothing here writes a file, except the report (its two files are
+written by the HTML and Rerun writers themselves).
+
+The computations are looked up on their modules at call time, so a function
+replaced at run time is the one that runs (and the one the stage code key
+hashes, :mod:`pipeline.code_key`).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+from typing import Any
+
+from pipeline.catalog import Parquet
+
+
+def _info(recording: dict[str, Any]) -> Any:
+    """``recording.json`` as the :class:`~pipeline.stages.ingest.RecordingInfo` stages take."""
+    from pipeline.stages.ingest import RecordingInfo
+
+    return RecordingInfo(**recording)
+
+
+def ingest(data: dict[str, Any], config: dict[str, Any], context: Any) -> dict[str, Any]:
+    """frames, detections and recording.json from the recording (one streaming pass)."""
+    from pipeline.stages import ingest as stage
+    from pipeline.stages.detect_compile import compile_detector
+
+    progress = context.progress
+
+    def cb(done: int, total: int | None) -> None:
+        if progress:
+            progress("ingest", done, total)
+
+    # a fresh install compiles the detector first (~10-20 s): never a silent wait
+    slow: list[bool] = []
+
+    def announce() -> None:
+        slow.append(True)
+        if progress:
+            progress("compile", 0, None)
+
+    compile_detector(config["detect"], on_slow=announce)
+    if slow and progress:
+        progress("compile", 1, 1)
+    frames, detections, info = stage.ingest_recording(
+        context.recording.resolve(), config["ingest"], config["detect"], progress=cb
+    )
+    joint_meta = {"joint_names": json.dumps(list(info.joint_names))}
+    return {
+        "frames": Parquet(frames, joint_meta),
+        "detections": Parquet(detections),
+        "recording": info,
+    }
+
+
+def touchups(data: dict[str, Any], config: Any, context: Any) -> dict[str, Any]:
+    """touchups.parquet from frames and detections (its implied target size in the metadata)."""
+    from pipeline.stages import touchup
+
+    table = touchup.extract_touchups(
+        data["frames"], data["detections"], _info(data["recording"]), config
+    )
+    implied = table.attrs.get("implied_target_diameter_m", float("nan"))
+    return {"touchups": Parquet(table, {"implied_target_diameter_m": repr(float(implied))})}
+
+
+def outliers(data: dict[str, Any], config: Any, context: Any) -> dict[str, Any]:
+    """inliers.parquet: every touch-up, flagged (with the reason of each rejection)."""
+    from pipeline.stages import outliers as stage
+
+    return {"inliers": stage.flag_outliers(data["touchups"], _info(data["recording"]), config)}
+
+
+def identify(data: dict[str, Any], config: Any, context: Any) -> dict[str, Any]:
+    """Every asked-for error model fitted: the three tables, models.json, one URDF per model."""
+    from pipeline.stages import identify as stage
+
+    urdf, base_link, flange_link = context.robot
+    results = stage.identify(data["inliers"], urdf, base_link, flange_link, config)
+    return stage.fit_outputs(results)
+
+
+def integer_target_ids(table: Any, config: Any) -> tuple[Any, Any]:
+    """Table and identify config with target labels as integers 0, 1, ... in first-appearance order.
+
+    The spec lets ``target_id`` be a string; cross-validation's artefact keys
+    targets by integer, so string labels (and the known distances naming them)
+    are numbered in the order the table first names them. Integer labels are
+    returned as they are.
+    """
+    import pandas as pd
+
+    if pd.api.types.is_integer_dtype(table["target_id"]):
+        return table, config
+    labels = list(dict.fromkeys(table["target_id"].astype(str)))
+    code = {lab: i for i, lab in enumerate(labels)}
+    out = table.copy()
+    out["target_id"] = table["target_id"].astype(str).map(code).astype("int64")
+    distances = [
+        (code.get(str(a), a), code.get(str(b), b), metres) for a, b, metres in config.distances
+    ]
+    return out, dataclasses.replace(config, distances=distances)
+
+
+def crossval(data: dict[str, Any], config: Any, context: Any) -> dict[str, Any]:
+    """crossval.parquet: held-out residuals per model; its summary rides in the metadata."""
+    from pipeline.stages import crossval as stage
+
+    urdf, base_link, flange_link = context.robot
+    table, id_config = integer_target_ids(data["inliers"], context.configs["identify"])
+    models = data["models"].get("models")
+    result = stage.cross_validate(
+        table,
+        urdf,
+        base_link,
+        flange_link,
+        id_config,
+        config,
+        full_fits=models if isinstance(models, dict) else None,
+    )
+    summary = json.dumps(result.summary, sort_keys=True, allow_nan=False)
+    return {"crossval": Parquet(result.table, {"summary": summary})}
+
+
+def choose(data: dict[str, Any], config: Any, context: Any) -> dict[str, Any]:
+    """calibrated.urdf and identify.json: the shipped model (:mod:`pipeline.stages.choose`)."""
+    from pipeline.stages import choose as stage
+
+    cv = data.get("crossval")
+    summary = None if cv is None else json.loads(cv.attrs["vtcal"]["summary"])
+    urdf, shipped = stage.choose_model(data["models"], data["model_urdfs"], summary, context.source)
+    return {"calibrated_urdf": urdf, "identify": shipped}
+
+
+def report(data: dict[str, Any], config: Any, context: Any) -> dict[str, Any]:
+    """report.html and run.rrd from the run folder's artefacts alone (written by their writers)."""
+    from pipeline.report import outputs
+
+    html, rrd = outputs.build_outputs(context.out, context.tolerance_mm)
+    return {"report": html, "rrd": rrd}

@@ -1,0 +1,405 @@
+"""The runner: walks ``catalog.STAGES``, skips fresh stages, and is the only writer.
+
+For each stage of a plan the runner
+
+1. hashes the files the stage reads (``Stage.inputs``; data handed in by the
+   caller, :attr:`Context.given`, has no file and so no hash) and builds the
+   stage's cache key: those hashes plus ``{"stage", "config", "code"}``
+   (:func:`pipeline.code_key.stage_code_digest`);
+2. skips the stage when its outputs are fresh (:func:`is_fresh`: every output
+   exists and its Parquet metadata records these inputs and this key);
+3. otherwise reads its inputs (lazily: a stage reads only what it asks for),
+   calls ``Stage.fn(data, config, context)`` and writes what it returns, by the
+   artefact's kind (:func:`write_output`): Parquet checked against its schema,
+   JSON, text; Parquet first, so a JSON side file present means the stage finished.
+
+Two stages are keyed differently. ``choose`` is cheap and writes no Parquet:
+it always runs, and a file is rewritten only when its bytes change ("cached"
+when none did). ``report`` is keyed in ``run.json`` (``report_inputs``: the
+hashes of what it reads, its code and the tolerance it judges with), and its
+two files are written by the HTML and Rerun writers.
+
+``vtcal run`` starts the runner at ingest (:func:`pipeline.orchestrator.run_pipeline`),
+``vtcal identify`` at identify with the touch-up table given
+(:mod:`pipeline.commands.identify`).
+"""
+
+from __future__ import annotations
+
+import importlib
+import json
+import time
+from collections.abc import Callable, Iterator, Mapping
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from pipeline import __version__
+from pipeline.catalog import BY_KEY, STAGE, STAGE_NAMES, Parquet, Stage, model_urdf, run_paths
+from pipeline.code_key import stage_code_digest
+from pipeline.errors import BadInput
+from pipeline.fileio import atomic_write_bytes, config_hash, file_hash
+from pipeline.jsonio import json_bytes, jsonable
+
+#: Reports progress of a long stage: ``(stage, done, total or None)``.
+Progress = Callable[[str, int, int | None], None]
+
+
+@dataclass
+class StageRecord:
+    """What happened to one stage in a run."""
+
+    stage: str
+    status: str  # "ran", "cached", "skipped"
+    outputs: list[str] = field(default_factory=list)
+    seconds: float = 0.0
+    note: str = ""
+
+
+@dataclass
+class Context:
+    """What a run's stages know besides their input artefacts and options.
+
+    Attributes
+    ----------
+    out : the run folder
+    configs : ``{stage: options}`` of every stage of the plan; a function in
+        their place is called when the stage starts (options that depend on an
+        earlier stage's output)
+    recording : the recording (ingest reads it), None when starting later
+    recording_hash : its content hash (ingest's cache key)
+    robot : ``(URDF text, base link, flange link)`` the fits use
+    source : :class:`pipeline.provenance.Source` stamped into calibrated.urdf, or None
+    tolerance_mm : the report's PASS/FAIL tolerance (None: run.json's, else the recording's)
+    given : ``{artefact key: data}`` handed in instead of a file (``vtcal identify``'s table)
+    force : rerun stages even when fresh
+    ledger : write the stage table to ``run.json`` before the report (``vtcal run``)
+    progress : progress callback
+    records : what each stage did, in order (filled by :func:`run_stages`)
+    """
+
+    out: Path
+    configs: dict[str, Any] = field(default_factory=dict)
+    recording: Path | None = None
+    recording_hash: str | None = None
+    robot: tuple[str, str, str] | None = None
+    source: Any = None
+    tolerance_mm: float | None = None
+    given: dict[str, Any] = field(default_factory=dict)
+    force: bool = False
+    ledger: bool = False
+    progress: Progress | None = None
+    records: list[StageRecord] = field(default_factory=list)
+
+
+def plan(until: str | None, *, crossval: bool = True, report: bool = True) -> list[str]:
+    """The stages a run makes: every stage up to ``until``, and ``choose`` after identify.
+
+    The shipped calibration (``calibrated.urdf``, ``identify.json``) is chosen
+    whenever models were fitted: ``--until identify`` ships identify's training
+    choice, ``--until crossval`` the held-out one.
+    """
+    if until is not None and until not in STAGE_NAMES:
+        raise BadInput(f"--until {until!r}: not a stage (stages: {', '.join(STAGE_NAMES)})")
+    names = list(STAGE_NAMES[: STAGE_NAMES.index(until) + 1] if until else STAGE_NAMES)
+    if "identify" in names and "choose" not in names:
+        names.append("choose")
+    return [n for n in names if (crossval or n != "crossval") and (report or n != "report")]
+
+
+def is_fresh(outputs: list[Path], inputs: Mapping[str, str], config: Mapping[str, Any]) -> bool:
+    """True when every output exists and its Parquet metadata records these inputs and config.
+
+    Non-Parquet outputs only need to exist (and a JSON one to parse); they are
+    written after the stage's Parquet artefacts, so their presence plus a fresh
+    Parquet means the stage finished.
+    """
+    from pipeline.artefacts import read_meta
+
+    want_cfg = config_hash(config)
+    parquet = [p for p in outputs if p.suffix == ".parquet"]
+    if not all(p.exists() for p in outputs) or not parquet:
+        return False
+    for p in outputs:  # a damaged (hand-edited, copied half) JSON side file: redo the stage
+        if p.suffix == ".json":
+            try:
+                json.loads(p.read_text())
+            except (OSError, ValueError):
+                return False
+    for p in parquet:
+        try:
+            meta = read_meta(p)
+        except Exception:
+            return False
+        if (
+            meta.get("version") != __version__
+            or meta.get("config_hash") != want_cfg
+            or json.loads(meta.get("inputs", "{}")) != dict(inputs)
+        ):
+            return False
+    return True
+
+
+def hashes(paths: Mapping[str, Path]) -> dict[str, str]:
+    """``{name: file hash}`` of existing input files."""
+    missing = [str(p) for p in paths.values() if not p.exists()]
+    if missing:
+        raise BadInput(f"missing input artefact(s): {', '.join(missing)}")
+    return {name: file_hash(p) for name, p in sorted(paths.items())}
+
+
+def _model_names(out: Path) -> list[str] | None:
+    """The models identify fitted, from ``models.json`` (None when absent or unreadable)."""
+    try:
+        return list(json.loads(run_paths(out)["models"].read_text())["models"])
+    except (OSError, ValueError, KeyError, TypeError):
+        return None
+
+
+def output_paths(stage: Stage, out: Path) -> list[Path]:
+    """The files ``stage`` writes into ``out`` (per-model URDFs as ``models.json`` names them)."""
+    P = run_paths(out)
+    paths: list[Path] = []
+    for key in stage.outputs:
+        if key == "model_urdfs":
+            names = _model_names(out)
+            paths += [model_urdf(out, m) for m in names] if names else [out / "models.json.missing"]
+        else:
+            paths.append(P[key])
+    return paths
+
+
+def load_input(key: str, out: Path) -> Any:
+    """Artefact ``key`` of run folder ``out`` as a stage takes it.
+
+    Parquet: a DataFrame (schema checked) with its ``vtcal.*`` metadata in
+    ``attrs["vtcal"]``; JSON: a dict; the per-model URDFs: ``{model: text}``.
+    """
+    if key == "model_urdfs":
+        return {m: model_urdf(out, m).read_text() for m in _model_names(out) or []}
+    art = BY_KEY[key]
+    path = out / art.file
+    if art.schema is not None:
+        from pipeline.artefacts import read_artefact, read_meta
+
+        table = read_artefact(path, art.schema)
+        table.attrs["vtcal"] = read_meta(path)
+        return table
+    if path.suffix == ".json":
+        return json.loads(path.read_text())
+    return path.read_text()
+
+
+class Inputs(Mapping[str, Any]):
+    """A stage's input artefacts, read on first use (given data first)."""
+
+    def __init__(self, keys: list[str], context: Context) -> None:
+        self._keys = keys
+        self._context = context
+        self._cache: dict[str, Any] = {}
+
+    def __getitem__(self, key: str) -> Any:
+        if key not in self._keys:
+            raise KeyError(key)
+        if key not in self._cache:
+            given = self._context.given
+            self._cache[key] = given[key] if key in given else load_input(key, self._context.out)
+        return self._cache[key]
+
+    def __iter__(self) -> Iterator[str]:
+        return iter(self._keys)
+
+    def __len__(self) -> int:
+        return len(self._keys)
+
+
+def write_output(
+    key: str, value: Any, out: Path, *, stage: str, config: Mapping[str, Any], inputs: Any
+) -> list[Path]:
+    """Write one output of a stage by its artefact's kind; the paths written.
+
+    Parquet (:class:`pipeline.catalog.Parquet` or a DataFrame): checked against
+    its schema, with the stage's key in the metadata. JSON: sorted keys
+    (:func:`pipeline.jsonio.json_bytes`). URDF: text. Per-model URDFs: one file each. A path (the report's
+    files): already written by its writer.
+    """
+    if isinstance(value, Path):
+        return [value]
+    if key == "model_urdfs":
+        paths = [model_urdf(out, m) for m in value]
+        for p, text in zip(paths, value.values(), strict=True):
+            atomic_write_bytes(p, text.encode())
+        return paths
+    art = BY_KEY[key]
+    path = out / art.file
+    if art.schema is not None:
+        from pipeline.artefacts import write_artefact
+
+        table = value if isinstance(value, Parquet) else Parquet(value)
+        write_artefact(
+            path,
+            table.data,
+            art.schema,
+            stage=stage,
+            config=config,
+            inputs=inputs,
+            extra_meta=table.meta,
+        )
+    elif path.suffix == ".json":
+        atomic_write_bytes(path, json_bytes(value))
+    else:
+        atomic_write_bytes(path, str(value).encode())
+    return [path]
+
+
+def _write_changed(outputs: Mapping[str, Any], out: Path) -> bool:
+    """Write the outputs of an always-computed stage whose bytes changed; True if any did."""
+    changed = False
+    for key, value in outputs.items():
+        path = out / BY_KEY[key].file
+        blob = json_bytes(value) if path.suffix == ".json" else value.encode()
+        if not path.is_file() or path.read_bytes() != blob:
+            atomic_write_bytes(path, blob)
+            changed = True
+    return changed
+
+
+def input_hashes(stage: Stage, context: Context, names: list[str]) -> dict[str, str]:
+    """The cache key's inputs: hashes of the files ``stage`` reads.
+
+    Given data has no file, hence no hash; an artefact declared ``keyed=False``
+    (``models.json``: its writer's Parquet outputs, read too, key its results)
+    is left out.
+    """
+    if stage.name == "ingest":
+        return {"recording": str(context.recording_hash)}
+    P = run_paths(context.out)
+    keys = [k for k in stage.inputs if k in P and k not in context.given]
+    keys += [k for k in stage.optional if BY_KEY[k].writer in names]
+    return hashes({k: P[k] for k in keys if BY_KEY[k].keyed})
+
+
+def stage_config(name: str, context: Context) -> Any:
+    """The options of stage ``name`` (built now when given as a function)."""
+    import dataclasses
+
+    conf = context.configs.get(name)
+    if callable(conf) and not dataclasses.is_dataclass(conf):
+        conf = context.configs[name] = conf()
+    return conf
+
+
+def _call(stage: Stage, context: Context, names: list[str]) -> dict[str, Any]:
+    mod, attr = stage.fn.split(":")
+    fn = getattr(importlib.import_module(mod), attr)
+    keys = [*stage.inputs, *(k for k in stage.optional if BY_KEY[k].writer in names)]
+    result: dict[str, Any] = fn(Inputs(keys, context), stage_config(stage.name, context), context)
+    return result
+
+
+def report_key(context: Context) -> dict[str, str]:
+    """The report's cache key (kept in ``run.json``): its inputs' hashes, code, tolerance."""
+    stage = STAGE["report"]
+    P = run_paths(context.out)
+    key = hashes({k: P[k] for k in stage.inputs})
+    key["code"] = stage_code_digest("report")  # the report's code is an input too
+    key["tolerance_mm"] = repr(context.tolerance_mm)  # the verdict it shows
+    return key
+
+
+def run_report(context: Context) -> dict[str, str] | None:
+    """The report stage (see the module docstring); its key in ``run.json`` mode, else None."""
+    records = context.records
+    outputs = ["report.html", "run.rrd"]
+    if not context.ledger:
+        t0 = time.perf_counter()
+        _call(STAGE["report"], context, [])
+        records.append(StageRecord("report", "ran", outputs, time.perf_counter() - t0))
+        return None
+    key = report_key(context)
+    P = run_paths(context.out)
+    previous = json.loads(P["run"].read_text()) if P["run"].exists() else {}
+    if (
+        not context.force
+        and P["report"].exists()
+        and P["rrd"].exists()
+        and previous.get("report_inputs") == key
+        and previous.get("version") == __version__
+    ):
+        records.append(StageRecord("report", "cached", outputs))
+        return key
+    t0 = time.perf_counter()  # the report's imports (rerun, pandas) are waited for too
+    # the report shows the stage table: give it this run's, not the previous one
+    run = {"version": __version__, "stages": records, "tolerance_mm": context.tolerance_mm}
+    atomic_write_bytes(P["run"], json_bytes(run))
+    _call(STAGE["report"], context, [])
+    records.append(StageRecord("report", "ran", outputs, time.perf_counter() - t0))
+    return key
+
+
+def run_stage(name: str, context: Context, names: list[str]) -> None:
+    """Run (or find fresh) one stage of a plan ``names``; append its :class:`StageRecord`."""
+    stage = STAGE[name]
+    out = context.out
+    t0 = time.perf_counter()
+    if name == "choose":
+        changed = _write_changed(_call(stage, context, names), out)
+        status = "ran" if changed or context.force else "cached"
+        files = [p.name for p in output_paths(stage, out)]
+        context.records.append(StageRecord(name, status, files, time.perf_counter() - t0))
+        return
+    conf = stage_config(name, context)
+    key = {"stage": name, "config": jsonable(conf), "code": stage_code_digest(name)}
+    inputs = input_hashes(stage, context, names)
+    outputs = output_paths(stage, out)
+    if not context.force and is_fresh(outputs, inputs, key):
+        context.records.append(StageRecord(name, "cached", [p.name for p in outputs]))
+        return
+    result = _call(stage, context, names)
+    # Parquet first, then the rest: a side file present means the stage finished
+    order = sorted(stage.outputs, key=lambda k: (BY_KEY[k].schema is None, k == "models"))
+    written: list[Path] = []
+    for k in order:
+        written += write_output(k, result[k], out, stage=name, config=key, inputs=inputs)
+    files = [p.name for p in output_paths(stage, out)]
+    context.records.append(StageRecord(name, "ran", files, time.perf_counter() - t0))
+
+
+def run_stages(names: list[str], context: Context, plan_names: list[str]) -> dict[str, str] | None:
+    """Run stages ``names`` (a part of the plan ``plan_names``) in order.
+
+    Returns the report's cache key when the report ran in ``run.json`` mode, else None.
+    """
+    context.out.mkdir(parents=True, exist_ok=True)
+    key = None
+    for name in names:
+        if name == "report":
+            key = run_report(context)
+        else:
+            run_stage(name, context, plan_names)
+    return key
+
+
+def write_fits(results: Any, out: Path) -> dict[str, Path]:
+    """Write identification results as the identify and choose stages would (library use).
+
+    For a script or test that called :func:`pipeline.stages.identify.identify`
+    itself: the tables, ``models.json`` and per-model URDFs, then the training
+    choice (no cross-validation, no provenance block) as ``calibrated.urdf``
+    and ``identify.json``. Returns ``{artefact key: path}``.
+    """
+    from pipeline.stages.choose import choose_model
+    from pipeline.stages.identify import fit_outputs
+
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    fits = fit_outputs(results)
+    paths: dict[str, Path] = {}
+    for key in ("parameters", "residuals", "targets", "model_urdfs", "models"):
+        written = write_output(key, fits[key], out, stage="identify", config={}, inputs={})
+        if key != "model_urdfs":
+            paths[key] = written[0]
+    urdf, summary = choose_model(fits["models"], fits["model_urdfs"], None)
+    for key, value in (("calibrated_urdf", urdf), ("identify", summary)):
+        paths[key] = write_output(key, value, out, stage="choose", config={}, inputs={})[0]
+    return paths
