@@ -294,10 +294,10 @@ def test_robust_losses_match_scipy_on_touchup_rows(loss):
     except ImportError:
         pytest.skip("scipy's private loss table moved")
 
-    from pipeline.stages.identify import _partial_loss
+    from pipeline.stages.identify_problem import partial_loss
 
     z = np.linspace(0.0, 9.0, 40)
-    ours = _partial_loss(loss, 30)(z)
+    ours = partial_loss(loss, 30)(z)
     ref = np.empty((3, 40))
     IMPLEMENTED_LOSSES[loss](z, ref, cost_only=False)
     assert np.allclose(ours[:, :30], ref[:, :30])

@@ -1,0 +1,276 @@
+"""Identification input: the touch-up table as the rows that enter the fit (:class:`FitData`).
+
+Every input row is kept for the residual table with the reason it was or was not
+used; the used rows are checked before any fit (too few, implausible joints).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+import pandas as pd
+
+from pipeline.errors import BadInput, CalibrationFailed
+from pipeline.kinematics.chain import Chain
+from pipeline.kinematics.se3 import F64
+from pipeline.stages.identify_types import IdentifyConfig
+from pipeline.stages.print_shape import SHAPE_COLUMNS
+
+#: rows beyond these are flagged, not fitted: a joint at 1000 rad (or m), a residual correction
+#: of a metre or a relative weight of a million is a corrupt value, not a measurement
+MAX_JOINT = 1e3
+MAX_CORRECTION_M = 1.0
+MAX_WEIGHT = 1e6
+
+
+@dataclass
+class FitData:
+    """The rows that enter the fit, and bookkeeping for every input row."""
+
+    q: F64  # (N, n) used rows
+    d: F64  # (N, 3)
+    sw: F64  # (N,) sqrt weights
+    tk: np.ndarray  # (N,) target index 0..K-1 among used targets
+    K: int
+    target_ids: list[int]  # per used target index
+    target_labels: list[str]
+    dist: list[tuple[int, int, float]]  # (target index A, B, metres)
+    dropped_distances: list[str]
+    rows: (
+        pd.DataFrame
+    )  # every input row: touchup_id, target_id, target_label, used, reason, weight, q...
+    used_idx: np.ndarray  # positions of used rows in ``rows``
+    q_all: F64  # (M, n) all rows (NaN where missing)
+    d_all: F64
+    tk_all: np.ndarray  # target index per row (-1 if target not used)
+    #: (N, 3) each used row's print-size lever ``g`` and (N, 3) long-axis direction ``l``
+    #: (flange frame, :mod:`pipeline.stages.print_shape`), None without those columns
+    shape_g: F64 | None = None
+    shape_l: F64 | None = None
+
+
+def prepare_data(touchups: pd.DataFrame, chain: Chain, config: IdentifyConfig) -> FitData:
+    df = touchups.reset_index(drop=True)
+    names = chain.joint_names
+    missing = [c for c in ("touchup_id", "target_id", *names) if c not in df.columns]
+    if missing:
+        raise BadInput(
+            f"touch-up table: missing column(s) {missing} (joints of the chain: {names}; "
+            f"columns: {list(df.columns)})"
+        )
+    df = _numeric_columns(df, names)
+    M = len(df)
+    q_all = df[names].to_numpy(dtype=float)
+    d_all = np.zeros((M, 3))
+    for i, c in enumerate(("dx_flange", "dy_flange", "dz_flange")):
+        if c in df.columns:
+            d_all[:, i] = df[c].to_numpy(dtype=float)
+    w = df["weight"].to_numpy(dtype=float) if "weight" in df.columns else np.ones(M)
+    reason = [[] for _ in range(M)]  # type: list[list[str]]
+    if "converged" in df.columns:
+        for i in np.flatnonzero(~df["converged"].fillna(False).to_numpy(dtype=bool)).tolist():
+            reason[i].append("not converged")
+    if "inlier" in df.columns:
+        rej = df["reason"].astype(str).to_numpy() if "reason" in df.columns else None
+        for i in np.flatnonzero(~df["inlier"].fillna(False).to_numpy(dtype=bool)).tolist():
+            extra = f" ({rej[i]})" if rej is not None and rej[i] not in ("", "nan", "None") else ""
+            reason[i].append("rejected as outlier" + extra)
+    for i in np.flatnonzero(~(w > 0)).tolist():
+        reason[i].append("weight not positive")
+    for i in np.flatnonzero(w > MAX_WEIGHT).tolist():
+        reason[i].append(f"weight above {MAX_WEIGHT:g}")
+    for i in np.flatnonzero(~np.all(np.isfinite(q_all), axis=1)).tolist():
+        reason[i].append("joint position missing")
+    for i in np.flatnonzero(np.any(np.abs(q_all) > MAX_JOINT, axis=1)).tolist():
+        reason[i].append(f"joint position beyond {MAX_JOINT:g}")
+    for i in np.flatnonzero(~np.all(np.isfinite(d_all), axis=1)).tolist():
+        reason[i].append("correction missing")
+        d_all[i] = 0.0
+    for i in np.flatnonzero(np.any(np.abs(d_all) > MAX_CORRECTION_M, axis=1)).tolist():
+        reason[i].append(f"correction beyond {MAX_CORRECTION_M:g} m")
+        d_all[i] = 0.0
+    used = np.array([not r for r in reason], dtype=bool)
+
+    raw_labels = df["target_id"].tolist()
+    order: list[Any] = []
+    for lab in raw_labels:
+        if lab not in order and not (isinstance(lab, float) and math.isnan(lab)):
+            order.append(lab)
+    all_int = all(
+        isinstance(v, (int, np.integer)) or (isinstance(v, float) and v.is_integer()) for v in order
+    )
+    tid_of = {lab: (int(lab) if all_int else i) for i, lab in enumerate(order)}
+    row_tid = np.array([tid_of.get(lab, -1) for lab in raw_labels], dtype=np.int64)
+    row_label = [str(int(lab)) if all_int and lab in tid_of else str(lab) for lab in raw_labels]
+    for i in np.flatnonzero(row_tid < 0).tolist():
+        reason[i].append("no target label")
+        used[i] = False
+
+    used_labels = [lab for lab in order if np.any(used & (row_tid == tid_of[lab]))]
+    k_of = {tid_of[lab]: k for k, lab in enumerate(used_labels)}
+    tk_all = np.array([k_of.get(int(t), -1) for t in row_tid], dtype=np.int64)
+    label_text = [str(int(lab)) if all_int else str(lab) for lab in used_labels]
+    all_text = {(str(int(lab)) if all_int else str(lab)) for lab in order}
+
+    dist: list[tuple[int, int, float]] = []
+    dropped: list[str] = []
+    for a, b, metres in config.distances:
+        sa, sb = str(a), str(b)
+        absent = [s for s in (sa, sb) if s not in all_text]
+        if absent and config.strict_distances:
+            raise BadInput(
+                f"known distance {a}:{b}={metres}: no target {absent[0]!r} in the touch-up table "
+                f"(targets: {sorted(all_text)})"
+            )
+        if absent:
+            dropped.append(f"{a}:{b}={metres} (no target {absent[0]!r} in the touch-ups)")
+            continue
+        if sa == sb or not metres > 0:
+            raise BadInput(f"known distance {a}:{b}={metres}: needs two targets and metres > 0")
+        if sa in label_text and sb in label_text:
+            dist.append((label_text.index(sa), label_text.index(sb), float(metres)))
+        else:
+            dropped.append(f"{a}:{b}={metres} (a target has no usable touch-up)")
+
+    rows = pd.DataFrame(
+        {
+            "touchup_id": df["touchup_id"].to_numpy(dtype=np.int64),
+            "target_id": row_tid,
+            "target_label": row_label,
+            "used": used,
+            "reason": ["; ".join(r) for r in reason],
+            "weight": np.where(np.isfinite(w), w, 0.0),
+        }
+    )
+    ui = np.flatnonzero(used)
+    shape_g = shape_l = None
+    if all(c in df.columns for c in SHAPE_COLUMNS):
+        sh = np.stack(
+            [pd.to_numeric(df[c], errors="coerce").to_numpy(dtype=float) for c in SHAPE_COLUMNS],
+            axis=1,
+        )[ui]
+        if len(sh) and np.all(np.isfinite(sh)):
+            shape_g, shape_l = sh[:, :3], sh[:, 3:]
+    return FitData(
+        q=q_all[ui],
+        d=d_all[ui],
+        sw=np.sqrt(w[ui]),
+        tk=tk_all[ui],
+        K=len(used_labels),
+        target_ids=[tid_of[lab] for lab in used_labels],
+        target_labels=label_text,
+        dist=dist,
+        dropped_distances=dropped,
+        rows=rows,
+        used_idx=ui,
+        q_all=q_all,
+        d_all=d_all,
+        tk_all=tk_all,
+        shape_g=shape_g,
+        shape_l=shape_l,
+    )
+
+
+def _numeric_columns(df: pd.DataFrame, names: list[str]) -> pd.DataFrame:
+    """The table with its numeric columns as numbers; one-line BadInput for any that is not.
+
+    ``touchup_id`` must be unique integers; joint, correction and weight columns
+    floats (empty cells are NaN and flag their row later).
+    """
+    dup_cols = sorted({str(c) for c in df.columns[df.columns.duplicated()]})
+    if dup_cols:
+        raise BadInput(f"touch-up table: column(s) {dup_cols} appear more than once")
+    converted: dict[str, pd.Series] = {}
+    for c in [*names, "dx_flange", "dy_flange", "dz_flange", "weight", "touchup_id"]:
+        if c not in df.columns:
+            continue
+        col = df[c]
+        if c != "touchup_id" and col.dtype == np.float64:
+            continue  # already what is needed: no copy (this runs on every identify call)
+        if not (pd.api.types.is_numeric_dtype(col) and not pd.api.types.is_bool_dtype(col)):
+            num = pd.to_numeric(col, errors="coerce")
+            bad = num.isna() & col.notna()
+            if bad.any():
+                i = int(np.flatnonzero(bad.to_numpy())[0])
+                raise BadInput(
+                    f"touch-up table: column {c!r} row {i}: {col.iloc[i]!r} is not a number"
+                )
+            col = num
+        if c != "touchup_id":
+            converted[c] = col.astype(float)
+    if converted:
+        df = df.assign(**converted)
+    tid = pd.to_numeric(df["touchup_id"], errors="coerce").to_numpy(dtype=float)
+    bad_id = ~np.isfinite(tid) | (tid != np.round(tid))
+    if bad_id.any():
+        i = int(np.flatnonzero(bad_id)[0])
+        raise BadInput(
+            f"touch-up table: column 'touchup_id' row {i}: {df['touchup_id'].iloc[i]!r} is not "
+            "an integer"
+        )
+    if df["touchup_id"].dtype != np.int64:
+        df = df.assign(touchup_id=tid.astype(np.int64))
+    dup = df["touchup_id"].duplicated()
+    if dup.any():
+        i = int(np.flatnonzero(dup.to_numpy())[0])
+        raise BadInput(
+            f"touch-up table: touchup_id {int(df['touchup_id'].iloc[i])} appears more than once "
+            f"(row {i}); it must be unique per row"
+        )
+    return df
+
+
+def implausible_rows(
+    chain: Chain,
+    data: FitData,
+    touchups: pd.DataFrame,
+    urdf: str,
+    base_link: str,
+    flange_link: str,
+    config: IdentifyConfig,
+) -> list[str]:
+    """The guardrails of :mod:`pipeline.stages.plausibility` on the used touch-ups."""
+    from pipeline.kinematics.urdf import parse_urdf
+    from pipeline.stages import plausibility as pl
+
+    limits = pl.joint_values(data.q, chain)
+    robot = parse_urdf(urdf)
+    used = touchups.reset_index(drop=True).iloc[data.used_idx]
+    values = {  # the table's columns of URDF joints outside the chain
+        c: pd.to_numeric(used[c], errors="coerce").to_numpy(dtype=float)
+        for c in used.columns
+        if c in robot.joints and c not in chain.joint_names
+    }
+    lines = limits + pl.joints_outside_chain(values, robot, base_link, flange_link)
+    if data.K >= 1 and len(data.q) >= 2:  # one nominal fit serves both checks
+        _, tg, rho = pl.nominal_targets(chain, data.q, data.d, data.tk, data.K, data.sw)
+        if not limits:  # joints outside their limits already explain a bad nominal fit
+            lines += pl.nominal_fit(rho)
+        lines += pl.known_distances(tg, rho, data.dist, data.target_labels)
+    return lines + pl.target_diameter(config.target_diameter_m, config.implied_target_diameter_m)
+
+
+def refuse_early(data: FitData, source_rows: int) -> None:
+    N = len(data.q)
+    if N == 0:
+        why = pd.Series(
+            [r for rs in data.rows["reason"] for r in str(rs).split("; ") if r], dtype=object
+        ).value_counts()
+        because = ", ".join(f"{n} {r}" for r, n in why.items()) or "none converged"
+        raise CalibrationFailed(
+            f"no usable touch-ups ({source_rows} rows; {because}): add converged touch-ups"
+        )
+    if data.K < 2 and not data.dist:
+        raise CalibrationFailed(
+            f"all {N} usable touch-ups are of a single target ({data.target_labels[0]}) and no "
+            "known distance is given: touch up at least one more target (and give a known "
+            "distance with --distance A:B=METRES for absolute accuracy)"
+        )
+    if N < 2 or float(np.ptp(data.q, axis=0).max()) < 1e-6:
+        raise CalibrationFailed(
+            f"all {N} usable touch-ups have the same joint vector: add touch-ups at different "
+            "arm orientations around each target"
+        )

@@ -1,0 +1,132 @@
+"""The identify stage's options, its result per error model, and its failure."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+import pandas as pd
+
+from pipeline.errors import CalibrationFailed
+from pipeline.kinematics.chain import Chain
+from pipeline.kinematics.se3 import F64
+from pipeline.models.base import ErrorModel
+
+DEFAULT_MODEL = "full"
+
+
+#: ``model="auto"`` tries these in order and keeps the first the touch-ups support
+AUTO_ORDER = ("full", "offsets")
+
+
+class TooFewTouchups(CalibrationFailed):
+    """The touch-ups leave no redundancy for the model's identifiable parameters."""
+
+
+@dataclass
+class IdentifyConfig:
+    """Identification settings.
+
+    Attributes
+    ----------
+    model : error model name (``full``, ``mdh``, ``poe``, ``offsets``, ``elastic``), ``all`` (fit each), or
+        ``auto`` (``full`` if the touch-ups suffice, else ``offsets``; the summary says which)
+    distances : known distances ``(label A, label B, metres)`` between targets
+    robust_loss : ``scipy.optimize.least_squares`` loss (``linear``, ``soft_l1``, ``huber``, ``cauchy``, ...)
+    f_scale : soft threshold of a robust loss, metres of pin residual
+    distance_weight : weight of a known-distance residual relative to a touch-up row
+    rank_tol : relative pivot threshold below which a parameter is structurally unidentifiable
+    data_tol : relative pivot threshold below which these touch-ups do not excite a parameter
+    noise_model : ``flange`` (estimate the pin error's 3x3 covariance in the flange frame from
+        the residuals and refit whitened: a touch-up is far less precise along the view than
+        across it) or ``isotropic``
+    max_nfev : iteration budget of the solver
+    n_workspace : poses over which the predicted error is evaluated
+    seed : seed of those poses
+    target_shape : the targets' print shape (:mod:`pipeline.stages.print_shape`): ``auto`` fits
+        each target's size (relative to the first) and out-of-roundness when the table has
+        the shape columns and every target ``shape_min_touchups`` touch-ups, and keeps them
+        when an F-test at ``shape_alpha`` finds them significant; ``fit`` keeps them whenever
+        they can be fitted; ``none`` never fits them
+    shape_alpha, shape_min_touchups : see ``target_shape``. ``shape_alpha = 1e-4``: a
+        run fits up to four models with two tests each, so about ``1e-3`` per run
+        (Bonferroni). At ``1e-3`` a linear-image UR5e-like cell with perfect prints was
+        fitted at p = 7.6e-4 and lost 5 % of shape accuracy; 20 um out-of-round prints
+        give p ~ 1e-34.
+    target_diameter_m : printed diameter, to state print errors in micrometres (else relative)
+    implied_target_diameter_m : the diameter the touch-up stage's image Jacobian implies
+        (:func:`pipeline.stages.touchup.diameter_from_jacobian`), checked against
+        ``target_diameter_m`` by the guardrails; None for a table without images
+    accept_implausible : identify even where :mod:`pipeline.stages.plausibility` finds an
+        input the nominal robot contradicts (joint values outside the URDF's limits, a
+        known distance off by more than the nominal robot's own error); the lines are
+        then kept in the summary as ``implausible``
+    check_plausibility : run those guardrails at all; False for refits on a subset of
+        touch-ups whose full table passed them (cross-validation), ``implausible`` then []
+    strict_distances : a known distance naming a target absent from the table is bad input
+        (``vtcal identify``); False drops it with a note (``vtcal run``: the recording's
+        metadata names every target of the cell, a truncated run may not have reached them all)
+    """
+
+    model: str = "auto"
+    distances: list[tuple[int | str, int | str, float]] = field(default_factory=list)
+    robust_loss: str = "linear"
+    f_scale: float = 1e-4
+    distance_weight: float = 100.0
+    rank_tol: float = 1e-8
+    data_tol: float = 1e-6
+    noise_model: str = "flange"
+    reweight_passes: int = 1
+    max_nfev: int = 200
+    n_workspace: int = 200
+    seed: int = 0
+    strict_distances: bool = True
+    target_shape: str = "auto"
+    shape_alpha: float = 1e-4
+    shape_min_touchups: int = 6
+    target_diameter_m: float | None = None
+    implied_target_diameter_m: float | None = None
+    accept_implausible: bool = False
+    check_plausibility: bool = True
+
+
+@dataclass
+class IdentifyResult:
+    """Everything identification produces for one error model.
+
+    Attributes
+    ----------
+    model : error model name
+    parameters, residuals, targets : artefact tables (``schemas/NAME.json``)
+    calibrated_urdf : nominal URDF with the corrections in its joint origins and the virtual pin
+    summary : JSON-able figures (see :func:`identify`)
+    chain : calibrated chain, base link to flange link
+    p_flange_pin : (3,) identified virtual pin, flange frame
+    x : (P,) model parameters (held ones 0)
+    error_model : the fitted model: ``error_model.pin_and_jacobian(x, q, pin)`` predicts
+        the pin exactly, also where ``chain`` (the URDF's rigid kinematics) cannot
+        (a model with ``urdf_exact = False``)
+    """
+
+    model: str
+    parameters: pd.DataFrame
+    residuals: pd.DataFrame
+    targets: pd.DataFrame
+    calibrated_urdf: str
+    summary: dict[str, Any]
+    chain: Chain
+    p_flange_pin: F64
+    x: F64 = field(repr=False, default_factory=lambda: np.zeros(0))
+    error_model: ErrorModel | None = field(repr=False, default=None)
+
+    def predict(self, q: F64, d: F64) -> F64:
+        """Pin positions ``T_base_flange(q_i; x) (p_pin + d_i)`` of the fitted model, (N, 3)."""
+        pts = self.p_flange_pin[None, :] + d
+        if self.error_model is not None:
+            p, _, _ = self.error_model.pin_and_jacobian(self.x, q, pts, jac=False)
+            return p
+        from pipeline.kinematics.chain import fk
+
+        T = fk(self.chain, q)
+        return np.asarray(np.einsum("nij,nj->ni", T[:, :3, :3], pts) + T[:, :3, 3])
