@@ -21,7 +21,8 @@ moves or that are timings):
   ``Table.equals``) and, apart, the ``vtcal.*`` schema metadata with ``vtcal.config_hash`` (it holds the stage code digest) and
   ``vtcal.inputs`` (hashes of input *files*, whose metadata holds that digest)
   masked.
-* ``identify.json``: every key named ``seconds`` (fit wall time) dropped.
+* ``identify.json`` and ``models.json``: every key named ``seconds`` (fit wall
+  time) dropped.
 * ``run.json``: ``stages[*].seconds`` dropped; ``report_inputs`` and the
   ledger's artefact hashes and code digest reduced to their key sets (they hash
   files whose metadata holds code digests).
@@ -147,7 +148,7 @@ def digest(path: Path) -> str:
     """The compared digest of one run-folder file (see the module docstring)."""
     if path.suffix == ".parquet":
         return parquet_digest(path)
-    if path.name == "identify.json":
+    if path.name in ("identify.json", "models.json"):
         blob = json.dumps(_drop_seconds(json.loads(path.read_text())), sort_keys=True)
         return hashlib.sha256(blob.encode()).hexdigest()
     if path.name == "run.json":

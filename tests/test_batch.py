@@ -429,7 +429,7 @@ def _refuse_pool(monkeypatch: pytest.MonkeyPatch) -> None:
     def refuse(*args: object, **kwargs: object) -> None:
         raise AssertionError("a worker pool was started")
 
-    monkeypatch.setattr(batch, "_process_context", refuse)
+    monkeypatch.setattr(batch, "process_context", refuse)
     monkeypatch.setattr(batch, "prestart", refuse)
 
 

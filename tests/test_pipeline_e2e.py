@@ -94,13 +94,13 @@ def test_every_top_level_figure_is_the_shipped_models(sample_run: Path) -> None:
     # the batch summary reads the same figures
     from types import SimpleNamespace
 
-    from pipeline.batch import _FIGURES_FLOAT, _FIGURES_INT, RecordingOutcome, _take_result
+    from pipeline.batch import FIGURES_FLOAT, FIGURES_INT, RecordingOutcome, take_result
 
     rec = RecordingOutcome(name="sample", recording=str(SAMPLE), run_dir=str(sample_run))
     stage = SimpleNamespace(stage="identify", status="cached", seconds=0.0)
-    _take_result(rec, SimpleNamespace(stages=[stage], summary=summary))
+    take_result(rec, SimpleNamespace(stages=[stage], summary=summary))
     assert rec.figures["model"] == best
-    for key in _FIGURES_INT + _FIGURES_FLOAT:
+    for key in FIGURES_INT + FIGURES_FLOAT:
         if isinstance(own.get(key), (int, float)):
             assert rec.figures[key] == own[key], key
 

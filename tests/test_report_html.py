@@ -13,7 +13,8 @@ import pytest
 from support.browser import CHROMIUM, open_in_chromium
 from support.demo_run import make_demo_run
 
-from pipeline.report.data import load_run, nominal_fit
+from pipeline.report.data import load_run
+from pipeline.report.figures import nominal_fit
 from pipeline.report.html import build_report
 
 

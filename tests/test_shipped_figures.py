@@ -85,14 +85,14 @@ def test_the_report_batch_and_compare_show_the_same_figures(run_dir: Path, tmp_p
     assert f"{held_out:.4f}" in html, "the report's validated figure is the shipped model's"
     assert f"{s['rms_mm']:.4f}" in html, "the training residual is the shipped model's"
     # batch summary figures
-    from pipeline.batch import _FIGURES_FLOAT, _FIGURES_INT, RecordingOutcome, _take_result
+    from pipeline.batch import FIGURES_FLOAT, FIGURES_INT, RecordingOutcome, take_result
 
     rec = RecordingOutcome(name="r", recording="r.mcap", run_dir=str(run_dir))
     stage = SimpleNamespace(stage="identify", status="cached", seconds=0.0)
-    _take_result(rec, SimpleNamespace(stages=[stage], summary=s))
+    take_result(rec, SimpleNamespace(stages=[stage], summary=s))
     assert rec.figures["model"] == best
     own = s["models"][best]
-    for key in _FIGURES_INT + _FIGURES_FLOAT:
+    for key in FIGURES_INT + FIGURES_FLOAT:
         if isinstance(own.get(key), (int, float)):
             assert rec.figures[key] == own[key], key
     # vtcal compare of the run with itself: the shipped model's held-out figure, nothing moved

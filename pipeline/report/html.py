@@ -34,27 +34,26 @@ import pandas as pd
 from pipeline import __version__
 from pipeline.artefacts import atomic_write_bytes
 from pipeline.report import plots
-from pipeline.report.data import (
+from pipeline.report.data import RunData, artefact_hashes, load_run, run_uuid
+from pipeline.report.diagnosis import camera_section
+from pipeline.report.figures import (
     NOMINAL,
-    RunData,
     accuracy_figures,
-    artefact_hashes,
     chosen_model,
-    convergence_traces,
     crossval_summary,
-    designated,
-    detection_ellipse,
     for_model,
-    load_run,
     pin_positions,
     residual_groups,
     residual_norms,
-    run_uuid,
     target_positions,
+)
+from pipeline.report.templates import render_template
+from pipeline.report.touchup_views import (
+    convergence_traces,
+    designated,
+    detection_ellipse,
     touchup_frames,
 )
-from pipeline.report.diagnosis import camera_section
-from pipeline.report.templates import render_template
 
 TEMPLATE = "report.html.j2"
 #: at most this many thumbnails / convergence traces (keeps the file small)

@@ -42,19 +42,15 @@ import rerun as rr
 import rerun.blueprint as rrb
 
 from pipeline.artefacts import atomic_write_bytes
-from pipeline.report.data import (
-    RunData,
+from pipeline.report.data import RunData, load_run, run_uuid
+from pipeline.report.figures import pin_positions, skeleton_points, target_positions
+from pipeline.report.images import Frame, load_images
+from pipeline.report.touchup_views import (
     convergence_traces,
     designated,
     detection_ellipse,
-    load_run,
-    pin_positions,
-    run_uuid,
-    skeleton_points,
-    target_positions,
     touchup_frames,
 )
-from pipeline.report.images import Frame, load_images
 
 APP_ID = "vtcal"
 CAMERA = "world/robot/calibrated/flange/camera"

@@ -1,0 +1,139 @@
+"""Per touch-up views of a run: its frames, designated point, detected ellipse, convergence."""
+
+from __future__ import annotations
+
+import numpy as np
+import pandas as pd
+
+from pipeline.report.data import RunData
+
+FRAME_COLS = ("frame", "frame_index", "image_index", "index")
+
+
+def frame_col(df: pd.DataFrame | None) -> str | None:
+    """Name of the frame-index column of frames/detections (tolerant)."""
+    if df is None:
+        return None
+    return next((c for c in FRAME_COLS if c in df.columns), None)
+
+
+def designated(data: RunData) -> tuple[float, float, float] | None:
+    """``(u0, v0, s0)`` px from the recording metadata, or None."""
+    m = data.meta
+    try:
+        return (
+            float(m["designated_u"]),
+            float(m["designated_v"]),
+            float(m.get("designated_size_px", "nan")),
+        )
+    except (KeyError, ValueError):
+        return None
+
+
+def touchup_frames(data: RunData) -> dict[int, list[int]]:
+    """``{touchup_id: [frame index, ...]}`` of each touch-up's captures, in order.
+
+    From a ``touchup_id`` column of frames.parquet, else list-valued ``frames``
+    columns of the touch-up table, else a single ``frame``/``last_frame`` column,
+    else by matching the touch-up's ``stamp_ns`` to a frame's stamp.
+    """
+    out: dict[int, list[int]] = {}
+    fr = data.frames
+    fc = frame_col(fr)
+    if fr is not None and fc is not None and "touchup_id" in fr.columns:
+        sub = fr[
+            pd.notna(fr["touchup_id"]) & (pd.to_numeric(fr["touchup_id"], errors="coerce") >= 0)
+        ]
+        for tid, g in sub.groupby("touchup_id"):
+            out[int(str(tid))] = [int(i) for i in g.sort_values(fc)[fc]]
+        if out:
+            return out
+    tu = data.touchup_table()
+    if tu is None:
+        return out
+    for c in ("frames", "frame_indices", "capture_frames"):
+        if c in tu.columns:
+            for _, r in tu.iterrows():
+                v = r[c]
+                if v is not None and len(v):
+                    out[int(r["touchup_id"])] = [int(i) for i in v]
+            return out
+    for c in ("last_frame", "frame", "frame_index", "final_frame"):
+        if c in tu.columns:
+            for _, r in tu.iterrows():
+                if pd.notna(r[c]) and int(r[c]) >= 0:
+                    out[int(r["touchup_id"])] = [int(r[c])]
+            return out
+    if fr is not None and fc is not None and "stamp_ns" in fr.columns and "stamp_ns" in tu.columns:
+        by_stamp = dict(zip(fr["stamp_ns"].astype("int64"), fr[fc].astype("int64"), strict=False))
+        for _, r in tu.iterrows():
+            i = by_stamp.get(int(r["stamp_ns"]))
+            if i is not None:
+                out[int(r["touchup_id"])] = [int(i)]
+    return out
+
+
+def detection_ellipse(data: RunData, frame: int) -> tuple[float, float, float, float, float] | None:
+    """``(u, v, s, s_minor, angle)`` of the detection in a frame, or None."""
+    det = data.detections
+    fc = frame_col(det)
+    if det is None or fc is None or not {"u", "v", "s"} <= set(det.columns):
+        return None
+    rows = det[det[fc] == frame]
+    if not len(rows):
+        return None
+    r = rows.iloc[0]
+    if not np.isfinite(float(r["u"])):
+        return None
+    sm = float(r["s_minor"]) if "s_minor" in r else float(r["s"])
+    ang = float(r["angle"]) if "angle" in r else 0.0
+    return float(r["u"]), float(r["v"]), float(r["s"]), sm, ang
+
+
+def convergence_traces(data: RunData) -> dict[int, np.ndarray]:
+    """``{touchup_id: (k, 3)}`` e_T history ``(du, dv, ds)`` px of each touch-up.
+
+    From the list-valued history columns of the touch-up table when it has them
+    (``e_u_history``, ``e_v_history``, ``e_s_history``), else rebuilt from
+    the detections of each touch-up's captures: ``du = u - u0``, ``dv = v - v0``,
+    ``ds = s - s0`` against the designated values (recording.md).
+    """
+    tu = data.touchup_table()
+    out: dict[int, np.ndarray] = {}
+    if tu is not None:
+        for names in (
+            ("e_u_history", "e_v_history", "e_s_history"),
+            ("e_u_px", "e_v_px", "e_s_px"),
+            ("du_px", "dv_px", "ds_px"),
+        ):
+            if all(n in tu.columns for n in names):
+                for _, r in tu.iterrows():
+                    cols = [
+                        np.asarray(r[n] if r[n] is not None else [], dtype=float) for n in names
+                    ]
+                    k = min(len(c) for c in cols)
+                    if k:
+                        out[int(r["touchup_id"])] = np.stack([c[:k] for c in cols], axis=1)
+                return out
+    d0 = designated(data)
+    det = data.detections
+    fc = frame_col(det)
+    if d0 is None or det is None or fc is None or not {"u", "v", "s"} <= set(det.columns):
+        return out
+    det_i = det.set_index(fc)
+    for tid, frames in touchup_frames(data).items():
+        if len(frames) < 2:
+            continue
+        rows = det_i.reindex(frames)
+        e = np.stack(
+            [
+                rows["u"].to_numpy(float) - d0[0],
+                rows["v"].to_numpy(float) - d0[1],
+                rows["s"].to_numpy(float) - d0[2],
+            ],
+            axis=1,
+        )
+        e = e[np.all(np.isfinite(e), axis=1)]
+        if len(e):
+            out[tid] = e
+    return out
