@@ -346,16 +346,7 @@ def run_batch(
     ``summary.parquet``'s per-run columns (stages, times, worker) then describe
     the batch that last wrote it.
     """
-    _check_names(items)
-    if until is not None:
-        from pipeline.orchestrator import STAGES
-
-        if until not in STAGES:
-            raise BadInput(f"--until {until!r}: not a stage (stages: {', '.join(STAGES)})")
-    if recycle_after < 0:
-        raise BadInput(f"--recycle {recycle_after}: must be >= 0")
-    if executor is None:
-        check_executor_options(kind, workers, scheduler)
+    _check_request(items, until, recycle_after, executor, kind, workers, scheduler)
     out_dir = Path(out).expanduser().absolute()
     out_dir.mkdir(parents=True, exist_ok=True)
     t0 = time.perf_counter()
@@ -368,35 +359,14 @@ def run_batch(
     timings: dict[str, float] = {}
     pending: list[BatchItem] = []
     try:
-        for it in items:  # the run ledger, in this process: no worker for what is done
-            rec = None if force else cached_outcome(it, out_dir / it.name, config, until)
-            if rec is None:
-                if not pending and executor is None:
-                    prestart(kind)  # its imports overlap the remaining ledger checks
-                pending.append(it)
-                continue
-            outcomes[it.name] = rec
-            if progress is not None:
-                progress(len(outcomes), len(items), rec)
+        pending = _from_ledgers(
+            items, out_dir, config, until, force, executor, kind, outcomes, progress
+        )
         if pending:
             with contextlib.ExitStack() as stack:
-                if executor is not None:
-                    slots = [_Slot(executor, max(1, len(pending)))]
-                elif kind == "processes":
-                    ctx = process_context()
-                    n = min(workers or default_workers(), len(pending))
-
-                    def make() -> Executor:
-                        from concurrent.futures import ProcessPoolExecutor
-
-                        return ProcessPoolExecutor(max_workers=1, mp_context=ctx)
-
-                    slots = [_Slot(None, 1, make, recycle_after) for _ in range(n)]
-                    for slot in slots:
-                        stack.callback(slot.close)
-                else:
-                    ex = stack.enter_context(open_executor(kind, workers, scheduler, out_dir))
-                    slots = [_Slot(ex, max(1, len(pending)))]
+                slots = _open_slots(
+                    stack, executor, kind, workers, scheduler, out_dir, len(pending), recycle_after
+                )
                 try:
                     _fan_out(
                         slots, pending, out_dir, config, until, force, outcomes, progress,
@@ -451,6 +421,93 @@ def run_batch(
         _write_record(out_dir, fp, written, note, lines)
     seconds = time.perf_counter() - t0
     return BatchResult(out_dir, ordered, summary, path, seconds, False, cmp, note, timings, lines)
+
+
+def _check_request(
+    items: Sequence[BatchItem],
+    until: str | None,
+    recycle_after: int,
+    executor: Executor | None,
+    kind: str,
+    workers: int | None,
+    scheduler: str | None,
+) -> None:
+    """Step 1 of :func:`run_batch`: refuse bad names, stages and executor options (BadInput)."""
+    _check_names(items)
+    if until is not None:
+        from pipeline.orchestrator import STAGES
+
+        if until not in STAGES:
+            raise BadInput(f"--until {until!r}: not a stage (stages: {', '.join(STAGES)})")
+    if recycle_after < 0:
+        raise BadInput(f"--recycle {recycle_after}: must be >= 0")
+    if executor is None:
+        check_executor_options(kind, workers, scheduler)
+
+
+def _from_ledgers(
+    items: Sequence[BatchItem],
+    out_dir: Path,
+    config: RunConfig | None,
+    until: str | None,
+    force: bool,
+    executor: Executor | None,
+    kind: str,
+    outcomes: dict[str, RecordingOutcome],
+    progress: BatchProgress | None,
+) -> list[BatchItem]:
+    """Step 2: answer from the run ledgers in this process; the items left for the workers.
+
+    The worker pool is prestarted at the first item left, so that its imports
+    overlap the remaining ledger checks.
+    """
+    pending: list[BatchItem] = []
+    for it in items:  # the run ledger, in this process: no worker for what is done
+        rec = None if force else cached_outcome(it, out_dir / it.name, config, until)
+        if rec is None:
+            if not pending and executor is None:
+                prestart(kind)  # its imports overlap the remaining ledger checks
+            pending.append(it)
+            continue
+        outcomes[it.name] = rec
+        if progress is not None:
+            progress(len(outcomes), len(items), rec)
+    return pending
+
+
+def _open_slots(
+    stack: contextlib.ExitStack,
+    executor: Executor | None,
+    kind: str,
+    workers: int | None,
+    scheduler: str | None,
+    out_dir: Path,
+    n_pending: int,
+    recycle_after: int,
+) -> list[_Slot]:
+    """Step 3: where the pending recordings run (closed with ``stack``).
+
+    A given executor takes them all; ``"processes"``: one-process pools, one
+    recording at a time each, recycled after ``recycle_after``; ``"dask"``:
+    :func:`open_executor`.
+    """
+    if executor is not None:
+        return [_Slot(executor, max(1, n_pending))]
+    if kind == "processes":
+        ctx = process_context()
+        n = min(workers or default_workers(), n_pending)
+
+        def make() -> Executor:
+            from concurrent.futures import ProcessPoolExecutor
+
+            return ProcessPoolExecutor(max_workers=1, mp_context=ctx)
+
+        slots = [_Slot(None, 1, make, recycle_after) for _ in range(n)]
+        for slot in slots:
+            stack.callback(slot.close)
+        return slots
+    ex = stack.enter_context(open_executor(kind, workers, scheduler, out_dir))
+    return [_Slot(ex, max(1, n_pending))]
 
 
 # ---------------------------------------------------------------------------------------
