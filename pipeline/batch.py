@@ -45,7 +45,6 @@ server process sets the thread limits in its environment before numpy loads.
 from __future__ import annotations
 
 import contextlib
-import json
 import os
 import time
 from collections.abc import Callable, Sequence
@@ -73,6 +72,12 @@ from pipeline.batch_outcome import (
     one_line,
     run_recording,
     take_result,
+)
+from pipeline.batch_record import (
+    BATCH_RECORD,
+    batch_fingerprint,
+    reusable_record,
+    write_record,
 )
 from pipeline.batch_summary import (
     compare_batch,
@@ -119,18 +124,6 @@ class BatchIncomplete(VtcalError):
     """Some recordings of a batch failed (they are in the summary). Exit code 1."""
 
     exit_code = 1
-
-
-# ---------------------------------------------------------------------------------------
-# what a batch is made of
-
-
-# ---------------------------------------------------------------------------------------
-# the worker task
-
-
-# ---------------------------------------------------------------------------------------
-# executors
 
 
 # ---------------------------------------------------------------------------------------
@@ -393,12 +386,10 @@ def run_batch(
         )
         for it in items
     ]
-    fp = (
-        None if interrupted else _batch_fingerprint(out_dir, items, ordered, config, until, compare)
-    )
+    fp = None if interrupted else batch_fingerprint(out_dir, items, ordered, config, until, compare)
     path = out_dir / "summary.parquet"
     if not pending and fp is not None:
-        kept = _reusable(out_dir, fp)
+        kept = reusable_record(out_dir, fp)
         if kept is not None:  # nothing changed since the batch that wrote these files
             timings["summary"] = timings["compare"] = 0.0
             seconds = time.perf_counter() - t0
@@ -418,7 +409,7 @@ def run_batch(
     timings["compare"] = time.perf_counter() - t1
     if fp is not None:
         written = [path] + ([out_dir / "compare.parquet", out_dir / "compare.html"] if cmp else [])
-        _write_record(out_dir, fp, written, note, lines)
+        write_record(out_dir, fp, written, note, lines)
     seconds = time.perf_counter() - t0
     return BatchResult(out_dir, ordered, summary, path, seconds, False, cmp, note, timings, lines)
 
@@ -508,88 +499,6 @@ def _open_slots(
         return slots
     ex = stack.enter_context(open_executor(kind, workers, scheduler, out_dir))
     return [_Slot(ex, max(1, n_pending))]
-
-
-# ---------------------------------------------------------------------------------------
-# batch.json: the summary and comparison files of a batch, vouched for
-
-#: file in the batch folder recording the fingerprint of the batch that wrote the
-#: summary and comparison files, their hashes and the comparison's printed lines
-BATCH_RECORD = "batch.json"
-
-
-def _batch_fingerprint(
-    out_dir: Path,
-    items: Sequence[BatchItem],
-    outcomes: Sequence[RecordingOutcome],
-    config: RunConfig | None,
-    until: str | None,
-    compare: bool,
-) -> dict[str, Any] | None:
-    """What the summary and comparison depend on: the items, options, ``until`` and
-    every run's ledger entry (recording, options, code, artefact hashes).
-
-    None when a recording did not finish or its run folder has no ledger entry
-    (such a batch is never taken as unchanged).
-    """
-    from pipeline import run_ledger
-    from pipeline.fileio import config_hash
-    from pipeline.orchestrator import RunConfig
-
-    if any(o.status != "ok" for o in outcomes):
-        return None
-    runs = []
-    for it in items:
-        try:
-            led = json.loads((out_dir / it.name / "run.json").read_text()).get(run_ledger.KEY)
-        except (OSError, ValueError, AttributeError):
-            return None
-        if not isinstance(led, dict):
-            return None
-        runs.append(config_hash(led))
-    return {
-        "out": str(out_dir),
-        "items": [[it.name, str(it.recording), it.robot, it.notes] for it in items],
-        "config": run_ledger.config_json(config or RunConfig()),
-        "until": until,
-        "compare": compare,
-        "runs": runs,
-    }
-
-
-def _reusable(out_dir: Path, fp: dict[str, Any]) -> dict[str, Any] | None:
-    """``batch.json`` when it records ``fp`` and every file it lists is intact, else None."""
-    from pipeline.fileio import file_hash
-
-    try:
-        rec = json.loads((out_dir / BATCH_RECORD).read_text())
-        if not isinstance(rec, dict) or rec.get("fingerprint") != fp:
-            return None
-        files = rec["files"]
-        if "summary.parquet" not in files:
-            return None
-        for name, want in files.items():
-            if Path(name).name != name or file_hash(out_dir / name) != want:
-                return None
-    except (OSError, ValueError, KeyError, TypeError, AttributeError):
-        return None
-    return rec
-
-
-def _write_record(
-    out_dir: Path, fp: dict[str, Any], written: Sequence[Path], note: str, lines: Sequence[str]
-) -> None:
-    """Write ``batch.json`` (atomically, after the files it vouches for)."""
-    from pipeline.fileio import atomic_write_bytes, file_hash
-
-    rec = {
-        "fingerprint": fp,
-        "files": {p.name: file_hash(p) for p in written},
-        "compare_note": note,
-        "compare_lines": list(lines),
-    }
-    blob = json.dumps(rec, indent=1, sort_keys=True) + "\n"
-    atomic_write_bytes(out_dir / BATCH_RECORD, blob.encode())
 
 
 def _fan_out(
