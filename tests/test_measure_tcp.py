@@ -163,3 +163,19 @@ def test_no_server_and_a_silent_server_are_connection_faults() -> None:
         assert e.value.kind == "connection" and "no reply within 0.3 s" in str(e.value)
     finally:
         quiet.close()
+
+
+def test_host_clock_polls_and_stamps_with_the_host_clock(
+    served: tuple[FakeRobot, FakeCamera, CellServer],
+) -> None:
+    _, _, server = served
+    before = time.time_ns()
+    client = TcpRobot(_url(server), host_clock=True)
+    try:
+        assert client.joint_source == "poller 100 Hz, host clock"
+        time.sleep(0.2)
+        got = client.drain_joints()
+        assert len(got) >= 10
+        assert all(before <= r.stamp_ns <= time.time_ns() for r in got)
+    finally:
+        client.close()

@@ -114,6 +114,10 @@ class TcpRobot:
     timeout_s : seconds a query may take
     move_timeout_s : seconds a move (``MOVEJ``, ``MOVEL_FLANGE``, ``WAIT``) may take
     poll_hz : rate of the ``JOINTS?`` poller used when the server lacks ``JOINTLOG?``
+    host_clock : poll ``JOINTS?`` even if the server has ``JOINTLOG?`` and stamp the
+        samples with the host clock (the middle of the request), the clock the
+        OpenCV and folder cameras stamp images with; for a cell whose camera is
+        not served over this link and whose controller clock is not synchronised
     """
 
     def __init__(
@@ -122,11 +126,13 @@ class TcpRobot:
         timeout_s: float = QUERY_TIMEOUT_S,
         move_timeout_s: float = MOVE_TIMEOUT_S,
         poll_hz: float = 100.0,
+        host_clock: bool = False,
     ) -> None:
         self.url = url
         self.link = TcpLink(url, timeout_s)
         self.move_timeout_s = move_timeout_s
         self._poll_hz = poll_hz
+        self.host_clock = host_clock
         hello = self.link.request("HELLO")
         if not hello or hello[0] != wire.PROTOCOL:
             self.link.close()
@@ -138,11 +144,14 @@ class TcpRobot:
         self._poller: JointPoller | None = None
         self._poll_link: TcpLink | None = None
         self._log_since = self.read_joints().stamp_ns
-        try:
-            self.link.request_bytes(f"JOINTLOG? {self._log_since}", timeout_s)
-            self._has_log = True
-        except wire.Unsupported:
-            self._has_log = False
+        self._has_log = False
+        if not host_clock:
+            try:
+                self.link.request_bytes(f"JOINTLOG? {self._log_since}", timeout_s)
+                self._has_log = True
+            except wire.Unsupported:
+                pass
+        if not self._has_log:
             self._poll_link = TcpLink(url, timeout_s)
             self._poller = JointPoller(self._poll_read, poll_hz)
 
@@ -153,7 +162,9 @@ class TcpRobot:
     @property
     def joint_source(self) -> str:
         """``JOINTLOG?`` (the controller's own samples) or ``poller`` (``JOINTS?`` at poll_hz)."""
-        return "JOINTLOG?" if self._has_log else f"poller {self._poll_hz:g} Hz"
+        if self._has_log:
+            return "JOINTLOG?"
+        return f"poller {self._poll_hz:g} Hz" + (", host clock" if self.host_clock else "")
 
     def _reading(self, fields: list[str], what: str) -> JointReading:
         if len(fields) != 1 + len(self._names):
@@ -175,7 +186,11 @@ class TcpRobot:
 
     def _poll_read(self) -> JointReading:
         assert self._poll_link is not None
-        return self._reading(self._poll_link.request("JOINTS?"), "JOINTS?")
+        t0 = time.time_ns()
+        r = self._reading(self._poll_link.request("JOINTS?"), "JOINTS?")
+        if self.host_clock:
+            return JointReading(r.positions, (t0 + time.time_ns()) // 2)
+        return r
 
     def move_joints(self, q: F64, speed: float) -> None:
         q = np.asarray(q, dtype=float)
