@@ -7,7 +7,7 @@ from collections.abc import Iterator
 
 import numpy as np
 import pytest
-from support.fake_cell import CrashingRobot, FakeCamera, FakeRobot, RefusingRobot
+from support.fake_wire_cell import CrashingRobot, FakeCamera, FakeRobot, RefusingRobot
 
 from pipeline.measure.protocols import Camera, MeasureFault, Robot
 from pipeline.measure.tcp_robot import TcpCamera, TcpRobot
