@@ -20,7 +20,7 @@ T0 = 1_000_000_000_000
 
 def _touchup(rec, k: int) -> None:  # type: ignore[no-untyped-def]
     """One fake touch-up k: 1 s of joint states at 100 Hz and three captures."""
-    t = T0 + k * 1_000_000_000
+    t = T0 + k * 1_000_000_000 + 1_000_000
     rec.joints(
         NAMES, [JointReading(np.array([k, i / 100.0]), t + i * 10_000_000) for i in range(100)]
     )

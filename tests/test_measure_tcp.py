@@ -179,3 +179,21 @@ def test_host_clock_polls_and_stamps_with_the_host_clock(
         assert all(before <= r.stamp_ns <= time.time_ns() for r in got)
     finally:
         client.close()
+
+
+def test_urdf_and_metadata_are_served_when_the_cell_has_them() -> None:
+    robot = FakeRobot()
+    urdf = "<robot name='r'>\n  <!-- nominal, ünïcode -->\n</robot>\n"
+    meta = {"designated_u": "319.5", "polarity": "dark_on_light"}
+    server = serve_in_thread(Cell(robot, None, robot.joint_log, urdf, meta))
+    bare = serve_in_thread(Cell(robot))
+    a = TcpRobot(f"tcp://127.0.0.1:{server.port}")
+    b = TcpRobot(f"tcp://127.0.0.1:{bare.port}")
+    try:
+        assert a.fetch_urdf() == urdf and a.fetch_metadata() == meta
+        assert b.fetch_urdf() is None and b.fetch_metadata() == {}
+    finally:
+        for c, s in ((a, server), (b, bare)):
+            c.close()
+            s.shutdown()
+            s.server_close()

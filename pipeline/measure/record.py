@@ -113,7 +113,7 @@ class LiveRecording:
         self.progress = progress
         self._f: IO[bytes] = path.open("wb")
         self._rec = Recorder(self._f, chunk_size=CHUNK_BYTES)
-        self._last_joint_ns = -1
+        self._last_joint_ns = progress.t0_ns  # samples before the description are dropped
         self.n_joint_states = 0
         self.n_images = 0
 

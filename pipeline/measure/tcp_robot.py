@@ -217,6 +217,26 @@ class TcpRobot:
                 self._has_wait = False
         time.sleep(seconds)
 
+    def fetch_urdf(self) -> str | None:
+        """The controller's nominal URDF (``URDF?``), or None if it does not serve one."""
+        try:
+            return self.link.request_bytes("URDF?", self.link.timeout_s)[1].decode("utf-8")
+        except wire.Unsupported:
+            return None
+
+    def fetch_metadata(self) -> dict[str, str]:
+        """The ``touchup`` metadata keys the cell serves (``META?``); empty if none."""
+        try:
+            data = self.link.request_bytes("META?", self.link.timeout_s)[1].decode("utf-8")
+        except wire.Unsupported:
+            return {}
+        out = {}
+        for line in data.splitlines():
+            k, sep, v = line.partition("=")
+            if sep and k.strip():
+                out[k.strip()] = v.strip()
+        return out
+
     def drain_joints(self) -> list[JointReading]:
         """Joint samples since the last call, in stamp order (for ``/joint_states``)."""
         if self._poller is not None:

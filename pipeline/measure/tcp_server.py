@@ -36,11 +36,15 @@ class Cell:
     camera : the camera (None: ``CAPTURE`` is unsupported)
     joint_log : ``since_ns -> samples with stamp > since_ns`` (None: ``JOINTLOG?``
         is unsupported and clients poll ``JOINTS?``)
+    urdf : the nominal URDF the controller works with (None: ``URDF?`` unsupported)
+    metadata : the recording's ``touchup`` keys the cell knows (None: ``META?`` unsupported)
     """
 
     robot: Robot
     camera: Camera | None = None
     joint_log: Callable[[int], list[JointReading]] | None = None
+    urdf: str | None = None
+    metadata: dict[str, str] | None = None
 
 
 class _Handler(socketserver.StreamRequestHandler):
@@ -152,6 +156,12 @@ class CellServer(socketserver.ThreadingTCPServer):
         if cmd == "CAPTURE" and self.cell.camera is not None:
             frame = self.cell.camera.capture()
             return wire.frame_header(frame), wire.frame_payload(frame)
+        if cmd == "URDF?" and self.cell.urdf is not None:
+            data = self.cell.urdf.encode("utf-8")
+            return f"OK {len(data)}", data
+        if cmd == "META?" and self.cell.metadata is not None:
+            data = "".join(f"{k}={v}\n" for k, v in self.cell.metadata.items()).encode("utf-8")
+            return f"OK {len(data)}", data
         if cmd == "BYE":
             return "OK", b""
         return wire.error_line(wire.UNSUPPORTED, f"{cmd} is not implemented by this cell"), b""

@@ -25,7 +25,7 @@ VERSION = 1
 #: the commands a controller program must answer (docs/measure.md)
 REQUIRED = ("HELLO", "NAMES?", "JOINTS?", "MOVEJ", "MOVEL_FLANGE", "STILL?")
 #: the ones it may answer with ``ERR unsupported``; the client then falls back
-OPTIONAL = ("WAIT", "JOINTLOG?", "CAPTURE", "BYE")
+OPTIONAL = ("WAIT", "JOINTLOG?", "CAPTURE", "URDF?", "META?", "BYE")
 
 #: the kind a server names for a command it does not implement
 UNSUPPORTED = "unsupported"
