@@ -13,6 +13,10 @@ import click
 from pipeline.commands._common import set_option
 from pipeline.errors import BadInput, CellFault
 
+#: cell time the arm stays still after each capture (s): more than ingest's still window
+#: (+-0.06 s about the stamp) plus half an exposure
+HOLD_S = 0.1
+
 ADAPTER_HELP = "tcp://HOST:PORT, sim:SCENARIO.toml:SEED"
 CAMERA_HELP = "opencv:INDEX|URL, folder:PATH, or omit: the robot's link serves CAPTURE"
 
@@ -139,7 +143,11 @@ def run_measure(
         plan = read_plan(plan_path, link.robot.joint_names)
         check_limits(plan, urdf, float(np.radians(limit_margin_deg)))
         meta = {**link.metadata, **overrides}
-        cfg = LoopConfig(gain=gain, max_iterations=max_iterations, update_jacobian=True)
+        # hold still HOLD_S after each capture: ingest judges stillness from the joint
+        # states within +-60 ms of the stamp, so the next move must not start inside it
+        cfg = LoopConfig(
+            gain=gain, max_iterations=max_iterations, update_jacobian=True, compute_s=HOLD_S
+        )
         opts = SessionOptions(speed=speed)
         if not quiet:
             click.echo(f"vtcal measure: {len(plan)} poses from {plan_path}; {link.description}")
@@ -159,8 +167,12 @@ def run_measure(
         link.drain_joints()  # samples from before the recording starts
         t0 = link.robot.read_joints().stamp_ns
         rec = open_recording(out, urdf, meta, plan.sha256, len(plan), t0)
-        if rec.progress.done and not quiet:
-            click.echo(f"vtcal measure: resuming {out} at touch-up {rec.progress.done + 1}")
+        if rec.progress.sessions > 1:
+            behind = rec.progress.safe_log_ns - link.robot.read_joints().stamp_ns
+            if behind >= 0:  # a cell whose clock restarted (a simulated one): let it pass
+                link.robot.wait(behind / 1e9 + 1.0)
+            if not quiet:
+                click.echo(f"vtcal measure: resuming {out} at touch-up {rec.progress.done + 1}")
         try:
             with _progress(not quiet, len(plan)) as show:
                 run_session(link, plan, rec, goal, cfg, detect, opts, show)

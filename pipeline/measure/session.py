@@ -2,9 +2,9 @@
 
 The client of the shared loop (:mod:`pipeline.measure.loop`) that ``vtcal
 measure`` runs: for each pose from the first unfinished one on, a large move
-(:meth:`Robot.move_joints`), the image Jacobian when none is known yet
-(:func:`~pipeline.measure.loop.estimate_jacobian`; then carried from touch-up to
-touch-up, updated by the loop's own steps), the touch-up
+(:meth:`Robot.move_joints`), the image Jacobian at the first touch-up of each
+target (:func:`~pipeline.measure.loop.estimate_jacobian`, paper sec. 2.1; then
+carried to the target's next touch-ups, updated by the loop's own steps), the touch-up
 (:func:`~pipeline.measure.loop.touch_up`), and every frame and joint sample
 into the live recording (:mod:`pipeline.measure.record`). What the session
 learns (the Jacobian) is saved with each finished touch-up, so a resumed run
@@ -96,7 +96,7 @@ def run_session(
     robot = link.robot
     names = robot.joint_names
     state = rec.progress.state
-    J = None if state.get("jacobian") is None else np.array(state["jacobian"], dtype=float)
+    jacobians = {int(k): np.array(v, dtype=float) for k, v in state.get("jacobians", {}).items()}
     lost_in_a_row = int(state.get("lost_in_a_row", 0))
     out: list[dict[str, Any]] = []
 
@@ -115,12 +115,13 @@ def run_session(
         t0 = robot.read_joints().stamp_ns
         robot.move_joints(plan.q[i], opts.speed)
         probes[0] = 0
+        J = jacobians.get(tid)
         if J is None:
             J = estimate_jacobian(robot, link.camera, detect, on_capture, goal, cfg, i)
         n_probe = probes[0]
         res = touch_up(robot, link.camera, detect, on_capture, goal, cfg, J, i)
         if res.jacobian is not None and res.reason != "no_jacobian":
-            J = res.jacobian
+            jacobians[tid] = res.jacobian
         rec.joints(names, link.drain_joints())
         lost_in_a_row = 0 if res.converged or not res.lost else lost_in_a_row + 1
         summary = {
@@ -138,7 +139,10 @@ def run_session(
         out.append(summary)
         rec.touchup_done(
             summary,
-            {"jacobian": None if J is None else J.tolist(), "lost_in_a_row": lost_in_a_row},
+            {
+                "jacobians": {str(k): v.tolist() for k, v in jacobians.items()},
+                "lost_in_a_row": lost_in_a_row,
+            },
         )
         report(Event("done", i, len(plan), tid, res.final_error_px, res.reason))
         if lost_in_a_row >= opts.max_lost_in_a_row:
