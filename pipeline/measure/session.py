@@ -148,7 +148,7 @@ def run_session(
         if lost_in_a_row >= opts.max_lost_in_a_row:
             raise MeasureFault(
                 "target_not_found",
-                f"touch-ups {i - lost_in_a_row + 1}..{i}: the target was not found "
+                f"touch-ups {i - lost_in_a_row + 2}..{i + 1}: the target was not found "
                 f"{lost_in_a_row} times in a row (last: target {tid}, {res.reason})",
             )
     return out
