@@ -267,3 +267,22 @@ def test_three_touchups_without_the_target_stop_with_target_not_found(
     prog = read_progress(out)
     assert prog is not None and prog.done == 3
     assert [t["reason"] for t in prog.touchups] == ["no_jacobian"] * 3
+
+
+def test_calibrate_measures_once_and_reports_the_measurement(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    plan = _plan(tmp_path)
+    argv = ["calibrate", "--robot", SIM, "--plan", str(plan), "--out", str(tmp_path / "cal"), "-q"]
+    code, out, err = _vtcal(argv, capsys)
+    assert code in (0, 3), err  # 3: NOT improved is possible on 6 poses
+    import json
+
+    m = json.loads((tmp_path / "cal" / "measure.json").read_text())
+    assert m["converged"] == 6 and m["captures"] == 51 and m["cell_s"] > 10
+    assert out.count("measured 6/6 touch-ups: 6 converged") == 2  # after measuring and at the end
+    assert (tmp_path / "cal" / "run" / "calibrated.urdf").exists()
+    stamp = (tmp_path / "cal" / "recording.mcap").stat().st_mtime_ns
+    code2, out2, _ = _vtcal(argv, capsys)
+    assert code2 == code and "measured 6/6" in out2
+    assert (tmp_path / "cal" / "recording.mcap").stat().st_mtime_ns == stamp  # not re-measured

@@ -4,7 +4,7 @@ Writes into ``--out``: ``plan.parquet`` (unless ``--plan`` is given),
 ``recording.mcap`` (resumable, as ``vtcal measure``'s), the run folder
 ``run/`` and ``measure.json`` (how many touch-ups converged, how long
 measuring took). Run again after an interruption, it resumes the measurement
-and the run skips what is done.
+(a complete recording is not measured again) and the run skips what is done.
 """
 
 from __future__ import annotations
@@ -14,7 +14,7 @@ from pathlib import Path
 
 import click
 
-from pipeline.commands.measure import measure_options, run_measure, summary_line
+from pipeline.commands.measure import measure_options, run_measure, summarize, summary_line
 from pipeline.errors import BadInput
 
 
@@ -82,6 +82,7 @@ def command(
     """Plan, measure and calibrate a cell in one command."""
     from pipeline.commands import plan as plan_cmd
     from pipeline.commands import run as run_cmd
+    from pipeline.measure.record import read_progress
 
     out.mkdir(parents=True, exist_ok=True)
     if plan_path is None:
@@ -100,10 +101,14 @@ def command(
                 quiet=quiet,
             )
     rec = out / "recording.mcap"
-    s = run_measure(
-        plan_path, robot, camera, rec, urdf_path, overrides, speed, max_iterations, gain,
-        limit_margin_deg, quiet,
-    )  # fmt: skip
+    done = read_progress(rec)
+    if done is not None and done.finished:  # measured before: go on with the run
+        s = summarize(done.touchups, done.n_plan, done.sessions, rec)
+    else:
+        s = run_measure(
+            plan_path, robot, camera, rec, urdf_path, overrides, speed, max_iterations, gain,
+            limit_margin_deg, quiet,
+        )  # fmt: skip
     line = summary_line(s)
     click.echo(f"{rec}: {line}")
     run_dir = out / "run"
