@@ -20,7 +20,7 @@ from typing import Any
 
 import numpy as np
 
-from pipeline.measure.adapters import CellLink
+from pipeline.measure.cell_link import CellLink
 from pipeline.measure.loop import (
     CaptureInfo,
     Detector,

@@ -16,7 +16,7 @@ from typing import Any
 import numpy as np
 
 from pipeline.errors import BadInput
-from pipeline.measure.adapters import CellLink
+from pipeline.measure.cell_link import CellLink
 from pipeline.measure.protocols import JointReading
 from pipeline.sim.recorder import NullRecorder
 
