@@ -3,9 +3,11 @@
 Shared by the client (:mod:`pipeline.measure.tcp_robot`) and the reference
 server (:mod:`pipeline.measure.tcp_server`). Every request is one ASCII line
 ``COMMAND arg ...`` ending in ``\\n``; every reply is one line, ``OK field ...``
-or ``ERR kind message``. ``CAPTURE`` is the one reply followed by bytes: its
-line ``OK FRAME stamp_ns encoding width height nbytes`` is followed by exactly
-``nbytes`` of raw pixels, row-major, no padding, little-endian for ``mono16``.
+or ``ERR kind message``. A few replies are followed by a block of bytes whose
+length is the last field of the ``OK`` line: ``CAPTURE`` (``OK FRAME stamp_ns
+encoding width height nbytes``, then raw pixels, row-major, no padding,
+little-endian for ``mono16``), ``JOINTLOG?`` (``OK nbytes``, then lines
+``stamp_ns q1 ... qn``), ``URDF?`` and ``META?`` (``OK nbytes``, then UTF-8 text).
 Numbers are decimal text; floats as Python's ``repr`` writes them (they read
 back bit-identical), stamps as integer nanoseconds.
 """
