@@ -207,6 +207,7 @@ class Session:
         self.optics.reseed(plan_index, faulted)
 
     def camera_target(self, q: F64, tg: Target) -> F64:
+        """``T_camera_target`` (4, 4) at joints ``q`` on the true chain."""
         T_base_cam = fk(self.cell.true, q) @ self.cell.T_flange_camera
         return invert_transform(T_base_cam) @ tg.T_base_target()
 
