@@ -91,3 +91,12 @@ def test_resume_refuses_another_plan_a_finished_run_and_a_foreign_file(tmp_path:
     progress_path(path).unlink()
     with pytest.raises(BadInput, match="not a partial"):
         open_recording(path, URDF, {}, "abc", 1, T0)
+
+
+def test_a_kill_before_the_file_existed_starts_afresh(tmp_path: Path) -> None:
+    path = tmp_path / "rec.mcap"
+    rec = open_recording(path, URDF, {}, "abc", 2, T0)
+    rec.abandon()
+    path.unlink()  # as if killed between the sidecar and the file
+    rec = open_recording(path, URDF, {}, "abc", 2, T0)
+    assert rec.progress.sessions == 1 and path.exists()

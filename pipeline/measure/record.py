@@ -240,6 +240,8 @@ def open_recording(
     path = Path(path)
     prev = path.with_name(path.name + ".prev")
     progress = read_progress(path)
+    if progress is not None and progress.done == 0 and not path.exists() and not prev.exists():
+        progress = None  # killed between writing the sidecar and creating the file
     if progress is None:
         if path.exists() or prev.exists():
             raise BadInput(
@@ -265,7 +267,10 @@ def open_recording(
         )
     if not prev.exists():
         if not path.exists():
-            raise BadInput(f"{path}: missing, but its progress file says it was started")
+            raise BadInput(
+                f"{path}: missing, but {progress_path(path).name} says {progress.done} "
+                "touch-ups were recorded; remove the progress file to start again"
+            )
         os.replace(path, prev)
     progress.sessions += 1
     rec = LiveRecording(path, progress)
