@@ -3,6 +3,7 @@ killed and resumed, and the cell-side faults (one line, exit 4, the recording ke
 
 from __future__ import annotations
 
+import json
 import os
 import signal
 import subprocess
@@ -20,6 +21,7 @@ from pipeline.cli import main
 from pipeline.measure.protocols import MeasureFault
 from pipeline.measure.record import read_progress
 from pipeline.measure.sim_link import sim_cell, write_plan
+from pipeline.measure.summary import from_metadata
 from pipeline.measure.tcp_server import Cell, CellServer, serve_in_thread
 
 REPO = Path(__file__).resolve().parent.parent
@@ -102,6 +104,11 @@ def test_tcp_and_in_process_measure_the_same_and_vtcal_run_calibrates_it(
     assert code in (0, 3), err  # 3: a 6-pose cell may not improve on the nominal robot
     tu = pd.read_parquet(tmp_path / "run" / "touchups.parquet")
     assert len(tu) == 6
+    # the recording says how it was measured; ingest keeps it for the report
+    info = json.loads((tmp_path / "run" / "recording.json").read_text())
+    m = from_metadata(info["measurement"])
+    assert (m["n_plan"], m["converged"], m["captures"], m["gave_up"]) == (6, 6, 51, {})
+    assert 40.0 < m["cell_s"] < 80.0 and m["sessions"] == 1
     prog = read_progress(tmp_path / "tcp.mcap")
     assert prog is not None and prog.finished and prog.done == 6
 
@@ -157,6 +164,8 @@ def test_a_killed_measure_leaves_a_readable_recording_that_resumes(
     assert code == 0, err
     tu = pd.read_parquet(tmp_path / "full" / "touchups.parquet")
     assert len(tu) == 6
+    m = from_metadata(json.loads((tmp_path / "full" / "recording.json").read_text())["measurement"])
+    assert m["converged"] == 6 and m["sessions"] == 2
 
 
 class _Faulty:

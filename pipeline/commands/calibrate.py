@@ -14,8 +14,9 @@ from pathlib import Path
 
 import click
 
-from pipeline.commands.measure import measure_options, run_measure, summarize, summary_line
+from pipeline.commands.measure import measure_options, run_measure
 from pipeline.errors import BadInput
+from pipeline.measure.summary import summarize, summary_line
 
 
 def _xyz(text: str) -> tuple[float, float, float]:

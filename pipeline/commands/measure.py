@@ -12,6 +12,7 @@ import click
 
 from pipeline.commands._common import set_option
 from pipeline.errors import BadInput, CellFault
+from pipeline.measure.summary import as_metadata, summarize, summary_line
 
 #: cell time the arm stays still after each capture (s): more than ingest's still window
 #: (+-0.06 s about the stamp) plus half an exposure
@@ -185,48 +186,13 @@ def run_measure(
         except BaseException:
             rec.abandon()
             raise
-        rec.finish()
-        return summarize(rec.progress.touchups, len(plan), rec.progress.sessions, out)
+        done = summarize(rec.progress.touchups, len(plan), rec.progress.sessions, out)
+        rec.finish(as_metadata(done))
+        return done
     except MeasureFault as exc:
         raise fault(exc, robot) from None
     finally:
         link.close()
-
-
-def summarize(
-    touchups: list[dict[str, Any]], n_plan: int, sessions: int, out: Path
-) -> dict[str, Any]:
-    """Counts and times of a measurement from its touch-up summaries (all sessions)."""
-    conv = [t for t in touchups if t["converged"]]
-    reasons: dict[str, int] = {}
-    for t in touchups:
-        if not t["converged"]:
-            reasons[t["reason"]] = reasons.get(t["reason"], 0) + 1
-    return {
-        "recording": str(out),
-        "n_plan": n_plan,
-        "touchups": len(touchups),
-        "converged": len(conv),
-        "gave_up": reasons,
-        "cell_s": sum(t["cell_s"] for t in touchups),
-        "wall_s": sum(t["wall_s"] for t in touchups),
-        "captures": sum(t["captures"] for t in touchups),
-        "captures_per_converged": (
-            sum(t["captures"] for t in touchups) / len(conv) if conv else None
-        ),
-        "sessions": sessions,
-    }
-
-
-def summary_line(s: dict[str, Any]) -> str:
-    """One line: how many touch-ups converged and how long measuring took."""
-    gave = ", ".join(f"{k} {v}" for k, v in s["gave_up"].items()) or "none"
-    return (
-        f"measured {s['touchups']}/{s['n_plan']} touch-ups: {s['converged']} converged "
-        f"(gave up: {gave}); {s['captures']} captures; measuring took {s['cell_s']:.1f} s "
-        f"cell time, {s['wall_s']:.1f} s wall time"
-        + (f" over {s['sessions']} sessions" if s["sessions"] > 1 else "")
-    )
 
 
 @click.command(

@@ -37,6 +37,7 @@ from pipeline import io_mcap
 from pipeline.errors import BadInput
 from pipeline.fileio import atomic_write_bytes
 from pipeline.measure.protocols import Frame, JointReading
+from pipeline.measure.summary import METADATA_NAME
 from pipeline.sim.recorder import Recorder, stamp
 
 JOINT_TOPIC = "/joint_states"
@@ -176,8 +177,14 @@ class LiveRecording:
             self.progress.state = state
         write_progress(self.path, self.progress)
 
-    def finish(self) -> None:
-        """Write the summary and footer; mark the sidecar finished."""
+    def finish(self, measurement: dict[str, str] | None = None) -> None:
+        """Write the summary and footer; mark the sidecar finished.
+
+        ``measurement``: the string map of :func:`pipeline.measure.summary.as_metadata`,
+        written as the metadata record ``measurement`` (how the recording was measured).
+        """
+        if measurement:
+            self._rec.metadata(METADATA_NAME, dict(measurement))
         self._rec.finish()
         self._f.flush()
         os.fsync(self._f.fileno())
