@@ -37,6 +37,12 @@ COMMANDS: dict[str, tuple[str, str]] = {
         "Judge a calibrated URDF on another recording's touch-ups.",
     ),
     "export": ("pipeline.commands.export", "Write a run's calibration for a controller or ROS."),
+    "measure": ("pipeline.commands.measure", "Run a plan on a cell: touch up and record."),
+    "calibrate": ("pipeline.commands.calibrate", "Plan -> measure -> run for a cell, in one go."),
+    "cell-server": (
+        "pipeline.commands.cell_server",
+        "Serve the simulated cell over the cell protocol (TCP).",
+    ),
 }
 
 

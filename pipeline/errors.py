@@ -25,3 +25,10 @@ class ExportRefused(VtcalError):
     """A calibration cannot be written in the asked format (wrong robot kind). Exit code 3."""
 
     exit_code = 3
+
+
+class CellFault(VtcalError):
+    """The robot or camera failed during ``vtcal measure`` (lost connection, refused
+    move, target not found, camera timeout); the recording so far is kept. Exit code 4."""
+
+    exit_code = 4

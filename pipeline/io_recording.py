@@ -9,7 +9,11 @@ vtcal reads (see docs/ros-bags.md):
   order ``metadata.yaml`` lists them, as one recording;
 - ``rosbag2-sqlite3``: a rosbag2 directory of ``.db3`` files, or one ``.db3``
   file, read by :mod:`pipeline.io_rosbags`;
-- ``ros1``: a ROS 1 ``.bag`` file, read by :mod:`pipeline.io_rosbags`.
+- ``ros1``: a ROS 1 ``.bag`` file, read by :mod:`pipeline.io_rosbags`;
+- a compressed rosbag2 directory of either storage (``ros2 bag record
+  --compression-mode file|message --compression-format zstd``: ``NAME.mcap.zstd``
+  files, or zstd-compressed message bytes), read by :mod:`pipeline.io_rosbags`,
+  which decompresses.
 
 Every kind yields MCAP-style records into one
 :class:`~pipeline.io_mcap.StreamState`, with ROS 2 CDR message bytes for the
@@ -77,7 +81,7 @@ def summarize(layout: Layout) -> Summary:
     """
     s = Summary()
     topic_meta: bytes | None = None
-    if layout.kind in ("mcap", "rosbag2-mcap"):
+    if not layout.read_by_rosbags:
         for f in layout.files:
             part, first = _mcap_summary(f)
             for t, tv in part.topics.items():
@@ -160,7 +164,7 @@ def iter_recording(layout: Layout, state: StreamState) -> Iterator[Message]:
     BadInput
         A file that is missing or not an MCAP file at all; a bag rosbags cannot open.
     """
-    if layout.kind in ("rosbag2-sqlite3", "ros1"):
+    if layout.read_by_rosbags:
         from pipeline import io_rosbags
 
         yield from io_rosbags.iter_bag_messages(layout.path, state)

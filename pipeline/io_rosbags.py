@@ -107,7 +107,7 @@ def iter_bag_messages(path: Path, state: StreamState) -> Iterator[Message]:
     reader checks the bag's index, so a bag that opens is read whole).
     """
     reader = open_reader(path)
-    files = sorted(path.glob("*.db3")) if path.is_dir() else [path]
+    files = [f for f in path.iterdir() if f.name != "metadata.yaml"] if path.is_dir() else [path]
     state.file_size = sum(os.path.getsize(f) for f in files)
     conv = _Converter(path.suffix == ".bag")
     try:

@@ -24,11 +24,20 @@ class Layout:
     path : what the user named (a file or a bag directory)
     kind : ``mcap``, ``rosbag2-mcap``, ``rosbag2-sqlite3`` or ``ros1``
     files : the data files, in reading order
+    compression : a rosbag2 bag's ``compression_mode`` (``file``: every data file is
+        zstd-compressed whole, ``NAME.mcap.zstd``; ``message``: each message's bytes
+        are), ``""`` when not compressed
     """
 
     path: Path
     kind: str
     files: tuple[Path, ...]
+    compression: str = ""
+
+    @property
+    def read_by_rosbags(self) -> bool:
+        """Read through :mod:`pipeline.io_rosbags` (sqlite3, ROS 1 and compressed bags)."""
+        return self.kind in ("rosbag2-sqlite3", "ros1") or bool(self.compression)
 
 
 def locate(path: str | os.PathLike[str]) -> Layout:
@@ -67,6 +76,8 @@ def _bag_directory(d: Path) -> Layout:
         info = YAML(typ="safe").load(meta.read_text())["rosbag2_bagfile_information"]
         storage = str(info["storage_identifier"])
         names = [str(x) for x in info["relative_file_paths"]]
+        mode = str(info.get("compression_mode") or "").lower()
+        fmt = str(info.get("compression_format") or "").lower()
     except Exception as exc:  # noqa: BLE001 - YAML errors, missing keys, wrong types
         raise BadInput(f"{meta}: not a readable rosbag2 metadata.yaml: {exc}") from exc
     files = tuple(d / Path(n).name for n in names)
@@ -77,7 +88,13 @@ def _bag_directory(d: Path) -> Layout:
         raise BadInput(f"{meta}: lists no bag files (relative_file_paths is empty)")
     if storage not in ("mcap", "sqlite3"):
         raise BadInput(f"{meta}: storage_identifier {storage!r} is not mcap or sqlite3")
-    return Layout(d, f"rosbag2-{storage}", files)
+    mode = "" if mode == "none" else mode
+    if mode and (mode not in ("file", "message") or fmt != "zstd"):
+        raise BadInput(
+            f"{meta}: compression {mode!r} / {fmt!r} is not readable "
+            "(rosbag2 compresses with zstd, per file or per message)"
+        )
+    return Layout(d, f"rosbag2-{storage}", files, mode)
 
 
 def recording_hash(layout: Layout) -> str:

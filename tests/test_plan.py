@@ -244,8 +244,9 @@ def test_cli_plan_feeds_the_simulator(tmp_path: Path, capsys: pytest.CaptureFixt
 
     import dataclasses
 
+    from pipeline.sim.cell import build_cell
+    from pipeline.sim.poses import measuring_poses
     from pipeline.sim.scenario import load_scenario
-    from pipeline.sim.simulator import build_cell, measuring_poses
 
     sc = load_scenario(REPO / "datasets/scenarios/small.toml")
     sc = dataclasses.replace(sc, poses=dataclasses.replace(sc.poses, plan=str(out)))

@@ -49,6 +49,8 @@ def recordings(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Path]:
         "split": write_split_mcap_bag(d / "split", bag_msgs, 3),
         "db3": write_rosbag2(d / "db3bag", bag_msgs, StoragePlugin.SQLITE3),
         "ros1": write_ros1_bag(d / "rec.bag", bag_msgs),
+        "zstd-file": write_rosbag2(d / "zfile", bag_msgs, StoragePlugin.MCAP, "file"),
+        "zstd-message": write_rosbag2(d / "zmsg", bag_msgs, StoragePlugin.MCAP, "message"),
     }
 
 
@@ -71,6 +73,9 @@ def test_split_bag_layout(recordings: dict[str, Path]) -> None:
     ]
     assert locate(recordings["db3"]).kind == "rosbag2-sqlite3"
     assert locate(recordings["ros1"]).kind == "ros1"
+    zf, zm = locate(recordings["zstd-file"]), locate(recordings["zstd-message"])
+    assert zf.compression == "file" and zf.files[0].name.endswith(".mcap.zstd")
+    assert zm.compression == "message" and zf.read_by_rosbags and zm.read_by_rosbags
 
 
 def _figures(obj: Any) -> Any:
@@ -82,7 +87,7 @@ def _figures(obj: Any) -> Any:
     return obj
 
 
-@pytest.mark.parametrize("kind", ["split", "db3", "ros1"])
+@pytest.mark.parametrize("kind", ["split", "db3", "ros1", "zstd-file", "zstd-message"])
 def test_bag_calibrates_like_its_mcap(runs: dict[str, Path], kind: str) -> None:
     ref, got = runs["mcap"], runs[kind]
     for art in ("frames", "detections", "touchups"):

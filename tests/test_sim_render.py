@@ -104,7 +104,7 @@ def test_rendered_image_noise_and_polarity() -> None:
 def test_virtual_pin_is_where_a_perfect_touch_up_puts_an_untilted_target() -> None:
     """The true pin: the untilted circle centred there images at exactly (u0, v0, s0)."""
     from pipeline.kinematics.se3 import transform_from
-    from pipeline.sim.simulator import R_CAMERA_UNTILTED, virtual_pin_camera
+    from pipeline.sim.cell import R_CAMERA_UNTILTED, virtual_pin_camera
 
     D, s0, u0, v0 = 0.01, 53.31, 319.5, 255.5
     # no distortion: fx D / s0 on the ray of the designated pixel

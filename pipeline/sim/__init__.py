@@ -5,7 +5,11 @@ Modules: :mod:`~pipeline.sim.camera` (pinhole + radial distortion),
 ellipse), :mod:`~pipeline.sim.detect` (the simulated controller's detection),
 :mod:`~pipeline.sim.robot` (deviations, true URDFs, nominal IK),
 :mod:`~pipeline.sim.scenario` (TOML scenarios), :mod:`~pipeline.sim.recorder`
-(streaming ROS 2 MCAP writer) and :mod:`~pipeline.sim.simulator` (the session
-and the truth file, whose layout follows the conformance sample's). See
-``docs/simulator.md``.
+(streaming ROS 2 MCAP writer), :mod:`~pipeline.sim.cell` (the world of one seed),
+:mod:`~pipeline.sim.poses` (planned poses), :mod:`~pipeline.sim.session` (clock,
+motion, capture), :mod:`~pipeline.sim.cell_adapter` (the cell behind the
+measurement protocols), :mod:`~pipeline.sim.faults`, :mod:`~pipeline.sim.truth`
+(the truth file, whose layout follows the conformance sample's) and
+:mod:`~pipeline.sim.simulator` (runs a session with the shared touch-up loop of
+:mod:`pipeline.measure.loop`). See ``docs/simulator.md``.
 """

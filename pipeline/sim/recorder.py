@@ -144,3 +144,35 @@ class Recorder:
     def finish(self) -> None:
         self.flush(None)
         self._w.finish()
+
+
+class NullRecorder(Recorder):
+    """A recorder that keeps nothing: a simulated cell run standalone (behind an adapter
+    server, whose client writes the recording) streams its messages nowhere."""
+
+    def __init__(self) -> None:  # no file, no writer
+        self.sequence = 0
+        self.counts = {}
+        self.last_log_time = {}
+
+    def metadata(self, name: str, data: dict[str, str]) -> None:
+        return None
+
+    def push(
+        self,
+        log_time_ns: int,
+        topic: str,
+        datatype: str,
+        msg: dict[str, Any],
+        on_write: Callable[[int, int], None] | None = None,
+    ) -> None:
+        return None
+
+    def flush(self, until_ns: int | None = None) -> None:
+        return None
+
+    def cut_chunk(self) -> int:
+        return 0
+
+    def finish(self) -> None:
+        return None

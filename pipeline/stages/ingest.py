@@ -126,6 +126,9 @@ class RecordingInfo:
     camera : what was found about the camera: ``response`` (the curve detection used,
         :mod:`pipeline.stages.response`), ``response_source`` (option, metadata,
         estimated), and the estimate's figures (``ResponseEstimate.to_dict``)
+    measurement : the recording's ``measurement`` metadata record, when ``vtcal measure``
+        wrote it (:mod:`pipeline.measure.summary`: touch-ups planned, converged, given up,
+        captures, cell and wall time), as written (strings)
     implausible : guardrail lines on the joint states
         (:func:`pipeline.stages.plausibility.joints_outside_chain`: a joint above the base
         or after the flange link that moves); the run refuses them before extraction
@@ -147,6 +150,7 @@ class RecordingInfo:
     image_height: int = 0
     camera: dict[str, Any] = field(default_factory=dict)
     implausible: list[str] = field(default_factory=list)
+    measurement: dict[str, str] = field(default_factory=dict)
 
 
 def _choose_image_topic(
@@ -514,6 +518,10 @@ def ingest_recording(
         image_width=width,
         image_height=height,
         camera=camera,
+        measurement={
+            **state.metadata.get("measurement", {}),
+            **summary.metadata.get("measurement", {}),
+        },
     )
     return frames, det_df, info
 

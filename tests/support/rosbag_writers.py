@@ -17,7 +17,7 @@ from typing import Any
 import numpy as np
 from mcap.reader import make_reader
 from rosbags.rosbag1 import Writer as Writer1
-from rosbags.rosbag2 import StoragePlugin
+from rosbags.rosbag2 import CompressionFormat, CompressionMode, StoragePlugin
 from rosbags.rosbag2 import Writer as Writer2
 from rosbags.typesys import Stores, get_typestore
 from ruamel.yaml import YAML
@@ -58,8 +58,15 @@ def with_touchup_topic(msgs: list[Msg], meta: dict[str, str]) -> list[Msg]:
     return [(TOUCHUP_TOPIC, STRING, msgs[0][2], bytes(data)), *msgs]
 
 
-def write_rosbag2(path: Path, msgs: list[Msg], storage: StoragePlugin) -> Path:
-    with Writer2(path, version=9, storage_plugin=storage) as w:
+def write_rosbag2(
+    path: Path, msgs: list[Msg], storage: StoragePlugin, compression: str = ""
+) -> Path:
+    """A rosbag2 bag directory; ``compression`` ``file`` or ``message`` compresses it with
+    zstd as ``ros2 bag record --compression-mode ... --compression-format zstd`` does."""
+    w = Writer2(path, version=9, storage_plugin=storage)
+    if compression:
+        w.set_compression(CompressionMode[compression.upper()], CompressionFormat.ZSTD)
+    with w:
         conns: dict[str, Any] = {}
         for topic, typ, t, data in msgs:
             if topic not in conns:

@@ -1,0 +1,36 @@
+"""``vtcal cell-server``: the simulated cell behind the cell protocol (docs/measure.md)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import click
+
+
+@click.command("cell-server")
+@click.option("--scenario", "scenario_path", required=True, type=click.Path(dir_okay=False, path_type=Path),
+              help="Scenario TOML of the simulated cell.")  # fmt: skip
+@click.option("--seed", type=int, default=0, show_default=True)
+@click.option("--host", default="127.0.0.1", show_default=True)
+@click.option("--port", type=click.IntRange(0, 65535), default=5000, show_default=True,
+              help="TCP port (0: a free one, printed).")  # fmt: skip
+@click.option("--plan-out", type=click.Path(dir_okay=False, path_type=Path), default=None,
+              help="Also write the scenario's measuring poses as a plan for vtcal measure.")  # fmt: skip
+def command(scenario_path: Path, seed: int, host: str, port: int, plan_out: Path | None) -> None:
+    """Serve the simulated cell of SCENARIO and SEED on HOST:PORT until interrupted."""
+    from pipeline.measure.sim_link import sim_cell, write_plan
+    from pipeline.measure.tcp_server import Cell, CellServer
+
+    cell, tap = sim_cell(f"sim:{scenario_path}:{seed}")
+    if plan_out is not None:
+        write_plan(cell, str(plan_out))
+    server = CellServer(
+        Cell(cell.robot, cell.camera, tap.since, cell.nominal_urdf, dict(cell.metadata)), host, port
+    )
+    click.echo(
+        f"vtcal cell-server: tcp://{host}:{server.port} ({scenario_path}, seed {seed})", err=True
+    )
+    try:
+        server.serve_forever()
+    finally:
+        server.server_close()

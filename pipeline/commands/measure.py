@@ -1,0 +1,237 @@
+"""``vtcal measure``: run a plan on a cell through its adapters and record it (docs/measure.md)."""
+
+from __future__ import annotations
+
+import contextlib
+import time
+from collections.abc import Callable, Iterator
+from pathlib import Path
+from typing import Any
+
+import click
+
+from pipeline.commands._common import set_option
+from pipeline.errors import BadInput, CellFault
+from pipeline.measure.summary import as_metadata, summarize, summary_line
+
+#: cell time the arm stays still after each capture (s): more than ingest's still window
+#: (+-0.06 s about the stamp) plus half an exposure
+HOLD_S = 0.1
+
+ADAPTER_HELP = "tcp://HOST:PORT, sim:SCENARIO.toml:SEED"
+CAMERA_HELP = "opencv:INDEX|URL, folder:PATH, or omit: the robot's link serves CAPTURE"
+
+
+def measure_options(fn: Callable[..., Any]) -> Callable[..., Any]:
+    """The options ``vtcal measure`` and ``vtcal calibrate`` share."""
+    opts: list[Callable[[Callable[..., Any]], Callable[..., Any]]] = [
+        click.option("--robot", required=True, metavar="ADAPTER", help=f"Robot: {ADAPTER_HELP}."),
+        click.option("--camera", default=None, metavar="ADAPTER", help=f"Camera: {CAMERA_HELP}."),
+        click.option(
+            "--urdf",
+            "urdf_path",
+            type=click.Path(dir_okay=False, path_type=Path),
+            default=None,
+            help="Nominal URDF (default: the one the cell serves, URDF?).",
+        ),
+        set_option,
+        click.option("--speed", type=click.FloatRange(0.01, 1.0), default=0.5, show_default=True,
+                     help="Speed of the large moves (0-1 of the adapter's maximum)."),
+        click.option("--max-iterations", type=click.IntRange(1, 100), default=12, show_default=True,
+                     help="Loop captures per touch-up before it gives up."),
+        click.option("--gain", type=click.FloatRange(0.05, 1.0), default=0.9, show_default=True,
+                     help="Fraction of the linear correction per servo step."),
+        click.option("--limit-margin-deg", type=click.FloatRange(0.0, 30.0), default=0.0,
+                     show_default=True, help="Refuse poses closer than this to a joint limit."),
+        click.option("--quiet", "-q", is_flag=True, help="No live progress."),
+    ]  # fmt: skip
+    for o in reversed(opts):
+        fn = o(fn)
+    return fn
+
+
+@contextlib.contextmanager
+def _progress(enabled: bool, n: int) -> Iterator[Callable[[Any], None]]:
+    """Live progress: a bar over the touch-ups, the current ``e_T``, one line per outcome."""
+    if not enabled:
+        yield lambda ev: None
+        return
+    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn
+
+    with Progress(
+        TextColumn("[bold]touch-up"),
+        BarColumn(),
+        MofNCompleteColumn(),
+        TextColumn("{task.description}"),
+    ) as bars:
+        task = bars.add_task("", total=n)
+
+        def show(ev: Any) -> None:
+            e = ev.error_px
+            err = "" if e is None else f"e_T ({e[0]:+.2f}, {e[1]:+.2f}, {e[2]:+.2f}) px"
+            if ev.kind == "start":
+                bars.update(task, completed=ev.index, description=f"target {ev.target_id}")
+            elif ev.kind == "capture":
+                bars.update(task, description=f"target {ev.target_id} {err}")
+            else:
+                bars.update(task, completed=ev.index + 1)
+                bars.console.print(
+                    f"touch-up {ev.index + 1}/{ev.n} target {ev.target_id}: {ev.reason}"
+                    + (f", {err}" if err else "")
+                )
+
+        yield show
+
+
+def run_measure(
+    plan_path: Path,
+    robot: str,
+    camera: str | None,
+    out: Path,
+    urdf_path: Path | None,
+    overrides: dict[str, str],
+    speed: float,
+    max_iterations: int,
+    gain: float,
+    limit_margin_deg: float,
+    quiet: bool,
+    dry_run: bool = False,
+) -> dict[str, Any]:
+    """Measure ``plan_path`` on the cell into ``out``; return the measurement summary.
+
+    Raises
+    ------
+    BadInput
+        Plan, URDF or adapter strings not usable; ``out`` not resumable.
+    PlanRefused
+        A planned pose outside the joint limits (nothing moved).
+    CellFault
+        A fault at the cell; the recording so far is kept and resumable.
+    """
+    import numpy as np
+
+    from pipeline.measure.adapters import connect
+    from pipeline.measure.detector import vtcal_detector
+    from pipeline.measure.loop import LoopConfig
+    from pipeline.measure.plan_file import check_limits, read_plan
+    from pipeline.measure.protocols import MeasureFault
+    from pipeline.measure.record import open_recording
+    from pipeline.measure.session import (
+        SessionOptions,
+        goal_from_metadata,
+        run_session,
+    )
+    from pipeline.measure.session import (
+        dry_run as visit,
+    )
+
+    def fault(exc: MeasureFault, what: str) -> CellFault:
+        return CellFault(f"{what}: {exc.kind}: {exc}")
+
+    try:
+        link = connect(robot, camera)
+    except MeasureFault as exc:
+        raise fault(exc, robot) from None
+    try:
+        if urdf_path is not None:
+            if not urdf_path.is_file():
+                raise BadInput(f"{urdf_path}: URDF file not found")
+            urdf = urdf_path.read_text()
+        elif link.urdf is not None:
+            urdf = link.urdf
+        else:
+            raise BadInput(f"{robot}: the cell serves no URDF (URDF?); give --urdf")
+        plan = read_plan(plan_path, link.robot.joint_names)
+        check_limits(plan, urdf, float(np.radians(limit_margin_deg)))
+        meta = {**link.metadata, **overrides}
+        # hold still HOLD_S after each capture: ingest judges stillness from the joint
+        # states within +-60 ms of the stamp, so the next move must not start inside it
+        cfg = LoopConfig(
+            gain=gain, max_iterations=max_iterations, update_jacobian=True, compute_s=HOLD_S
+        )
+        opts = SessionOptions(speed=speed)
+        if not quiet:
+            click.echo(f"vtcal measure: {len(plan)} poses from {plan_path}; {link.description}")
+        if dry_run:
+            wall0 = time.perf_counter()
+            with _progress(not quiet, len(plan)) as show:
+                visit(link, plan, cfg, opts, show)
+            return {"dry_run": True, "n_plan": len(plan), "wall_s": time.perf_counter() - wall0}
+        size = None
+        if "designated_u" not in meta or "designated_v" not in meta:
+            img = link.camera.capture().image  # before any move: the image size only
+            size = (int(img.shape[1]), int(img.shape[0]))
+        goal = goal_from_metadata(meta, size)
+        meta.setdefault("designated_u", f"{goal.u0:g}")
+        meta.setdefault("designated_v", f"{goal.v0:g}")
+        detect = vtcal_detector(goal.polarity, size_px=goal.s0)
+        link.drain_joints()  # samples from before the recording starts
+        t0 = link.robot.read_joints().stamp_ns
+        rec = open_recording(out, urdf, meta, plan.sha256, len(plan), t0)
+        if rec.progress.sessions > 1:
+            behind = rec.progress.safe_log_ns - link.robot.read_joints().stamp_ns
+            if behind >= 0:  # a cell whose clock restarted (a simulated one): let it pass
+                link.robot.wait(behind / 1e9 + 1.0)
+            if not quiet:
+                click.echo(f"vtcal measure: resuming {out} at touch-up {rec.progress.done + 1}")
+        try:
+            with _progress(not quiet, len(plan)) as show:
+                run_session(link, plan, rec, goal, cfg, detect, opts, show)
+        except MeasureFault as exc:
+            rec.abandon()
+            raise CellFault(
+                f"{out}: {exc.kind}: {exc}; the recording so far is kept "
+                f"({rec.progress.done} of {len(plan)} touch-ups), run the same command to resume"
+            ) from None
+        except BaseException:
+            rec.abandon()
+            raise
+        done = summarize(rec.progress.touchups, len(plan), rec.progress.sessions, out)
+        rec.finish(as_metadata(done))
+        return done
+    except MeasureFault as exc:
+        raise fault(exc, robot) from None
+    finally:
+        link.close()
+
+
+@click.command(
+    "measure",
+    epilog="""\b
+Examples:
+  vtcal measure --plan plan.parquet --robot tcp://192.168.0.10:30010 --camera opencv:0 --out rec.mcap
+  vtcal measure --plan plan.parquet --robot sim:datasets/scenarios/standard.toml:1 --out rec.mcap
+  vtcal measure --plan plan.parquet --robot tcp://127.0.0.1:5000 --out rec.mcap --dry-run
+""",
+)
+@click.option("--plan", "plan_path", required=True, type=click.Path(path_type=Path),
+              help="Measuring poses (vtcal plan's Parquet).")  # fmt: skip
+@click.option("--out", "-o", required=True, type=click.Path(dir_okay=False, path_type=Path),
+              help="Recording to write (MCAP); a partial one is resumed.")  # fmt: skip
+@click.option(
+    "--dry-run", is_flag=True, help="Only visit the poses, slowly; no touch-up, no recording."
+)
+@measure_options
+def command(
+    plan_path: Path,
+    out: Path,
+    dry_run: bool,
+    robot: str,
+    camera: str | None,
+    urdf_path: Path | None,
+    overrides: dict[str, str],
+    speed: float,
+    max_iterations: int,
+    gain: float,
+    limit_margin_deg: float,
+    quiet: bool,
+) -> None:
+    """Run a plan on a cell: move, touch up, record (crash-safe, resumable)."""
+    s = run_measure(
+        plan_path, robot, camera, out, urdf_path, overrides, speed, max_iterations, gain,
+        limit_margin_deg, quiet, dry_run,
+    )  # fmt: skip
+    if s.get("dry_run"):
+        click.echo(f"dry run: visited {s['n_plan']} poses in {s['wall_s']:.1f} s; nothing recorded")
+        return
+    click.echo(f"{out}: {summary_line(s)}")
