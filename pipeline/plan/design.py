@@ -165,7 +165,7 @@ class Design:
         -------
         dict ``shape_rms_m, shape_max_m, absolute_rms_m, absolute_max_m``
         """
-        from pipeline.stages.identify import predicted_errors
+        from pipeline.estimation.uncertainty import predicted_errors
 
         cov = self.kinematic_covariance(idx, sigma_m)
         q_eval = np.asarray(q_eval, dtype=float)

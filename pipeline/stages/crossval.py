@@ -51,6 +51,7 @@ import numpy as np
 import pandas as pd
 
 from pipeline.errors import BadInput, CalibrationFailed
+from pipeline.estimation.measurement import target_positions
 from pipeline.kinematics.chain import load_chain
 from pipeline.kinematics.se3 import F64
 from pipeline.stages.identify import IdentifyConfig, IdentifyResult, identify
@@ -121,13 +122,6 @@ def _predict(res: IdentifyResult, q: F64, d: F64) -> F64:
     The model's own map (a model a URDF cannot carry, e.g. ``elastic``, is
     judged as it predicts, not by its rigid part)."""
     return res.predict(q, d)
-
-
-def _target_positions(targets: pd.DataFrame) -> dict[int, F64]:
-    """``{target_id: (3,) fitted position}`` from a targets table."""
-    ids = targets["target_id"].to_numpy(dtype=np.int64)
-    xyz = targets[["x", "y", "z"]].to_numpy(dtype=float)
-    return {int(t): xyz[i] for i, t in enumerate(ids)}
 
 
 def _fit(
@@ -223,7 +217,7 @@ def heldout_predictions(
                     _pred_row(i, f, held, train, nan3, nan3, math.nan, f"fold not fitted: {exc}")
                 )
             continue
-        tg = _target_positions(res.targets)
+        tg = target_positions(res.targets)
         p = _predict(res, q_all[hi], d_all[hi])
         sig = float(res.summary.get("sigma_mm", math.nan)) / 1e3
         for j, i in enumerate(hi):

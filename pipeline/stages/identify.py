@@ -59,6 +59,11 @@ import pandas as pd
 from scipy.optimize import least_squares
 
 from pipeline.errors import BadInput, CalibrationFailed
+from pipeline.estimation.design import design_jacobian
+from pipeline.estimation.identifiability import select_columns, structure
+from pipeline.estimation.measurement import Problem, initial_pin_targets, partial_loss
+from pipeline.estimation.uncertainty import covariance, predicted_errors
+from pipeline.estimation.whitening import flange_whitening
 from pipeline.evaluate import workspace_poses
 from pipeline.kinematics.chain import Chain, load_chain
 from pipeline.kinematics.se3 import F64
@@ -67,16 +72,6 @@ from pipeline.models import make_model, model_names
 from pipeline.models.observability import indices_from_singular_values, project_out
 from pipeline.stages.identify_data import FitData, implausible_rows, prepare_data, refuse_early
 from pipeline.stages.identify_notes import COND_WARN, conditioning_note
-from pipeline.stages.identify_problem import (
-    Problem,
-    design_jacobian,
-    flange_whitening,
-    initial_pin_targets,
-    partial_loss,
-    predicted_errors,
-    select_columns,
-    structure,
-)
 from pipeline.stages.identify_shape import fit_print_shape
 from pipeline.stages.identify_tables import (
     FitFigures,
@@ -95,7 +90,8 @@ from pipeline.stages.identify_types import (
 )
 
 #: the public names of identification, importable from here (the parts live in
-#: identify_types, identify_data, identify_problem, identify_shape, identify_notes)
+#: identify_types, identify_data, identify_shape, identify_notes, identify_tables, and
+#: the estimation of eq. (1) in pipeline.estimation)
 __all__ = [
     "AUTO_ORDER",
     "COND_WARN",
@@ -335,12 +331,7 @@ def _uncertainty(s: _Setup, f: _Solved, config: IdentifyConfig) -> Uncertainty:
     Jfull = f.J
     Jz = Jfull[:, prob.columns()]
     zscale = np.concatenate([s.pscale[kept], np.ones(3 + 3 * K)])
-    U, sv, Vt = np.linalg.svd(Jz * zscale, full_matrices=False)
-    dof = prob.m - Jz.shape[1]
-    sigma2 = float(f.r @ f.r / dof) if dof > 0 else float("nan")
-    good = sv > sv[0] * 1e-12
-    Vs = Vt[good].T / sv[good]
-    cov = (zscale[:, None] * (Vs @ Vs.T)) * zscale[None, :] * sigma2
+    cov, sigma2, dof = covariance(Jz, zscale, f.r)
     std_z = np.sqrt(np.clip(np.diag(cov), 0, None))
     ne = len(kept) + 3
     cov_e = cov[:ne, :ne]

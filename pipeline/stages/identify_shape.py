@@ -9,9 +9,9 @@ from typing import Any
 
 import numpy as np
 
+from pipeline.estimation.measurement import Problem
 from pipeline.kinematics.se3 import F64
 from pipeline.stages.identify_data import FitData
-from pipeline.stages.identify_problem import Problem
 from pipeline.stages.identify_types import IdentifyConfig
 
 

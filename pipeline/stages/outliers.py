@@ -82,6 +82,8 @@ import numpy as np
 import pandas as pd
 from scipy import stats
 
+from pipeline.estimation.measurement import target_positions
+from pipeline.estimation.whitening import robust_flange_whitening
 from pipeline.kinematics.se3 import F64
 from pipeline.stages.print_shape import SHAPE_COLUMNS
 
@@ -303,13 +305,6 @@ def _distances(info: Any) -> list[tuple[int | str, int | str, float]]:
     return parse_distances(str(meta.get("known_distances", "") or ""))
 
 
-def _target_positions(targets: pd.DataFrame) -> dict[int, F64]:
-    """``{target_id: (3,) fitted position}`` from a targets table."""
-    ids = targets["target_id"].to_numpy(dtype=np.int64)
-    xyz = targets[["x", "y", "z"]].to_numpy(dtype=float)
-    return {int(t): xyz[i] for i, t in enumerate(ids)}
-
-
 def _fit(out: pd.DataFrame, info: Any, model: str, config: OutlierConfig) -> _Fit:
     """Identify on the current inliers and build the linearised problem."""
     from pipeline.kinematics.chain import load_chain
@@ -329,7 +324,7 @@ def _fit(out: pd.DataFrame, info: Any, model: str, config: OutlierConfig) -> _Fi
     par = res.parameters
     kin = par[par["kind"] == "kinematic"].reset_index(drop=True)
     kept = np.flatnonzero(kin["identifiable"].to_numpy(dtype=bool))
-    tg = _target_positions(res.targets)
+    tg = target_positions(res.targets)
     tcol = {t: i for i, t in enumerate(sorted(tg))}
     rows = np.flatnonzero(res.residuals["used"].to_numpy(dtype=bool))
     q = out.iloc[rows][list(chain.joint_names)].to_numpy(dtype=float)
@@ -340,7 +335,9 @@ def _fit(out: pd.DataFrame, info: Any, model: str, config: OutlierConfig) -> _Fi
     assert Jx is not None
     N, K, nk = len(rows), len(tg), len(kept)
     t_at = np.array([tg[int(t)] for t in tid])
-    W = _whitening(R, p - t_at, sw**2, nk + 3 + 3 * K, bool(res.summary.get("flange_sigma_mm")))
+    W = robust_flange_whitening(
+        R, p - t_at, sw**2, nk + 3 + 3 * K, bool(res.summary.get("flange_sigma_mm"))
+    )
     B = np.einsum("ab,ncb->nac", W, R) * sw[:, None, None]  # sqrt(w) W R^T
     e_rows = np.einsum("nab,nb->na", B, p - t_at).ravel()
     ncol = nk + 3 + 3 * K
@@ -379,40 +376,6 @@ def _fit(out: pd.DataFrame, info: Any, model: str, config: OutlierConfig) -> _Fi
     dof = J.shape[0] - rank
     sigma2 = float(e @ e / dof) if dof > 0 else float("nan")
     return _Fit(model, rows, B, W, e, U, Vs, dof, sigma2, res.x, kept, res.p_flange_pin, tg, tcol)
-
-
-def _whitening(R: F64, r: F64, w: F64, n_est: int, flange: bool) -> F64:
-    """Flange-frame whitening ``W`` of the pin residuals, as identification estimates it.
-
-    A touch-up's error is fixed in the camera (flange) frame and larger along the
-    view: ``S = cov(R_i^T r_i)`` (weighted), ``W = s V diag(lam^-1/2) V^T`` with
-    ``S = V diag(lam) V^T``, ``s^2 = mean lam`` (so ``W`` only reshapes, it does not
-    rescale). Unlike identification's, the covariance is estimated robustly (the
-    touch-ups whose Mahalanobis distance exceeds the chi-square(3) 97.5 % point
-    are left out, twice), so an outlier does not whiten itself away. Identity when
-    identification used isotropic residuals (``flange`` false) or too few degrees
-    of freedom are left (< 15).
-    """
-    if not flange or 3 * len(r) - n_est < 15:
-        return np.eye(3)
-    ef = np.einsum("nji,nj->ni", R, r)
-    keep = np.ones(len(ef), dtype=bool)
-    cut = float(stats.chi2.ppf(0.975, 3))
-    for _ in range(3):
-        wk = w * keep
-        mu = (wk[:, None] * ef).sum(axis=0) / wk.sum()
-        c = ef - mu
-        S = (wk[:, None, None] * c[:, :, None] * c[:, None, :]).sum(axis=0) / wk.sum()
-        d2 = np.einsum("ni,ij,nj->n", c, np.linalg.pinv(S), c)
-        new = d2 <= cut
-        if new.sum() < max(6, len(ef) // 2) or np.array_equal(new, keep):
-            break
-        keep = new
-    lam, V = np.linalg.eigh(S)
-    if lam.max() < (1e-9) ** 2:
-        return np.eye(3)
-    lam = np.maximum(lam, lam.max() * 1e-4)
-    return np.asarray(np.sqrt(lam.mean()) * (V / np.sqrt(lam)) @ V.T)
 
 
 def _mean_shift(f: _Fit, pos: np.ndarray, w: np.ndarray) -> tuple[float, int, F64]:

@@ -1,0 +1,64 @@
+"""Uncertainty of a fit of eq. (1): ``cov = sigma^2 (J^T J)^-1`` and the pin error it predicts."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from pipeline.kinematics.se3 import F64
+
+
+def predicted_errors(Jw: F64, cov: F64, p: F64, kind: str) -> F64:
+    """Per-pose standard pin error the covariance predicts after a registration.
+
+    The error field ``dp = J_w dz`` (``J_w`` (N, 3, p), ``dz ~ N(0, cov)``) minus its
+    best-fit rigid (``absolute``) or similarity (``shape``) motion: to first
+    order a projection ``Pr = I - Q Q^T`` onto the complement of the fields
+    ``[I, -[p_i]x]`` (and ``p_i - mean`` for a similarity). Returns
+    ``sqrt(trace_i(Pr J cov J^T Pr))`` per pose, (N,).
+    """
+    N = len(p)
+    G = Jw.reshape(3 * N, -1)
+    if kind != "raw":
+        c = p - p.mean(axis=0)
+        basis = [np.tile(np.eye(3), (N, 1))]
+        rot = np.zeros((N, 3, 3))
+        rot[:, 0, 1], rot[:, 0, 2] = c[:, 2], -c[:, 1]
+        rot[:, 1, 0], rot[:, 1, 2] = -c[:, 2], c[:, 0]
+        rot[:, 2, 0], rot[:, 2, 1] = c[:, 1], -c[:, 0]
+        basis.append(rot.reshape(3 * N, 3))
+        if kind == "shape":
+            basis.append(c.reshape(3 * N, 1))
+        Q, _ = np.linalg.qr(np.concatenate(basis, axis=1))
+        G = G - Q @ (Q.T @ G)
+    var = np.einsum("ij,jk,ik->i", G, cov, G).reshape(N, 3).sum(axis=1)
+    return np.asarray(np.sqrt(np.clip(var, 0.0, None)))
+
+
+def covariance(J: F64, scale: F64, r: F64) -> tuple[F64, float, int]:
+    """Covariance of the estimated unknowns of a least-squares fit.
+
+    ``cov = sigma^2 (J^T J)^-1`` with ``sigma^2 = |r|^2 / (m - p)``, computed by
+    the SVD of the column-scaled ``J S = U diag(s) V^T`` as
+    ``S V diag(s^-2) V^T S sigma^2`` (singular values below ``1e-12 s_max``
+    dropped: a pseudo-inverse), so that columns in radians and metres are
+    conditioned alike (the scaling of :mod:`pipeline.stages.identify`).
+
+    Parameters
+    ----------
+    J : (m, p) Jacobian at the solution, columns of the estimated unknowns
+    scale : (p,) column scale ``S`` (diagonal)
+    r : (m,) residual vector at the solution
+
+    Returns
+    -------
+    cov : (p, p); NaN when ``m <= p``
+    sigma2 : ``|r|^2 / (m - p)``, NaN when ``m <= p``
+    dof : ``m - p``
+    """
+    U, sv, Vt = np.linalg.svd(J * scale, full_matrices=False)
+    dof = J.shape[0] - J.shape[1]
+    sigma2 = float(r @ r / dof) if dof > 0 else float("nan")
+    good = sv > sv[0] * 1e-12
+    Vs = Vt[good].T / sv[good]
+    cov = (scale[:, None] * (Vs @ Vs.T)) * scale[None, :] * sigma2
+    return cov, sigma2, int(dof)
