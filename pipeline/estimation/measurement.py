@@ -56,7 +56,17 @@ class Problem:
         return np.concatenate([x[self.free], pin, targets.ravel()])
 
     def full_eval(self, x: F64, pin: F64, targets: F64, jac: bool = True) -> tuple[F64, F64 | None]:
-        """Residual (m,) and Jacobian (m, P + 3 + 3K) over all model parameters."""
+        """Residual (m,) and Jacobian (m, P + 3 + 3K) over all model parameters.
+
+        Rows: ``sqrt(w_i) (p_i - t_k)`` (3 per touch-up), whitened to
+        ``sqrt(w_i) W R_i^T (p_i - t_k)`` when :attr:`W` is set; one
+        ``w_D (|t_A - t_B| - D)`` per known distance; ``w_D g . x`` for the gauge.
+        Columns: ``d/dx = sqrt(w) [W R^T] dp/dx``, ``d/dp_pin = sqrt(w) [W R^T] R``,
+        ``d/dt_k = -sqrt(w) [W R^T]``. Whitened, ``W R_i^T`` is held fixed (Gauss-Newton
+        in the rotation): the kinematic columns omit ``W (dR_i^T/dx) (p_i - t_k)``,
+        which vanishes with the residual; the pin and target columns are exact
+        (``tests/test_estimation.py`` checks both against central differences).
+        """
         D = self.data
         pts = pin + D.d
         p, R, Jx = self.model.pin_and_jacobian(x, D.q, pts, jac=jac)
