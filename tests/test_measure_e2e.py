@@ -285,12 +285,13 @@ def test_calibrate_measures_once_and_reports_the_measurement(
     argv = ["calibrate", "--robot", SIM, "--plan", str(plan), "--out", str(tmp_path / "cal"), "-q"]
     code, out, err = _vtcal(argv, capsys)
     assert code in (0, 3), err  # 3: NOT improved is possible on 6 poses
-    import json
-
     m = json.loads((tmp_path / "cal" / "measure.json").read_text())
     assert m["converged"] == 6 and m["captures"] == 51 and m["cell_s"] > 10
     assert out.count("measured 6/6 touch-ups: 6 converged") == 2  # after measuring and at the end
     assert (tmp_path / "cal" / "run" / "calibrated.urdf").exists()
+    # the report says how the recording was measured (from the recording itself)
+    html = (tmp_path / "cal" / "run" / "report.html").read_text()
+    assert "by vtcal measure: 6 of 6 planned touch-ups converged; 51 captures" in html
     stamp = (tmp_path / "cal" / "recording.mcap").stat().st_mtime_ns
     code2, out2, _ = _vtcal(argv, capsys)
     assert code2 == code and "measured 6/6" in out2

@@ -33,6 +33,7 @@ import pandas as pd
 
 from pipeline import __version__
 from pipeline.artefacts import atomic_write_bytes
+from pipeline.measure.summary import from_metadata
 from pipeline.report import plots
 from pipeline.report.data import RunData, artefact_hashes, load_run, run_uuid
 from pipeline.report.diagnosis import camera_section
@@ -160,7 +161,31 @@ def _verdict(data: RunData) -> dict[str, Any]:
         "n_images": rec.get("n_images"),
         "n_joint_states": rec.get("n_joint_states"),
         "truncated": bool(rec.get("truncated")),
+        "measured": measurement_text(rec.get("measurement") or {}),
     }
+
+
+def measurement_text(kv: dict[str, str]) -> str:
+    """How a ``vtcal measure`` recording was measured, in words ("" when it does not say).
+
+    ``kv`` is the recording's ``measurement`` metadata record as ingest kept it
+    (:mod:`pipeline.measure.summary`).
+    """
+    if not kv:
+        return ""
+    m = from_metadata(kv)
+    gave = m.get("gave_up") or {}
+    parts = [
+        f"{m.get('converged', '?')} of {m.get('n_plan', '?')} planned touch-ups converged"
+        + (" (gave up: " + ", ".join(f"{k} {v}" for k, v in gave.items()) + ")" if gave else ""),
+        f"{m.get('captures', '?')} captures",
+    ]
+    cell_s = m.get("cell_s")
+    if isinstance(cell_s, (int, float)):
+        parts.append(f"measuring took {cell_s / 60:.1f} min of cell time")
+    if isinstance(m.get("sessions"), int) and m["sessions"] > 1:
+        parts.append(f"over {m['sessions']} sessions (resumed)")
+    return "by vtcal measure: " + "; ".join(parts)
 
 
 def _residual_section(data: RunData) -> dict[str, Any]:
