@@ -16,6 +16,7 @@ from pipeline.stages.touchup import (
     camera_from_jacobian,
     estimate_jacobian,
     extract_touchups,
+    size_row_scales,
     tilt_bias,
 )
 
@@ -78,6 +79,30 @@ def test_estimate_jacobian_robust():
     assert J_hat is not None
     assert np.allclose(J_hat, J, atol=np.array([[5.0], [5.0], [2e-3]]))
     assert estimate_jacobian(dF[:, :1] * np.ones((1, 3)), dm) is None  # one direction only
+
+
+def test_size_row_scale_only_for_a_print_of_another_size():
+    """One image Jacobian for every target; a print 4 % smaller scales its size row alone."""
+    rng = np.random.default_rng(5)
+    J = np.array([[300.0, -5200.0, -250.0], [5200.0, 260.0, 290.0], [0.01, 0.005, -0.11]])
+    scale = {0: 1.0, 1: 1.0 / 0.96, 2: 1.0}  # D / D_k
+    dF = rng.normal(0, 0.002, (60, 3))
+    groups = np.repeat([0, 1, 2], 20)
+    Jk = np.array([J * np.array([[1.0], [1.0], [scale[int(g)]]]) for g in groups])
+    dm = np.einsum("nij,nj->ni", Jk, dF) + rng.normal(0, [0.01, 0.01, 2e-7], (60, 3))
+    J_hat = estimate_jacobian(dF, dm)
+    assert J_hat is not None
+    c_ref, kept = size_row_scales(J_hat, dF, dm, groups, sigmas=3.0, min_pairs=6)
+    assert set(kept) == {1}, kept
+    c, se = kept[1]
+    assert abs(c - scale[1]) < 4 * se, (c, scale[1], se)
+    # the row the other two share is the true one (the pooled row carries target 1's scale)
+    assert abs(c_ref * J_hat[2] - J[2]).max() < 0.002 * abs(J[2]).max()
+    # the same pairs with every print alike: no scale is kept
+    dm_same = dF @ J.T + rng.normal(0, [0.01, 0.01, 2e-7], (60, 3))
+    J_same = estimate_jacobian(dF, dm_same)
+    assert J_same is not None
+    assert size_row_scales(J_same, dF, dm_same, groups, sigmas=3.0, min_pairs=6)[1] == {}
 
 
 def test_camera_from_jacobian():
