@@ -81,3 +81,33 @@ def test_the_identify_stages_own_fits_stand_in_for_the_full_refits() -> None:
     doctored = {**given, "full": {**given["full"], "rms_mm": 123.0}}
     odd = cross_validate(tab, URDF, "base_link", "flange", idc, cfg, full_fits=doctored)
     assert odd.summary["models"]["full"]["train_rms_mm"] == 123.0
+
+
+def test_prediction_only_refits_predict_what_full_refits_do(monkeypatch) -> None:  # type: ignore[no-untyped-def]
+    """The folds' lean refits: the same held-out figures, without tables or URDF."""
+    import dataclasses
+
+    import pipeline.stages.crossval as cv
+
+    tab, dist = cell(9, per_target=6)
+    idc = IdentifyConfig(model="all", distances=dist)
+    cfg = CrossvalConfig(models=["offsets", "poe"], k=3, workers=1)
+    assert refit_config(idc, {}).prediction_only
+    lean = cross_validate(tab, URDF, "base_link", "flange", idc, cfg)
+    original = cv.refit_config
+    monkeypatch.setattr(
+        cv, "refit_config", lambda c, f: dataclasses.replace(original(c, f), prediction_only=False)
+    )
+    full = cross_validate(tab, URDF, "base_link", "flange", idc, cfg)
+    pd.testing.assert_frame_equal(lean.table, full.table)
+    assert lean.summary == full.summary
+    # a lean fit's own figures are those of the full fit
+    one = dataclasses.replace(idc, model="poe")
+    a = fit(tab, one)
+    b = fit(tab, dataclasses.replace(one, prediction_only=True))
+    assert b.calibrated_urdf == "" and b.parameters.empty
+    for key in ("rms_mm", "sigma_mm", "n_identified"):
+        assert abs(a.summary[key] - b.summary[key]) <= 1e-12 * max(1.0, abs(a.summary[key]))
+    np.testing.assert_array_equal(
+        a.targets[["x", "y", "z"]].to_numpy(), b.targets[["x", "y", "z"]].to_numpy()
+    )

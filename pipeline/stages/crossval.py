@@ -161,6 +161,7 @@ def refit_config(config: IdentifyConfig, full: Mapping[str, Any]) -> IdentifyCon
         config,
         check_plausibility=False,
         target_shape="none" if no_shape else config.target_shape,
+        prediction_only=True,
     )
 
 

@@ -364,6 +364,8 @@ def _identify_one(
     t0 = time.perf_counter()
     s = _setup(name, chain, data, urdf, config)
     f = _solve(s, data, config)
+    if config.prediction_only:
+        return _prediction_only(name, s, f, t0)
     u = _uncertainty(s, f, config)
     model, kept, x, pin, tg = s.model, s.kept, f.x, f.pin, f.tg
     data = f.data
@@ -405,6 +407,46 @@ def _identify_one(
         chain=model.chain(x),
         p_flange_pin=pin,
         x=x,
+        error_model=model,
+    )
+
+
+def _prediction_only(name: str, s: _Setup, f: _Solved, t0: float) -> IdentifyResult:
+    """A fit for prediction alone (``IdentifyConfig.prediction_only``): what a held-out
+    score needs, the model, pin and target positions, the residual RMS and the
+    residual scale ``sigma = sqrt(|r|^2 / (m - p))`` (as :func:`covariance` has it),
+    without the covariance, the tables and the URDF (about 40 % of a refit)."""
+    model, data = s.model, f.data
+    cols = s.prob.columns()
+    dof = len(f.r) - len(cols)
+    sigma2 = float(f.r @ f.r / dof) if dof > 0 else float("nan")
+    p_used, _, _ = model.pin_and_jacobian(f.x, data.q, f.pin + data.d, jac=False)
+    norms = np.linalg.norm(p_used - f.tg[data.tk], axis=1)
+    targets = pd.DataFrame(
+        {
+            "model": name,
+            "target_id": np.array(data.target_ids, dtype=np.int64),
+            "x": f.tg[:, 0],
+            "y": f.tg[:, 1],
+            "z": f.tg[:, 2],
+        }
+    )
+    summary = {
+        "rms_mm": float(np.sqrt(np.sum(norms**2 * data.sw**2) / np.sum(data.sw**2)) * 1e3),
+        "sigma_mm": math.sqrt(sigma2) * 1e3 if dof > 0 else float("nan"),
+        "n_identified": len(s.kept),
+        "seconds": time.perf_counter() - t0,
+    }
+    return IdentifyResult(
+        model=name,
+        parameters=pd.DataFrame(),
+        residuals=pd.DataFrame(),
+        targets=targets,
+        calibrated_urdf="",
+        summary=summary,
+        chain=model.chain(f.x),
+        p_flange_pin=f.pin,
+        x=f.x,
         error_model=model,
     )
 

@@ -64,6 +64,10 @@ class IdentifyConfig:
         then kept in the summary as ``implausible``
     check_plausibility : run those guardrails at all; False for refits on a subset of
         touch-ups whose full table passed them (cross-validation), ``implausible`` then []
+    prediction_only : a refit whose only use is to predict (cross-validation's folds):
+        the fit is the same, but no covariance, parameter and residual tables or URDF
+        are made; ``targets`` holds the fitted positions and ``summary`` only
+        ``rms_mm``, ``sigma_mm`` and ``n_identified``
     strict_distances : a known distance naming a target absent from the table is bad input
         (``vtcal identify``); False drops it with a note (``vtcal run``: the recording's
         metadata names every target of the cell, a truncated run may not have reached them all)
@@ -89,6 +93,7 @@ class IdentifyConfig:
     implied_target_diameter_m: float | None = None
     accept_implausible: bool = False
     check_plausibility: bool = True
+    prediction_only: bool = False
 
 
 @dataclass
