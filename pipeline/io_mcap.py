@@ -340,8 +340,9 @@ RAW_ENCODINGS = {
 def image_to_gray(img: EncodedImage) -> np.ndarray:
     """Decode pixels to a 2-D grey image (uint8 or uint16, a view where possible).
 
-    Colour images are reduced to grey with ITU-R BT.601 weights (cv2). Raises
-    ``ValueError`` naming the encoding when it is not supported.
+    Colour images are reduced to grey by :func:`colour_to_grey` (the mean of the
+    colour channels). Raises ``ValueError`` naming the encoding when it is not
+    supported.
     """
     if img.kind == "raw":
         enc = img.encoding.lower()
@@ -368,13 +369,7 @@ def image_to_gray(img: EncodedImage) -> np.ndarray:
             return rows[:, : 2 * w].copy().view(dt).reshape(h, w).astype(np.uint16)
         nch = 3 if enc in ("rgb8", "bgr8") else 4
         px = np.ascontiguousarray(rows[:, : nch * w]).reshape(h, w, nch)
-        code = {
-            "rgb8": cv2.COLOR_RGB2GRAY,
-            "bgr8": cv2.COLOR_BGR2GRAY,
-            "rgba8": cv2.COLOR_RGBA2GRAY,
-            "bgra8": cv2.COLOR_BGRA2GRAY,
-        }[enc]
-        return cv2.cvtColor(px, code)
+        return colour_to_grey(px)
     fmt = img.encoding.lower()
     if not any(k in fmt for k in ("png", "jpeg", "jpg", "tiff", "bmp", "webp")):
         raise ValueError(f"unknown compressed image format {img.encoding!r}")
@@ -383,5 +378,33 @@ def image_to_gray(img: EncodedImage) -> np.ndarray:
     if out is None:
         raise ValueError(f"compressed image ({img.encoding!r}) does not decode")
     if out.ndim == 3:
-        out = cv2.cvtColor(out, cv2.COLOR_BGRA2GRAY if out.shape[2] == 4 else cv2.COLOR_BGR2GRAY)
+        out = colour_to_grey(out)
     return out
+
+
+def colour_to_grey(px: np.ndarray) -> np.ndarray:
+    """Grey of a colour image: the mean of its three colour channels, rounded (uint8).
+
+    ``I = rint((c_0 + c_1 + c_2) / 3)``, alpha (a fourth channel) ignored; the
+    channel order does not matter. Equal weights, not luma weights (ITU-R BT.601
+    ``0.299 R + 0.587 G + 0.114 B``): behind a Bayer mosaic each channel is
+    interpolated from other photosites, and on a neutral target their
+    interpolation errors at an edge differ by channel and cancel in the plain
+    mean far better than in the luma sum. Measured on rendered 54 px discs
+    behind an RGGB mosaic, shot noise and 2 grey levels of noise, 60 images
+    (``docs/detection.md``): centre RMS 0.0040 px and long-axis scatter 0.0078 px
+    with the mean, 0.0061 / 0.0109 px with luma weights, 0.0041 / 0.0075 px
+    for the same sensor without the mosaic (bilinear demosaicing; OpenCV's
+    edge-aware one likewise, its VNG about equal either way).
+
+    Parameters
+    ----------
+    px : (H, W, 3 or 4) uint8 or uint16
+
+    Returns
+    -------
+    (H, W) of the same dtype
+    """
+    c = px[:, :, :3]
+    total = c[:, :, 0].astype(np.uint32) + c[:, :, 1] + c[:, :, 2]
+    return ((total + 1) // 3).astype(px.dtype)
