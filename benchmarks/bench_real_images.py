@@ -17,7 +17,7 @@ Per detector, in one run:
   3x the dot size around each of those dots (the neighbours are cut, the
   chosen one is whole), ``expected`` = the coarse centre in crop coordinates,
   the crop offset added back. Grey as vtcal's ingest makes it from colour
-  (``cv2.cvtColor``, BT.601 weights).
+  (the mean of the three channels, :func:`pipeline.io_mcap.colour_to_grey`).
 - **vtcal, response estimated**: the camera's response curve estimated from the
   crops (:func:`pipeline.stages.response_estimate.estimate_response`), then detection on
   linearised grey (``DetectConfig(response=...)``).
@@ -95,11 +95,13 @@ def read_pitch() -> float:
 
 
 def load_grey(path: Path) -> np.ndarray:
-    """The photo as vtcal's ingest makes a colour image grey (``cv2.cvtColor``, BT.601)."""
+    """The photo as vtcal's ingest makes a colour image grey (the mean of its channels)."""
+    from pipeline.io_mcap import colour_to_grey
+
     img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
     if img is None:
         raise FileNotFoundError(path)
-    return cv2.cvtColor(img, cv2.COLOR_BGR2GRAY) if img.ndim == 3 else img
+    return colour_to_grey(img) if img.ndim == 3 else img
 
 
 def photos() -> list[tuple[int, np.ndarray]]:
