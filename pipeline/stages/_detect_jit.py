@@ -1,6 +1,7 @@
 """Compiled (numba) fine stage of :func:`pipeline.stages.detect.detect_target`.
 
-The same steps as the NumPy path in :mod:`pipeline.stages.detect` (level
+The same steps as the NumPy path in :mod:`pipeline.stages.detect` and its parts
+(:mod:`~pipeline.stages.detect_edges`, :mod:`~pipeline.stages.detect_ellipse`: level
 planes, halfway crossings, conic fits, foot points, crossing selection,
 edge width, interpolation-phase and blur-curvature corrections), written as
 loops and compiled once (``cache=True``), so one image costs a few hundred
@@ -122,7 +123,7 @@ def _plane3(m):  # type: ignore[no-untyped-def]
 
 @njit(cache=True)
 def _level_surfaces(roi, core, outer, u0, v0):  # type: ignore[no-untyped-def]
-    """Target and plate level surfaces with one shared vignetting term (detect._level_surfaces).
+    """Target and plate level surfaces with one shared vignetting term (detect_edges.level_surfaces).
 
     The normal equations of both fits are assembled from the window's moment
     sums (:func:`_moments`, one pass), not pixel by pixel.
@@ -502,7 +503,7 @@ def fine_stage(roi, core, outer, u0, v0, cont_x, cont_y, near_tol, correct, max_
                 nc = ny0[i]
             na = max(abs(nc), 0.3)
             # contour curvature: distance of a point delta along the row/column
-            # is delta n + kappa delta^2 (1 - n^2) / 2 (detect._unbias_crossings)
+            # is delta n + kappa delta^2 (1 - n^2) / 2 (detect_edges.unbias_crossings)
             q = 0.5 * k0[i] * max(1.0 - nc * nc, 0.0)
             if nc < 0.0:
                 q = -q

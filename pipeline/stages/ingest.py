@@ -17,13 +17,17 @@ pass every image stamp gets
 Outputs: the ``frames`` and ``detections`` artefacts (``schemas/frames.json``,
 ``schemas/detections.json``; one row per image, ``frame_index`` = the image's
 0-based index on its topic in log-time order) and a :class:`RecordingInfo`.
+
+The streaming pass lives in :mod:`pipeline.stages.ingest_stream`, the joint
+states' handling (the interpolation and stillness above) in
+:mod:`pipeline.stages.ingest_joints`, the settings and :class:`RecordingInfo` in
+:mod:`pipeline.stages.ingest_types`; :func:`ingest_recording` strings the steps
+together.
 """
 
 from __future__ import annotations
 
 import os
-from collections.abc import Callable
-from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
@@ -33,124 +37,45 @@ from pipeline.errors import BadInput
 from pipeline.io_mcap import (
     DEFAULT_IMAGE_TOPICS,
     IMAGE_TYPES,
-    JOINT_TYPES,
-    STRING_TYPES,
     StreamState,
     decode_image_message,
-    decode_joint_state,
-    decode_string,
     image_to_gray,
 )
-from pipeline.io_recording import TOUCHUP_TOPIC, iter_recording, summarize, touchup_from_message
+from pipeline.io_recording import iter_recording, summarize
 from pipeline.kinematics.urdf import RobotDescription, chain_joints, parse_urdf
 from pipeline.recording_layout import locate
-from pipeline.stages.detect import RESULT_KEYS, DetectConfig, detect_target
-from pipeline.stages.plausibility import joints_outside_chain
-from pipeline.stages.response import parse_response
-from pipeline.stages.response_estimate import ResponseEstimate, estimate_response
-from pipeline.stages.row_buffer import RowBuffer
-
-#: images held back at the start of a recording to estimate the camera response from
-RESPONSE_PROBE_IMAGES = 24
-#: of those, how many clean target detections the estimate uses
-RESPONSE_FIT_IMAGES = 12
-
-Progress = Callable[[int, "int | None"], None]
-
-#: ``touchup`` metadata keys of the spec
-METADATA_KEYS = (
-    "base_link",
-    "flange_link",
-    "target_diameter_m",
-    "designated_u",
-    "designated_v",
-    "designated_size_px",
-    "threshold_px",
-    "threshold_size_px",
-    "polarity",
-    "known_distances",
-    "camera_response",
+from pipeline.stages.detect import DetectConfig
+from pipeline.stages.ingest_joints import (
+    arm_joint_names,
+    chain_joint_states,
+    frame_table,
+    other_joints,
 )
+from pipeline.stages.ingest_stream import (
+    RESPONSE_FIT_IMAGES,
+    RESPONSE_PROBE_IMAGES,
+    Streamed,
+    resolve_response,
+    take_message,
+)
+from pipeline.stages.ingest_types import METADATA_KEYS, IngestConfig, Progress, RecordingInfo
+from pipeline.stages.plausibility import joints_outside_chain
+from pipeline.stages.response import Response, parse_response
 
-
-@dataclass
-class IngestConfig:
-    """Ingest settings.
-
-    Attributes
-    ----------
-    image_topic : str or None
-        None: automatic (``/camera/image_raw``, ``/camera/image_raw/compressed``,
-        else the only image-typed topic, Foxglove types included).
-    joint_topic, description_topic : str
-    joint_prefix : str
-        Stripped from the start of joint-state names before they are matched
-        with the URDF's (``robot1/`` makes ``robot1/joint_1`` ``joint_1``).
-    overrides : dict
-        Command-line values of the ``touchup`` metadata keys (win over the file).
-    still_window_s : float
-        Half-width of the window around an image stamp for the joint speed.
-    moving_speed_rad_s : float
-        Joint speed above which a capture counts as taken while moving.
-    max_joint_gap_s : float
-        Bracketing joint states farther apart than this flag a joint-state gap.
-    """
-
-    image_topic: str | None = None
-    joint_topic: str = "/joint_states"
-    description_topic: str = "/robot_description"
-    joint_prefix: str = ""
-    overrides: dict[str, str] = field(default_factory=dict)
-    still_window_s: float = 0.06
-    moving_speed_rad_s: float = 2e-3
-    max_joint_gap_s: float = 0.1
-
-
-@dataclass
-class RecordingInfo:
-    """What ingest learnt about a recording (besides the per-image tables).
-
-    Attributes
-    ----------
-    path : the recording
-    urdf : URDF text from the description topic (the nominal robot)
-    metadata : the ``touchup`` keys after command-line overrides, inferred keys filled
-    inferred : key -> how it was inferred (for the report)
-    joint_names : actuated joints of the base-flange chain (the frames' joint columns)
-    base_link, flange_link : chain ends
-    image_topic : topic the images were read from
-    n_images, n_joint_states : messages read
-    truncated : the file ended early (recorder killed)
-    warnings : one line each (truncation, joint-state gaps)
-    image_width, image_height : size of the images (px)
-    camera : what was found about the camera: ``response`` (the curve detection used,
-        :mod:`pipeline.stages.response`), ``response_source`` (option, metadata,
-        estimated), and the estimate's figures (``ResponseEstimate.to_dict``)
-    measurement : the recording's ``measurement`` metadata record, when ``vtcal measure``
-        wrote it (:mod:`pipeline.measure.summary`: touch-ups planned, converged, given up,
-        captures, cell and wall time), as written (strings)
-    implausible : guardrail lines on the joint states
-        (:func:`pipeline.stages.plausibility.joints_outside_chain`: a joint above the base
-        or after the flange link that moves); the run refuses them before extraction
-    """
-
-    path: str
-    urdf: str
-    metadata: dict[str, str]
-    inferred: dict[str, str]
-    joint_names: list[str]
-    base_link: str
-    flange_link: str
-    image_topic: str
-    n_images: int
-    n_joint_states: int
-    truncated: bool
-    warnings: list[str]
-    image_width: int = 0
-    image_height: int = 0
-    camera: dict[str, Any] = field(default_factory=dict)
-    implausible: list[str] = field(default_factory=list)
-    measurement: dict[str, str] = field(default_factory=dict)
+#: the public names of ingest, importable from here (the settings and the recording
+#: info live in ingest_types, the streaming pass in ingest_stream, the joint states'
+#: handling in ingest_joints)
+__all__ = [
+    "METADATA_KEYS",
+    "RESPONSE_FIT_IMAGES",
+    "RESPONSE_PROBE_IMAGES",
+    "IngestConfig",
+    "Progress",
+    "RecordingInfo",
+    "infer_links",
+    "ingest_recording",
+    "load_image",
+]
 
 
 def _choose_image_topic(
@@ -211,6 +136,11 @@ def ingest_recording(
 ) -> tuple[pd.DataFrame, pd.DataFrame, RecordingInfo]:
     """Stream an MCAP once: decode and detect every image, collect joint states.
 
+    The steps: the detection settings (:func:`_detect_settings`), the streaming pass
+    (:func:`pipeline.stages.ingest_stream.take_message`), its checks and warnings
+    (:func:`_check_stream`), the chain and its joint states (:func:`_chain`), the
+    inferred metadata (:func:`_infer_metadata`), and the two tables (:func:`_tables`).
+
     Parameters
     ----------
     path : recording (../shared/spec/recording.md): an MCAP file or a ROS bag
@@ -250,6 +180,66 @@ def ingest_recording(
     if topics and image_topic and summary.counts:
         n_total = summary.counts.get(image_topic, 0)
     metadata: dict[str, str] = dict(summary.metadata.get("touchup", {}))
+    polarity, dcfg, resp_fixed, resp_source = _detect_settings(
+        path, config, detect_config, metadata
+    )
+    state = StreamState(path)
+    s = Streamed(image_topic=image_topic, dcfg=dcfg, probing=[] if resp_fixed is None else None)
+    for msg in iter_recording(layout, state):
+        take_message(path, layout.path, msg, state, config, s, progress, n_total)
+    if s.probing is not None:
+        s.dcfg, s.response_est, s.expected = resolve_response(s.probing, s.rows, s.dcfg)
+    if progress is not None:
+        progress(len(s.rows), n_total)
+    # metadata seen while streaming (summary-less files)
+    for k2, v2 in [*state.metadata.get("touchup", {}).items(), *s.stream_touchup.items()]:
+        metadata.setdefault(k2, v2)
+    warnings, urdf = _check_stream(path, state, config, s)
+    inferred: dict[str, str] = {}  # inferred metadata keys -> how (for the report)
+    chain_names, J_t, Q, implausible = _chain(path, urdf, config, s, metadata, inferred, warnings)
+    camera = _infer_metadata(metadata, inferred, s, polarity, resp_fixed, resp_source)
+    frames, det_df = _tables(s, J_t, Q, chain_names, config, warnings)
+    info = RecordingInfo(
+        path=path,
+        urdf=urdf,
+        metadata=metadata,
+        inferred=inferred,
+        joint_names=chain_names,
+        implausible=implausible,
+        base_link=metadata["base_link"],
+        flange_link=metadata["flange_link"],
+        image_topic=str(s.image_topic),
+        n_images=len(s.rows),
+        n_joint_states=len(J_t),
+        truncated=state.truncated,
+        warnings=warnings,
+        image_width=s.width,
+        image_height=s.height,
+        camera=camera,
+        measurement={
+            **state.metadata.get("measurement", {}),
+            **summary.metadata.get("measurement", {}),
+        },
+    )
+    return frames, det_df, info
+
+
+def _detect_settings(
+    path: str, config: IngestConfig, detect_config: DetectConfig, metadata: dict[str, str]
+) -> tuple[str | None, DetectConfig, Response | None, str]:
+    """The detection settings of the recording: polarity and camera response.
+
+    Polarity: the detect option, else ``--set`` / the metadata's. Camera response:
+    the detect option, else ``--set`` / the metadata's ``camera_response``, else
+    estimated from the first images (``auto``: the returned response is None).
+
+    Returns
+    -------
+    polarity : str or None (automatic)
+    dcfg : the DetectConfig images are detected with (its response fixed when known)
+    response : the fixed response, or None when it is to be estimated
+    source : where the response came from (``option``, ``metadata``)
+    """
     polarity = (
         detect_config.polarity or config.overrides.get("polarity") or metadata.get("polarity")
     )
@@ -271,113 +261,24 @@ def ingest_recording(
         resp_fixed = parse_response(resp_text)
     except ValueError as exc:
         raise BadInput(f"{path}: {exc}") from exc
-    probing: list[tuple[int, np.ndarray]] | None = None
-    response_est: ResponseEstimate | None = None
-    if resp_fixed is None:
-        probing = []
-    else:
+    if resp_fixed is not None:
         dcfg = DetectConfig(**{**dcfg.to_dict(), "response": resp_fixed.spec})
+    return polarity, dcfg, resp_fixed, resp_source
 
-    state = StreamState(path)
-    urdf: str | None = None
-    # joint states grouped by their name lists: {names: (stamps, message indices, positions)}
-    j_groups: dict[tuple[str, ...], tuple[RowBuffer, RowBuffer, RowBuffer]] = {}
-    stream_touchup: dict[str, str] = {}
-    rows: list[dict[str, Any]] = []
-    img_log: list[int] = []
-    img_stamp: list[int] = []
-    expected: tuple[float, float, float] | None = None
-    width = height = 0
-    seen_image_topics: set[str] = set()
-    n_joint_msgs = 0
-    for msg in iter_recording(layout, state):
-        topic, sname, menc = state.topic_type(msg.channel_id)
-        if menc != "cdr" and sname.startswith(("sensor_msgs/", "std_msgs/")):
-            if topic in (image_topic, config.joint_topic, config.description_topic):
-                raise BadInput(
-                    f"{path}: topic {topic}: message encoding {menc!r} is not supported for "
-                    f"{sname} (ROS 2 messages are read as cdr)"
-                )
-        if image_topic is None and sname in IMAGE_TYPES:
-            image_topic = topic  # no index (truncated file): the first image topic seen
-        if topic == image_topic:
-            if sname not in IMAGE_TYPES:
-                raise BadInput(f"{path}: topic {topic}: type {sname!r} is not an image type")
-            k = len(rows)
-            try:
-                enc = decode_image_message(sname, menc, msg.data)
-            except Exception as exc:  # noqa: BLE001 - struct/json/protobuf errors: bad bytes
-                raise BadInput(f"{path}: {topic} message {k}: undecodable: {exc}") from exc
-            try:
-                grey = image_to_gray(enc)
-            except ValueError as exc:
-                if "unknown" in str(exc):
-                    raise BadInput(f"{path}: {topic} message {k}: {exc}") from exc
-                det = {kk: v for kk, v in zip(RESULT_KEYS, _nan_row(), strict=True)}
-                det["reason"] = f"decode_failed: {exc}"[:120]
-                grey = None
-            if grey is not None:
-                height, width = grey.shape
-                if probing is not None:
-                    # the response is not known yet: keep the image until it is estimated
-                    probing.append((k, np.array(grey, copy=True)))
-                    det = {}
-                else:
-                    det = detect_target(grey, dcfg, expected)
-                    if det["found"] and det["quality_ok"]:
-                        expected = (det["u"], det["v"], det["s"])
-            rows.append(det)
-            if probing is not None and len(probing) >= RESPONSE_PROBE_IMAGES:
-                dcfg, response_est, expected = _resolve_response(probing, rows, dcfg)
-                probing = None
-            img_log.append(int(msg.log_time))
-            img_stamp.append(int(enc.stamp_ns) if enc.stamp_ns > 0 else int(msg.log_time))
-            if progress is not None and (k % 16 == 0):
-                progress(k + 1, n_total)
-        elif sname in IMAGE_TYPES:
-            seen_image_topics.add(topic)
-        elif topic == config.joint_topic:
-            if sname not in JOINT_TYPES:
-                raise BadInput(
-                    f"{path}: topic {topic}: type {sname!r} is not sensor_msgs/JointState"
-                )
-            try:
-                stamp, names, pos = decode_joint_state(msg.data)
-            except Exception as exc:  # noqa: BLE001 - struct errors etc.: bad bytes
-                raise BadInput(
-                    f"{path}: {topic} message {n_joint_msgs}: undecodable: {exc}"
-                ) from exc
-            if len(pos) != len(names):
-                raise BadInput(
-                    f"{path}: {topic} message {n_joint_msgs}: {len(names)} names but "
-                    f"{len(pos)} positions"
-                )
-            key = _strip_prefix(names, config.joint_prefix)
-            group = j_groups.get(key)
-            if group is None:  # stamps, message indices, positions: one numpy block each
-                group = (RowBuffer(0, np.int64), RowBuffer(0, np.int64), RowBuffer(len(key)))
-                j_groups[key] = group
-            group[0].append(stamp if stamp > 0 else int(msg.log_time))
-            group[1].append(n_joint_msgs)
-            group[2].append(pos)
-            n_joint_msgs += 1
-        elif topic == config.description_topic and urdf is None:
-            if sname not in STRING_TYPES:
-                raise BadInput(f"{path}: topic {topic}: type {sname!r} is not std_msgs/String")
-            urdf = decode_string(msg.data)
-        elif topic == TOUCHUP_TOPIC and not stream_touchup and sname in STRING_TYPES:
-            stream_touchup = touchup_from_message(layout.path, msg.data)
-    if probing is not None:
-        dcfg, response_est, expected = _resolve_response(probing, rows, dcfg)
-    if progress is not None:
-        progress(len(rows), n_total)
-    # metadata seen while streaming (summary-less files)
-    for k2, v2 in [*state.metadata.get("touchup", {}).items(), *stream_touchup.items()]:
-        metadata.setdefault(k2, v2)
+
+def _check_stream(
+    path: str, state: StreamState, config: IngestConfig, s: Streamed
+) -> tuple[list[str], str]:
+    """The stream's warnings (truncation, damaged chunks, undecodable images, stamp order).
+
+    Returns the warnings and the URDF text. Raises BadInput when there is no URDF, no
+    image or no joint state.
+    """
     warnings: list[str] = []
+    rows, img_log = s.rows, s.img_log
     if state.truncated:
         pct = 100.0 * state.bytes_read / max(state.file_size, 1)
-        j_ends = [int(t) for g in j_groups.values() for t in g[0].array()[[0, -1]]]
+        j_ends = [int(t) for g in s.j_groups.values() for t in g[0].array()[[0, -1]]]
         times = [*img_log[-1:], *j_ends]
         t_first = min([*img_log[:1], *j_ends], default=0)
         span = f", {1e-9 * (max(times) - t_first):.1f} s of data" if times else ""
@@ -385,15 +286,16 @@ def ingest_recording(
             f"{path}: truncated recording (recorder killed? {state.error}): read "
             f"{state.bytes_read} of {state.file_size} bytes ({pct:.1f} %); the last "
             f"{state.file_size - state.bytes_read} bytes are an incomplete record, anything "
-            f"recorded after it is lost; kept {len(rows)} images, {n_joint_msgs} joint "
+            f"recorded after it is lost; kept {len(rows)} images, {s.n_joint_msgs} joint "
             f"states{span}"
         )
-    if urdf is None:
+    if s.urdf is None:
         raise BadInput(f"{path}: no URDF on {config.description_topic}")
     if not rows:
-        extra = f" (image topics present: {sorted(seen_image_topics)})" if seen_image_topics else ""
-        raise BadInput(f"{path}: no image messages on {image_topic or 'any image topic'}{extra}")
-    if n_joint_msgs == 0:
+        seen = s.seen_image_topics
+        extra = f" (image topics present: {sorted(seen)})" if seen else ""
+        raise BadInput(f"{path}: no image messages on {s.image_topic or 'any image topic'}{extra}")
+    if s.n_joint_msgs == 0:
         raise BadInput(f"{path}: no joint states on {config.joint_topic}")
     if state.bad_chunks:
         warnings.append(
@@ -409,20 +311,44 @@ def ingest_recording(
     if n_undecoded:
         first = next(r["reason"] for r in rows if str(r["reason"]).startswith("decode_failed"))
         warnings.append(
-            f"{path}: {n_undecoded} of {len(rows)} images on {image_topic} do not decode "
+            f"{path}: {n_undecoded} of {len(rows)} images on {s.image_topic} do not decode "
             f"(kept, flagged); first: {first}"
         )
-    im_t = np.asarray(img_stamp, dtype=np.int64)[np.argsort(np.asarray(img_log), kind="stable")]
+    im_t = np.asarray(s.img_stamp, dtype=np.int64)[np.argsort(np.asarray(img_log), kind="stable")]
     n_back_i = int(np.sum(np.diff(im_t) < 0))
     n_dup_i = int(np.sum(np.diff(np.sort(im_t)) == 0))
     if n_back_i or n_dup_i:
         warnings.append(
-            f"{path}: {image_topic}: {n_back_i} image stamps go backwards in log-time order and "
-            f"{n_dup_i} repeat an earlier stamp"
+            f"{path}: {s.image_topic}: {n_back_i} image stamps go backwards in log-time order "
+            f"and {n_dup_i} repeat an earlier stamp"
         )
+    return warnings, s.urdf
+
+
+def _chain(
+    path: str,
+    urdf: str,
+    config: IngestConfig,
+    s: Streamed,
+    metadata: dict[str, str],
+    inferred: dict[str, str],
+    warnings: list[str],
+) -> tuple[list[str], np.ndarray, np.ndarray, list[str]]:
+    """The base-flange chain and its joint states; the chain ends inferred where not given.
+
+    ``metadata`` takes the command-line overrides and the inferred ``base_link`` /
+    ``flange_link`` (noted in ``inferred``); ``warnings`` the unknown joint names and
+    the joint stamps out of order.
+
+    Returns
+    -------
+    chain_names : the chain's actuated joints
+    J_t, Q : their joint states sorted by stamp (:func:`.ingest_joints.chain_joint_states`)
+    implausible : guardrail lines on the joints outside the chain
+    """
     robot = _parse(path, urdf)
-    seen_names = list(dict.fromkeys(n for key in j_groups for n in key))
-    j_names = _arm_joint_names(path, robot, seen_names, config)
+    seen_names = list(dict.fromkeys(n for key in s.j_groups for n in key))
+    j_names = arm_joint_names(path, robot, seen_names, config)
     unknown = [n for n in seen_names if n not in robot.joints]
     if unknown:
         warnings.append(
@@ -431,7 +357,6 @@ def ingest_recording(
         )
     # metadata: overrides win; inferred keys filled and reported
     metadata.update({k: str(v) for k, v in config.overrides.items() if v is not None})
-    inferred: dict[str, str] = {}
     base_i, flange_i = infer_links(robot, j_names)
     if "base_link" not in metadata:
         metadata["base_link"] = base_i
@@ -453,7 +378,7 @@ def ingest_recording(
             f"{path}: {config.joint_topic} lacks URDF chain joints {missing} "
             f"(joint states name {j_names})"
         )
-    J_t, Q, n_back = _chain_joint_states(path, j_groups, chain_names, config, warnings)
+    J_t, Q, n_back = chain_joint_states(path, s.j_groups, chain_names, config, warnings)
     n_dup = int(np.sum(np.diff(J_t) == 0))
     if n_back or n_dup:
         warnings.append(
@@ -461,17 +386,34 @@ def ingest_recording(
             "repeat an earlier stamp (joint states are sorted by stamp)"
         )
     implausible = joints_outside_chain(
-        _other_joints(j_groups, chain_names),
+        other_joints(s.j_groups, chain_names),
         robot,
         metadata["base_link"],
         metadata["flange_link"],
         over="the recording",
     )
+    return chain_names, J_t, Q, implausible
+
+
+def _infer_metadata(
+    metadata: dict[str, str],
+    inferred: dict[str, str],
+    s: Streamed,
+    polarity: str | None,
+    resp_fixed: Response | None,
+    resp_source: str,
+) -> dict[str, Any]:
+    """Fill the polarity, camera response and designated point where the metadata lacks them.
+
+    Each inferred key is noted in ``inferred``. Returns the ``camera`` record of
+    :class:`RecordingInfo`.
+    """
     if "polarity" not in metadata:
-        pols = [r for r in rows if r["found"]]
+        pols = [r for r in s.rows if r["found"]]
         metadata["polarity"] = polarity or "dark_on_light"
         inferred["polarity"] = f"{metadata['polarity']} (automatic, from {len(pols)} images)"
     camera: dict[str, Any] = {}
+    response_est = s.response_est
     if response_est is not None:
         metadata["camera_response"] = response_est.response.spec
         inferred["camera_response"] = response_est.note
@@ -483,74 +425,36 @@ def ingest_recording(
         metadata["camera_response"] = resp_fixed.spec
         if resp_source == "option":
             inferred["camera_response"] = f"{resp_fixed.spec} (detect option)"
-    if "designated_u" not in metadata and width:
-        metadata["designated_u"] = repr((width - 1) / 2.0)
+    if "designated_u" not in metadata and s.width:
+        metadata["designated_u"] = repr((s.width - 1) / 2.0)
         inferred["designated_u"] = f"{metadata['designated_u']} (image centre)"
-    if "designated_v" not in metadata and height:
-        metadata["designated_v"] = repr((height - 1) / 2.0)
+    if "designated_v" not in metadata and s.height:
+        metadata["designated_v"] = repr((s.height - 1) / 2.0)
         inferred["designated_v"] = f"{metadata['designated_v']} (image centre)"
+    return camera
 
-    # frame table, log-time order
-    img_log_a = np.asarray(img_log, dtype=np.int64)
+
+def _tables(
+    s: Streamed,
+    J_t: np.ndarray,
+    Q: np.ndarray,
+    chain_names: list[str],
+    config: IngestConfig,
+    warnings: list[str],
+) -> tuple[pd.DataFrame, pd.DataFrame]:
+    """The ``frames`` and ``detections`` tables, in the images' log-time order."""
+    rows = s.rows
+    img_log_a = np.asarray(s.img_log, dtype=np.int64)
     order_img = np.argsort(img_log_a, kind="stable")
-    stamps = np.asarray(img_stamp, dtype=np.int64)[order_img]
-    frames = _frame_table(stamps, img_log_a[order_img], J_t, Q, chain_names, config)
+    stamps = np.asarray(s.img_stamp, dtype=np.int64)[order_img]
+    frames = frame_table(stamps, img_log_a[order_img], J_t, Q, chain_names, config)
     det_df = pd.DataFrame([rows[i] for i in order_img])
     det_df.insert(0, "frame_index", np.arange(len(rows), dtype=np.int64))
     det_df["reason"] = det_df["reason"].astype(str)
     n_gap = int(frames["joint_gap"].sum())
     if n_gap:
         warnings.append(f"{n_gap} images have a joint-state gap around their stamp")
-    info = RecordingInfo(
-        path=path,
-        urdf=urdf,
-        metadata=metadata,
-        inferred=inferred,
-        joint_names=chain_names,
-        implausible=implausible,
-        base_link=metadata["base_link"],
-        flange_link=metadata["flange_link"],
-        image_topic=str(image_topic),
-        n_images=len(rows),
-        n_joint_states=len(J_t),
-        truncated=state.truncated,
-        warnings=warnings,
-        image_width=width,
-        image_height=height,
-        camera=camera,
-        measurement={
-            **state.metadata.get("measurement", {}),
-            **summary.metadata.get("measurement", {}),
-        },
-    )
-    return frames, det_df, info
-
-
-def _resolve_response(
-    probing: list[tuple[int, np.ndarray]], rows: list[dict[str, Any]], dcfg: DetectConfig
-) -> tuple[DetectConfig, ResponseEstimate, tuple[float, float, float] | None]:
-    """Estimate the camera response from the held-back images, then detect them with it.
-
-    ``rows[k]`` of every held-back image ``k`` is filled in place, in order, each
-    capture's detection steering the next one's (``expected``) as in the stream.
-    """
-    est = estimate_response((g for _, g in probing), dcfg, max_images=RESPONSE_FIT_IMAGES)
-    cfg = DetectConfig(**{**dcfg.to_dict(), "response": est.response.spec})
-    expected: tuple[float, float, float] | None = None
-    for k, grey in probing:
-        det = detect_target(grey, cfg, expected)
-        if det["found"] and det["quality_ok"]:
-            expected = (det["u"], det["v"], det["s"])
-        rows[k] = det
-    probing.clear()
-    return cfg, est, expected
-
-
-def _nan_row() -> list[Any]:
-    from pipeline.stages.detect import empty_result
-
-    d = empty_result("")
-    return [d[k] for k in RESULT_KEYS]
+    return frames, det_df
 
 
 def _parse(path: str, urdf: str) -> RobotDescription:
@@ -560,182 +464,6 @@ def _parse(path: str, urdf: str) -> RobotDescription:
         raise BadInput(f"{path}: /robot_description: {exc}") from exc
     except Exception as exc:  # noqa: BLE001 - malformed XML etc.
         raise BadInput(f"{path}: /robot_description is not a readable URDF: {exc}") from exc
-
-
-def _strip_prefix(names: list[str], prefix: str) -> tuple[str, ...]:
-    """Joint-state names without ``prefix`` (``robot1/joint_1 -> joint_1``); others as they are."""
-    if not prefix:
-        return tuple(names)
-    k = len(prefix)
-    return tuple(n[k:] if n.startswith(prefix) else n for n in names)
-
-
-def _arm_joint_names(
-    path: str, robot: RobotDescription, names: list[str], config: IngestConfig
-) -> list[str]:
-    """The joint-state names that are actuated URDF joints (in the order first seen).
-
-    Names the URDF does not have (a gripper's fingers, another robot's joints)
-    are left to the caller to note. Raises BadInput when no name is an actuated
-    URDF joint (wrong URDF, or a name prefix that ``--joint-prefix`` should strip).
-    """
-    act = [n for n, j in robot.joints.items() if j.actuated]
-    arm = [n for n in names if n in act]
-    if arm:
-        return arm
-    hint = ""
-    prefixes = {n[: n.rfind("/") + 1] for n in names if "/" in n}
-    if len(prefixes) == 1 and not config.joint_prefix:
-        hint = f"; the names carry the prefix {prefixes.pop()!r}: give it with --joint-prefix"
-    raise BadInput(
-        f"{path}: {config.joint_topic} names joints {names} that the URDF on "
-        f"{config.description_topic} does not have (URDF joints: {sorted(act)}){hint}"
-    )
-
-
-def _other_joints(
-    groups: dict[tuple[str, ...], tuple[RowBuffer, RowBuffer, RowBuffer]],
-    chain_names: list[str],
-) -> dict[str, np.ndarray]:
-    """Every joint-state value of the joints outside the chain, by joint name (for the guardrails)."""
-    out: dict[str, list[np.ndarray]] = {}
-    for key, (_ts, _ks, ps) in groups.items():
-        arr = ps.array()
-        for k, name in enumerate(key):
-            if name not in chain_names:
-                out.setdefault(name, []).append(arr[:, k])
-    return {n: np.concatenate(v) for n, v in out.items()}
-
-
-def _chain_joint_states(
-    path: str,
-    groups: dict[tuple[str, ...], tuple[RowBuffer, RowBuffer, RowBuffer]],
-    chain_names: list[str],
-    config: IngestConfig,
-    warnings: list[str],
-) -> tuple[np.ndarray, np.ndarray, int]:
-    """The chain's joint positions from joint-state messages of any name order.
-
-    Each message's positions are picked by name (``q_j = position[name.index(j)]``),
-    so joint order and extra joints do not matter. Messages naming none of the
-    chain joints (a gripper published on the same topic) are skipped and noted
-    in ``warnings``.
-
-    Returns
-    -------
-    J_t : (m,) int64, the stamps sorted (stable)
-    Q : (m, n) float64, the chain joints at ``J_t`` (columns in ``chain_names`` order)
-    n_back : how many stamps go backwards in message order
-
-    Raises
-    ------
-    BadInput
-        A message naming some but not all chain joints; a non-finite chain joint position.
-    """
-    idx: list[np.ndarray] = []
-    stamps: list[np.ndarray] = []
-    rows: list[np.ndarray] = []
-    skipped = 0
-    for key, buffers in groups.items():
-        ts, ks, ps = (b.array() for b in buffers)
-        have = [n for n in chain_names if n in key]
-        if not have:
-            skipped += len(ts)
-            continue
-        if len(have) < len(chain_names):
-            missing = [n for n in chain_names if n not in key]
-            raise BadInput(
-                f"{path}: {config.joint_topic} message {ks[0]}: joints {missing} missing "
-                f"(has {list(key)})"
-            )
-        cols = np.array([key.index(n) for n in chain_names])
-        q = np.asarray(ps)[:, cols]
-        bad = np.flatnonzero(~np.all(np.isfinite(q), axis=1))
-        if bad.size:
-            raise BadInput(
-                f"{path}: {config.joint_topic} message {ks[bad[0]]}: non-finite position "
-                f"{q[bad[0]]}"
-            )
-        idx.append(np.asarray(ks))
-        stamps.append(np.asarray(ts, dtype=np.int64))
-        rows.append(q)
-    if skipped:
-        warnings.append(
-            f"{path}: {config.joint_topic}: {skipped} messages name none of the chain joints "
-            f"{chain_names} (another device's joint states) and were skipped"
-        )
-    if not rows:
-        raise BadInput(f"{path}: no joint states of the chain joints {chain_names}")
-    k_all = np.concatenate(idx)
-    t_all = np.concatenate(stamps)
-    q_all = np.concatenate(rows)
-    in_order = np.argsort(k_all, kind="stable")
-    n_back = int(np.sum(np.diff(t_all[in_order]) < 0))
-    if len(t_all) < 2:
-        raise BadInput(
-            f"{path}: only one joint state on {config.joint_topic}: at least two are needed to "
-            "interpolate the joints at the image stamps"
-        )
-    o = in_order[np.argsort(t_all[in_order], kind="stable")]
-    return t_all[o], q_all[o], n_back
-
-
-def _frame_table(
-    stamps: np.ndarray,
-    log_times: np.ndarray,
-    J_t: np.ndarray,
-    Q: np.ndarray,
-    names: list[str],
-    config: IngestConfig,
-) -> pd.DataFrame:
-    """Joint vector and stillness at every image stamp (see module docstring)."""
-    n = len(stamps)
-    tq = (J_t - J_t[0]).astype(np.float64) * 1e-9
-    ts = (stamps - J_t[0]).astype(np.float64) * 1e-9
-    q_at = np.empty((n, Q.shape[1]))
-    for j in range(Q.shape[1]):
-        q_at[:, j] = np.interp(ts, tq, Q[:, j])
-    k = np.searchsorted(J_t, stamps, side="right")  # J_t[k-1] <= t < J_t[k]
-    before = np.clip(k - 1, 0, len(J_t) - 1)
-    after = np.clip(k, 0, len(J_t) - 1)
-    extrap = (k == 0) | (k == len(J_t))
-    gap = np.where(extrap, -1, J_t[after] - J_t[before])
-    near = np.minimum(np.abs(stamps - J_t[before]), np.abs(J_t[after] - stamps))
-    # joint speed of consecutive states
-    if len(J_t) > 1:
-        dt = np.diff(tq)
-        dq = np.abs(np.diff(Q, axis=0))
-        spd = np.max(dq, axis=1) / np.where(dt > 0, dt, np.inf)
-        tmid = 0.5 * (tq[1:] + tq[:-1])
-    else:
-        spd = np.zeros(0)
-        tmid = np.zeros(0)
-    w = config.still_window_s
-    lo = np.searchsorted(tmid, ts - w, side="left")
-    hi = np.searchsorted(tmid, ts + w, side="right")
-    max_speed = np.array(
-        [float(spd[a:b].max()) if b > a else np.nan for a, b in zip(lo, hi, strict=True)]
-    )
-    # no difference inside the window (gap): use the bracketing pair
-    nan = ~np.isfinite(max_speed)
-    if nan.any() and len(spd):
-        max_speed[nan] = spd[np.clip(k[nan] - 1, 0, len(spd) - 1)]
-    df = pd.DataFrame(
-        {
-            "frame_index": np.arange(n, dtype=np.int64),
-            "stamp_ns": stamps.astype(np.int64),
-            "log_time_ns": log_times.astype(np.int64),
-            "max_joint_speed": max_speed,
-            "joint_gap_ns": gap.astype(np.int64),
-            "nearest_joint_dt_ns": near.astype(np.int64),
-            "moving": max_speed > config.moving_speed_rad_s,
-            "joint_gap": (gap > config.max_joint_gap_s * 1e9) | extrap,
-            "extrapolated": extrap,
-        }
-    )
-    for j, nm in enumerate(names):
-        df[nm] = q_at[:, j]
-    return df
 
 
 def load_image(path: str | os.PathLike[str], image_topic: str, frame_index: int) -> np.ndarray:

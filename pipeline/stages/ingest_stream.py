@@ -1,0 +1,212 @@
+"""Ingest's streaming pass: every message of a recording once, in file order.
+
+:func:`take_message` takes one message into a :class:`Streamed`: an image is
+decoded and handed to :func:`pipeline.stages.detect.detect_target` at once (so
+only one image is in memory at a time), each clean detection steering the
+next one's (``expected``); the first :data:`RESPONSE_PROBE_IMAGES` images are
+held back when the camera response is to be estimated, and detected once it
+is (:func:`resolve_response`). Joint states (small) are kept grouped by their
+name lists (:mod:`pipeline.stages.ingest_joints`); the URDF and the touch-up
+metadata are taken from their topics.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from mcap.records import Message
+
+from pipeline.errors import BadInput
+from pipeline.io_mcap import (
+    IMAGE_TYPES,
+    JOINT_TYPES,
+    STRING_TYPES,
+    StreamState,
+    decode_image_message,
+    decode_joint_state,
+    decode_string,
+    image_to_gray,
+)
+from pipeline.io_recording import TOUCHUP_TOPIC, touchup_from_message
+from pipeline.stages.detect import RESULT_KEYS, DetectConfig, detect_target, empty_result
+from pipeline.stages.ingest_joints import JointGroups, strip_prefix
+from pipeline.stages.ingest_types import IngestConfig, Progress
+from pipeline.stages.response_estimate import ResponseEstimate, estimate_response
+from pipeline.stages.row_buffer import RowBuffer
+
+#: images held back at the start of a recording to estimate the camera response from
+RESPONSE_PROBE_IMAGES = 24
+#: of those, how many clean target detections the estimate uses
+RESPONSE_FIT_IMAGES = 12
+
+
+@dataclass
+class Streamed:
+    """What the streaming pass collected (filled in message order by :func:`take_message`).
+
+    Attributes
+    ----------
+    image_topic : the image topic (the first image-typed topic seen when there was no index)
+    dcfg : the detection settings (the estimated response filled in once known)
+    probing : images held back until the response is estimated, ``(row, grey)``; None
+        once it is known
+    response_est : the response estimate, when there was one
+    urdf : the first description message
+    j_groups : joint states by name list (:data:`pipeline.stages.ingest_joints.JointGroups`)
+    stream_touchup : ``touchup`` metadata from the touch-up topic
+    rows : one detection dict per image, in message order
+    img_log, img_stamp : each image's log time and header stamp (ns)
+    expected : the last clean detection's ``(u, v, s)``, steering the next
+    width, height : image size (px)
+    seen_image_topics : other image-typed topics (for the "no images" message)
+    n_joint_msgs : joint-state messages read
+    """
+
+    image_topic: str | None
+    dcfg: DetectConfig
+    probing: list[tuple[int, np.ndarray]] | None
+    response_est: ResponseEstimate | None = None
+    urdf: str | None = None
+    j_groups: JointGroups = field(default_factory=dict)
+    stream_touchup: dict[str, str] = field(default_factory=dict)
+    rows: list[dict[str, Any]] = field(default_factory=list)
+    img_log: list[int] = field(default_factory=list)
+    img_stamp: list[int] = field(default_factory=list)
+    expected: tuple[float, float, float] | None = None
+    width: int = 0
+    height: int = 0
+    seen_image_topics: set[str] = field(default_factory=set)
+    n_joint_msgs: int = 0
+
+
+def take_message(
+    path: str,
+    layout_path: Path,
+    msg: Message,
+    state: StreamState,
+    config: IngestConfig,
+    s: Streamed,
+    progress: Progress | None,
+    n_total: int | None,
+) -> None:
+    """One message of the stream: an image, a joint state, the URDF or touch-up metadata."""
+    topic, sname, menc = state.topic_type(msg.channel_id)
+    if menc != "cdr" and sname.startswith(("sensor_msgs/", "std_msgs/")):
+        if topic in (s.image_topic, config.joint_topic, config.description_topic):
+            raise BadInput(
+                f"{path}: topic {topic}: message encoding {menc!r} is not supported for "
+                f"{sname} (ROS 2 messages are read as cdr)"
+            )
+    if s.image_topic is None and sname in IMAGE_TYPES:
+        s.image_topic = topic  # no index (truncated file): the first image topic seen
+    if topic == s.image_topic:
+        _take_image(path, topic, sname, menc, msg, s, progress, n_total)
+    elif sname in IMAGE_TYPES:
+        s.seen_image_topics.add(topic)
+    elif topic == config.joint_topic:
+        _take_joint_state(path, topic, sname, msg, config, s)
+    elif topic == config.description_topic and s.urdf is None:
+        if sname not in STRING_TYPES:
+            raise BadInput(f"{path}: topic {topic}: type {sname!r} is not std_msgs/String")
+        s.urdf = decode_string(msg.data)
+    elif topic == TOUCHUP_TOPIC and not s.stream_touchup and sname in STRING_TYPES:
+        s.stream_touchup = touchup_from_message(layout_path, msg.data)
+
+
+def _take_image(
+    path: str,
+    topic: str,
+    sname: str,
+    menc: str,
+    msg: Message,
+    s: Streamed,
+    progress: Progress | None,
+    n_total: int | None,
+) -> None:
+    """Decode and detect one image (or hold it back until the response is estimated)."""
+    if sname not in IMAGE_TYPES:
+        raise BadInput(f"{path}: topic {topic}: type {sname!r} is not an image type")
+    k = len(s.rows)
+    try:
+        enc = decode_image_message(sname, menc, msg.data)
+    except Exception as exc:  # noqa: BLE001 - struct/json/protobuf errors: bad bytes
+        raise BadInput(f"{path}: {topic} message {k}: undecodable: {exc}") from exc
+    try:
+        grey = image_to_gray(enc)
+    except ValueError as exc:
+        if "unknown" in str(exc):
+            raise BadInput(f"{path}: {topic} message {k}: {exc}") from exc
+        det = {kk: v for kk, v in zip(RESULT_KEYS, _nan_row(), strict=True)}
+        det["reason"] = f"decode_failed: {exc}"[:120]
+        grey = None
+    if grey is not None:
+        s.height, s.width = grey.shape
+        if s.probing is not None:
+            # the response is not known yet: keep the image until it is estimated
+            s.probing.append((k, np.array(grey, copy=True)))
+            det = {}
+        else:
+            det = detect_target(grey, s.dcfg, s.expected)
+            if det["found"] and det["quality_ok"]:
+                s.expected = (det["u"], det["v"], det["s"])
+    s.rows.append(det)
+    if s.probing is not None and len(s.probing) >= RESPONSE_PROBE_IMAGES:
+        s.dcfg, s.response_est, s.expected = resolve_response(s.probing, s.rows, s.dcfg)
+        s.probing = None
+    s.img_log.append(int(msg.log_time))
+    s.img_stamp.append(int(enc.stamp_ns) if enc.stamp_ns > 0 else int(msg.log_time))
+    if progress is not None and (k % 16 == 0):
+        progress(k + 1, n_total)
+
+
+def _take_joint_state(
+    path: str, topic: str, sname: str, msg: Message, config: IngestConfig, s: Streamed
+) -> None:
+    """Keep one joint-state message in its name list's group."""
+    if sname not in JOINT_TYPES:
+        raise BadInput(f"{path}: topic {topic}: type {sname!r} is not sensor_msgs/JointState")
+    try:
+        stamp, names, pos = decode_joint_state(msg.data)
+    except Exception as exc:  # noqa: BLE001 - struct errors etc.: bad bytes
+        raise BadInput(f"{path}: {topic} message {s.n_joint_msgs}: undecodable: {exc}") from exc
+    if len(pos) != len(names):
+        raise BadInput(
+            f"{path}: {topic} message {s.n_joint_msgs}: {len(names)} names but {len(pos)} positions"
+        )
+    key = strip_prefix(names, config.joint_prefix)
+    group = s.j_groups.get(key)
+    if group is None:  # stamps, message indices, positions: one numpy block each
+        group = (RowBuffer(0, np.int64), RowBuffer(0, np.int64), RowBuffer(len(key)))
+        s.j_groups[key] = group
+    group[0].append(stamp if stamp > 0 else int(msg.log_time))
+    group[1].append(s.n_joint_msgs)
+    group[2].append(pos)
+    s.n_joint_msgs += 1
+
+
+def resolve_response(
+    probing: list[tuple[int, np.ndarray]], rows: list[dict[str, Any]], dcfg: DetectConfig
+) -> tuple[DetectConfig, ResponseEstimate, tuple[float, float, float] | None]:
+    """Estimate the camera response from the held-back images, then detect them with it.
+
+    ``rows[k]`` of every held-back image ``k`` is filled in place, in order, each
+    capture's detection steering the next one's (``expected``) as in the stream.
+    """
+    est = estimate_response((g for _, g in probing), dcfg, max_images=RESPONSE_FIT_IMAGES)
+    cfg = DetectConfig(**{**dcfg.to_dict(), "response": est.response.spec})
+    expected: tuple[float, float, float] | None = None
+    for k, grey in probing:
+        det = detect_target(grey, cfg, expected)
+        if det["found"] and det["quality_ok"]:
+            expected = (det["u"], det["v"], det["s"])
+        rows[k] = det
+    probing.clear()
+    return cfg, est, expected
+
+
+def _nan_row() -> list[Any]:
+    d = empty_result("")
+    return [d[k] for k in RESULT_KEYS]
