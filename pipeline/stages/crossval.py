@@ -42,6 +42,7 @@ Learning* (2nd ed.), section 7.10 (k-fold cross-validation).
 from __future__ import annotations
 
 import dataclasses
+import functools
 import math
 from collections.abc import Mapping
 from dataclasses import dataclass, field
@@ -268,6 +269,10 @@ def _pred_row(
     }
 
 
+#: the columns of the held-out table (:attr:`CrossvalResult.table`)
+_HELDOUT_COLUMNS = "model scheme fold touchup_id target_id n_train ex ey ez error_mm status".split()
+
+
 def cross_validate(
     table: pd.DataFrame,
     urdf: str,
@@ -317,6 +322,43 @@ def cross_validate(
         models = [m for m in model_names() if get_model(m).urdf_exact]
     else:
         models = [identify_config.model]
+    s = _split(df, names, config)
+    robot = (urdf, base_link, flange_link)
+    base_cfg = dataclasses.replace(identify_config, n_workspace=4)
+
+    def one_model(m: str) -> tuple[list[dict[str, Any]], dict[str, Any]]:
+        return _validate_model(m, s, robot, base_cfg, config.loto, (full_fits or {}).get(m))
+
+    rows: list[dict[str, Any]] = []
+    summary_models: dict[str, Any] = {}
+    for m, (m_rows, info) in zip(
+        models, parallel_map(one_model, models, config.workers), strict=True
+    ):
+        rows += m_rows
+        summary_models[m] = info
+    out = pd.DataFrame(rows, columns=_HELDOUT_COLUMNS)
+    _figures(out, summary_models)
+    chosen, choice = _choose(summary_models)
+    summary = _summary(s.k, config, summary_models, chosen, choice)
+    return CrossvalResult(table=out, chosen_model=chosen, summary=_strict(summary))
+
+
+@dataclass
+class _Split:
+    """The touch-up table as cross-validation reads it: usable rows, folds, inputs of (1)."""
+
+    df: pd.DataFrame
+    use: np.ndarray  # usable rows
+    q_all: np.ndarray  # (n, dof) joint vectors
+    d_all: np.ndarray  # (n, 3) residual corrections (0 where missing)
+    tid: np.ndarray  # target ids
+    tu: np.ndarray  # touch-up ids
+    k: int  # folds
+    fold: np.ndarray  # fold of each usable row, -1 elsewhere
+
+
+def _split(df: pd.DataFrame, names: list[str], config: CrossvalConfig) -> _Split:
+    """Usable rows, ``k`` (at most the largest target's usable touch-ups) and the folds."""
     use = usable_rows(df, names)
     q_all = df[names].to_numpy(dtype=float)
     d_all = np.zeros((len(df), 3))
@@ -329,108 +371,116 @@ def cross_validate(
     k = int(max(2, min(config.k, int(cnt.max()) if cnt.size else 2)))
     fold = np.full(len(df), -1, dtype=np.int64)
     fold[use] = fold_assignment(tid[use], k, np.random.default_rng(config.seed))
-    base_cfg = dataclasses.replace(identify_config, n_workspace=4)
+    return _Split(df, use, q_all, d_all, tid, tu, k, fold)
 
-    def one_model(m: str) -> tuple[list[dict[str, Any]], dict[str, Any]]:
-        """Held-out rows and the summary of model ``m`` (the full fit, k folds, LOTO)."""
-        rows: list[dict[str, Any]] = []
 
-        def add(
-            model: str, scheme: str, f: int, i: int, n_train: int, e: F64 | None, why: str
-        ) -> None:
-            rows.append(
-                {
-                    "model": model,
-                    "scheme": scheme,
-                    "fold": f,
-                    "touchup_id": int(tu[i]),
-                    "target_id": int(tid[i]),
-                    "n_train": n_train,
-                    "ex": float(e[0]) if e is not None else math.nan,
-                    "ey": float(e[1]) if e is not None else math.nan,
-                    "ez": float(e[2]) if e is not None else math.nan,
-                    "error_mm": float(np.linalg.norm(e) * 1e3) if e is not None else math.nan,
-                    "status": why,
-                }
-            )
+def _heldout_row(
+    s: _Split, model: str, scheme: str, f: int, i: int, n_train: int, e: F64 | None, why: str
+) -> dict[str, Any]:
+    """One row of the held-out table: touch-up ``i``'s error vector ``e`` (m), or why none."""
+    return {
+        "model": model,
+        "scheme": scheme,
+        "fold": f,
+        "touchup_id": int(s.tu[i]),
+        "target_id": int(s.tid[i]),
+        "n_train": n_train,
+        "ex": float(e[0]) if e is not None else math.nan,
+        "ey": float(e[1]) if e is not None else math.nan,
+        "ez": float(e[2]) if e is not None else math.nan,
+        "error_mm": float(np.linalg.norm(e) * 1e3) if e is not None else math.nan,
+        "status": why,
+    }
 
-        mcfg = dataclasses.replace(base_cfg, model=m)
-        info: dict[str, Any] = {"k": k, "urdf_exact": _urdf_exact(m)}
-        known = (full_fits or {}).get(m)
-        try:
-            if isinstance(known, Mapping) and {"rms_mm", "n_identified"} <= set(known):
-                full_summary: Mapping[str, Any] = known  # the identify stage's own fit
-            else:
-                full_summary = _fit(df, use, urdf, base_link, flange_link, mcfg).summary
-            info["train_rms_mm"] = float(full_summary["rms_mm"])
-            info["n_identified"] = int(full_summary["n_identified"])
-            mcfg = refit_config(mcfg, full_summary)
-        except (BadInput, CalibrationFailed) as exc:
-            info["train_rms_mm"] = math.nan
-            info["error"] = str(exc)
-        # -- k-fold
-        pred = heldout_predictions(df, use, fold, urdf, base_link, flange_link, mcfg)
-        failed = int(pred.loc[pred["status"].str.startswith("fold not fitted"), "fold"].nunique())
-        pv = pred[["px", "py", "pz"]].to_numpy(dtype=float)
-        tv = pred[["tx", "ty", "tz"]].to_numpy(dtype=float)
-        st = pred["status"].astype(str).tolist()
-        meta = pred[["fold", "row", "n_train"]].to_numpy(dtype=np.int64)
-        for j in range(len(pred)):
-            e = None if st[j] else pv[j] - tv[j]
-            add(m, "kfold", int(meta[j, 0]), int(meta[j, 1]), int(meta[j, 2]), e, st[j])
-        info["kfold_failed_folds"] = failed
-        sig = pred.loc[pred["status"] == "", "sigma_m"].to_numpy(dtype=float)
-        sig = sig[np.isfinite(sig)]
-        info["kfold_noise_mm"] = float(np.sqrt(3 * np.mean(sig**2)) * 1e3) if sig.size else math.nan
-        # -- leave one target out
-        loto_failed = 0
-        if config.loto:
-            for f, t in enumerate(sorted(set(tid[use].tolist()))):
-                held = use & (tid == t)
-                train = use & (tid != t)
-                hi = np.flatnonzero(held)
-                if len(hi) < 2:
-                    for i in hi:
-                        add(m, "loto", f, int(i), int(train.sum()), None, "single touch-up")
-                    continue
-                try:
-                    res = _fit(df, train, urdf, base_link, flange_link, mcfg)
-                except (BadInput, CalibrationFailed) as exc:
-                    loto_failed += 1
-                    for i in hi:
-                        add(m, "loto", f, int(i), int(train.sum()), None, f"not fitted: {exc}")
-                    continue
-                p = _predict(res, q_all[hi], d_all[hi])
-                dev = (p - p.mean(axis=0)) * math.sqrt(len(hi) / (len(hi) - 1))
-                for j, i in enumerate(hi):
-                    add(m, "loto", f, int(i), int(train.sum()), dev[j], "")
-        info["loto_failed_targets"] = loto_failed
-        return rows, info
 
+def _validate_model(
+    m: str,
+    s: _Split,
+    robot: tuple[str, str, str],
+    base_cfg: IdentifyConfig,
+    loto: bool,
+    known: Any,
+) -> tuple[list[dict[str, Any]], dict[str, Any]]:
+    """Held-out rows and the summary of model ``m``: the full fit, k folds, LOTO.
+
+    ``known`` is the identify stage's summary of the full fit, if it made one.
+    """
+    mcfg = dataclasses.replace(base_cfg, model=m)
+    info: dict[str, Any] = {"k": s.k, "urdf_exact": _urdf_exact(m)}
+    try:
+        if isinstance(known, Mapping) and {"rms_mm", "n_identified"} <= set(known):
+            full_summary: Mapping[str, Any] = known  # the identify stage's own fit
+        else:
+            full_summary = _fit(s.df, s.use, *robot, mcfg).summary
+        info["train_rms_mm"] = float(full_summary["rms_mm"])
+        info["n_identified"] = int(full_summary["n_identified"])
+        mcfg = refit_config(mcfg, full_summary)
+    except (BadInput, CalibrationFailed) as exc:
+        info["train_rms_mm"] = math.nan
+        info["error"] = str(exc)
+    rows = _kfold(m, s, robot, mcfg, info)
+    loto_failed = 0
+    if loto:
+        loto_rows, loto_failed = _leave_one_target_out(m, s, robot, mcfg)
+        rows += loto_rows
+    info["loto_failed_targets"] = loto_failed
+    return rows, info
+
+
+def _kfold(
+    m: str, s: _Split, robot: tuple[str, str, str], mcfg: IdentifyConfig, info: dict[str, Any]
+) -> list[dict[str, Any]]:
+    """The k-fold rows of model ``m``; its failed folds and noise estimate go to ``info``."""
+    pred = heldout_predictions(s.df, s.use, s.fold, *robot, mcfg)
+    failed = int(pred.loc[pred["status"].str.startswith("fold not fitted"), "fold"].nunique())
+    pv = pred[["px", "py", "pz"]].to_numpy(dtype=float)
+    tv = pred[["tx", "ty", "tz"]].to_numpy(dtype=float)
+    st = pred["status"].astype(str).tolist()
+    meta = pred[["fold", "row", "n_train"]].to_numpy(dtype=np.int64)
+    add = functools.partial(_heldout_row, s, m, "kfold")
+    rows = []
+    for j in range(len(pred)):
+        e = None if st[j] else pv[j] - tv[j]
+        rows.append(add(int(meta[j, 0]), int(meta[j, 1]), int(meta[j, 2]), e, st[j]))
+    info["kfold_failed_folds"] = failed
+    sig = pred.loc[pred["status"] == "", "sigma_m"].to_numpy(dtype=float)
+    sig = sig[np.isfinite(sig)]
+    info["kfold_noise_mm"] = float(np.sqrt(3 * np.mean(sig**2)) * 1e3) if sig.size else math.nan
+    return rows
+
+
+def _leave_one_target_out(
+    m: str, s: _Split, robot: tuple[str, str, str], mcfg: IdentifyConfig
+) -> tuple[list[dict[str, Any]], int]:
+    """The leave-one-target-out rows of model ``m``, and how many targets could not be fitted."""
     rows: list[dict[str, Any]] = []
-    summary_models: dict[str, Any] = {}
-    for m, (m_rows, info) in zip(
-        models, parallel_map(one_model, models, config.workers), strict=True
-    ):
-        rows += m_rows
-        summary_models[m] = info
+    add = functools.partial(_heldout_row, s, m, "loto")
+    use, tid = s.use, s.tid
+    loto_failed = 0
+    for f, t in enumerate(sorted(set(tid[use].tolist()))):
+        held = use & (tid == t)
+        train = use & (tid != t)
+        hi = np.flatnonzero(held)
+        if len(hi) < 2:
+            for i in hi:
+                rows.append(add(f, int(i), int(train.sum()), None, "single touch-up"))
+            continue
+        try:
+            res = _fit(s.df, train, *robot, mcfg)
+        except (BadInput, CalibrationFailed) as exc:
+            loto_failed += 1
+            for i in hi:
+                rows.append(add(f, int(i), int(train.sum()), None, f"not fitted: {exc}"))
+            continue
+        p = _predict(res, s.q_all[hi], s.d_all[hi])
+        dev = (p - p.mean(axis=0)) * math.sqrt(len(hi) / (len(hi) - 1))
+        for j, i in enumerate(hi):
+            rows.append(add(f, int(i), int(train.sum()), dev[j], ""))
+    return rows, loto_failed
 
-    out = pd.DataFrame(
-        rows,
-        columns=[
-            "model",
-            "scheme",
-            "fold",
-            "touchup_id",
-            "target_id",
-            "n_train",
-            "ex",
-            "ey",
-            "ez",
-            "error_mm",
-            "status",
-        ],
-    )
+
+def _figures(out: pd.DataFrame, summary_models: dict[str, Any]) -> None:
+    """Per model and scheme: scored touch-ups, RMS and max (mm); the k-fold model RMS."""
     for m, info in summary_models.items():
         for scheme in ("kfold", "loto"):
             e = out[(out["model"] == m) & (out["scheme"] == scheme)]["error_mm"].dropna()
@@ -441,13 +491,18 @@ def cross_validate(
         info["kfold_model_rms_mm"] = (
             float(np.sqrt(max(kf**2 - nz**2, 0.0))) if np.isfinite(kf) and np.isfinite(nz) else kf
         )
-    chosen, choice = _choose(summary_models)
+
+
+def _summary(
+    k: int, config: CrossvalConfig, summary_models: dict[str, Any], chosen: str | None, choice: str
+) -> dict[str, Any]:
+    """The summary of the cross-validation: figures per model, the choice, what it means."""
     scored = {
         m: v["kfold_rms_mm"]
         for m, v in summary_models.items()
         if v.get("kfold_failed_folds", 1) == 0 and np.isfinite(v.get("kfold_rms_mm", math.nan))
     }
-    summary = {
+    return {
         "k": k,
         "seed": config.seed,
         "models": summary_models,
@@ -463,7 +518,6 @@ def cross_validate(
             "read it with the covariance-predicted error of identify"
         ),
     }
-    return CrossvalResult(table=out, chosen_model=chosen, summary=_strict(summary))
 
 
 def _strict(obj: Any) -> Any:
