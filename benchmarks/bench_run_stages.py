@@ -105,7 +105,10 @@ def stage_seconds(out: Path) -> dict[str, float]:
 def bench_stages(recs: dict[str, Path], workdir: Path, repeat: int) -> None:
     """Per-stage wall time of ``vtcal run --force`` per cell, median over ``repeat`` runs."""
     print(f"\n== vtcal run --force, fresh process, median of {repeat} (load {load()})")
-    names = ("ingest", "touchups", "outliers", "identify", "crossval", "report")
+    from pipeline.catalog import STAGES
+
+    # every stage the runner declares (the choose stage came with issue 20), then the report
+    names = tuple(dict.fromkeys([*(st.name for st in STAGES), "report"]))
     print(
         f"{'cell':<10}" + "".join(f"{n:>9}" for n in names) + f"{'after':>8}{'after/ingest':>13}"
         f"{'wall':>7}"
@@ -113,11 +116,12 @@ def bench_stages(recs: dict[str, Path], workdir: Path, repeat: int) -> None:
     for label, rec in recs.items():
         out = workdir / f"run_{label}"
         per: dict[str, list[float]] = {n: [] for n in names}
+        per.setdefault("report", [])
         walls = []
         for _ in range(repeat):
             walls.append(vtcal("run", str(rec), "--out", str(out), "--force", "-q"))
             for n, s in stage_seconds(out).items():
-                per[n].append(s)
+                per.setdefault(n, []).append(s)
         med = {n: statistics.median(v) for n, v in per.items() if v}
         after = sum(v for n, v in med.items() if n != "ingest")
         print(
