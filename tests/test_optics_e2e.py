@@ -6,11 +6,11 @@ draws), each calibrated by the whole pipeline and judged against the truth:
 * sRGB-encoded images calibrate within 1.5x of the linear twin on the standard
   cell's 36 touch-ups (before vtcal linearised its grey levels, every long axis
   read ~0.4-0.8 px short and the pin sat millimetres off along the view: ~1.2 mm
-  here). With 24 touch-ups they do not yet: 0.035 / 0.024 / 0.060 mm against
-  0.011 / 0.018 / 0.009 mm on seeds 7 / 8 / 9. The controller's own detector reads the encoded
-  image ~0.43 px short, every touch-up is corrected by ~1.3 mm along the view, and
-  the image Jacobian's size row is known to ~1 % per target (with an unbiased
-  controller the same images give 0.019 / 0.021 mm on seeds 7 / 9);
+  here). With 24 touch-ups they do not yet: 0.042 / 0.029 mm against 0.015 / 0.009
+  mm on seeds 7 / 9 (0.035 / 0.060 mm before one image Jacobian served every
+  target). The controller's own detector reads the encoded image ~0.43 px short,
+  every touch-up is corrected by ~1.4 mm along the view; what is left is the
+  encoded image's ~1.5x long-axis noise (docs/detection.md);
 * uneven light with a controller whose simpler detector it fools (binary blob
   moments at one global threshold, ~1.5 px short and a few tenths of a pixel off
   centre) keeps its touch-ups (before: 17 of 18 rejected as "not converged") and
