@@ -314,18 +314,16 @@ def _target_jacobians(
     (:func:`size_row_scales`); ``"target"``: a full Jacobian per target with at
     least ``min_pairs_per_target`` pairs, the global one unchanged.
     """
-    seg_pairs: dict[int, list[int]] = {}
-    for ip, k in enumerate(pair_seg):
-        seg_pairs.setdefault(int(labels[k]), []).append(ip)
+    pair_group = np.asarray(labels)[pair_seg].astype(np.int64)  # target of each pair
     J_target: dict[int, np.ndarray] = {}
     if config.jacobian == "target":
-        for g, members in seg_pairs.items():
+        for g in dict.fromkeys(pair_group.tolist()):  # first-seen order
+            members = np.flatnonzero(pair_group == g)
             if len(members) >= config.min_pairs_per_target:
                 Jg = estimate_jacobian(dF_all[members], dm_all[members])
                 if Jg is not None and np.all(np.isfinite(Jg)):
                     J_target[g] = Jg
     elif config.jacobian == "global":
-        pair_group = np.array([int(labels[k]) for k in pair_seg])
         c_ref, scales = size_row_scales(
             J_global,
             dF_all,
