@@ -34,6 +34,23 @@ def predicted_errors(Jw: F64, cov: F64, p: F64, kind: str) -> F64:
     return np.asarray(np.sqrt(np.clip(var, 0.0, None)))
 
 
+def residual_variance(r: F64, n_unknowns: int) -> tuple[float, int]:
+    """Residual variance of a least-squares fit, ``sigma^2 = |r|^2 / (m - p)``.
+
+    Parameters
+    ----------
+    r : (m,) residual vector at the solution
+    n_unknowns : ``p``, the estimated unknowns
+
+    Returns
+    -------
+    sigma2 : NaN when ``m <= p``
+    dof : ``m - p``
+    """
+    dof = len(r) - int(n_unknowns)
+    return (float(r @ r / dof) if dof > 0 else float("nan")), int(dof)
+
+
 def covariance(J: F64, scale: F64, r: F64) -> tuple[F64, float, int]:
     """Covariance of the estimated unknowns of a least-squares fit.
 
@@ -56,8 +73,7 @@ def covariance(J: F64, scale: F64, r: F64) -> tuple[F64, float, int]:
     dof : ``m - p``
     """
     U, sv, Vt = np.linalg.svd(J * scale, full_matrices=False)
-    dof = J.shape[0] - J.shape[1]
-    sigma2 = float(r @ r / dof) if dof > 0 else float("nan")
+    sigma2, dof = residual_variance(r, J.shape[1])
     good = sv > sv[0] * 1e-12
     Vs = Vt[good].T / sv[good]
     cov = (scale[:, None] * (Vs @ Vs.T)) * scale[None, :] * sigma2

@@ -62,7 +62,7 @@ from pipeline.errors import BadInput, CalibrationFailed
 from pipeline.estimation.design import design_jacobian
 from pipeline.estimation.identifiability import select_columns, structure
 from pipeline.estimation.measurement import Problem, initial_pin_targets, partial_loss
-from pipeline.estimation.uncertainty import covariance, predicted_errors
+from pipeline.estimation.uncertainty import covariance, predicted_errors, residual_variance
 from pipeline.estimation.whitening import flange_whitening
 from pipeline.evaluate import workspace_poses
 from pipeline.kinematics.chain import Chain, load_chain
@@ -80,6 +80,7 @@ from pipeline.stages.identify_tables import (
     parameter_table,
     residual_table,
     target_table,
+    weighted_rms,
 )
 from pipeline.stages.identify_types import (
     AUTO_ORDER,
@@ -369,10 +370,7 @@ def _identify_one(
     u = _uncertainty(s, f, config)
     model, kept, x, pin, tg = s.model, s.kept, f.x, f.pin, f.tg
     data = f.data
-    # the pin-to-target distances themselves (residuals.parquet's), not the whitened
-    # residual vector the solver minimised: a fit residual in millimetres means a distance
-    p_used, _, _ = model.pin_and_jacobian(x, data.q, pin + data.d, jac=False)
-    norms_used = np.linalg.norm(p_used - tg[data.tk], axis=1)
+    norms_used = _pin_distances(model, f)
     fit = FitFigures(
         name=name,
         model=model,
@@ -411,17 +409,24 @@ def _identify_one(
     )
 
 
+def _pin_distances(model: Any, f: _Solved) -> F64:
+    """The pin-to-target distances of the used rows (residuals.parquet's), (N,) m.
+
+    ``|T(q_i; x) (p_pin + d_i) - t_k|``, not the whitened residual vector the solver
+    minimised: a fit residual in millimetres means a distance.
+    """
+    data = f.data
+    p_used, _, _ = model.pin_and_jacobian(f.x, data.q, f.pin + data.d, jac=False)
+    return np.asarray(np.linalg.norm(p_used - f.tg[data.tk], axis=1))
+
+
 def _prediction_only(name: str, s: _Setup, f: _Solved, t0: float) -> IdentifyResult:
     """A fit for prediction alone (``IdentifyConfig.prediction_only``): what a held-out
     score needs, the model, pin and target positions, the residual RMS and the
     residual scale ``sigma = sqrt(|r|^2 / (m - p))`` (as :func:`covariance` has it),
-    without the covariance, the tables and the URDF (about 40 % of a refit)."""
+    without the covariance, the tables and the URDF (about 30 % of a refit)."""
     model, data = s.model, f.data
-    cols = s.prob.columns()
-    dof = len(f.r) - len(cols)
-    sigma2 = float(f.r @ f.r / dof) if dof > 0 else float("nan")
-    p_used, _, _ = model.pin_and_jacobian(f.x, data.q, f.pin + data.d, jac=False)
-    norms = np.linalg.norm(p_used - f.tg[data.tk], axis=1)
+    sigma2, dof = residual_variance(f.r, len(s.prob.columns()))
     targets = pd.DataFrame(
         {
             "model": name,
@@ -432,7 +437,7 @@ def _prediction_only(name: str, s: _Setup, f: _Solved, t0: float) -> IdentifyRes
         }
     )
     summary = {
-        "rms_mm": float(np.sqrt(np.sum(norms**2 * data.sw**2) / np.sum(data.sw**2)) * 1e3),
+        "rms_mm": weighted_rms(_pin_distances(model, f), data.sw) * 1e3,
         "sigma_mm": math.sqrt(sigma2) * 1e3 if dof > 0 else float("nan"),
         "n_identified": len(s.kept),
         "seconds": time.perf_counter() - t0,

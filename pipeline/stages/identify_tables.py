@@ -175,6 +175,14 @@ def target_table(f: FitFigures, u: Uncertainty) -> pd.DataFrame:
     return targets
 
 
+def weighted_rms(norms: F64, sw: F64) -> float:
+    """Weighted RMS of the pin-to-target distances, ``sqrt(sum w_i |e_i|^2 / sum w_i)``.
+
+    ``norms`` (N,) m, ``sw`` (N,) the rows' square-root weights (``w_i = sw_i^2``).
+    """
+    return float(np.sqrt(np.sum(norms**2 * sw**2) / float(np.sum(sw**2))))
+
+
 def fit_summary(f: FitFigures, u: Uncertainty) -> dict[str, Any]:
     """The JSON summary of one model's fit (identify.json ``models[MODEL]``), headline included.
 
@@ -184,8 +192,7 @@ def fit_summary(f: FitFigures, u: Uncertainty) -> dict[str, Any]:
     """
     model, data, kept, name, sol, dof, obs = f.model, f.data, f.kept, f.name, f.sol, u.dof, u.obs
     P, K, N, M = model.n_params, data.K, len(data.q), len(data.rows)
-    wsum = float(np.sum(data.sw**2))
-    rms = float(np.sqrt(np.sum(f.norms_used**2 * data.sw**2) / wsum))
+    rms = weighted_rms(f.norms_used, data.sw)
     scale_held = not data.dist
     held = np.array(sorted(f.reasons), dtype=np.int64)
     held_list = [
