@@ -5,14 +5,9 @@ in file order (:func:`pipeline.io_recording.iter_recording`: an MCAP file or a
 ROS bag); every image is decoded
 and handed to :func:`pipeline.stages.detect.detect_target` at once, so only one
 image is in memory at a time. Joint states (small) are kept, and after the
-pass every image stamp gets
-
-- the joint vector linearly interpolated at its ``header.stamp``
-  (``q(t) = q_k + (t - t_k) / (t_{k+1} - t_k) (q_{k+1} - q_k)`` between the
-  bracketing joint states, sorted by their own header stamps);
-- a stillness measure: the largest joint speed ``max_j |dq_j/dt|`` over the
-  finite differences of consecutive joint states within ``+- still_window_s``
-  of the stamp, and the gap between the bracketing joint states.
+pass every image stamp gets the joint vector interpolated at its
+``header.stamp``, a stillness measure and the gap between the bracketing joint
+states (:mod:`pipeline.stages.ingest_joints` states the maths).
 
 Outputs: the ``frames`` and ``detections`` artefacts (``schemas/frames.json``,
 ``schemas/detections.json``; one row per image, ``frame_index`` = the image's
