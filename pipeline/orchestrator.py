@@ -96,12 +96,22 @@ class RunConfig:
 
 
 def _build(cls: Any, options: Mapping[str, Any], **base: Any) -> Any:
-    """Instantiate a stage config dataclass from defaults, ``base`` and user ``options``."""
-    names = {f.name for f in dataclasses.fields(cls)}
-    unknown = set(options) - names
+    """Instantiate a stage config dataclass from defaults, ``base`` and user ``options``.
+
+    A ``list[str]`` option given as text (``--set crossval.models=full,elastic``) is
+    split at its commas.
+    """
+    fields = {f.name: f for f in dataclasses.fields(cls)}
+    unknown = set(options) - set(fields)
     if unknown:
         raise BadInput(f"unknown option(s) for {cls.__name__}: {', '.join(sorted(unknown))}")
-    return cls(**{**{k: v for k, v in base.items() if k in names}, **dict(options)})
+    given = {
+        k: [x.strip() for x in v.split(",") if x.strip()]
+        if isinstance(v, str) and str(fields[k].type) in ("list[str]", str(list[str]))
+        else v
+        for k, v in options.items()
+    }
+    return cls(**{**{k: v for k, v in base.items() if k in fields}, **given})
 
 
 def _diameter(text: str | None) -> float | None:

@@ -66,9 +66,8 @@ class CrossvalConfig:
     Attributes
     ----------
     k : folds of the k-fold scheme (at most the largest target's touch-up count)
-    models : error models to compare (a list, or names separated by commas as
-        ``--set crossval.models=full,elastic`` gives them); empty: the identify stage's
-        model, or, when it is ``"all"``, every registered model a URDF carries exactly
+    models : error models to compare (``--set crossval.models=full,elastic``);
+        empty: the identify stage's model, or, when it is ``"all"``, every registered model a URDF carries exactly
         (the ones a run can ship: ``elastic`` is fitted by identify but
         cross-validated only on request, which saves a fifth of the refits)
     seed : seed of the fold assignment
@@ -80,7 +79,7 @@ class CrossvalConfig:
     """
 
     k: int = 5
-    models: list[str] | str = field(default_factory=list)
+    models: list[str] = field(default_factory=list)
     seed: int = 0
     loto: bool = True
     workers: int = 0
@@ -313,11 +312,7 @@ def cross_validate(
     if missing:
         raise BadInput(f"touch-up table: missing column(s) {missing} for cross-validation")
     if config.models:
-        models = (
-            [m.strip() for m in config.models.split(",") if m.strip()]
-            if isinstance(config.models, str)
-            else list(config.models)
-        )
+        models = list(config.models)
     elif identify_config.model == "all":
         models = [m for m in model_names() if get_model(m).urdf_exact]
     else:
