@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 from pipeline.measure.summary import as_metadata, summarize
-from pipeline.report.html import measurement_text
+from pipeline.report.html_sections import measurement_text
 
 
 def _touchup(converged: bool, reason: str = "converged") -> dict[str, object]:
