@@ -36,14 +36,8 @@ def fit_print_shape(
     data : the data it belongs to (a copy with the corrected ``d``, or ``prob.data``)
     summary : ``fitted``, ``note``, F-test figures, per-target figures
     """
-    import dataclasses
-
-    from scipy.stats import f as f_dist
-
-    from pipeline.stages import print_shape as ps
-
     D0 = prob.data
-    K, N = D0.K, len(D0.q)
+    K = D0.K
     counts = np.bincount(D0.tk, minlength=K)
     if int(counts.min()) < config.shape_min_touchups:
         return (
@@ -57,88 +51,8 @@ def fit_print_shape(
         )
     assert D0.shape_g is not None and D0.shape_l is not None
     n_all = 3 * K - 1
-
-    def rss(D: FitData, z: F64) -> float:
-        x, pin, tg = prob.split(z)
-        p, _, _ = prob.model.pin_and_jacobian(x, D.q, pin + D.d, jac=False)
-        return float(np.sum(((p - tg[D.tk]) * D.sw[:, None]) ** 2))
-
-    rss0 = rss(D0, sol.x)
+    rss0 = _rss(prob, D0, sol.x)
     sol0, W0 = sol, prob.W
-    G: F64 = D0.shape_g
-    L: F64 = D0.shape_l
-
-    def attempt(cols: np.ndarray) -> tuple[Any, FitData, dict[str, Any], bool]:
-        """Fit the ``theta`` columns ``cols``; (sol, data, summary, significant)."""
-        ne = len(cols)
-        dof1 = 3 * N + len(D0.dist) - (n_free + 3 + 3 * K) - ne
-        if dof1 < 5:
-            return (
-                sol0,
-                D0,
-                {"fitted": False, "note": "print shape not fitted: too few touch-ups"},
-                False,
-            )
-        D = dataclasses.replace(D0, d=D0.d.copy(), d_all=D0.d_all.copy())
-        prob.data, prob.W = D, W0
-        theta = np.zeros(n_all)
-
-        def joint(z: F64) -> tuple[F64, F64, F64]:
-            """(A, r, B): Jacobian over [z, theta[cols]], residual and the design at ``z``."""
-            x, pin, tg = prob.split(z)
-            r, Jf = prob.full_eval(x, pin, tg)
-            assert Jf is not None
-            _, R, _ = prob.model.pin_and_jacobian(x, D.q, pin + D.d, jac=False)
-            B, _ = ps.design(np.einsum("nij,nj->ni", R, L), D.tk, K, np.einsum("nij,nj->ni", R, G))
-            V = np.einsum("nij,nj->ni", R, G) if prob.W is None else G @ prob.W.T
-            Bc = B[:, cols]
-            S = np.zeros((prob.m, ne))
-            S[: 3 * N] = (V[:, :, None] * Bc[:, None, :] * D.sw[:, None, None]).reshape(3 * N, ne)
-            return np.hstack([Jf[:, prob.columns()], S]), r, B
-
-        s1 = sol0
-        for _ in range(3):
-            A, r, B = joint(s1.x)
-            cn = np.maximum(np.linalg.norm(A, axis=0), 1e-300)
-            step = np.linalg.lstsq(A / cn, -r, rcond=None)[0] / cn
-            theta[cols] += step[-ne:]
-            D.d[:] = D0.d + G * (B @ theta)[:, None]
-            D.d_all[D.used_idx] = D.d
-            s1 = solve(s1.x)
-        A, r, B = joint(s1.x)
-        cn = np.maximum(np.linalg.norm(A, axis=0), 1e-300)
-        dof_w = prob.m - A.shape[1]
-        sig2 = float(r @ r / dof_w) if dof_w > 0 else float("nan")
-        _, sv, Vt = np.linalg.svd(A / cn, full_matrices=False)
-        good = sv > sv[0] * 1e-12
-        cov = (Vt[good].T / sv[good] ** 2) @ Vt[good] * sig2
-        std = np.full(n_all, np.nan)
-        std[cols] = np.sqrt(np.clip(np.diag(cov)[-ne:], 0, None)) / cn[-ne:]
-        rss1 = rss(D, s1.x)
-        F = ((rss0 - rss1) / ne) / max(rss1 / dof1, 1e-300)
-        p_value = float(f_dist.sf(F, ne, dof1)) if rss1 > 0 else 0.0
-        what = "print shape" if ne == n_all else "relative print sizes"
-        out: dict[str, Any] = {
-            "fitted": False,
-            "parameters": "size and out-of-roundness" if ne == n_all else "size",
-            "F": float(F),
-            "p_value": p_value,
-            "alpha": config.shape_alpha,
-            "rss_before_mm2": 1e6 * rss0,
-            "rss_after_mm2": 1e6 * rss1,
-            "n_params": ne,
-            "held": "the size of target 0's print (the reference): a size error common to "
-            "every print moves every touch-up along the view like the virtual pin's own "
-            "coordinate",
-            "targets": ps.summarise(theta, std, K, config.target_diameter_m),
-            "note": f"{what} fitted ({ne} parameters, F = {F:.1f}, p = {p_value:.2g})",
-        }
-        if ne < n_all:  # sizes only: the out-of-roundness was not fitted, not zero
-            for t in out["targets"]:
-                for k in ("ellipticity", "ellipticity_std", "orientation_rad", "out_of_round_um"):
-                    if k in t:
-                        t[k] = float("nan")
-        return s1, D, out, p_value < config.shape_alpha
 
     # the whole print model, then the relative sizes alone (K - 1 parameters: a per-target
     # constant along the view, which is also what a per-target error of the image
@@ -147,7 +61,7 @@ def fit_print_shape(
     tries = [np.arange(n_all)] + ([np.arange(K - 1)] if K > 1 else [])
     tried: list[dict[str, Any]] = []
     for i, cols in enumerate(tries):
-        s1, D1, out, significant = attempt(cols)
+        s1, D1, out, significant = _attempt(prob, D0, W0, sol0, rss0, cols, solve, config, n_free)
         tried.append(out)
         if significant or (config.target_shape == "fit" and i == 0 and "F" in out):
             out["fitted"] = True
@@ -157,6 +71,122 @@ def fit_print_shape(
     first = tried[0]
     if "F" not in first:
         return sol0, D0, first
+    return sol0, D0, _not_significant(first, tried, config.shape_alpha)
+
+
+def _rss(prob: Problem, D: FitData, z: F64) -> float:
+    """Weighted residual sum of squares (m^2) of ``D`` at the fit's unknowns ``z``."""
+    x, pin, tg = prob.split(z)
+    p, _, _ = prob.model.pin_and_jacobian(x, D.q, pin + D.d, jac=False)
+    return float(np.sum(((p - tg[D.tk]) * D.sw[:, None]) ** 2))
+
+
+def _joint(prob: Problem, D: FitData, cols: np.ndarray, z: F64) -> tuple[F64, F64, F64]:
+    """(A, r, B): Jacobian over [z, theta[cols]], residual and the design at ``z``.
+
+    ``D`` is the data being corrected (its ``shape_g``, ``shape_l`` are the levers and
+    long axes of :mod:`pipeline.stages.print_shape`).
+    """
+    from pipeline.stages import print_shape as ps
+
+    assert D.shape_g is not None and D.shape_l is not None
+    G, L = D.shape_g, D.shape_l
+    K, N, ne = D.K, len(D.q), len(cols)
+    x, pin, tg = prob.split(z)
+    r, Jf = prob.full_eval(x, pin, tg)
+    assert Jf is not None
+    _, R, _ = prob.model.pin_and_jacobian(x, D.q, pin + D.d, jac=False)
+    B, _ = ps.design(np.einsum("nij,nj->ni", R, L), D.tk, K, np.einsum("nij,nj->ni", R, G))
+    V = np.einsum("nij,nj->ni", R, G) if prob.W is None else G @ prob.W.T
+    Bc = B[:, cols]
+    S = np.zeros((prob.m, ne))
+    S[: 3 * N] = (V[:, :, None] * Bc[:, None, :] * D.sw[:, None, None]).reshape(3 * N, ne)
+    return np.hstack([Jf[:, prob.columns()], S]), r, B
+
+
+def _attempt(
+    prob: Problem,
+    D0: FitData,
+    W0: Any,
+    sol0: Any,
+    rss0: float,
+    cols: np.ndarray,
+    solve: Any,
+    config: IdentifyConfig,
+    n_free: int,
+) -> tuple[Any, FitData, dict[str, Any], bool]:
+    """Fit the ``theta`` columns ``cols`` from ``sol0`` on ``D0``; (sol, data, summary, significant)."""
+    import dataclasses
+
+    from scipy.stats import f as f_dist
+
+    from pipeline.stages import print_shape as ps
+
+    assert D0.shape_g is not None
+    G: F64 = D0.shape_g
+    K, N = D0.K, len(D0.q)
+    n_all = 3 * K - 1
+    ne = len(cols)
+    dof1 = 3 * N + len(D0.dist) - (n_free + 3 + 3 * K) - ne
+    if dof1 < 5:
+        return (
+            sol0,
+            D0,
+            {"fitted": False, "note": "print shape not fitted: too few touch-ups"},
+            False,
+        )
+    D = dataclasses.replace(D0, d=D0.d.copy(), d_all=D0.d_all.copy())
+    prob.data, prob.W = D, W0
+    theta = np.zeros(n_all)
+    s1 = sol0
+    for _ in range(3):
+        A, r, B = _joint(prob, D, cols, s1.x)
+        cn = np.maximum(np.linalg.norm(A, axis=0), 1e-300)
+        step = np.linalg.lstsq(A / cn, -r, rcond=None)[0] / cn
+        theta[cols] += step[-ne:]
+        D.d[:] = D0.d + G * (B @ theta)[:, None]
+        D.d_all[D.used_idx] = D.d
+        s1 = solve(s1.x)
+    A, r, B = _joint(prob, D, cols, s1.x)
+    cn = np.maximum(np.linalg.norm(A, axis=0), 1e-300)
+    dof_w = prob.m - A.shape[1]
+    sig2 = float(r @ r / dof_w) if dof_w > 0 else float("nan")
+    _, sv, Vt = np.linalg.svd(A / cn, full_matrices=False)
+    good = sv > sv[0] * 1e-12
+    cov = (Vt[good].T / sv[good] ** 2) @ Vt[good] * sig2
+    std = np.full(n_all, np.nan)
+    std[cols] = np.sqrt(np.clip(np.diag(cov)[-ne:], 0, None)) / cn[-ne:]
+    rss1 = _rss(prob, D, s1.x)
+    F = ((rss0 - rss1) / ne) / max(rss1 / dof1, 1e-300)
+    p_value = float(f_dist.sf(F, ne, dof1)) if rss1 > 0 else 0.0
+    what = "print shape" if ne == n_all else "relative print sizes"
+    out: dict[str, Any] = {
+        "fitted": False,
+        "parameters": "size and out-of-roundness" if ne == n_all else "size",
+        "F": float(F),
+        "p_value": p_value,
+        "alpha": config.shape_alpha,
+        "rss_before_mm2": 1e6 * rss0,
+        "rss_after_mm2": 1e6 * rss1,
+        "n_params": ne,
+        "held": "the size of target 0's print (the reference): a size error common to "
+        "every print moves every touch-up along the view like the virtual pin's own "
+        "coordinate",
+        "targets": ps.summarise(theta, std, K, config.target_diameter_m),
+        "note": f"{what} fitted ({ne} parameters, F = {F:.1f}, p = {p_value:.2g})",
+    }
+    if ne < n_all:  # sizes only: the out-of-roundness was not fitted, not zero
+        for t in out["targets"]:
+            for k in ("ellipticity", "ellipticity_std", "orientation_rad", "out_of_round_um"):
+                if k in t:
+                    t[k] = float("nan")
+    return s1, D, out, p_value < config.shape_alpha
+
+
+def _not_significant(
+    first: dict[str, Any], tried: list[dict[str, Any]], alpha: float
+) -> dict[str, Any]:
+    """The first attempt's summary, saying no attempt was significant (its figures NaN)."""
     first["tried"] = [{k: t.get(k) for k in ("parameters", "F", "p_value")} for t in tried]
     first["note"] = (
         "print shape not significant ("
@@ -165,10 +195,10 @@ def fit_print_shape(
             for t in tried
             if "F" in t
         )
-        + f" >= {config.shape_alpha:g}): perfect circles of one size assumed"
+        + f" >= {alpha:g}): perfect circles of one size assumed"
     )
     for t in first["targets"]:
         for k in t:
             if k != "target":
                 t[k] = float("nan")
-    return sol0, D0, first
+    return first
