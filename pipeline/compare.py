@@ -169,62 +169,88 @@ def compare_runs(run_dirs: list[Path], *, k_sigma: float = 3.0) -> CompareResult
     rows: list[dict[str, Any]] = []
     run_rows: list[dict[str, Any]] = []
     for name, path in zip(names, runs, strict=True):
-        info = _read_run(path)
-        s = info["summary"]
-        cv = s.get("crossval") or {}
-        cvm = cv.get("models") or {}
-        shipped = str(s.get("best_model", s.get("model", "")))
-        inl = info["inliers"]
-        n_touchups = int(len(inl)) if inl is not None else int(s.get("n_rows", 0))
-        n_rejected = int((~inl["inlier"].astype(bool)).sum()) if inl is not None else -1
-        n_split = (
-            int(inl.loc[inl["target_id"] != inl["source_target_id"], "target_id"].nunique())
-            if inl is not None
-            else 0
-        )
-        models = s.get("models") or {shipped: s}
-        par = info["params"]
-        for model, ms in models.items():
-            figures = {
-                "run": name,
-                "run_path": str(path),
-                "robot": info["robot"],
-                "nominal_hash": info["nominal_hash"],
-                "model": str(model),
-                "shipped": str(model) == shipped,
-                "heldout_rms_mm": _num((cvm.get(model) or {}).get("kfold_rms_mm")),
-                "loto_rms_mm": _num((cvm.get(model) or {}).get("loto_rms_mm")),
-                "train_rms_mm": _num(ms.get("rms_mm")),
-                "predicted_rms_mm": _num(
-                    ms.get("predicted_absolute_rms_mm", ms.get("predicted_rms_mm"))
-                ),
-                "cond": _num(ms.get("cond")),
-                "n_touchups": n_touchups,
-                "n_used": int(ms.get("n_used", -1)),
-                "n_rejected": n_rejected,
-                "n_split_targets": n_split,
-            }
-            run_rows.append(figures)
-            pm = par[par["model"] == model]
-            for r in pm.itertuples():
-                rows.append(
-                    {
-                        **figures,
-                        "parameter": str(r.name),
-                        "kind": str(r.kind),
-                        "unit": str(r.unit),
-                        "value": float(r.value),
-                        "std": _num(r.std),
-                        "identifiable": bool(r.identifiable),
-                        "baseline_run": "",
-                        "delta": math.nan,
-                        "delta_sigma": math.nan,
-                        "moved": False,
-                    }
-                )
+        _run_rows(name, path, run_rows, rows)
     table = pd.DataFrame(rows, columns=COLUMNS)
     _drift(table, k_sigma)
     moved = table[table["moved"]].reset_index(drop=True)
+    flags, others = _flags(moved, k_sigma)
+    runs_df = pd.DataFrame(run_rows)
+    compared = table[
+        table["shipped"].astype(bool) & np.isfinite(table["delta_sigma"].astype(float))
+    ]
+    summary = {
+        "runs": names,
+        "k_sigma": k_sigma,
+        "robots": sorted(set(table["robot"])) if len(table) else [],
+        "flags": flags,
+        "not_shipped_moved": others,
+        "n_compared": int(len(compared)),
+        "verdict": _verdict(table, flags, len(runs), len(compared)),
+    }
+    return CompareResult(table=table, runs=runs_df, moved=moved, summary=summary)
+
+
+def _run_rows(
+    name: str, path: Path, run_rows: list[dict[str, Any]], rows: list[dict[str, Any]]
+) -> None:
+    """Append run folder ``path``'s figures per model to ``run_rows`` and its parameters to ``rows``."""
+    info = _read_run(path)
+    s = info["summary"]
+    cv = s.get("crossval") or {}
+    cvm = cv.get("models") or {}
+    shipped = str(s.get("best_model", s.get("model", "")))
+    inl = info["inliers"]
+    n_touchups = int(len(inl)) if inl is not None else int(s.get("n_rows", 0))
+    n_rejected = int((~inl["inlier"].astype(bool)).sum()) if inl is not None else -1
+    n_split = (
+        int(inl.loc[inl["target_id"] != inl["source_target_id"], "target_id"].nunique())
+        if inl is not None
+        else 0
+    )
+    models = s.get("models") or {shipped: s}
+    par = info["params"]
+    for model, ms in models.items():
+        figures = {
+            "run": name,
+            "run_path": str(path),
+            "robot": info["robot"],
+            "nominal_hash": info["nominal_hash"],
+            "model": str(model),
+            "shipped": str(model) == shipped,
+            "heldout_rms_mm": _num((cvm.get(model) or {}).get("kfold_rms_mm")),
+            "loto_rms_mm": _num((cvm.get(model) or {}).get("loto_rms_mm")),
+            "train_rms_mm": _num(ms.get("rms_mm")),
+            "predicted_rms_mm": _num(
+                ms.get("predicted_absolute_rms_mm", ms.get("predicted_rms_mm"))
+            ),
+            "cond": _num(ms.get("cond")),
+            "n_touchups": n_touchups,
+            "n_used": int(ms.get("n_used", -1)),
+            "n_rejected": n_rejected,
+            "n_split_targets": n_split,
+        }
+        run_rows.append(figures)
+        pm = par[par["model"] == model]
+        for r in pm.itertuples():
+            rows.append(
+                {
+                    **figures,
+                    "parameter": str(r.name),
+                    "kind": str(r.kind),
+                    "unit": str(r.unit),
+                    "value": float(r.value),
+                    "std": _num(r.std),
+                    "identifiable": bool(r.identifiable),
+                    "baseline_run": "",
+                    "delta": math.nan,
+                    "delta_sigma": math.nan,
+                    "moved": False,
+                }
+            )
+
+
+def _flags(moved: pd.DataFrame, k_sigma: float) -> tuple[list[str], list[str]]:
+    """(flags, others): one line per shipped run/model with moved parameters; the rest listed."""
     flags = []
     others: list[str] = []  # models a run did not ship: listed, never the verdict
     for (run, model), g in moved.groupby(["run", "model"], sort=False):
@@ -241,38 +267,28 @@ def compare_runs(run_dirs: list[Path], *, k_sigma: float = 3.0) -> CompareResult
             f"{run} [{model}] against {g['baseline_run'].iloc[0]}: {len(g)} parameter(s) moved "
             f"by more than {k_sigma:g} sigma: {items}"
         )
-    runs_df = pd.DataFrame(run_rows)
-    compared = table[
-        table["shipped"].astype(bool) & np.isfinite(table["delta_sigma"].astype(float))
-    ]
+    return flags, others
+
+
+def _verdict(table: pd.DataFrame, flags: list[str], n_runs: int, n_compared: int) -> str:
+    """The comparison's one-line verdict."""
     if flags:
-        verdict = f"{len(flags)} run/model pair(s) with parameters that moved"
-    elif len(runs) < 2 or not len(compared):
+        return f"{len(flags)} run/model pair(s) with parameters that moved"
+    if n_runs < 2 or not n_compared:
         hashes = set(table["nominal_hash"]) if len(table) else set()
         why = (
             "the runs have different nominal robots (URDFs), so each is its own baseline"
             if len(hashes) > 1
             else "no identifiable kinematic parameter of a shipped model has an uncertainty in "
             "two runs"
-            if len(runs) >= 2
+            if n_runs >= 2
             else "one run"
         )
-        verdict = f"nothing compared: {why}"
-    else:
-        verdict = (
-            f"no parameter moved beyond its uncertainty between runs of the same robot "
-            f"({len(compared)} shipped-model parameter(s) compared)"
-        )
-    summary = {
-        "runs": names,
-        "k_sigma": k_sigma,
-        "robots": sorted(set(table["robot"])) if len(table) else [],
-        "flags": flags,
-        "not_shipped_moved": others,
-        "n_compared": int(len(compared)),
-        "verdict": verdict,
-    }
-    return CompareResult(table=table, runs=runs_df, moved=moved, summary=summary)
+        return f"nothing compared: {why}"
+    return (
+        f"no parameter moved beyond its uncertainty between runs of the same robot "
+        f"({n_compared} shipped-model parameter(s) compared)"
+    )
 
 
 def _unique_names(runs: list[Path]) -> list[str]:
