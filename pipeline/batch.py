@@ -68,10 +68,11 @@ from pipeline.batch_outcome import (
     FIGURES_INT,
     RecordingOutcome,
     cached_outcome,
+    interrupted_outcome,
     limit_threads,
-    one_line,
     run_recording,
     take_result,
+    worker_failure,
 )
 from pipeline.batch_record import (
     BATCH_RECORD,
@@ -196,21 +197,6 @@ def _check_names(items: Sequence[BatchItem]) -> None:
     for n in names:
         if not NAME_OK.match(n):
             raise BadInput(f"batch: run folder name {n!r} is not a plain folder name")
-
-
-def _worker_failure(item: BatchItem, run_dir: Path, exc: BaseException) -> RecordingOutcome:
-    """Outcome for a task whose worker did not return (died, not picklable, ...)."""
-    return RecordingOutcome(
-        name=item.name,
-        recording=str(item.recording),
-        run_dir=str(run_dir),
-        robot=item.robot,
-        notes=item.notes,
-        status="error",
-        error_kind="internal",
-        error=one_line(f"worker failed: {type(exc).__name__}: {exc}"),
-        exit_code=70,
-    )
 
 
 class _Slot:
@@ -348,44 +334,13 @@ def run_batch(
         for it in items
     ]
     outcomes: dict[str, RecordingOutcome] = {}
-    interrupted = False
     timings: dict[str, float] = {}
-    pending: list[BatchItem] = []
-    try:
-        pending = _from_ledgers(
-            items, out_dir, config, until, force, executor, kind, outcomes, progress
-        )
-        if pending:
-            with contextlib.ExitStack() as stack:
-                slots = _open_slots(
-                    stack, executor, kind, workers, scheduler, out_dir, len(pending), recycle_after
-                )
-                try:
-                    _fan_out(
-                        slots, pending, out_dir, config, until, force, outcomes, progress,
-                        len(items),
-                    )  # fmt: skip
-                except KeyboardInterrupt:
-                    for slot in slots:
-                        slot.abort()
-                    raise
-    except KeyboardInterrupt:
-        interrupted = True
+    pending, interrupted = _run_pending(
+        items, out_dir, config, until, force, outcomes, progress,
+        executor, kind, workers, scheduler, recycle_after,
+    )  # fmt: skip
     timings["fan_out"] = time.perf_counter() - t0
-    ordered = [
-        outcomes.get(it.name)
-        or RecordingOutcome(
-            it.name,
-            str(it.recording),
-            str(out_dir / it.name),
-            it.robot,
-            it.notes,
-            error="interrupted before it finished",
-            error_kind="interrupted",
-            exit_code=130,
-        )
-        for it in items
-    ]
+    ordered = [outcomes.get(it.name) or interrupted_outcome(it, out_dir) for it in items]
     fp = None if interrupted else batch_fingerprint(out_dir, items, ordered, config, until, compare)
     path = out_dir / "summary.parquet"
     if not pending and fp is not None:
@@ -434,6 +389,45 @@ def _check_request(
         raise BadInput(f"--recycle {recycle_after}: must be >= 0")
     if executor is None:
         check_executor_options(kind, workers, scheduler)
+
+
+def _run_pending(
+    items: Sequence[BatchItem],
+    out_dir: Path,
+    config: RunConfig | None,
+    until: str | None,
+    force: bool,
+    outcomes: dict[str, RecordingOutcome],
+    progress: BatchProgress | None,
+    executor: Executor | None,
+    kind: str,
+    workers: int | None,
+    scheduler: str | None,
+    recycle_after: int,
+) -> tuple[list[BatchItem], bool]:
+    """Steps 2 and 3 of :func:`run_batch` into ``outcomes``: (items left for the workers, Ctrl-C)."""
+    pending: list[BatchItem] = []
+    try:
+        pending = _from_ledgers(
+            items, out_dir, config, until, force, executor, kind, outcomes, progress
+        )
+        if pending:
+            with contextlib.ExitStack() as stack:
+                slots = _open_slots(
+                    stack, executor, kind, workers, scheduler, out_dir, len(pending), recycle_after
+                )
+                try:
+                    _fan_out(
+                        slots, pending, out_dir, config, until, force, outcomes, progress,
+                        len(items),
+                    )  # fmt: skip
+                except KeyboardInterrupt:
+                    for slot in slots:
+                        slot.abort()
+                    raise
+    except KeyboardInterrupt:
+        return pending, True
+    return pending, False
 
 
 def _from_ledgers(
@@ -540,7 +534,7 @@ def _fan_out(
         if slot.make is not None and attempts[it.name] < 2:
             queue.appendleft(it)
         else:
-            finish(it, _worker_failure(it, out_dir / it.name, exc))
+            finish(it, worker_failure(it, out_dir / it.name, exc))
 
     try:
         while queue or in_flight:
@@ -568,7 +562,7 @@ def _fan_out(
                     died(slot, it, exc)
                     continue
                 except Exception as exc:  # dask: KilledWorker, pickling, ...
-                    rec = _worker_failure(it, out_dir / it.name, exc)
+                    rec = worker_failure(it, out_dir / it.name, exc)
                 finish(it, rec)
     except BaseException:
         for fut in in_flight:

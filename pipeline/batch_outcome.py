@@ -108,6 +108,35 @@ def internal_error_line(exc: BaseException) -> str:
     return one_line(f"{type(exc).__name__}: {exc}{loc}")
 
 
+def worker_failure(item: BatchItem, run_dir: Path, exc: BaseException) -> RecordingOutcome:
+    """Outcome for a task whose worker did not return (died, not picklable, ...)."""
+    return RecordingOutcome(
+        name=item.name,
+        recording=str(item.recording),
+        run_dir=str(run_dir),
+        robot=item.robot,
+        notes=item.notes,
+        status="error",
+        error_kind="internal",
+        error=one_line(f"worker failed: {type(exc).__name__}: {exc}"),
+        exit_code=70,
+    )
+
+
+def interrupted_outcome(it: BatchItem, out_dir: Path) -> RecordingOutcome:
+    """The outcome of a recording the batch was interrupted before it finished."""
+    return RecordingOutcome(
+        it.name,
+        str(it.recording),
+        str(out_dir / it.name),
+        it.robot,
+        it.notes,
+        error="interrupted before it finished",
+        error_kind="interrupted",
+        exit_code=130,
+    )
+
+
 def _error_kind(exc: VtcalError) -> str:
     if isinstance(exc, BadInput):
         return "bad_input"
