@@ -53,6 +53,15 @@ class FitData:
 
 
 def prepare_data(touchups: pd.DataFrame, chain: Chain, config: IdentifyConfig) -> FitData:
+    """The rows of ``touchups`` that enter the fit, with every row's reason kept.
+
+    1. columns checked and made numeric; joints ``q``, residual corrections ``d``
+       (``dx_flange`` ...) and weights read;
+    2. every row that cannot be used gets its reason (:func:`_row_reasons`);
+    3. target labels numbered (:func:`_target_numbers`): integers keep their value;
+    4. the known distances matched to the used targets (:func:`_known_distances`);
+    5. the print-shape levers of the used rows, when the table has them.
+    """
     df = touchups.reset_index(drop=True)
     names = chain.joint_names
     missing = [c for c in ("touchup_id", "target_id", *names) if c not in df.columns]
@@ -69,41 +78,11 @@ def prepare_data(touchups: pd.DataFrame, chain: Chain, config: IdentifyConfig) -
         if c in df.columns:
             d_all[:, i] = df[c].to_numpy(dtype=float)
     w = df["weight"].to_numpy(dtype=float) if "weight" in df.columns else np.ones(M)
-    reason = [[] for _ in range(M)]  # type: list[list[str]]
-    if "converged" in df.columns:
-        for i in np.flatnonzero(~df["converged"].fillna(False).to_numpy(dtype=bool)).tolist():
-            reason[i].append("not converged")
-    if "inlier" in df.columns:
-        rej = df["reason"].astype(str).to_numpy() if "reason" in df.columns else None
-        for i in np.flatnonzero(~df["inlier"].fillna(False).to_numpy(dtype=bool)).tolist():
-            extra = f" ({rej[i]})" if rej is not None and rej[i] not in ("", "nan", "None") else ""
-            reason[i].append("rejected as outlier" + extra)
-    for i in np.flatnonzero(~(w > 0)).tolist():
-        reason[i].append("weight not positive")
-    for i in np.flatnonzero(w > MAX_WEIGHT).tolist():
-        reason[i].append(f"weight above {MAX_WEIGHT:g}")
-    for i in np.flatnonzero(~np.all(np.isfinite(q_all), axis=1)).tolist():
-        reason[i].append("joint position missing")
-    for i in np.flatnonzero(np.any(np.abs(q_all) > MAX_JOINT, axis=1)).tolist():
-        reason[i].append(f"joint position beyond {MAX_JOINT:g}")
-    for i in np.flatnonzero(~np.all(np.isfinite(d_all), axis=1)).tolist():
-        reason[i].append("correction missing")
-        d_all[i] = 0.0
-    for i in np.flatnonzero(np.any(np.abs(d_all) > MAX_CORRECTION_M, axis=1)).tolist():
-        reason[i].append(f"correction beyond {MAX_CORRECTION_M:g} m")
-        d_all[i] = 0.0
+    reason = _row_reasons(df, q_all, d_all, w)
     used = np.array([not r for r in reason], dtype=bool)
 
     raw_labels = df["target_id"].tolist()
-    order: list[Any] = []
-    for lab in raw_labels:
-        if lab not in order and not (isinstance(lab, float) and math.isnan(lab)):
-            order.append(lab)
-    all_int = all(
-        isinstance(v, (int, np.integer)) or (isinstance(v, float) and v.is_integer()) for v in order
-    )
-    tid_of = {lab: (int(lab) if all_int else i) for i, lab in enumerate(order)}
-    row_tid = np.array([tid_of.get(lab, -1) for lab in raw_labels], dtype=np.int64)
+    order, all_int, tid_of, row_tid = _target_numbers(raw_labels)
     row_label = [str(int(lab)) if all_int and lab in tid_of else str(lab) for lab in raw_labels]
     for i in np.flatnonzero(row_tid < 0).tolist():
         reason[i].append("no target label")
@@ -114,26 +93,7 @@ def prepare_data(touchups: pd.DataFrame, chain: Chain, config: IdentifyConfig) -
     tk_all = np.array([k_of.get(int(t), -1) for t in row_tid], dtype=np.int64)
     label_text = [str(int(lab)) if all_int else str(lab) for lab in used_labels]
     all_text = {(str(int(lab)) if all_int else str(lab)) for lab in order}
-
-    dist: list[tuple[int, int, float]] = []
-    dropped: list[str] = []
-    for a, b, metres in config.distances:
-        sa, sb = str(a), str(b)
-        absent = [s for s in (sa, sb) if s not in all_text]
-        if absent and config.strict_distances:
-            raise BadInput(
-                f"known distance {a}:{b}={metres}: no target {absent[0]!r} in the touch-up table "
-                f"(targets: {sorted(all_text)})"
-            )
-        if absent:
-            dropped.append(f"{a}:{b}={metres} (no target {absent[0]!r} in the touch-ups)")
-            continue
-        if sa == sb or not metres > 0:
-            raise BadInput(f"known distance {a}:{b}={metres}: needs two targets and metres > 0")
-        if sa in label_text and sb in label_text:
-            dist.append((label_text.index(sa), label_text.index(sb), float(metres)))
-        else:
-            dropped.append(f"{a}:{b}={metres} (a target has no usable touch-up)")
+    dist, dropped = _known_distances(config, label_text, all_text)
 
     rows = pd.DataFrame(
         {
@@ -172,6 +132,84 @@ def prepare_data(touchups: pd.DataFrame, chain: Chain, config: IdentifyConfig) -
         shape_g=shape_g,
         shape_l=shape_l,
     )
+
+
+def _row_reasons(df: pd.DataFrame, q_all: F64, d_all: F64, w: F64) -> list[list[str]]:
+    """Why each row cannot be used (empty: usable); a missing or corrupt correction is zeroed."""
+    M = len(df)
+    reason = [[] for _ in range(M)]  # type: list[list[str]]
+    if "converged" in df.columns:
+        for i in np.flatnonzero(~df["converged"].fillna(False).to_numpy(dtype=bool)).tolist():
+            reason[i].append("not converged")
+    if "inlier" in df.columns:
+        rej = df["reason"].astype(str).to_numpy() if "reason" in df.columns else None
+        for i in np.flatnonzero(~df["inlier"].fillna(False).to_numpy(dtype=bool)).tolist():
+            extra = f" ({rej[i]})" if rej is not None and rej[i] not in ("", "nan", "None") else ""
+            reason[i].append("rejected as outlier" + extra)
+    for i in np.flatnonzero(~(w > 0)).tolist():
+        reason[i].append("weight not positive")
+    for i in np.flatnonzero(w > MAX_WEIGHT).tolist():
+        reason[i].append(f"weight above {MAX_WEIGHT:g}")
+    for i in np.flatnonzero(~np.all(np.isfinite(q_all), axis=1)).tolist():
+        reason[i].append("joint position missing")
+    for i in np.flatnonzero(np.any(np.abs(q_all) > MAX_JOINT, axis=1)).tolist():
+        reason[i].append(f"joint position beyond {MAX_JOINT:g}")
+    for i in np.flatnonzero(~np.all(np.isfinite(d_all), axis=1)).tolist():
+        reason[i].append("correction missing")
+        d_all[i] = 0.0
+    for i in np.flatnonzero(np.any(np.abs(d_all) > MAX_CORRECTION_M, axis=1)).tolist():
+        reason[i].append(f"correction beyond {MAX_CORRECTION_M:g} m")
+        d_all[i] = 0.0
+    return reason
+
+
+def _target_numbers(
+    raw_labels: list[Any],
+) -> tuple[list[Any], bool, dict[Any, int], np.ndarray]:
+    """(labels in order of appearance, all integers, label -> target id, each row's id or -1).
+
+    A target id is the label's value when every label is an integer, else its rank.
+    """
+    order: list[Any] = []
+    for lab in raw_labels:
+        if lab not in order and not (isinstance(lab, float) and math.isnan(lab)):
+            order.append(lab)
+    all_int = all(
+        isinstance(v, (int, np.integer)) or (isinstance(v, float) and v.is_integer()) for v in order
+    )
+    tid_of = {lab: (int(lab) if all_int else i) for i, lab in enumerate(order)}
+    row_tid = np.array([tid_of.get(lab, -1) for lab in raw_labels], dtype=np.int64)
+    return order, all_int, tid_of, row_tid
+
+
+def _known_distances(
+    config: IdentifyConfig, label_text: list[str], all_text: set[str]
+) -> tuple[list[tuple[int, int, float]], list[str]]:
+    """(kept, dropped): ``config.distances`` as (target index A, B, metres) among the used targets.
+
+    ``label_text`` names the used targets, ``all_text`` every target of the table; a
+    distance to an absent target is dropped, or refused with ``strict_distances``.
+    """
+    dist: list[tuple[int, int, float]] = []
+    dropped: list[str] = []
+    for a, b, metres in config.distances:
+        sa, sb = str(a), str(b)
+        absent = [s for s in (sa, sb) if s not in all_text]
+        if absent and config.strict_distances:
+            raise BadInput(
+                f"known distance {a}:{b}={metres}: no target {absent[0]!r} in the touch-up table "
+                f"(targets: {sorted(all_text)})"
+            )
+        if absent:
+            dropped.append(f"{a}:{b}={metres} (no target {absent[0]!r} in the touch-ups)")
+            continue
+        if sa == sb or not metres > 0:
+            raise BadInput(f"known distance {a}:{b}={metres}: needs two targets and metres > 0")
+        if sa in label_text and sb in label_text:
+            dist.append((label_text.index(sa), label_text.index(sb), float(metres)))
+        else:
+            dropped.append(f"{a}:{b}={metres} (a target has no usable touch-up)")
+    return dist, dropped
 
 
 def _numeric_columns(df: pd.DataFrame, names: list[str]) -> pd.DataFrame:
