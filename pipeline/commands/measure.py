@@ -6,13 +6,19 @@ import contextlib
 import time
 from collections.abc import Callable, Iterator
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import click
 
 from pipeline.commands._common import set_option
 from pipeline.errors import BadInput, CellFault
 from pipeline.measure.summary import as_metadata, summarize, summary_line
+
+if TYPE_CHECKING:
+    from pipeline.measure.cell_link import CellLink
+    from pipeline.measure.loop import LoopConfig
+    from pipeline.measure.plan_file import Plan
+    from pipeline.measure.session import SessionOptions
 
 #: cell time the arm stays still after each capture (s): more than ingest's still window
 #: (+-0.06 s about the stamp) plus half an exposure
@@ -111,19 +117,11 @@ def run_measure(
     import numpy as np
 
     from pipeline.measure.adapters import connect
-    from pipeline.measure.detector import vtcal_detector
     from pipeline.measure.loop import LoopConfig
     from pipeline.measure.plan_file import check_limits, read_plan
     from pipeline.measure.protocols import MeasureFault
-    from pipeline.measure.record import open_recording
-    from pipeline.measure.session import (
-        SessionOptions,
-        goal_from_metadata,
-        run_session,
-    )
-    from pipeline.measure.session import (
-        dry_run as visit,
-    )
+    from pipeline.measure.session import SessionOptions
+    from pipeline.measure.session import dry_run as visit
 
     def fault(exc: MeasureFault, what: str) -> CellFault:
         return CellFault(f"{what}: {exc.kind}: {exc}")
@@ -133,14 +131,7 @@ def run_measure(
     except MeasureFault as exc:
         raise fault(exc, robot) from None
     try:
-        if urdf_path is not None:
-            if not urdf_path.is_file():
-                raise BadInput(f"{urdf_path}: URDF file not found")
-            urdf = urdf_path.read_text()
-        elif link.urdf is not None:
-            urdf = link.urdf
-        else:
-            raise BadInput(f"{robot}: the cell serves no URDF (URDF?); give --urdf")
+        urdf = _urdf_of(urdf_path, link.urdf, robot)
         plan = read_plan(plan_path, link.robot.joint_names)
         check_limits(plan, urdf, float(np.radians(limit_margin_deg)))
         meta = {**link.metadata, **overrides}
@@ -157,42 +148,76 @@ def run_measure(
             with _progress(not quiet, len(plan)) as show:
                 visit(link, plan, cfg, opts, show)
             return {"dry_run": True, "n_plan": len(plan), "wall_s": time.perf_counter() - wall0}
-        size = None
-        if "designated_u" not in meta or "designated_v" not in meta:
-            img = link.camera.capture().image  # before any move: the image size only
-            size = (int(img.shape[1]), int(img.shape[0]))
-        goal = goal_from_metadata(meta, size)
-        meta.setdefault("designated_u", f"{goal.u0:g}")
-        meta.setdefault("designated_v", f"{goal.v0:g}")
-        detect = vtcal_detector(goal.polarity, size_px=goal.s0)
-        link.drain_joints()  # samples from before the recording starts
-        t0 = link.robot.read_joints().stamp_ns
-        rec = open_recording(out, urdf, meta, plan.sha256, len(plan), t0)
-        if rec.progress.sessions > 1:
-            behind = rec.progress.safe_log_ns - link.robot.read_joints().stamp_ns
-            if behind >= 0:  # a cell whose clock restarted (a simulated one): let it pass
-                link.robot.wait(behind / 1e9 + 1.0)
-            if not quiet:
-                click.echo(f"vtcal measure: resuming {out} at touch-up {rec.progress.done + 1}")
-        try:
-            with _progress(not quiet, len(plan)) as show:
-                run_session(link, plan, rec, goal, cfg, detect, opts, show)
-        except MeasureFault as exc:
-            rec.abandon()
-            raise CellFault(
-                f"{out}: {exc.kind}: {exc}; the recording so far is kept "
-                f"({rec.progress.done} of {len(plan)} touch-ups), run the same command to resume"
-            ) from None
-        except BaseException:
-            rec.abandon()
-            raise
-        done = summarize(rec.progress.touchups, len(plan), rec.progress.sessions, out)
-        rec.finish(as_metadata(done))
-        return done
+        return _measure_into(out, link, plan, urdf, meta, cfg, opts, quiet)
     except MeasureFault as exc:
         raise fault(exc, robot) from None
     finally:
         link.close()
+
+
+def _urdf_of(urdf_path: Path | None, served: str | None, robot: str) -> str:
+    """The nominal URDF: the file given, else the one the cell serves (BadInput if neither)."""
+    if urdf_path is not None:
+        if not urdf_path.is_file():
+            raise BadInput(f"{urdf_path}: URDF file not found")
+        return urdf_path.read_text()
+    if served is not None:
+        return served
+    raise BadInput(f"{robot}: the cell serves no URDF (URDF?); give --urdf")
+
+
+def _measure_into(
+    out: Path,
+    link: CellLink,
+    plan: Plan,
+    urdf: str,
+    meta: dict[str, str],
+    cfg: LoopConfig,
+    opts: SessionOptions,
+    quiet: bool,
+) -> dict[str, Any]:
+    """Touch up every pose of ``plan`` into the recording ``out`` (resumed if it holds some).
+
+    The designated blob comes from ``meta`` (the image size from one capture when it
+    does not say); a fault leaves the recording so far, resumable (CellFault).
+    """
+    from pipeline.measure.detector import vtcal_detector
+    from pipeline.measure.protocols import MeasureFault
+    from pipeline.measure.record import open_recording
+    from pipeline.measure.session import goal_from_metadata, run_session
+
+    size = None
+    if "designated_u" not in meta or "designated_v" not in meta:
+        img = link.camera.capture().image  # before any move: the image size only
+        size = (int(img.shape[1]), int(img.shape[0]))
+    goal = goal_from_metadata(meta, size)
+    meta.setdefault("designated_u", f"{goal.u0:g}")
+    meta.setdefault("designated_v", f"{goal.v0:g}")
+    detect = vtcal_detector(goal.polarity, size_px=goal.s0)
+    link.drain_joints()  # samples from before the recording starts
+    t0 = link.robot.read_joints().stamp_ns
+    rec = open_recording(out, urdf, meta, plan.sha256, len(plan), t0)
+    if rec.progress.sessions > 1:
+        behind = rec.progress.safe_log_ns - link.robot.read_joints().stamp_ns
+        if behind >= 0:  # a cell whose clock restarted (a simulated one): let it pass
+            link.robot.wait(behind / 1e9 + 1.0)
+        if not quiet:
+            click.echo(f"vtcal measure: resuming {out} at touch-up {rec.progress.done + 1}")
+    try:
+        with _progress(not quiet, len(plan)) as show:
+            run_session(link, plan, rec, goal, cfg, detect, opts, show)
+    except MeasureFault as exc:
+        rec.abandon()
+        raise CellFault(
+            f"{out}: {exc.kind}: {exc}; the recording so far is kept "
+            f"({rec.progress.done} of {len(plan)} touch-ups), run the same command to resume"
+        ) from None
+    except BaseException:
+        rec.abandon()
+        raise
+    done = summarize(rec.progress.touchups, len(plan), rec.progress.sessions, out)
+    rec.finish(as_metadata(done))
+    return done
 
 
 @click.command(
