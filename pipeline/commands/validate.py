@@ -13,12 +13,15 @@ import tempfile
 from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import click
 
 from pipeline.commands._common import distance_option, progress_bars
 from pipeline.errors import BadInput
+
+if TYPE_CHECKING:
+    from pipeline.kinematics.se3 import F64
 
 TABLE_SUFFIXES = (".csv", ".parquet", ".pq")
 
@@ -150,7 +153,7 @@ def command(
     from pipeline.commands.identify import infer_links, read_table
     from pipeline.kinematics import parse_urdf
     from pipeline.known_distances import parse_distances
-    from pipeline.validate import match_distances, pin_of, refusal, usable_touchups, validate
+    from pipeline.validate import pin_of, refusal, usable_touchups, validate
     from pipeline.verdict import tolerance_from_metadata
 
     cal_text = _read_text(calibrated, "calibrated URDF")
@@ -160,16 +163,7 @@ def command(
         raise BadInput(f"{calibrated}: {exc}") from exc
     _refuse_its_own_training_data(calibrated, cal_text, input_path)
     given = [d for item in distance for d in parse_distances(item)]
-    suffix = input_path.suffix.lower()
-    if suffix not in (".mcap", *TABLE_SUFFIXES):
-        raise BadInput(
-            f"{input_path}: input must be a recording (.mcap) or a touch-up table (.csv, "
-            f".parquet), not {suffix or 'a file without a suffix'!r}"
-        )
-    if suffix != ".mcap" and urdf_path is None:
-        raise BadInput(
-            f"{input_path}: a touch-up table needs --urdf NOMINAL.urdf for the nominal robot"
-        )
+    suffix = _input_suffix(input_path, urdf_path)
     pin = pin_of(cal_robot)
     flange = flange_link or (pin[0] if pin else None)
     with _run_folder(out) as folder:
@@ -193,27 +187,9 @@ def command(
                 f"{nominal_src}: joints {nom_chain.joint_names} from {base} to {flange} differ "
                 f"from the calibrated URDF's {cal_chain.joint_names}: not the same robot"
             )
-        cal_pin = pin[1] if pin and pin[0] == flange else None
-        if pin is None:
-            click.echo(
-                f"{calibrated.name} has no virtual_pin_joint: its pin is refitted on these "
-                "touch-ups (the headline then holds no pin error)"
-            )
-        elif cal_pin is None:
-            click.echo(
-                f"the virtual pin of {calibrated.name} is on {pin[0]!r}, not {flange!r}: "
-                "its pin is refitted on these touch-ups"
-            )
+        cal_pin = _calibrated_pin(calibrated, pin, flange)
         data = usable_touchups(inp.table, cal_chain.joint_names, inp.source)
-        if given:
-            kept, dropped = match_distances(given, data.labels, inp.source)
-            if dropped:
-                raise BadInput(f"--distance: {dropped[0]}")
-        else:
-            meta = parse_distances(inp.metadata.get("known_distances", ""))
-            kept, dropped = match_distances(meta, data.labels, inp.source)
-            for line in dropped:
-                click.echo(f"note: {line}")
+        kept, dropped = _known_distances(given, data.labels, inp)
         if tolerance_mm is None:
             tolerance_mm = tolerance_from_metadata(inp.metadata)
         result = validate(cal_chain, cal_pin, nom_chain, data, kept, tolerance_mm)
@@ -231,6 +207,56 @@ def command(
     err = refusal(result)
     if err is not None:
         raise err
+
+
+def _input_suffix(input_path: Path, urdf_path: Path | None) -> str:
+    """``.mcap`` or a table's suffix; BadInput for any other, or for a table without --urdf."""
+    suffix = input_path.suffix.lower()
+    if suffix not in (".mcap", *TABLE_SUFFIXES):
+        raise BadInput(
+            f"{input_path}: input must be a recording (.mcap) or a touch-up table (.csv, "
+            f".parquet), not {suffix or 'a file without a suffix'!r}"
+        )
+    if suffix != ".mcap" and urdf_path is None:
+        raise BadInput(
+            f"{input_path}: a touch-up table needs --urdf NOMINAL.urdf for the nominal robot"
+        )
+    return suffix
+
+
+def _calibrated_pin(calibrated: Path, pin: tuple[str, F64] | None, flange: str) -> F64 | None:
+    """The calibrated URDF's pin when it is on ``flange``, else None (refitted: said why)."""
+    cal_pin = pin[1] if pin and pin[0] == flange else None
+    if pin is None:
+        click.echo(
+            f"{calibrated.name} has no virtual_pin_joint: its pin is refitted on these "
+            "touch-ups (the headline then holds no pin error)"
+        )
+    elif cal_pin is None:
+        click.echo(
+            f"the virtual pin of {calibrated.name} is on {pin[0]!r}, not {flange!r}: "
+            "its pin is refitted on these touch-ups"
+        )
+    return cal_pin
+
+
+def _known_distances(
+    given: list[tuple[int | str, int | str, float]], labels: list[str], inp: _Input
+) -> tuple[list[tuple[str, str, float]], list[str]]:
+    """(kept, dropped): the --distance ones (all must match a target), else the recording's."""
+    from pipeline.known_distances import parse_distances
+    from pipeline.validate import match_distances
+
+    if given:
+        kept, dropped = match_distances(given, labels, inp.source)
+        if dropped:
+            raise BadInput(f"--distance: {dropped[0]}")
+    else:
+        meta = parse_distances(inp.metadata.get("known_distances", ""))
+        kept, dropped = match_distances(meta, labels, inp.source)
+        for line in dropped:
+            click.echo(f"note: {line}")
+    return kept, dropped
 
 
 def _refuse_its_own_training_data(calibrated: Path, cal_text: str, input_path: Path) -> None:
