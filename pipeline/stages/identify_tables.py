@@ -193,7 +193,6 @@ def fit_summary(f: FitFigures, u: Uncertainty) -> dict[str, Any]:
     model, data, kept, name, sol, dof, obs = f.model, f.data, f.kept, f.name, f.sol, u.dof, u.obs
     P, K, N, M = model.n_params, data.K, len(data.q), len(data.rows)
     rms = weighted_rms(f.norms_used, data.sw)
-    scale_held = not data.dist
     held = np.array(sorted(f.reasons), dtype=np.int64)
     held_list = [
         {"name": model.param_names[int(j)], "reason": f.reasons.get(int(j), "")} for j in held
@@ -210,36 +209,12 @@ def fit_summary(f: FitFigures, u: Uncertainty) -> dict[str, Any]:
         "n_structural": int(f.n_structural),
         "unidentifiable": [h["name"] for h in held_list],
         "held": held_list,
-        "scale_held": scale_held,
-        "scale_note": (
-            "no known distance: the length scale was not identifiable and was held at the "
-            "nominal model's; only shape accuracy applies"
-            if scale_held
-            else f"length scale identified from {len(data.dist)} known distance(s)"
-        ),
-        "base_note": "the base frame against the targets is held at nominal (never identifiable)",
-        "unidentifiable_directions": [
-            "base frame against the targets (6 directions): held at nominal",
-            "virtual pin against the last joint's own motion: absorbed by the pin",
-        ]
-        + (
-            ["length scale (no known distance): held at the nominal model's by a gauge constraint"]
-            if scale_held
-            else []
-        ),
+        **_scale_fields(len(data.dist)),
         "noise_model": f.noise_note,
         "flange_sigma_mm": (
             [float(v) * 1e3 for v in f.sigma_flange] if f.sigma_flange is not None else None
         ),
-        "distances": [
-            {
-                "a": data.target_labels[a],
-                "b": data.target_labels[b],
-                "metres": dm,
-                "fitted_metres": float(np.linalg.norm(f.tg[a] - f.tg[b])),
-            }
-            for a, b, dm in data.dist
-        ],
+        "distances": _distance_rows(f),
         "distances_dropped": data.dropped_distances,
         "cost": float(sol.cost),
         "rms_mm": rms * 1e3,
@@ -247,29 +222,9 @@ def fit_summary(f: FitFigures, u: Uncertainty) -> dict[str, Any]:
         "sigma_mm": math.sqrt(u.sigma2) * 1e3 if dof > 0 else float("nan"),
         "dof": int(dof),
         **{k: float(v) for k, v in obs.items()},
-        **{
-            f"predicted_{kind}_{stat}_mm": (float(fn(e) * 1e3) if dof > 0 else float("nan"))
-            for kind, e in u.pred.items()
-            for stat, fn in (("rms", lambda a: np.sqrt(np.mean(a**2))), ("max", np.max))
-        },
-        "predicted_note": (
-            "covariance-predicted pin position error over poses spread through the touched "
-            "volume, after the same registration as the accuracy figures (shape: similarity, "
-            "absolute: rigid; raw: none); random error only (systematic input errors are "
-            "invisible to it)"
-        ),
+        **_predicted_fields(u),
         "p_flange_pin": [float(v) for v in f.pin],
-        "solver": {
-            "method": f.method,
-            "loss": f.loss,
-            "status": int(sol.status),
-            "message": str(sol.message),
-            "success": bool(sol.success),
-            "nfev": int(sol.nfev),
-            "njev": int(sol.njev or 0),
-            "initial_rms_mm": f.initial_rms * 1e3,
-            "characteristic_length_m": f.Lc,
-        },
+        "solver": _solver_fields(f),
     }
     summary["conditioning_note"], weak = conditioning_note(
         f.not_excited, int(f.n_structural), float(obs["cond"])
@@ -290,3 +245,74 @@ def fit_summary(f: FitFigures, u: Uncertainty) -> dict[str, Any]:
         )
         summary["headline"].insert(1, summary["urdf_note"])
     return summary
+
+
+def _scale_fields(n_distances: int) -> dict[str, Any]:
+    """identify.json's length-scale and gauge fields: held without a known distance."""
+    scale_held = not n_distances
+    return {
+        "scale_held": scale_held,
+        "scale_note": (
+            "no known distance: the length scale was not identifiable and was held at the "
+            "nominal model's; only shape accuracy applies"
+            if scale_held
+            else f"length scale identified from {n_distances} known distance(s)"
+        ),
+        "base_note": "the base frame against the targets is held at nominal (never identifiable)",
+        "unidentifiable_directions": [
+            "base frame against the targets (6 directions): held at nominal",
+            "virtual pin against the last joint's own motion: absorbed by the pin",
+        ]
+        + (
+            ["length scale (no known distance): held at the nominal model's by a gauge constraint"]
+            if scale_held
+            else []
+        ),
+    }
+
+
+def _distance_rows(f: FitFigures) -> list[dict[str, Any]]:
+    """Each known distance, given and fitted (between the fitted target positions)."""
+    data = f.data
+    return [
+        {
+            "a": data.target_labels[a],
+            "b": data.target_labels[b],
+            "metres": dm,
+            "fitted_metres": float(np.linalg.norm(f.tg[a] - f.tg[b])),
+        }
+        for a, b, dm in data.dist
+    ]
+
+
+def _predicted_fields(u: Uncertainty) -> dict[str, Any]:
+    """RMS and max (mm) of each kind of :attr:`Uncertainty.pred`, NaN without redundancy."""
+    return {
+        **{
+            f"predicted_{kind}_{stat}_mm": (float(fn(e) * 1e3) if u.dof > 0 else float("nan"))
+            for kind, e in u.pred.items()
+            for stat, fn in (("rms", lambda a: np.sqrt(np.mean(a**2))), ("max", np.max))
+        },
+        "predicted_note": (
+            "covariance-predicted pin position error over poses spread through the touched "
+            "volume, after the same registration as the accuracy figures (shape: similarity, "
+            "absolute: rigid; raw: none); random error only (systematic input errors are "
+            "invisible to it)"
+        ),
+    }
+
+
+def _solver_fields(f: FitFigures) -> dict[str, Any]:
+    """How the least-squares solve went (identify.json ``solver``)."""
+    sol = f.sol
+    return {
+        "method": f.method,
+        "loss": f.loss,
+        "status": int(sol.status),
+        "message": str(sol.message),
+        "success": bool(sol.success),
+        "nfev": int(sol.nfev),
+        "njev": int(sol.njev or 0),
+        "initial_rms_mm": f.initial_rms * 1e3,
+        "characteristic_length_m": f.Lc,
+    }
