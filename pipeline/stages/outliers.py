@@ -501,26 +501,7 @@ def _statistical(out: pd.DataFrame, info: Any, config: OutlierConfig) -> pd.Data
             break
         f = got
         model_used = f.model
-        w = out["weight"].to_numpy(dtype=float)[f.rows]
-        cands: list[tuple[float, int, str, Any, float, F64]] = []
-        pos_of = {int(r): k for k, r in enumerate(f.rows)}
-        # single touch-ups
-        for k, r in enumerate(f.rows):
-            p, sig, rk, delta = _group_test(f, np.array([k]), w[[k]])
-            if rk and np.linalg.norm(delta) >= config.min_shift_m:
-                cands.append((p, 1, "single", int(r), sig, delta))
-        # knocks: change point in time per target
-        if config.split_targets:
-            tids = out["target_id"].to_numpy(dtype=np.int64)
-            for t in sorted(set(tids[f.rows].tolist())):
-                rows_t = [int(r) for r in f.rows if tids[r] == t]
-                rows_t.sort(key=lambda r: (stamps[r], r))
-                for c in range(config.min_before, len(rows_t)):
-                    after = rows_t[c:]
-                    pos = np.array([pos_of[r] for r in after])
-                    p, sig, rk, delta = _group_test(f, pos, w[pos])
-                    if rk and np.linalg.norm(delta) >= config.min_shift_m:
-                        cands.append((p, 0, "split", (t, rows_t[c - 1], after), sig, delta))
+        cands = _candidates(f, out, stamps, config)
         if not cands:
             break
         n_tests = len(cands)
@@ -582,6 +563,33 @@ def _statistical(out: pd.DataFrame, info: Any, config: OutlierConfig) -> pd.Data
             out.loc[int(r), "studentized"] = sig if rk else np.nan
     out["note"] = ["; ".join(n) for n in notes]
     return out
+
+
+def _candidates(
+    f: _Fit, out: pd.DataFrame, stamps: np.ndarray, config: OutlierConfig
+) -> list[tuple[float, int, str, Any, float, F64]]:
+    """Mean-shift groups worth acting on: (p, kind order, kind, rows, sigma, shift)."""
+    w = out["weight"].to_numpy(dtype=float)[f.rows]
+    cands: list[tuple[float, int, str, Any, float, F64]] = []
+    pos_of = {int(r): k for k, r in enumerate(f.rows)}
+    # single touch-ups
+    for k, r in enumerate(f.rows):
+        p, sig, rk, delta = _group_test(f, np.array([k]), w[[k]])
+        if rk and np.linalg.norm(delta) >= config.min_shift_m:
+            cands.append((p, 1, "single", int(r), sig, delta))
+    # knocks: change point in time per target
+    if config.split_targets:
+        tids = out["target_id"].to_numpy(dtype=np.int64)
+        for t in sorted(set(tids[f.rows].tolist())):
+            rows_t = [int(r) for r in f.rows if tids[r] == t]
+            rows_t.sort(key=lambda r: (stamps[r], r))
+            for c in range(config.min_before, len(rows_t)):
+                after = rows_t[c:]
+                pos = np.array([pos_of[r] for r in after])
+                p, sig, rk, delta = _group_test(f, pos, w[pos])
+                if rk and np.linalg.norm(delta) >= config.min_shift_m:
+                    cands.append((p, 0, "split", (t, rows_t[c - 1], after), sig, delta))
+    return cands
 
 
 def _fixed(config: OutlierConfig, model: str) -> OutlierConfig:
