@@ -17,18 +17,13 @@ import numpy as np
 from pipeline.kinematics.chain import fk
 from pipeline.kinematics.se3 import F64, invert_transform, matrix_from_axis_angle, translation
 from pipeline.sim.cell import Target, build_cell
+from pipeline.sim.image_finish import Occluder, finish_image, paint_occluders
 from pipeline.sim.optics_state import OpticsState
 from pipeline.sim.recorder import Recorder, stamp
-from pipeline.sim.render import (
-    ExtraDisc,
-    Occluder,
-    finish_image,
-    paint_occluders,
-    projected_ellipse,
-    render_ideal,
-)
+from pipeline.sim.render import ExtraDisc, render_ideal
 from pipeline.sim.robot import solve_ik
 from pipeline.sim.scenario import Scenario
+from pipeline.sim.target_geometry import projected_ellipse
 
 NS = 1_000_000_000
 JOINT_LATENCY_NS = 2_000_000
