@@ -11,7 +11,7 @@ next to the Cramer-Rao bound for that noise and blur, and the ratio of
 vtcal's RMS to the bound. Images come from the simulator's renderer
 (:func:`pipeline.sim.render.render_target_image`: area coverage, Gaussian blur,
 vignetting, grey noise, uint8) at its defaults (noise sigma 2, blur 0.7 px);
-truth is :func:`pipeline.sim.render.projected_ellipse`.
+truth is :func:`pipeline.sim.target_geometry.projected_ellipse`.
 
 Cramer-Rao bound: the image model ``g(x) = g_out + (g_in - g_out) Phi(-d(x) / w)``
 with ``d`` the signed distance of pixel ``x`` to the ellipse
@@ -35,7 +35,8 @@ from scipy.special import ndtr
 
 from pipeline.kinematics.se3 import matrix_from_rpy
 from pipeline.sim.camera import CameraModel
-from pipeline.sim.render import projected_ellipse, render_target_image
+from pipeline.sim.render import render_target_image
+from pipeline.sim.target_geometry import projected_ellipse
 from pipeline.stages.detect import DetectConfig, detect_target, ellipse_foot, ellipse_normals
 
 CAM = CameraModel(fx=912.0, fy=912.0, cx=317.6, cy=254.2, k1=-0.068, k2=0.0067)

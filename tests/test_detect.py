@@ -7,7 +7,8 @@ import pytest
 
 from pipeline.kinematics.se3 import matrix_from_rpy
 from pipeline.sim.camera import CameraModel
-from pipeline.sim.render import projected_ellipse, render_target_image
+from pipeline.sim.render import render_target_image
+from pipeline.sim.target_geometry import projected_ellipse
 from pipeline.stages.detect import (
     DetectConfig,
     conic_to_params,

@@ -8,7 +8,8 @@ import pytest
 from test_detect import pose
 
 from pipeline.sim.camera import CameraModel
-from pipeline.sim.render import projected_ellipse, render_ideal
+from pipeline.sim.render import render_ideal
+from pipeline.sim.target_geometry import projected_ellipse
 from pipeline.stages.detect import DetectConfig, detect_target
 from pipeline.stages.response import Response, parse_response
 from pipeline.stages.response_estimate import estimate_response

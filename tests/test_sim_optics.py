@@ -22,9 +22,9 @@ from mcap_ros2.decoder import DecoderFactory
 
 from pipeline.errors import BadInput
 from pipeline.sim.optics import Response, Sensor, form_image, srgb_encode
-from pipeline.sim.render import PrintShape, projected_ellipse
 from pipeline.sim.scenario import OpticsCfg, scenario_from_dict
 from pipeline.sim.simulator import write_recording
+from pipeline.sim.target_geometry import PrintShape, projected_ellipse
 
 ROOT = Path(__file__).resolve().parents[1]
 CHECKER = Path("/work/shared/tools/check_recording.py")

@@ -7,12 +7,8 @@ import pytest
 
 from pipeline.kinematics.se3 import transform_from_xyz_rpy
 from pipeline.sim.camera import CameraModel
-from pipeline.sim.render import (
-    fit_ellipse,
-    projected_ellipse,
-    render_ideal,
-    render_target_image,
-)
+from pipeline.sim.render import render_ideal, render_target_image
+from pipeline.sim.target_geometry import fit_ellipse, projected_ellipse
 
 CAM0 = CameraModel(900.0, 900.0, 318.3, 254.1, 0.0, 0.0, 640, 512)
 CAMD = CameraModel(900.0, 905.0, 321.2, 250.7, -0.07, 0.007, 640, 512)

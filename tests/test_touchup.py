@@ -8,7 +8,7 @@ import pytest
 from pipeline.artefacts import read_artefact, write_artefact
 from pipeline.kinematics.se3 import matrix_from_rpy
 from pipeline.sim.camera import CameraModel
-from pipeline.sim.render import projected_ellipse
+from pipeline.sim.target_geometry import projected_ellipse
 from pipeline.stages.detect import DetectConfig
 from pipeline.stages.ingest import IngestConfig, ingest_recording
 from pipeline.stages.touchup import (

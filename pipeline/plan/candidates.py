@@ -192,7 +192,6 @@ def generate_candidates(
     L = working_radius(targets.centres)
     reach = chain_reach(chain)
     names = chain.joint_names
-    n = chain.n_dof
 
     tk = np.repeat(np.arange(K), m)
     i = np.tile(np.arange(m), K)
@@ -213,33 +212,9 @@ def generate_candidates(
     far = np.linalg.norm(T_goal[:, :3, 3], axis=1) > reach
     reason[far] = REASONS[0]
 
-    seeds = ik_seeds(chain, config.n_seeds, rng)
-    S = len(seeds)
-    q = np.full((C, n), np.nan)
-    solved = np.zeros(C, dtype=bool)
-    for j in range(S):
-        todo = np.flatnonzero(~solved & ~far)
-        if todo.size == 0:
-            break
-        qs, ok = solve_ik_batch(chain, T_goal[todo], seeds[(todo + j) % S])
-        q[todo[ok]] = qs[ok]
-        solved[todo[ok]] = True
+    q, solved = _solve_views(chain, T_goal, far, ik_seeds(chain, config.n_seeds, rng))
     reason[~solved & ~far] = REASONS[1]
-
-    dex = np.full(C, np.nan)
-    if solved.any():
-        qs = q[solved]
-        margin = np.minimum(qs - chain.lower, chain.upper - qs).min(axis=1)
-        d = dexterity(chain, qs, L)
-        dex[solved] = d
-        idx = np.flatnonzero(solved)
-        reason[idx[margin < config.limit_margin_rad]] = REASONS[2]
-        sing = (d < config.min_dexterity) & (margin >= config.limit_margin_rad)
-        reason[idx[sing]] = REASONS[3]
-        # sanity: the pin lands on the target (nominal robot)
-        T = fk(chain, qs)
-        miss = np.linalg.norm(T[:, :3, :3] @ pin + T[:, :3, 3] - targets.centres[tk[idx]], axis=1)
-        reason[idx[miss > 1e-6]] = REASONS[1]
+    dex = _screen(chain, q, solved, targets.centres[tk], L, config, reason)
     accepted = reason == ""
 
     table = pd.DataFrame(
@@ -274,3 +249,49 @@ def generate_candidates(
         counts=counts,
         joint_names=names,
     )
+
+
+def _solve_views(chain: Chain, T_goal: F64, far: np.ndarray, seeds: F64) -> tuple[F64, np.ndarray]:
+    """Nominal IK of every flange pose ``T_goal`` (C, 4, 4) not ``far``: candidate ``i`` tries
+    the seeds from ``i mod S`` on; returns joints ``(C, n)`` (NaN unsolved) and solved."""
+    C, S = len(T_goal), len(seeds)
+    q = np.full((C, chain.n_dof), np.nan)
+    solved = np.zeros(C, dtype=bool)
+    for j in range(S):
+        todo = np.flatnonzero(~solved & ~far)
+        if todo.size == 0:
+            break
+        qs, ok = solve_ik_batch(chain, T_goal[todo], seeds[(todo + j) % S])
+        q[todo[ok]] = qs[ok]
+        solved[todo[ok]] = True
+    return q, solved
+
+
+def _screen(
+    chain: Chain,
+    q: F64,
+    solved: np.ndarray,
+    centres: F64,
+    L: float,
+    config: CandidateConfig,
+    reason: np.ndarray,
+) -> F64:
+    """Reject solved candidates near a joint limit or a singularity, or whose pin misses its
+    target centre (``centres`` (C, 3)) on the nominal robot: their ``reason`` is set in place.
+    Returns the dexterity of every candidate (NaN unsolved)."""
+    dex = np.full(len(q), np.nan)
+    if solved.any():
+        qs = q[solved]
+        pin = np.asarray(config.p_flange_pin, dtype=float)
+        margin = np.minimum(qs - chain.lower, chain.upper - qs).min(axis=1)
+        d = dexterity(chain, qs, L)
+        dex[solved] = d
+        idx = np.flatnonzero(solved)
+        reason[idx[margin < config.limit_margin_rad]] = REASONS[2]
+        sing = (d < config.min_dexterity) & (margin >= config.limit_margin_rad)
+        reason[idx[sing]] = REASONS[3]
+        # sanity: the pin lands on the target (nominal robot)
+        T = fk(chain, qs)
+        miss = np.linalg.norm(T[:, :3, :3] @ pin + T[:, :3, 3] - centres[idx], axis=1)
+        reason[idx[miss > 1e-6]] = REASONS[1]
+    return dex

@@ -182,7 +182,53 @@ def plan_poses(
     except (KeyError, ValueError) as exc:
         raise BadInput(f"URDF chain {base_link} -> {flange_link}: {exc}") from None
     pin = np.asarray(config.p_flange_pin, dtype=float)
-    ccfg = CandidateConfig(
+    t0 = time.perf_counter()
+    cs = generate_candidates(chain, targets, _candidate_config(config, pin))
+    t_cand = time.perf_counter() - t0
+    _refuse_unusable(cs, targets, config, where)
+    K = len(targets)
+    L = working_radius(targets.centres)
+    t0 = time.perf_counter()
+    try:
+        design = build_design(chain, config.model, cs.q, cs.target_index, K, pin, L)
+    except KeyError as exc:
+        raise BadInput(f"--model {config.model!r}: {exc.args[0]}") from None
+    t_design = time.perf_counter() - t0
+
+    sel = select_poses(design, config.n_poses, config.criterion, seed=config.seed)
+    chosen = _ensure_per_target(design, sel.chosen, config, K)
+    rating = _rate(chain, cs, design, chosen, pin, config)
+    order, travel = _visiting_order(chain, cs, chosen, config)
+    table = _plan_table(cs.accepted.iloc[chosen[order]].reset_index(drop=True), chain)
+
+    seconds = {"candidates": t_cand, "design": t_design, "selection": sel.seconds}
+    seconds["total"] = time.perf_counter() - t_all
+    summary = _summary(
+        f"{base_link} -> {flange_link}",
+        chain,
+        targets,
+        config,
+        table,
+        cs,
+        design,
+        sel,
+        rating,
+        travel,
+        seconds,
+    )
+    return PlanResult(
+        table=table,
+        summary=summary,
+        candidates=cs,
+        design=design,
+        selection=sel,
+        eval_q=rating["q_eval"],
+    )
+
+
+def _candidate_config(config: PlanConfig, pin: F64) -> CandidateConfig:
+    """The candidate generator's settings from the planner's (angles in radians)."""
+    return CandidateConfig(
         n_candidates=config.n_candidates,
         cone_rad=float(np.deg2rad(config.cone_deg)),
         roll_rad=float(np.deg2rad(config.roll_deg)),
@@ -192,9 +238,13 @@ def plan_poses(
         min_dexterity=config.min_dexterity,
         seed=config.seed,
     )
-    t0 = time.perf_counter()
-    cs = generate_candidates(chain, targets, ccfg)
-    t_cand = time.perf_counter() - t0
+
+
+def _refuse_unusable(
+    cs: CandidateSet, targets: PlanTargets, config: PlanConfig, where: str
+) -> None:
+    """Refuse (:class:`BadInput`) when no candidate is usable, a target has none, or fewer
+    are usable than poses asked for."""
     n_ok = len(cs.q)
     if n_ok == 0:
         why = ", ".join(f"{r} {int((cs.table['reason'] == r).sum())}" for r in REASONS)
@@ -207,29 +257,38 @@ def plan_poses(
             f"--poses {config.n_poses}: only {n_ok} usable candidates; raise --candidates "
             "or lower --poses"
         )
-    K = len(targets)
-    L = working_radius(targets.centres)
-    t0 = time.perf_counter()
-    try:
-        design = build_design(chain, config.model, cs.q, cs.target_index, K, pin, L)
-    except KeyError as exc:
-        raise BadInput(f"--model {config.model!r}: {exc.args[0]}") from None
-    t_design = time.perf_counter() - t0
 
-    sel = select_poses(design, config.n_poses, config.criterion, seed=config.seed)
-    chosen = _ensure_per_target(design, sel.chosen, config, K)
 
-    rng = np.random.default_rng(config.seed + 7919)
-    random_set = rng.choice(len(design), config.n_poses, replace=False)
-    rng_eval = np.random.default_rng(config.seed + 104729)
-    q_eval = workspace_poses(cs.q, config.n_eval, rng_eval)
-    sigma = noise_sigma(chain, cs.q, pin, config)
+def _rate(
+    chain: Chain, cs: CandidateSet, design: Design, chosen: np.ndarray, pin: F64, c: PlanConfig
+) -> dict[str, Any]:
+    """The chosen poses and as many drawn at random from the same candidates ("before"):
+    observability indices and predicted error of each (module docstring), with the
+    evaluation poses ``q_eval`` and the pin noise ``sigma`` (m) the prediction used."""
+    rng = np.random.default_rng(c.seed + 7919)
+    random_set = rng.choice(len(design), c.n_poses, replace=False)
+    rng_eval = np.random.default_rng(c.seed + 104729)
+    q_eval = workspace_poses(cs.q, c.n_eval, rng_eval)
+    sigma = noise_sigma(chain, cs.q, pin, c)
     before = design.indices(random_set)
     after = design.indices(chosen)
     pred_before = design.predicted_error(random_set, sigma, q_eval)
     pred_after = design.predicted_error(chosen, sigma, q_eval)
+    return {
+        "q_eval": q_eval,
+        "sigma": sigma,
+        "before": before,
+        "after": after,
+        "pred_before": pred_before,
+        "pred_after": pred_after,
+    }
 
-    # visiting order
+
+def _visiting_order(
+    chain: Chain, cs: CandidateSet, chosen: np.ndarray, config: PlanConfig
+) -> tuple[np.ndarray, dict[str, float]]:
+    """The visiting order of the chosen poses (positions into ``chosen``), and the joint
+    travel (rad) grouped by target against ordered."""
     tk = cs.target_index[chosen]
     q_sel = cs.q[chosen]
     q_start = 0.5 * (np.maximum(chain.lower, -np.pi) + np.minimum(chain.upper, np.pi))
@@ -237,9 +296,11 @@ def plan_poses(
     D0 = travel_costs(q_sel, tk, 0.0)
     travel_before = path_length(D0, np.argsort(tk, kind="stable"))
     travel_after = path_length(D0, order)
+    return order, {"grouped_by_target": travel_before, "ordered": travel_after}
 
-    acc = cs.accepted
-    rows = acc.iloc[chosen[order]].reset_index(drop=True)
+
+def _plan_table(rows: pd.DataFrame, chain: Chain) -> pd.DataFrame:
+    """The plan (``schemas/plan.json``) of the accepted candidates ``rows``, in their order."""
     table = pd.DataFrame(
         {
             "target_id": rows["target_id"].to_numpy(dtype=np.int64),
@@ -255,13 +316,30 @@ def plan_poses(
     )
     for name in chain.joint_names:
         table[name] = rows[name].to_numpy(dtype=float)
+    return table
 
+
+def _summary(
+    robot_chain: str,
+    chain: Chain,
+    targets: PlanTargets,
+    config: PlanConfig,
+    table: pd.DataFrame,
+    cs: CandidateSet,
+    design: Design,
+    sel: Selection,
+    rating: dict[str, Any],
+    travel: dict[str, float],
+    seconds: dict[str, float],
+) -> dict[str, Any]:
+    """The plan's JSON-able summary (:attr:`PlanResult.summary`)."""
+    pin = np.asarray(config.p_flange_pin, dtype=float)
     per_target = {str(int(t)): int(np.sum(table["target_id"] == t)) for t in targets.ids.tolist()}
-    summary: dict[str, Any] = {
-        "robot_chain": f"{base_link} -> {flange_link}",
+    return {
+        "robot_chain": robot_chain,
         "joint_names": chain.joint_names,
         "n_poses": int(len(table)),
-        "n_targets": int(K),
+        "n_targets": int(len(targets)),
         "poses_per_target": per_target,
         "criterion": config.criterion,
         "model": config.model,
@@ -271,17 +349,17 @@ def plan_poses(
         "pin_note": "approximate virtual pin (stand-off along the camera axis, flange z)",
         "candidates": {
             "total": int(len(cs.table)),
-            "usable": int(n_ok),
+            "usable": int(len(cs.q)),
             "rejected": {r: int((cs.table["reason"] == r).sum()) for r in REASONS},
             "per_target": {str(k): v for k, v in cs.counts.items()},
         },
-        "indices_before": before,
-        "indices_after": after,
+        "indices_before": rating["before"],
+        "indices_after": rating["after"],
         "before_note": "the same number of poses drawn at random from the same candidates",
-        "sigma_pin_mm": sigma * 1e3,
-        "predicted_before": {k: v * 1e3 for k, v in _mm(pred_before).items()},
-        "predicted_after": {k: v * 1e3 for k, v in _mm(pred_after).items()},
-        "predicted_shape_rms_mm": pred_after["shape_rms_m"] * 1e3,
+        "sigma_pin_mm": rating["sigma"] * 1e3,
+        "predicted_before": {k: v * 1e3 for k, v in _mm(rating["pred_before"]).items()},
+        "predicted_after": {k: v * 1e3 for k, v in _mm(rating["pred_after"]).items()},
+        "predicted_shape_rms_mm": rating["pred_after"]["shape_rms_m"] * 1e3,
         "predicted_note": (
             "covariance-predicted pin error after calibration, over poses spread through the "
             "candidates' joint-space box, after the best similarity (shape) or rigid (absolute) "
@@ -293,23 +371,10 @@ def plan_poses(
             "exchanges": sel.exchanges,
             "seconds": sel.seconds,
         },
-        "travel_rad": {"grouped_by_target": travel_before, "ordered": travel_after},
-        "seconds": {
-            "candidates": t_cand,
-            "design": t_design,
-            "selection": sel.seconds,
-            "total": time.perf_counter() - t_all,
-        },
+        "travel_rad": travel,
+        "seconds": seconds,
         "config": asdict(config),
     }
-    return PlanResult(
-        table=table,
-        summary=summary,
-        candidates=cs,
-        design=design,
-        selection=sel,
-        eval_q=q_eval,
-    )
 
 
 def _mm(d: dict[str, float]) -> dict[str, float]:

@@ -1,7 +1,9 @@
 """The recording simulator (``vtcal simulate``): a simulated touch-up cell with ground truth.
 
 Modules: :mod:`~pipeline.sim.camera` (pinhole + radial distortion),
-:mod:`~pipeline.sim.render` (area-coverage target rendering, exact projected
+:mod:`~pipeline.sim.render` (area-coverage target rendering),
+:mod:`~pipeline.sim.image_finish` (the simple camera's optics and sensor),
+:mod:`~pipeline.sim.target_geometry` (printed target shape, exact projected
 ellipse), :mod:`~pipeline.sim.detect` (the simulated controller's detection),
 :mod:`~pipeline.sim.robot` (deviations, true URDFs, nominal IK),
 :mod:`~pipeline.sim.scenario` (TOML scenarios), :mod:`~pipeline.sim.recorder`

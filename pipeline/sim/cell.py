@@ -20,9 +20,9 @@ from pipeline.kinematics.se3 import F64, matrix_from_axis_angle, matrix_from_rpy
 from pipeline.kinematics.urdf import parse_urdf
 from pipeline.robots import load_urdf
 from pipeline.sim.camera import CameraModel
-from pipeline.sim.render import projected_ellipse
 from pipeline.sim.robot import deviated_origins, draw_deviations, urdf_with_origins, urdf_with_pin
 from pipeline.sim.scenario import Scenario
+from pipeline.sim.target_geometry import projected_ellipse
 
 #: Per built-in robot: home joint vector and the centre of the target area (base frame).
 ROBOT_CELL: dict[str, dict[str, Any]] = {
@@ -111,7 +111,7 @@ def virtual_pin_camera(
         E(p) = (u(p) - u0, v(p) - v0, s(p) - s0) = 0,
 
     with ``(u, v, s)`` the centre and long axis of
-    :func:`pipeline.sim.render.projected_ellipse` (the circle's points through
+    :func:`pipeline.sim.target_geometry.projected_ellipse` (the circle's points through
     the full camera model). Without distortion this is ``Z = fx D / s0`` on the
     ray of ``(u0, v0)``. With radial distortion the disc's rim lies at
     normalised radius ``r = D / (2 Z)`` about its centre, and barrel distortion

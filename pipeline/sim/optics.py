@@ -23,7 +23,7 @@ sensor signal ``E`` as a fraction of the full well (0..1), electrons ``e-``,
 output values in grey levels (DN, 0..255).
 
 With every knob at its default nothing here is used and the simulator forms
-images exactly as before (:func:`pipeline.sim.render.finish_image`).
+images exactly as before (:func:`pipeline.sim.image_finish.finish_image`).
 All randomness comes from the caller's generators, which the simulator seeds
 from streams of their own (``SeedSequence(seed, spawn_key=(2000, ...))``).
 """
@@ -526,7 +526,7 @@ def draw_print(
     scale_error: float = 0.0,
     diameter_sigma_um: float = 0.0,
 ) -> dict[str, Any]:
-    """One printed target's shape (parameters of :class:`pipeline.sim.render.PrintShape`).
+    """One printed target's shape (parameters of :class:`pipeline.sim.target_geometry.PrintShape`).
 
     Draws, always in this order and number (so a knob changes no other draw):
     orientation ``phi`` U(0, pi), a diameter deviate ``z`` N(0, 1), the

@@ -38,8 +38,8 @@ from pipeline.sim.optics import (
     form_image,
     prnu_map,
 )
-from pipeline.sim.render import PrintShape
 from pipeline.sim.scenario import Scenario
+from pipeline.sim.target_geometry import PrintShape
 
 
 class OpticsState:

@@ -1,4 +1,4 @@
-"""Accurate rendering of a circular target on a plate, and its exact projected ellipse.
+"""Accurate rendering of a circular target on a plate by area coverage.
 
 The scene seen by one capture is a plane (the plate, target frame ``z = 0``,
 normal ``+z`` towards the camera) carrying nested discs: the plate
@@ -16,33 +16,29 @@ the background grey. Rendering is by area coverage:
    its coverage is the fraction of sub-points inside the disc;
 3. layers are composited back to front, ``g <- g (1 - c) + g_layer c``;
 4. then Gaussian blur (optics; around the target evaluated on a finer grid
-   before pixel integration, see :func:`render_ideal`), vignetting ``1 - v (r / r_corner)^2``,
-   exposure gain, sensor noise ``N(0, sigma^2)`` and quantisation to ``uint8``.
+   before pixel integration, see :func:`render_ideal`) and the sensor
+   (:mod:`pipeline.sim.image_finish`: vignetting, exposure, noise, ``uint8``).
 
 A capture during motion averages step 1-3 over several poses of the exposure
 (``T_camera_target`` of shape ``(K, 4, 4)``).
 
 Real-camera effects (:mod:`pipeline.sim.optics`, scenario ``[optics]``) enter
 here where they act on the scene: a printed target that is not a perfect circle
-(:class:`PrintShape`, boundary radius as a function of the polar angle in the
-plate frame, used by every inside test), the illumination of the plate
-(:class:`~pipeline.sim.optics.PlateLight`, evaluated per point of the plate
-before the blur) and thin-lens defocus (:class:`~pipeline.sim.optics.Defocus`,
-a pillbox whose radius follows the plate depth, after the Gaussian blur).
-Without them (the defaults) the code paths are those of a perfect circle,
-uniformly lit, in focus.
+(:class:`~pipeline.sim.target_geometry.PrintShape`, boundary radius as a function
+of the polar angle in the plate frame, used by every inside test), the
+illumination of the plate (:class:`~pipeline.sim.optics.PlateLight`, evaluated
+per point of the plate before the blur) and thin-lens defocus
+(:class:`~pipeline.sim.optics.Defocus`, a pillbox whose radius follows the plate
+depth, after the Gaussian blur). Without them (the defaults) the code paths are
+those of a perfect circle, uniformly lit, in focus.
 
-The reference geometry is :func:`projected_ellipse`: many points of the 3-D
-circle projected through the same camera model, and the ellipse fitted to them
-(centre, full long and short axes, long-axis angle). This is the contour the
-spec defines (boundary at the grey level halfway between target and plate).
+The reference geometry, the exactly projected ellipse the rendered disc is
+judged against, is :mod:`pipeline.sim.target_geometry`.
 """
 
 from __future__ import annotations
 
 from collections.abc import Sequence
-from dataclasses import dataclass
-from typing import Any
 
 import cv2
 import numpy as np
@@ -50,85 +46,18 @@ from numpy.typing import ArrayLike
 
 from pipeline.kinematics.se3 import F64
 from pipeline.sim.camera import CameraModel
+from pipeline.sim.image_finish import Occluder, finish_image
 from pipeline.sim.optics import Defocus, PlateLight, variable_pillbox
+from pipeline.sim.target_geometry import PrintShape
 
 #: (x_m, y_m, diameter_m, grey) of an extra disc in the target plane.
 ExtraDisc = tuple[float, float, float, float]
-#: (u, v, semi_major_px, semi_minor_px, angle_rad, grey) image-space occluder.
-Occluder = tuple[float, float, float, float, float, float]
-
-
-@dataclass(frozen=True)
-class PrintShape:
-    """Boundary of a printed target disc in the plate frame, ``r(phi)`` about its centre.
-
-    An ellipse of semi-axes ``a = R (1 + e)``, ``b = R (1 - e)`` with its long
-    axis at ``orientation_rad`` from the plate's ``x`` axis, plus edge roughness:
-
-        r(phi) = a b / sqrt((b cos psi)^2 + (a sin psi)^2) + sum_k A_k cos(k phi + p_k),
-        psi = phi - orientation
-
-    (``phi`` the polar angle about the centre, m). ``e = 0`` and no harmonics is
-    the perfect circle of radius ``R``. Drawn per target by
-    :func:`pipeline.sim.optics.draw_print`.
-
-    Attributes
-    ----------
-    radius_m : float
-        ``R`` (half the mean printed diameter), m.
-    ellipticity : float
-        ``e``.
-    orientation_rad : float
-    harmonics : tuple of (k, A_k m, p_k rad)
-    """
-
-    radius_m: float
-    ellipticity: float = 0.0
-    orientation_rad: float = 0.0
-    harmonics: tuple[tuple[int, float, float], ...] = ()
-
-    @classmethod
-    def from_dict(cls, d: dict[str, Any]) -> PrintShape:
-        """From :func:`pipeline.sim.optics.draw_print`'s dictionary."""
-        return cls(
-            radius_m=float(d["radius_m"]),
-            ellipticity=float(d["ellipticity"]),
-            orientation_rad=float(d["orientation_rad"]),
-            harmonics=tuple((int(k), float(a), float(p)) for k, a, p in d["harmonics"]),
-        )
-
-    @property
-    def is_circle(self) -> bool:
-        return self.ellipticity == 0.0 and not self.harmonics
-
-    def radius_at(self, phi: ArrayLike) -> F64:
-        """Boundary radius ``r(phi)`` (m) at polar angles ``phi`` (rad, any shape)."""
-        ph = np.asarray(phi, dtype=float)
-        a = self.radius_m * (1.0 + self.ellipticity)
-        b = self.radius_m * (1.0 - self.ellipticity)
-        psi = ph - self.orientation_rad
-        r = a * b / np.sqrt((b * np.cos(psi)) ** 2 + (a * np.sin(psi)) ** 2)
-        for k, amp, p in self.harmonics:
-            r = r + amp * np.cos(k * ph + p)
-        out: F64 = np.asarray(r, dtype=float)
-        return out
-
-    def max_radius(self) -> float:
-        """An upper bound of ``r(phi)`` (m)."""
-        return self.radius_m * (1.0 + abs(self.ellipticity)) + sum(
-            abs(a) for _, a, _ in self.harmonics
-        )
-
-    def band_factor(self) -> float:
-        """Widening of the edge band for a boundary not normal to the radius (slope bound)."""
-        slope = 2.0 * abs(self.ellipticity) + sum(k * abs(a) for k, a, _ in self.harmonics) / max(
-            self.radius_m, 1e-12
-        )
-        return 1.25 + slope
 
 
 #: A disc layer's boundary: a radius (m, perfect circle) or a printed shape.
 Boundary = float | PrintShape
+#: A disc layer: centre ``(x, y)`` in the plate frame (m), boundary, grey.
+Layer = tuple[tuple[float, float], Boundary, float]
 
 
 def _boundary(shape: PrintShape | None, diameter_m: float) -> Boundary:
@@ -357,29 +286,9 @@ def render_ideal(
     acc = np.zeros((H, W))
     rays_all = camera.pixel_rays()
     target_b = _boundary(target_shape, diameter_m)
+    layers = _layers(plate_radius_m, plate_grey, extra_discs, target_b, target_grey)
     for T in T_all:
-        img = np.full((H, W), bg)
-        u0, u1, v0, v1 = _roi(camera, T, plate_radius_m)
-        if u1 > u0 and v1 > v0:
-            rays = rays_all[v0:v1, u0:u1]
-            vv, uu = np.mgrid[v0:v1, u0:u1].astype(float)
-            uv_grid = np.stack([uu, vv], axis=-1)
-            xy, ok = _plane_coords(camera, T, rays)
-            if xy.shape[0] > 1 and xy.shape[1] > 1:
-                foot = _footprint(xy, ok, 1e-9)
-            else:
-                foot = np.full(xy.shape[:2], 1.0)
-            roi = np.full(xy.shape[:2], bg)
-            layers: list[tuple[tuple[float, float], Boundary, float, int]] = [
-                ((0.0, 0.0), plate_radius_m, plate_grey, 4)
-            ]
-            for x, y, d, g in extra_discs:
-                layers.append(((float(x), float(y)), 0.5 * float(d), float(g), subsamples))
-            layers.append(((0.0, 0.0), target_b, target_grey, subsamples))
-            for c, r, g, ns in layers:
-                cov = _coverage(camera, T, xy, ok, foot, uv_grid, c, r, ns)
-                roi = roi * (1.0 - cov) + _grey_field(light, g, xy, ok, T) * cov
-            img[v0:v1, u0:u1] = roi
+        img = _render_pose(camera, T, rays_all, plate_radius_m, layers, bg, subsamples, light)
         if defocus is not None:
             img = variable_pillbox(img, defocus.radius_px(_plane_depth(T, rays_all)))
         acc += img
@@ -387,30 +296,16 @@ def render_ideal(
     if blur_sigma_px <= 0:
         return acc
     blurred = cv2.GaussianBlur(acc, (0, 0), blur_sigma_px, borderType=cv2.BORDER_REFLECT)
-    margin = int(np.ceil(4.0 * blur_sigma_px)) + 3
-    if defocus is not None:
-        depths = [float(T[2, 3]) + s * plate_radius_m for T in T_all for s in (-1.0, 1.0)]
-        margin += int(np.ceil(float(np.max(defocus.radius_px(np.array(depths))))))
-    boxes = [_roi(camera, T, _max_radius(target_b)) for T in T_all]
-    u0 = max(min(b[0] for b in boxes) - margin, 0)
-    u1 = min(max(b[1] for b in boxes) + margin, W)
-    v0 = max(min(b[2] for b in boxes) - margin, 0)
-    v1 = min(max(b[3] for b in boxes) + margin, H)
-    if u1 - u0 < W and v1 - v0 < H and u1 > u0 and v1 > v0:
-        fine_layers: list[tuple[tuple[float, float], Boundary, float]] = [
-            ((0.0, 0.0), plate_radius_m, plate_grey)
-        ]
-        fine_layers += [
-            ((float(x), float(y)), 0.5 * float(d), float(g)) for x, y, d, g in extra_discs
-        ]
-        fine_layers.append(((0.0, 0.0), target_b, target_grey))
+    box = _target_box(camera, T_all, target_b, plate_radius_m, blur_sigma_px, defocus)
+    if box is not None:
+        u0, u1, v0, v1 = box
         region = np.zeros((v1 - v0, u1 - u0))
         for T in T_all:
             region += _fine_blurred_region(
                 camera,
                 T,
-                (u0, u1, v0, v1),
-                fine_layers,
+                box,
+                layers,
                 bg,
                 blur_sigma_px,
                 fine,
@@ -423,11 +318,84 @@ def render_ideal(
     return result
 
 
+def _layers(
+    plate_radius_m: float,
+    plate_grey: float,
+    extra_discs: Sequence[ExtraDisc],
+    target: Boundary,
+    target_grey: float,
+) -> list[Layer]:
+    """The scene's discs back to front: the plate, the extra discs, the target."""
+    layers: list[Layer] = [((0.0, 0.0), plate_radius_m, plate_grey)]
+    layers += [((float(x), float(y)), 0.5 * float(d), float(g)) for x, y, d, g in extra_discs]
+    layers.append(((0.0, 0.0), target, target_grey))
+    return layers
+
+
+def _render_pose(
+    camera: CameraModel,
+    T: F64,
+    rays_all: F64,
+    plate_radius_m: float,
+    layers: Sequence[Layer],
+    bg: float,
+    subsamples: int,
+    light: PlateLight | None,
+) -> F64:
+    """Steps 1-3 at one pose ``T`` (4, 4): the ``(H, W)`` image, the plate's box by area
+    coverage (the plate edge, ``layers[0]``, supersampled 4 x 4; every other disc edge
+    ``subsamples x subsamples``), the background ``bg`` elsewhere."""
+    img = np.full((camera.height, camera.width), bg)
+    u0, u1, v0, v1 = _roi(camera, T, plate_radius_m)
+    if u1 > u0 and v1 > v0:
+        rays = rays_all[v0:v1, u0:u1]
+        vv, uu = np.mgrid[v0:v1, u0:u1].astype(float)
+        uv_grid = np.stack([uu, vv], axis=-1)
+        xy, ok = _plane_coords(camera, T, rays)
+        if xy.shape[0] > 1 and xy.shape[1] > 1:
+            foot = _footprint(xy, ok, 1e-9)
+        else:
+            foot = np.full(xy.shape[:2], 1.0)
+        roi = np.full(xy.shape[:2], bg)
+        for j, (c, r, g) in enumerate(layers):
+            ns = 4 if j == 0 else subsamples
+            cov = _coverage(camera, T, xy, ok, foot, uv_grid, c, r, ns)
+            roi = roi * (1.0 - cov) + _grey_field(light, g, xy, ok, T) * cov
+        img[v0:v1, u0:u1] = roi
+    return img
+
+
+def _target_box(
+    camera: CameraModel,
+    T_all: F64,
+    target: Boundary,
+    plate_radius_m: float,
+    blur_sigma_px: float,
+    defocus: Defocus | None,
+) -> tuple[int, int, int, int] | None:
+    """Pixel box ``(u0, u1, v0, v1)`` of the target over the poses ``T_all`` (K, 4, 4), with a
+    margin for the Gaussian blur (and the largest defocus pillbox over the plate): where
+    :func:`render_ideal` blurs on the fine grid. None if it is empty or spans the image."""
+    W, H = camera.width, camera.height
+    margin = int(np.ceil(4.0 * blur_sigma_px)) + 3
+    if defocus is not None:
+        depths = [float(T[2, 3]) + s * plate_radius_m for T in T_all for s in (-1.0, 1.0)]
+        margin += int(np.ceil(float(np.max(defocus.radius_px(np.array(depths))))))
+    boxes = [_roi(camera, T, _max_radius(target)) for T in T_all]
+    u0 = max(min(b[0] for b in boxes) - margin, 0)
+    u1 = min(max(b[1] for b in boxes) + margin, W)
+    v0 = max(min(b[2] for b in boxes) - margin, 0)
+    v1 = min(max(b[3] for b in boxes) + margin, H)
+    if u1 - u0 < W and v1 - v0 < H and u1 > u0 and v1 > v0:
+        return u0, u1, v0, v1
+    return None
+
+
 def _fine_blurred_region(
     camera: CameraModel,
     T: F64,
     box: tuple[int, int, int, int],
-    layers: Sequence[tuple[tuple[float, float], Boundary, float]],
+    layers: Sequence[Layer],
     bg: float,
     sigma_px: float,
     fine: int,
@@ -469,57 +437,6 @@ def _fine_blurred_region(
         )
     h, w = v1 - v0, u1 - u0
     out: F64 = img.reshape(h, k, w, k).mean(axis=(1, 3))
-    return out
-
-
-def paint_occluders(img: np.ndarray, occluders: Sequence[Occluder]) -> np.ndarray:
-    """Paint image-space elliptical occluders (soft edge about 3 px) over ``img`` ``(H, W)``.
-
-    Works in ``img``'s precision (``float32`` for :func:`finish_image`).
-    """
-    if not occluders:
-        return img
-    H, W = img.shape
-    vv, uu = np.mgrid[0:H, 0:W].astype(np.float32)
-    for u, v, a, b, ang, grey in occluders:
-        c, s = np.cos(ang), np.sin(ang)
-        du, dv = uu - u, vv - v
-        x = (c * du + s * dv) / a
-        y = (-s * du + c * dv) / b
-        r = np.sqrt(x * x + y * y)
-        # soft edge about 3 px wide
-        w = np.clip((1.0 - r) * min(a, b) / 3.0 + 0.5, 0.0, 1.0)
-        img = img * (1 - w) + np.float32(grey) * w
-    return img
-
-
-def finish_image(
-    ideal: F64,
-    camera: CameraModel,
-    *,
-    blur_sigma_px: float = 0.7,
-    noise_sigma: float = 2.0,
-    vignetting: float = 0.15,
-    exposure: float = 1.0,
-    rng: np.random.Generator | None = None,
-    occluders: Sequence[Occluder] = (),
-) -> np.ndarray:
-    """Optics and sensor (step 4): occluders, blur, vignetting, exposure, noise, ``uint8``."""
-    img: np.ndarray = np.array(ideal, dtype=np.float32)
-    H, W = img.shape
-    img = paint_occluders(img, occluders)
-    if blur_sigma_px > 0:
-        img = cv2.GaussianBlur(img, (0, 0), blur_sigma_px, borderType=cv2.BORDER_REFLECT)
-    if vignetting:
-        vv, uu = np.mgrid[0:H, 0:W].astype(np.float32)
-        r2 = (uu - camera.cx) ** 2 + (vv - camera.cy) ** 2
-        r2max = max(camera.cx, W - 1 - camera.cx) ** 2 + max(camera.cy, H - 1 - camera.cy) ** 2
-        img = img * (1.0 - np.float32(vignetting) * (r2 / np.float32(r2max)))
-    img = img * np.float32(exposure)
-    if noise_sigma > 0:
-        gen = rng if rng is not None else np.random.default_rng(0)
-        img = img + gen.normal(0.0, noise_sigma, size=img.shape).astype(np.float32)
-    out: np.ndarray = np.clip(np.rint(img), 0, 255).astype(np.uint8)
     return out
 
 
@@ -594,94 +511,3 @@ def render_target_image(
         rng=rng,
         occluders=occluders,
     )
-
-
-def fit_ellipse(points: ArrayLike) -> tuple[float, float, float, float, float]:
-    """Least-squares conic fit to points on a closed contour.
-
-    Fits ``A x^2 + B x y + C y^2 + D x + E y + F = 0`` (smallest right singular
-    vector of the design matrix, points centred and scaled first for
-    conditioning), then converts to centre, full axes and long-axis angle.
-
-    Parameters
-    ----------
-    points : (N, 2), N >= 5
-
-    Returns
-    -------
-    u, v, long_axis, short_axis, angle_rad
-        Centre, full axis lengths, angle of the long axis from ``+u`` towards
-        ``+v`` in ``(-pi/2, pi/2]``.
-    """
-    p = np.asarray(points, dtype=float)
-    m = p.mean(axis=0)
-    sc = float(np.sqrt(np.mean(np.sum((p - m) ** 2, axis=1))))
-    q = (p - m) / sc
-    x, y = q[:, 0], q[:, 1]
-    Dm = np.stack([x * x, x * y, y * y, x, y, np.ones_like(x)], axis=1)
-    _, _, Vt = np.linalg.svd(Dm, full_matrices=False)
-    A, B, C, D, E, F = Vt[-1]
-    M2 = np.array([[2 * A, B], [B, 2 * C]])
-    x0, y0 = np.linalg.solve(M2, [-D, -E])
-    F0 = F + 0.5 * (D * x0 + E * y0)
-    Mq = np.array([[A, B / 2], [B / 2, C]])
-    lam, vec = np.linalg.eigh(Mq)
-    if F0 > 0:
-        lam, F0 = -lam, -F0
-    axes = np.sqrt(-F0 / lam)  # semi-axes for eigenvalues in ascending order
-    # ascending lam -> largest axis first only if both positive
-    i_long = int(np.argmax(axes))
-    i_short = 1 - i_long
-    d = vec[:, i_long]
-    ang = float(np.arctan2(d[1], d[0]))
-    if ang <= -np.pi / 2:
-        ang += np.pi
-    elif ang > np.pi / 2:
-        ang -= np.pi
-    u = float(m[0] + sc * x0)
-    v = float(m[1] + sc * y0)
-    return u, v, float(2 * sc * axes[i_long]), float(2 * sc * axes[i_short]), ang
-
-
-def projected_contour(
-    camera: CameraModel,
-    T_camera_target: ArrayLike,
-    diameter_m: float,
-    n: int = 720,
-    shape: PrintShape | None = None,
-) -> F64:
-    """Pixels ``(n, 2)`` of ``n`` points of the target circle (or printed ``shape``)
-    through the camera model."""
-    T = np.asarray(T_camera_target, dtype=float)
-    a = np.linspace(0.0, 2 * np.pi, n, endpoint=False)
-    r = 0.5 * diameter_m if shape is None else shape.radius_at(a)
-    pts = np.stack([r * np.cos(a), r * np.sin(a), np.zeros_like(a)], axis=-1)
-    return camera.project(pts @ T[:3, :3].T + T[:3, 3])
-
-
-def projected_ellipse(
-    camera: CameraModel,
-    T_camera_target: ArrayLike,
-    diameter_m: float,
-    n: int = 720,
-    shape: PrintShape | None = None,
-) -> tuple[float, float, float, float, float]:
-    """The true image ellipse of the target: fit to its exactly projected contour.
-
-    Parameters
-    ----------
-    camera : CameraModel
-    T_camera_target : (4, 4)
-    diameter_m : float
-    n : int
-        Number of circle points projected.
-    shape : PrintShape, optional
-        The printed boundary ``r(phi)`` instead of the circle of ``diameter_m``
-        (points at ``n`` equally spaced polar angles).
-
-    Returns
-    -------
-    u, v, long_axis_px, short_axis_px, angle_rad
-        See :func:`fit_ellipse`; the long axis is the full length ``s``.
-    """
-    return fit_ellipse(projected_contour(camera, T_camera_target, diameter_m, n, shape))

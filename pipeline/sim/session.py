@@ -17,18 +17,13 @@ import numpy as np
 from pipeline.kinematics.chain import fk
 from pipeline.kinematics.se3 import F64, invert_transform, matrix_from_axis_angle, translation
 from pipeline.sim.cell import Target, build_cell
+from pipeline.sim.image_finish import Occluder, finish_image, paint_occluders
 from pipeline.sim.optics_state import OpticsState
 from pipeline.sim.recorder import Recorder, stamp
-from pipeline.sim.render import (
-    ExtraDisc,
-    Occluder,
-    finish_image,
-    paint_occluders,
-    projected_ellipse,
-    render_ideal,
-)
+from pipeline.sim.render import ExtraDisc, render_ideal
 from pipeline.sim.robot import solve_ik
 from pipeline.sim.scenario import Scenario
+from pipeline.sim.target_geometry import projected_ellipse
 
 NS = 1_000_000_000
 JOINT_LATENCY_NS = 2_000_000
@@ -236,9 +231,31 @@ class Session:
         rob = self.robot
         assert rob is not None
         opts = opts or CaptureOptions()
+        t_start = rob.t
+        exp_ns, moving, Ts = self._exposure(tg, t_start)
+        img, grey = self._form_image(tg, Ts, opts)
+        rec = self._image_record(tg, opts, t_start, exp_ns, moving, Ts)
+        self.last_renders = len(Ts)
+        self.images.append(rec)
+        msg, datatype = self._image_message(img, rec["stamp_ns"])
+
+        def on_write(idx: int, seq: int, rec: dict[str, Any] = rec) -> None:
+            rec["index"] = idx
+            rec["mcap_sequence"] = seq
+
+        self.rec.push(rec["log_time_ns"], self.image_topic, datatype, msg, on_write)
+        rob.advance(exp_ns / NS)
+        return img, grey, int(rec["stamp_ns"])
+
+    def _exposure(self, tg: Target, t_start: int) -> tuple[int, bool, F64]:
+        """The exposure starting at ``t_start`` (ns): its length (ns), whether the arm moves
+        during it, and ``T_camera_target`` ``(n_sub, 4, 4)`` at the middle of each of its
+        ``n_sub`` sub-exposures (one when still, 3 while the camera vibrates, 5 to 40 when
+        moving: enough that consecutive copies are < 0.5 px apart)."""
+        rob = self.robot
+        assert rob is not None
         sc = self.sc
         exp_ns = int(sc.camera.exposure_s * NS)
-        t_start = rob.t
         moving = rob.moving_at(t_start) or rob.moving_at(t_start + exp_ns)
         if moving:
             exp_ns = int(max(sc.camera.exposure_s, 0.04) * NS)
@@ -256,20 +273,27 @@ class Session:
         Ts = np.stack(
             [op.shaken(self.camera_target(q, tg), t) for q, t in zip(qs, times, strict=True)]
         )
+        return exp_ns, bool(moving), Ts
+
+    def _form_image(
+        self, tg: Target, Ts: F64, opts: CaptureOptions
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """Render target ``tg`` over the sub-exposure poses ``Ts`` and form the image:
+        ``(image, grey)`` as :meth:`capture` returns them."""
+        sc = self.sc
+        op = self.optics
         cam = self.cell.camera
-        D = sc.targets.diameter_m
-        shape = op.shapes.get(tg.id)
         ideal = render_ideal(
             cam,
             Ts,
-            D,
+            sc.targets.diameter_m,
             levels=self.levels,
             plate_radius_m=sc.targets.plate_radius_m,
             background_grey=self.background,
             extra_discs=opts.extra_discs,
             subsamples=sc.camera.subsamples,
             blur_sigma_px=sc.camera.blur_sigma_px,
-            target_shape=shape,
+            target_shape=op.shapes.get(tg.id),
             light=op.lights.get(tg.id),
             defocus=op.defocus,
         )
@@ -286,19 +310,38 @@ class Session:
                 occluders=opts.occluders,
             )
             grey = img
+        return img, grey
+
+    def _image_record(
+        self,
+        tg: Target,
+        opts: CaptureOptions,
+        t_start: int,
+        exp_ns: int,
+        moving: bool,
+        Ts: F64,
+    ) -> dict[str, Any]:
+        """The truth record of the image exposed from ``t_start`` for ``exp_ns`` (stamped at
+        the middle of the exposure): the exact projected ellipse there, the blur of a moving
+        capture (centre sweep over the exposure, px)."""
+        rob = self.robot
+        assert rob is not None
+        sc = self.sc
+        cam = self.cell.camera
+        op = self.optics
+        n_sub = len(Ts)
         t_mid = t_start + exp_ns // 2
         q_mid = rob.q_at(t_mid)
         T_mid = op.shaken(self.camera_target(q_mid, tg), t_mid)
         centre_px = cam.project(T_mid[:3, 3])
-        ell = projected_ellipse(cam, T_mid, D, shape=shape)
+        ell = projected_ellipse(cam, T_mid, sc.targets.diameter_m, shape=op.shapes.get(tg.id))
         blur_px = 0.0
         if moving:
             c = np.array([cam.project(T[:3, 3]) for T in Ts])
             blur_px = float(np.linalg.norm(c[-1] - c[0]) * n_sub / max(n_sub - 1, 1))
-        self.last_renders = n_sub
         stamp_ns = t_mid
         log_ns = t_start + exp_ns + int(sc.camera.latency_s * NS)
-        rec = {
+        return {
             "index": -1,
             "stamp_s": (stamp_ns - rob.t0) / NS,
             "log_s": (log_ns - rob.t0) / NS,
@@ -321,35 +364,27 @@ class Session:
             "log_time_ns": int(log_ns),
             "stamp_ns": int(stamp_ns),
         }
-        self.images.append(rec)
+
+    def _image_message(self, img: np.ndarray, stamp_ns: int) -> tuple[dict[str, Any], str]:
+        """The ROS 2 message of ``img`` (compressed, or raw ``mono8``/``bgr8``) and its type."""
+        cam = self.cell.camera
+        header = {"stamp": stamp(stamp_ns), "frame_id": "camera_optical_frame"}
+        msg: dict[str, Any]
         if self.compressed:
-            fmt, data = op.encode(img)
-            msg: dict[str, Any] = {
-                "header": {"stamp": stamp(stamp_ns), "frame_id": "camera_optical_frame"},
-                "format": fmt,
-                "data": data,
-            }
-            datatype = "sensor_msgs/msg/CompressedImage"
-        else:
-            colour = img.ndim == 3
-            msg = {
-                "header": {"stamp": stamp(stamp_ns), "frame_id": "camera_optical_frame"},
-                "height": cam.height,
-                "width": cam.width,
-                "encoding": "bgr8" if colour else "mono8",
-                "is_bigendian": 0,
-                "step": cam.width * (3 if colour else 1),
-                "data": np.ascontiguousarray(img).tobytes(),
-            }
-            datatype = "sensor_msgs/msg/Image"
-
-        def on_write(idx: int, seq: int, rec: dict[str, Any] = rec) -> None:
-            rec["index"] = idx
-            rec["mcap_sequence"] = seq
-
-        self.rec.push(log_ns, self.image_topic, datatype, msg, on_write)
-        rob.advance(exp_ns / NS)
-        return img, grey, int(stamp_ns)
+            fmt, data = self.optics.encode(img)
+            msg = {"header": header, "format": fmt, "data": data}
+            return msg, "sensor_msgs/msg/CompressedImage"
+        colour = img.ndim == 3
+        msg = {
+            "header": header,
+            "height": cam.height,
+            "width": cam.width,
+            "encoding": "bgr8" if colour else "mono8",
+            "is_bigendian": 0,
+            "step": cam.width * (3 if colour else 1),
+            "data": np.ascontiguousarray(img).tobytes(),
+        }
+        return msg, "sensor_msgs/msg/Image"
 
     def nominal_shift(self, q: F64, dp_flange: F64) -> F64:
         """Joint vector moving the *nominal* flange by ``dp_flange`` (flange frame)."""

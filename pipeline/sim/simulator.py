@@ -57,10 +57,19 @@ from pathlib import Path
 from typing import Any
 
 from pipeline.kinematics.se3 import F64
-from pipeline.measure.loop import CaptureInfo, estimate_jacobian, probe_shifts, touch_up
+from pipeline.measure.loop import (
+    CaptureInfo,
+    Detector,
+    LoopConfig,
+    TouchupResult,
+    estimate_jacobian,
+    probe_shifts,
+    touch_up,
+)
 from pipeline.measure.protocols import Frame
 from pipeline.sim import faults
-from pipeline.sim.cell_adapter import SimCell
+from pipeline.sim.cell import Target
+from pipeline.sim.cell_adapter import SimCamera, SimCell
 from pipeline.sim.recorder import Recorder
 from pipeline.sim.scenario import Scenario
 from pipeline.sim.session import CaptureOptions, Session
@@ -121,9 +130,16 @@ class _Captures:
 
 
 def _run(simcell: SimCell) -> dict[str, Any]:
+    """Run every attempt of the plan (faulted extras included); return the truth.
+
+    Per attempt: the faults that act before the move (:func:`_faults_before_move`),
+    the large move to the planned pose (:func:`_move_to_plan_pose`), a lost target's
+    occluder, the image Jacobian probe on a target's first touch-up
+    (:func:`_probe_jacobian`), the closed loop (:func:`pipeline.measure.loop.touch_up`)
+    and the touch-up's truth record (:func:`_record_touchup`).
+    """
     sess = simcell.sess
     sc = sess.sc
-    cell = sess.cell
     rec = sess.rec
     rob = sess.robot
     assert rob is not None
@@ -138,9 +154,8 @@ def _run(simcell: SimCell) -> dict[str, Any]:
     attempts = faults.attempts(len(plan), faults_at)
     tail_index = len(attempts) - 1 if sc.faults.truncate else -1
 
-    targets = {t.id: t for t in cell.targets}
+    targets = {t.id: t for t in sess.cell.targets}
     jac: dict[int, F64] = {}
-    goal = simcell.goal
     base_cfg = simcell.loop_config()
     detect = simcell.detector()
 
@@ -150,44 +165,20 @@ def _run(simcell: SimCell) -> dict[str, Any]:
             q_plan = sess.nominal_roll(q_plan, faults.FAULT_ROLL_RAD)
         tg = targets[tid]
         img_start = len(sess.images)
-        cfg = base_cfg
         camera.target = tg
         camera.options = CaptureOptions()
         on_capture = _Captures(sess)
         moving: dict[str, Any] = {}
-        fault_here: list[dict[str, Any]] = []
         # the faults of this attempt: plan index -> fault, on the extra attempt only
         here = {nm: faulted and i == pi for nm, i in faults_at.items()}
         if faults_at["knocked_target"] == pi and (ti == 0 or attempts[ti - 1][0] != pi):
             later = [i for i in range(ti, len(attempts)) if plan[attempts[i][0]][0] == tid]
             faults.knock(sess, tg, ti, labels[tid], later)
-        if here["unconverged"]:
-            q_plan, frec = faults.unconverged_start(sess, q_plan)
-            cfg = dataclasses.replace(cfg, gain=faults.UNCONVERGED_GAIN)
-            fault_here.append(frec)
-        if here["second_blob"]:
-            disc, frec = faults.second_blob(sess)
-            camera.options = dataclasses.replace(camera.options, extra_discs=(disc,))
-            fault_here.append(frec)
-        if here["joint_state_gap"]:
-            faults.open_gap(sess)
+        q_plan, cfg, fault_here = _faults_before_move(sess, camera, here, q_plan, base_cfg)
 
-        # ---- large move to the planned pose
-        n_dropped = len(rob.dropped)
         if ti == tail_index:
             safe_bytes = rec.cut_chunk()
-        if here["capture_while_moving"]:
-            robot.stop_next_move = (MOVING_CAPTURE_AT, tg)
-            on_capture.moving_fault = moving
-        robot.move_joints(q_plan, 1.0)
-        if not here["capture_while_moving"]:
-            # at the planned pose: from here on this touch-up's noise is its own (clock
-            # phase and random streams depend on the plan pose only), so a touch-up is
-            # the same whatever faulted attempts came before it
-            rob.align_to_tick()
-        sess.reseed(pi, faulted)
-        if here["joint_state_gap"]:
-            sess.faults.append(faults.gap_record(sess, ti, n_dropped))
+        _move_to_plan_pose(simcell, q_plan, tg, ti, pi, faulted, here, on_capture, moving)
 
         # ---- lost target: an occluder hides it from the first capture on
         if here["lost_target"]:
@@ -195,66 +186,15 @@ def _run(simcell: SimCell) -> dict[str, Any]:
             camera.options = dataclasses.replace(camera.options, occluders=(occ,))
             fault_here.append(frec)
 
-        # ---- image Jacobian probing (first touch-up of each target)
         if tid not in jac and not camera.options.occluders:
-            J = estimate_jacobian(robot, camera, detect, on_capture, goal, cfg, ti)
-            if J is not None:
-                jac[tid] = J
-            p_imgs = [p for _, p in on_capture.positions]
-            sess.probes.append(
-                {
-                    "target": tid,
-                    "touchup": ti,
-                    "image_indices": p_imgs,
-                    "base_image_index": p_imgs[0],
-                    "shifts_m": [d.tolist() for d in probe_shifts(cfg.probe_shift_m)],
-                    "shift_m": cfg.probe_shift_m,
-                    "jacobian": jac[tid].tolist() if tid in jac else None,
-                }
-            )
+            _probe_jacobian(simcell, detect, on_capture, cfg, ti, tid, jac)
 
         # ---- the closed loop
-        res = touch_up(robot, camera, detect, on_capture, goal, cfg, jac.get(tid), ti)
-        q = res.joints.positions
-        conv_images: list[int] = []
-        if res.converged:
-            loops = [p for kind, p in on_capture.positions if kind == "loop"]
-            conv_images = loops[-1:] + [p for kind, p in on_capture.positions if kind == "extra"]
+        res = touch_up(robot, camera, detect, on_capture, simcell.goal, cfg, jac.get(tid), ti)
         camera.options = CaptureOptions()
         if here["capture_while_moving"] and moving:
             fault_here.append(moving)
-
-        pin = sess.true_pin(q)
-        tu_imgs = list(range(img_start, len(sess.images)))
-        sess.touchups.append(
-            {
-                "index": ti,
-                "target": tid,
-                "label": labels[tid],
-                "converged": res.converged,
-                "lost": res.lost,
-                "iterations": res.iterations,
-                "gain": cfg.gain,
-                "q": [float(x) for x in q],
-                "image_indices": tu_imgs,
-                "converged_image_indices": conv_images,
-                "final_error_px": None
-                if res.final_error_px is None
-                else [float(x) for x in res.final_error_px],
-                "target_centre": tg.centre.tolist(),
-                "pin_miss_mm": ((pin - tg.centre) * 1000.0).tolist(),
-                "in_file": True,
-            }
-        )
-        for fh in fault_here:
-            fh.setdefault("touchup", ti)
-            if fh["type"] == "unconverged":
-                fh["converged"] = res.converged
-            if fh["type"] == "target_lost":
-                fh["lost"] = res.lost
-                fh["_images"] = tu_imgs[:1]
-            fh.setdefault("_images", tu_imgs)
-            sess.faults.append(fh)
+        _record_touchup(sess, ti, tg, labels[tid], cfg, res, on_capture, img_start, fault_here)
         # (the knocked target's image indices are filled in below, once all are written)
 
     rob.advance(1.0)
@@ -262,6 +202,139 @@ def _run(simcell: SimCell) -> dict[str, Any]:
     sess.safe_bytes = safe_bytes
     index_images(sess)
     return truth_of(sess, plan, labels, simcell.known, simcell.metadata)
+
+
+def _faults_before_move(
+    sess: Session, camera: SimCamera, here: dict[str, bool], q_plan: F64, cfg: LoopConfig
+) -> tuple[F64, LoopConfig, list[dict[str, Any]]]:
+    """The faults of an attempt that act before its large move: an unconverged start (off
+    the plan pose, a lower gain), a second blob beside the target, a joint-state gap.
+
+    Returns the start pose, the loop settings and the attempt's fault records so far.
+    """
+    fault_here: list[dict[str, Any]] = []
+    if here["unconverged"]:
+        q_plan, frec = faults.unconverged_start(sess, q_plan)
+        cfg = dataclasses.replace(cfg, gain=faults.UNCONVERGED_GAIN)
+        fault_here.append(frec)
+    if here["second_blob"]:
+        disc, frec = faults.second_blob(sess)
+        camera.options = dataclasses.replace(camera.options, extra_discs=(disc,))
+        fault_here.append(frec)
+    if here["joint_state_gap"]:
+        faults.open_gap(sess)
+    return q_plan, cfg, fault_here
+
+
+def _move_to_plan_pose(
+    simcell: SimCell,
+    q_plan: F64,
+    tg: Target,
+    ti: int,
+    pi: int,
+    faulted: bool,
+    here: dict[str, bool],
+    on_capture: _Captures,
+    moving: dict[str, Any],
+) -> None:
+    """The large move of attempt ``ti`` to plan pose ``pi`` (stopped short by the
+    capture-while-moving fault, noted in ``moving``), then the touch-up's own noise streams
+    (:meth:`pipeline.sim.session.Session.reseed`) and the joint-state gap's record."""
+    sess, robot = simcell.sess, simcell.robot
+    rob = sess.robot
+    assert rob is not None
+    n_dropped = len(rob.dropped)
+    if here["capture_while_moving"]:
+        robot.stop_next_move = (MOVING_CAPTURE_AT, tg)
+        on_capture.moving_fault = moving
+    robot.move_joints(q_plan, 1.0)
+    if not here["capture_while_moving"]:
+        # at the planned pose: from here on this touch-up's noise is its own (clock
+        # phase and random streams depend on the plan pose only), so a touch-up is
+        # the same whatever faulted attempts came before it
+        rob.align_to_tick()
+    sess.reseed(pi, faulted)
+    if here["joint_state_gap"]:
+        sess.faults.append(faults.gap_record(sess, ti, n_dropped))
+
+
+def _probe_jacobian(
+    simcell: SimCell,
+    detect: Detector,
+    on_capture: _Captures,
+    cfg: LoopConfig,
+    ti: int,
+    tid: int,
+    jac: dict[int, F64],
+) -> None:
+    """Probe target ``tid``'s image Jacobian on its first touch-up ``ti`` (into ``jac``,
+    unless the probe failed) and note the probe in the session's truth."""
+    J = estimate_jacobian(simcell.robot, simcell.camera, detect, on_capture, simcell.goal, cfg, ti)
+    if J is not None:
+        jac[tid] = J
+    p_imgs = [p for _, p in on_capture.positions]
+    simcell.sess.probes.append(
+        {
+            "target": tid,
+            "touchup": ti,
+            "image_indices": p_imgs,
+            "base_image_index": p_imgs[0],
+            "shifts_m": [d.tolist() for d in probe_shifts(cfg.probe_shift_m)],
+            "shift_m": cfg.probe_shift_m,
+            "jacobian": jac[tid].tolist() if tid in jac else None,
+        }
+    )
+
+
+def _record_touchup(
+    sess: Session,
+    ti: int,
+    tg: Target,
+    label: int,
+    cfg: LoopConfig,
+    res: TouchupResult,
+    on_capture: _Captures,
+    img_start: int,
+    fault_here: list[dict[str, Any]],
+) -> None:
+    """Append touch-up ``ti``'s truth record (its images from ``img_start`` on) and the
+    records of the faults of its attempt."""
+    q = res.joints.positions
+    conv_images: list[int] = []
+    if res.converged:
+        loops = [p for kind, p in on_capture.positions if kind == "loop"]
+        conv_images = loops[-1:] + [p for kind, p in on_capture.positions if kind == "extra"]
+    pin = sess.true_pin(q)
+    tu_imgs = list(range(img_start, len(sess.images)))
+    sess.touchups.append(
+        {
+            "index": ti,
+            "target": tg.id,
+            "label": label,
+            "converged": res.converged,
+            "lost": res.lost,
+            "iterations": res.iterations,
+            "gain": cfg.gain,
+            "q": [float(x) for x in q],
+            "image_indices": tu_imgs,
+            "converged_image_indices": conv_images,
+            "final_error_px": None
+            if res.final_error_px is None
+            else [float(x) for x in res.final_error_px],
+            "target_centre": tg.centre.tolist(),
+            "pin_miss_mm": ((pin - tg.centre) * 1000.0).tolist(),
+            "in_file": True,
+        }
+    )
+    for fh in fault_here:
+        fh.setdefault("touchup", ti)
+        if fh["type"] == "unconverged":
+            fh["converged"] = res.converged
+        if fh["type"] == "target_lost":
+            fh["lost"] = res.lost
+            fh["_images"] = tu_imgs[:1]
+        fh.setdefault("_images", tu_imgs)
+        sess.faults.append(fh)
 
 
 def write_recording(
