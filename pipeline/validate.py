@@ -286,11 +286,23 @@ def validate(
     (``validated_mm``, ``nominal_mm``, ``ratio``, ``improved``, ``distance_error_mm``,
     ``tolerance_mm``, ``passed``, ``why``, ``line``), ``n_touchups``, ``n_unusable``,
     ``targets``.
+
+    The corrections are judged with the calibrated robot in its own flange frame,
+    ``d_i -> M_bar d_i`` (:mod:`pipeline.estimation.correction_frame`, as identification
+    fits them), and as the table has them with the nominal robot.
     """
-    refit_cal = judge(CALIBRATED_REFIT, calibrated, refit_pin(calibrated, data), data, distances)
+    import dataclasses
+
+    from pipeline.estimation.correction_frame import translation_map
+
+    M = translation_map(nominal, calibrated, data.q)
+    data_c = dataclasses.replace(data, d=data.d @ M.T)
+    refit_cal = judge(
+        CALIBRATED_REFIT, calibrated, refit_pin(calibrated, data_c), data_c, distances
+    )
     robots = []
     if calibrated_pin is not None:
-        robots.append(judge(CALIBRATED, calibrated, calibrated_pin, data, distances))
+        robots.append(judge(CALIBRATED, calibrated, calibrated_pin, data_c, distances))
     robots.append(refit_cal)
     before = judge(NOMINAL_REFIT, nominal, refit_pin(nominal, data), data, distances)
     robots.append(before)

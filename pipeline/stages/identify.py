@@ -71,6 +71,7 @@ from pipeline.kinematics.urdf_write import write_calibrated_urdf
 from pipeline.models import make_model, model_names
 from pipeline.models.observability import indices_from_singular_values, project_out
 from pipeline.stages.identify_data import FitData, implausible_rows, prepare_data, refuse_early
+from pipeline.stages.identify_frame import correction_frame
 from pipeline.stages.identify_notes import COND_WARN, conditioning_note
 from pipeline.stages.identify_shape import fit_print_shape
 from pipeline.stages.identify_tables import (
@@ -156,6 +157,29 @@ def identify(
             + "; ".join(implausible)
             + " (rerun with --accept-implausible if it is right)"
         )
+    data, frame = correction_frame(
+        chain,
+        data,
+        config,
+        lambda name, cfg: _identify_one(name, chain, data, urdf, flange_link, cfg),
+    )
+    out = _identify_models(chain, data, urdf, flange_link, config, implausible)
+    for r in out.values() if isinstance(out, dict) else [out]:
+        r.correction_map = frame.M
+        if not config.prediction_only:
+            r.summary["correction_frame"] = frame.summary
+    return out
+
+
+def _identify_models(
+    chain: Chain,
+    data: FitData,
+    urdf: str,
+    flange_link: str,
+    config: IdentifyConfig,
+    implausible: list[str],
+) -> IdentifyResult | dict[str, IdentifyResult]:
+    """The model(s) ``config.model`` names (``all``, ``auto`` or one), fitted to ``data``."""
     if config.model == "all":
         results: dict[str, IdentifyResult] = {}
         errors: list[str] = []

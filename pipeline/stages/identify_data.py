@@ -14,6 +14,7 @@ import numpy as np
 import pandas as pd
 
 from pipeline.errors import BadInput, CalibrationFailed
+from pipeline.estimation.correction_frame import PAIR_COLUMNS, scatter_from_columns
 from pipeline.kinematics.chain import Chain
 from pipeline.kinematics.se3 import F64
 from pipeline.stages.identify_types import IdentifyConfig
@@ -50,6 +51,9 @@ class FitData:
     #: (flange frame, :mod:`pipeline.stages.print_shape`), None without those columns
     shape_g: F64 | None = None
     shape_l: F64 | None = None
+    #: (M, 3, 3) every row's image-Jacobian pair scatter ``S_i`` (flange frame, m^2,
+    #: :mod:`pipeline.estimation.correction_frame` F2), None without those columns
+    pair_scatter_all: F64 | None = None
 
 
 def prepare_data(touchups: pd.DataFrame, chain: Chain, config: IdentifyConfig) -> FitData:
@@ -114,6 +118,11 @@ def prepare_data(touchups: pd.DataFrame, chain: Chain, config: IdentifyConfig) -
         )[ui]
         if len(sh) and np.all(np.isfinite(sh)):
             shape_g, shape_l = sh[:, :3], sh[:, 3:]
+    pair_scatter = None
+    if all(c in df.columns for c in PAIR_COLUMNS):
+        pair_scatter = scatter_from_columns(
+            np.stack([pd.to_numeric(df[c], errors="coerce") for c in PAIR_COLUMNS], axis=1)
+        )
     return FitData(
         q=q_all[ui],
         d=d_all[ui],
@@ -131,6 +140,7 @@ def prepare_data(touchups: pd.DataFrame, chain: Chain, config: IdentifyConfig) -
         tk_all=tk_all,
         shape_g=shape_g,
         shape_l=shape_l,
+        pair_scatter_all=pair_scatter,
     )
 
 

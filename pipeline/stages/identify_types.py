@@ -71,6 +71,12 @@ class IdentifyConfig:
     strict_distances : a known distance naming a target absent from the table is bad input
         (``vtcal identify``); False drops it with a note (``vtcal run``: the recording's
         metadata names every target of the cell, a truncated run may not have reached them all)
+    correction_frame : the frame the residual corrections ``d_i`` are taken in. ``calibrated``:
+        a first fit (the first of ``AUTO_ORDER`` that can be fitted, prediction only), then
+        ``d_i -> M_bar d_i`` with ``M_bar`` the pose-averaged map from nominal to calibrated
+        flange translations (:mod:`pipeline.estimation.correction_frame`: the touch-up stage's
+        image Jacobian was measured with nominal translations), then the fit;
+        ``nominal``: the corrections as the table has them
     """
 
     model: str = "auto"
@@ -94,6 +100,7 @@ class IdentifyConfig:
     accept_implausible: bool = False
     check_plausibility: bool = True
     prediction_only: bool = False
+    correction_frame: str = "calibrated"
 
 
 @dataclass
@@ -112,6 +119,8 @@ class IdentifyResult:
     error_model : the fitted model: ``error_model.pin_and_jacobian(x, q, pin)`` predicts
         the pin exactly, also where ``chain`` (the URDF's rigid kinematics) cannot
         (a model with ``urdf_exact = False``)
+    correction_map : (3, 3) ``M_bar`` the fit applied to the table's corrections
+        (``IdentifyConfig.correction_frame``; the identity for ``nominal``)
     """
 
     model: str
@@ -124,10 +133,13 @@ class IdentifyResult:
     p_flange_pin: F64
     x: F64 = field(repr=False, default_factory=lambda: np.zeros(0))
     error_model: ErrorModel | None = field(repr=False, default=None)
+    correction_map: F64 = field(repr=False, default_factory=lambda: np.eye(3))
 
     def predict(self, q: F64, d: F64) -> F64:
-        """Pin positions ``T_base_flange(q_i; x) (p_pin + d_i)`` of the fitted model, (N, 3)."""
-        pts = self.p_flange_pin[None, :] + d
+        """Pin positions ``T_base_flange(q_i; x) (p_pin + M_bar d_i)`` of the fitted model, (N, 3).
+
+        ``d`` as the table has it; ``M_bar`` is :attr:`correction_map`."""
+        pts = self.p_flange_pin[None, :] + np.asarray(d, dtype=float) @ self.correction_map.T
         if self.error_model is not None:
             p, _, _ = self.error_model.pin_and_jacobian(self.x, q, pts, jac=False)
             return p

@@ -82,6 +82,7 @@ import numpy as np
 import pandas as pd
 from scipy import stats
 
+from pipeline.estimation.correction_frame import PAIR_COLUMNS
 from pipeline.estimation.measurement import target_positions
 from pipeline.estimation.whitening import robust_flange_whitening
 from pipeline.kinematics.se3 import F64
@@ -253,7 +254,7 @@ def flag_outliers(table: pd.DataFrame, info: Any, config: OutlierConfig) -> pd.D
     ]
     # identification uses converged rows: a corrected one counts as converged from here on
     out.loc[fixed, "converged"] = True
-    for c in SHAPE_COLUMNS:
+    for c in (*SHAPE_COLUMNS, *PAIR_COLUMNS):
         out[c] = (
             pd.to_numeric(base[c], errors="coerce").to_numpy(dtype=float)
             if c in base
@@ -296,6 +297,7 @@ class _Fit:
     pin: F64
     targets: dict[int, F64]
     tcol: dict[int, int]
+    M: F64  # (3, 3) the fit's correction map (IdentifyResult.correction_map)
 
 
 def _distances(info: Any) -> list[tuple[int | str, int | str, float]]:
@@ -329,6 +331,7 @@ def _fit(out: pd.DataFrame, info: Any, model: str, config: OutlierConfig) -> _Fi
     rows = np.flatnonzero(res.residuals["used"].to_numpy(dtype=bool))
     q = out.iloc[rows][list(chain.joint_names)].to_numpy(dtype=float)
     d = out.iloc[rows][["dx_flange", "dy_flange", "dz_flange"]].to_numpy(dtype=float)
+    d = d @ res.correction_map.T  # in the fit's frame (IdentifyConfig.correction_frame)
     sw = np.sqrt(out.iloc[rows]["weight"].to_numpy(dtype=float))
     tid = out.iloc[rows]["target_id"].to_numpy(dtype=int)
     p, R, Jx = em.pin_and_jacobian(res.x, q, res.p_flange_pin + d, jac=True)
@@ -375,7 +378,8 @@ def _fit(out: pd.DataFrame, info: Any, model: str, config: OutlierConfig) -> _Fi
     e = e - U @ (U.T @ e)  # one Gauss-Newton step: the residual of the whitened linear fit
     dof = J.shape[0] - rank
     sigma2 = float(e @ e / dof) if dof > 0 else float("nan")
-    return _Fit(model, rows, B, W, e, U, Vs, dof, sigma2, res.x, kept, res.p_flange_pin, tg, tcol)
+    x, pin, M = res.x, res.p_flange_pin, res.correction_map
+    return _Fit(model, rows, B, W, e, U, Vs, dof, sigma2, x, kept, pin, tg, tcol, M)
 
 
 def _mean_shift(f: _Fit, pos: np.ndarray, w: np.ndarray) -> tuple[float, int, F64]:
@@ -436,7 +440,7 @@ def _prediction_test(f: _Fit, out: pd.DataFrame, i: int, info: Any) -> tuple[flo
     w = float(out["weight"].iloc[i])
     if not (np.all(np.isfinite(q)) and w > 0):
         return 1.0, 0.0
-    p, R, Jx = em.pin_and_jacobian(f.x, q, f.pin + np.nan_to_num(d), jac=True)
+    p, R, Jx = em.pin_and_jacobian(f.x, q, f.pin + np.nan_to_num(d) @ f.M.T, jac=True)
     assert Jx is not None
     nk = len(f.kept)
     Bi = np.sqrt(w) * f.W @ R[0].T

@@ -67,11 +67,13 @@ import numpy as np
 import pandas as pd
 
 from pipeline.errors import BadInput
+from pipeline.estimation.correction_frame import scatter_columns
 from pipeline.kinematics.chain import fk, load_chain
 from pipeline.stages.touchup_jacobian import (
     camera_from_jacobian,
     diameter_from_jacobian,
     estimate_jacobian,
+    pair_change,
     size_row_scales,
     view_geometry,
 )
@@ -110,6 +112,10 @@ class TouchupConfig:
     #: "target": a full Jacobian per target with enough pairs (the first wave's rule)
     jacobian: str = "global"
     size_row_sigmas: float = 3.0
+    #: scale each pair's centre-row change to the designated size (``f / z = s / D``):
+    #: pairs taken away from the stand-off (the approach's probes) then give the centre
+    #: rows at the converged depth, where the residual correction applies
+    depth_scaled_jacobian: bool = True
     default_threshold_px: float = 0.5
     default_threshold_size_px: float = 0.5
     ransac_samples: int = 400
@@ -247,15 +253,27 @@ def _designated(
 
 
 def _jacobian_pairs(
-    seg_frames: list[np.ndarray], c: _Captures, config: TouchupConfig, path: Any
+    seg_frames: list[np.ndarray],
+    c: _Captures,
+    config: TouchupConfig,
+    path: Any,
+    des: _Designated,
+    p_pin: np.ndarray,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Step 3: the pairs and the global image Jacobian they give.
+
+    Each pair's change is taken at the designated pixel and size
+    (:func:`pipeline.stages.touchup_jacobian.pair_change`), and its translation is
+    that of the flange point at the target, the pin estimate ``p_pin`` (step 4):
+    ``R_a^T (t_b - t_a) + (R_a^T R_b - I) p_pin``, which is what moves the image
+    (a pair within ``pure_translation_rad`` turns the flange by up to 2e-4 rad, 50 um
+    at a 0.25 m pin).
 
     Returns
     -------
     pair_seg : (N,) the segment of each pair (consecutive still captures with good
         detections, a small pure flange translation apart)
-    dF : (N, 3) its flange-frame translation
+    dF : (N, 3) its flange-frame translation of the pin point
     dm : (N, 3) its change of ``(u, v, s_inv)``
     J : (3, 3) the image Jacobian of every pair (:func:`estimate_jacobian`)
     """
@@ -267,7 +285,11 @@ def _jacobian_pairs(
             ang, d = relative_pose(c.T[a], c.T[b])
             step = float(np.linalg.norm(d))
             if ang < config.pure_translation_rad and config.min_step_m < step < config.max_step_m:
-                dm = np.array([u[b] - u[a], v[b] - v[a], 1.0 / s[b] - 1.0 / s[a]])
+                # the translation of the flange point at the target (the pin estimate)
+                d = d + (c.T[a][:3, :3].T @ c.T[b][:3, :3] - np.eye(3)) @ p_pin
+                dm = pair_change(
+                    (u[a], v[a], s[a]), (u[b], v[b], s[b]), des, config.depth_scaled_jacobian
+                )
                 pairs.append((k, d, dm))
     if not pairs:
         raise BadInput(
@@ -366,13 +388,24 @@ def _final_shapes(finals: list[np.ndarray], c: _Captures) -> tuple[list[list[int
 
 
 def _measurement(
-    use: list[int], c: _Captures, des: _Designated, J: np.ndarray, bias: np.ndarray
+    use: list[int],
+    c: _Captures,
+    des: _Designated,
+    J: np.ndarray,
+    bias: np.ndarray,
+    depth_scaled: bool = True,
 ) -> dict[str, Any]:
     """Step 5: one touch-up's averaged measurement, its convergence and its correction.
 
     ``use`` are the averaged final captures (none: lost). The tilt ``bias``
     ``(du, dv, ds)`` turns the ellipse into the image of the circle's centre and
     the size an untilted target would show; then ``d_F = -J^{-1} e_T``.
+
+    ``J``'s centre rows hold at the designated size ``s0`` (:func:`_jacobian_pairs`).
+    A touch-up that stopped at size ``s`` sees a lateral offset ``x`` as
+    ``(f / z) x = (s / D) x`` pixels, so (``depth_scaled``) its centre errors are
+    taken at ``s0`` first, ``e_u s0 / s``, ``e_v s0 / s``: the lateral offset they
+    stand for, whatever the depth the controller stopped at.
     """
     u0, v0, s0 = des.u0, des.v0, des.s0
     row: dict[str, Any] = {}
@@ -387,6 +420,8 @@ def _measurement(
         # the image of the circle's centre, and the size an untilted target would show
         mu_c, mv_c, ms_c = mu + bias[0], mv + bias[1], ms - bias[2]
         e_T = np.array([mu_c - u0, mv_c - v0, 1.0 / ms_c - 1.0 / s0])
+        if depth_scaled:
+            e_T[:2] *= s0 / ms_c
         try:
             d = -np.linalg.solve(J, e_T)
         except np.linalg.LinAlgError:
@@ -428,6 +463,7 @@ def _touchup_row(
     des: _Designated,
     J: tuple[np.ndarray, str],
     tilt: _Tilt,
+    depth_scaled: bool = True,
 ) -> dict[str, Any]:
     """One row of the table: touch-up ``k``, frames ``fr``, final captures ``block``.
 
@@ -462,7 +498,7 @@ def _touchup_row(
         row[nm] = float(q[j])
     row["stamp_ns"] = int(c.df["stamp_ns"].iloc[ref[-1]])
     row["jacobian_source"] = J[1]
-    row.update(_measurement(use, c, des, J[0], tilt.bias[k]))
+    row.update(_measurement(use, c, des, J[0], tilt.bias[k], depth_scaled))
     row.update(
         tilt_deg=float(tilt.tilt_deg[k]),
         tilt_resolved=bool(tilt.resolved[k]),
@@ -515,14 +551,17 @@ def extract_touchups(
     finals = [final_block(fr, c.T, c.still, **same) for fr in seg_frames]
     des = _designated(meta, inferred, finals, c, config, info.path)
     loop_start = loop_starts(seg_frames, c.T, c.still, **same)
-    # 3. the image Jacobian; 4. targets from final (or last seen) poses
-    pair_seg, dF_all, dm_all, J_global = _jacobian_pairs(seg_frames, c, config, info.path)
+    # 4. targets from final (or last seen) poses and the pin estimate, then 3. the image
+    # Jacobian from pairs translating the flange point at the pin
     rep = _representatives(seg_frames, finals, c)
     labels, p_pin = group_targets(
         c.T[np.array(rep)],
         radius_m=config.group_radius_m,
         ransac_samples=config.ransac_samples,
         seed=config.seed,
+    )
+    pair_seg, dF_all, dm_all, J_global = _jacobian_pairs(
+        seg_frames, c, config, info.path, des, p_pin
     )
     J_global, J_target = _target_jacobians(J_global, pair_seg, dF_all, dm_all, labels, config)
     # 5. averaged final captures, the tilt bias, then one row per touch-up
@@ -537,8 +576,17 @@ def extract_touchups(
     for k, fr in enumerate(seg_frames):
         g = int(labels[k])
         J = (J_target[g], "target") if g in J_target else (J_global, "global")
-        out.append(_touchup_row(k, fr, finals[k], loop_start[k], g, c, des, J, tilt))
+        out.append(
+            _touchup_row(
+                k, fr, finals[k], loop_start[k], g, c, des, J, tilt, config.depth_scaled_jacobian
+            )
+        )
     table = pd.DataFrame(out)
+    # each touch-up's pair scatter S_i (F2 in pipeline.estimation.correction_frame)
+    S = np.zeros((len(seg_frames), 3, 3))
+    np.add.at(S, pair_seg, dF_all[:, :, None] * dF_all[:, None, :])
+    for col, vals in scatter_columns(S).items():
+        table[col] = vals
     # stable column order: declared first, then extras
     table.attrs["image_jacobian"] = J_global.tolist()
     table.attrs["image_jacobian_per_target"] = {int(g): J.tolist() for g, J in J_target.items()}

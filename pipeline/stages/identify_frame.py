@@ -1,0 +1,97 @@
+"""Identification, step 0: the residual corrections in the calibrated flange frame.
+
+See :mod:`pipeline.estimation.correction_frame` for why and the maths (F1).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from pipeline.errors import BadInput, CalibrationFailed
+from pipeline.estimation.correction_frame import translation_map
+from pipeline.kinematics.chain import Chain
+from pipeline.kinematics.se3 import F64
+from pipeline.stages.identify_data import FitData
+from pipeline.stages.identify_types import AUTO_ORDER, IdentifyConfig, IdentifyResult
+
+
+@dataclass
+class Frame:
+    """The map applied to the corrections (:func:`_correction_frame`) and its summary."""
+
+    M: F64
+    summary: dict[str, Any]
+
+
+def correction_frame(
+    chain: Chain,
+    data: FitData,
+    config: IdentifyConfig,
+    fit_one: Callable[[str, IdentifyConfig], IdentifyResult],
+) -> tuple[FitData, Frame]:
+    """The corrections in the calibrated flange frame (``IdentifyConfig.correction_frame``).
+
+    1. A first fit of the first model of ``AUTO_ORDER`` that can be fitted (prediction
+       only, no print shape); 2. ``M_bar`` of (F1) in
+       :mod:`pipeline.estimation.correction_frame` from the nominal to its calibrated
+       chain, weighted by every row's pair scatter ``S_i`` (F2) where the table has
+       them, else over the used poses (weights ``w_i``); 3. ``d_i -> M_bar d_i`` for every row,
+       and the print-size levers ``g_i`` likewise (flange-frame vectors from the same
+       Jacobian). Nothing changes for ``nominal``, or when no first fit is possible.
+    ``fit_one(model, config)`` fits one error model to ``data``
+    (:func:`pipeline.stages.identify._identify_one`).
+    """
+    eye = np.eye(3)
+    if config.correction_frame == "nominal":
+        return data, Frame(eye, {"method": "nominal", "note": "corrections as the table has them"})
+    if config.correction_frame != "calibrated":
+        raise BadInput(
+            f"correction_frame {config.correction_frame!r}: expected 'calibrated' or 'nominal'"
+        )
+    first_cfg = dataclasses.replace(
+        config, prediction_only=True, target_shape="none", correction_frame="nominal"
+    )
+    first = None
+    for name in AUTO_ORDER:
+        try:
+            first = fit_one(name, first_cfg)
+            break
+        except (BadInput, CalibrationFailed):
+            continue
+    if first is None:
+        return data, Frame(eye, {"method": "nominal", "note": "no first fit: corrections kept"})
+    if data.pair_scatter_all is not None:  # (F2): the pairs of every row, used or not
+        M = translation_map(
+            chain, first.chain, data.q_all, S=data.pair_scatter_all, p_point=first.p_flange_pin
+        )
+        how = "pair-scatter weighted (F2)"
+    else:
+        M = translation_map(chain, first.chain, data.q, data.sw**2, p_point=first.p_flange_pin)
+        how = "mean over the used poses (F1)"
+    d = data.d @ M.T
+    new = dataclasses.replace(
+        data,
+        d=d,
+        d_all=data.d_all @ M.T,
+        shape_g=None if data.shape_g is None else data.shape_g @ M.T,
+    )
+    moved = np.linalg.norm(d - data.d, axis=1)
+    return new, Frame(
+        M,
+        {
+            "method": "calibrated",
+            "first_fit": first.model,
+            "average": how,
+            "matrix_minus_identity": (M - eye).tolist(),
+            "rms_change_um": float(np.sqrt(np.mean(moved**2)) * 1e6) if len(moved) else 0.0,
+            "max_change_um": float(moved.max() * 1e6) if len(moved) else 0.0,
+            "note": "corrections taken from nominal to calibrated flange translations "
+            f"(M_bar - I up to {np.abs(M - eye).max():.1e}; they moved by up to "
+            f"{(moved.max() * 1e6 if len(moved) else 0.0):.1f} um)",
+        },
+    )
