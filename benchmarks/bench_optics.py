@@ -21,6 +21,7 @@ reported.
     python benchmarks/bench_optics.py                      # everything (~25 min, 2 workers)
     python benchmarks/bench_optics.py --cells lrmate --effects linear srgb
     python benchmarks/bench_optics.py --list
+    python benchmarks/bench_optics.py --seeds 7 8 9        # per seed, then means over seeds
 """
 
 from __future__ import annotations
@@ -121,6 +122,7 @@ def one_case(cell: str, effect: str, seed: int, work: str) -> dict[str, Any]:
         or float(cam.get("saturated_fraction", 0.0) or 0.0) > 0.01
     )
     kept = int(inl["inlier"].sum())
+    across, along = _touchup_misses(truth, inl, judged["model_summary"])
     return {
         "cell": cell,
         "effect": effect,
@@ -136,7 +138,51 @@ def one_case(cell: str, effect: str, seed: int, work: str) -> dict[str, Any]:
         "warned": warned,
         "t_sim": t_sim,
         "t_run": t_run,
+        "miss_across_um": across,
+        "miss_along_um": along,
     }
+
+
+def _touchup_misses(
+    truth: dict[str, Any], inl: Any, summary: dict[str, Any]
+) -> tuple[float, float]:
+    """RMS miss of the corrected pins against the truth, across / along the view, um.
+
+    Per inlier touch-up: the true robot at its joints, the true pin plus the correction
+    (in the fit's frame, ``correction_frame`` of identify.json), minus the true target
+    centre, in the flange frame; each target's mean taken out (a per-target constant is
+    the pin's or a print's, not a touch-up's). The data quality the fit sees, free of
+    how the random errors happen to project onto the kinematics.
+    """
+    from pipeline.kinematics import fk, load_chain
+
+    rows = inl[inl["inlier"].astype(bool)]
+    if rows.empty:
+        return float("nan"), float("nan")
+    chain = load_chain(truth["true_urdf"], truth["base_link"], truth["flange_link"])
+    q = rows[truth["joint_names"]].to_numpy(dtype=float)
+    T = fk(chain, q)
+    M = np.eye(3) + np.array(
+        (summary.get("correction_frame") or {}).get("matrix_minus_identity", np.zeros((3, 3)))
+    )
+    d = rows[["dx_flange", "dy_flange", "dz_flange"]].to_numpy(dtype=float) @ M.T
+    centre = {
+        int(t["label"]): np.array(t["centre"]) for t in truth["targets"] if t["label"] is not None
+    }
+    tid = rows["target_id"].to_numpy(dtype=int)
+    c = np.array([centre[int(k)] for k in tid])
+    need = np.einsum("nji,nj->ni", T[:, :3, :3], c - T[:, :3, 3]) - np.array(truth["p_vt_flange"])
+    err = d - need
+    for k in np.unique(tid):
+        err[tid == k] -= err[tid == k].mean(axis=0)
+    g = rows[["view_gx", "view_gy", "view_gz"]].to_numpy(dtype=float)[0]
+    g = g / np.linalg.norm(g)
+    along = err @ g
+    across = err - np.outer(along, g)
+    return (
+        float(np.sqrt((across**2).sum(axis=1).mean()) * 1e6),
+        float(np.sqrt((along**2).mean()) * 1e6),
+    )
 
 
 def main() -> None:
@@ -144,6 +190,14 @@ def main() -> None:
     ap.add_argument("--cells", nargs="+", default=list(CELLS), choices=list(CELLS))
     ap.add_argument("--effects", nargs="+", default=list(EFFECTS))
     ap.add_argument("--seed", type=int, default=7)
+    ap.add_argument(
+        "--seeds",
+        type=int,
+        nargs="+",
+        help="several seeds: every row per seed, then the means over seeds and their ratio "
+        "(one seed's ratio to its twin is mostly chance: the 36 touch-ups' random errors "
+        "project onto the kinematics differently each time)",
+    )
     ap.add_argument("--workers", type=int, default=2)
     ap.add_argument("--list", action="store_true", help="print the effects' [optics] keys")
     args = ap.parse_args()
@@ -155,19 +209,39 @@ def main() -> None:
     if bad:
         sys.exit(f"unknown effect(s) {bad}; known: {list(EFFECTS)}")
     effects = list(dict.fromkeys(["linear", *args.effects]))
-    jobs = [(c, e) for c in args.cells for e in effects]
+    seeds = args.seeds or [args.seed]
+    jobs = [(c, e, sd) for sd in seeds for c in args.cells for e in effects]
     t0 = time.perf_counter()
     with tempfile.TemporaryDirectory() as tmp, ProcessPoolExecutor(args.workers) as ex:
-        futs = {job: ex.submit(one_case, job[0], job[1], args.seed, tmp) for job in jobs}
-        res = {job: f.result() for job, f in futs.items()}
+        futs = {job: ex.submit(one_case, job[0], job[1], job[2], tmp) for job in jobs}
+        allres = {job: f.result() for job, f in futs.items()}
+    ok_all = True
+    for sd in seeds:
+        print(f"seed {sd}")
+        ok_all &= _print_seed(
+            {(c, e): allres[(c, e, sd)] for c in args.cells for e in effects}, args.cells, effects
+        )
+    if len(seeds) > 1:
+        ok_all = _print_means(allres, args.cells, effects, seeds)
+    print(
+        f"limits (not judged against 1.5x; vtcal must warn): {sorted(LIMITS)};"
+        f" 'all' = {' + '.join(ALL_OF)} + vibration"
+    )
+    print(f"targets met: {ok_all} ({time.perf_counter() - t0:.0f} s)")
+
+
+def _print_seed(
+    res: dict[tuple[str, str], dict[str, Any]], cells: list[str], effects: list[str]
+) -> bool:
+    """One seed's table; True when every judged row meets its target."""
     hdr = (
         f"{'cell':<7} {'effect':<13} {'shape':>7} {'abs':>7} {'x lin':>6} {'resid':>7}"
         f" {'kept':>6} {'s bias px':>9} {'response':<9} {'warned':<6} {'model':<8} {'sim s':>6}"
-        f" {'run s':>6}"
+        f" {'run s':>6} {'across':>6} {'along':>6}"
     )
     print(hdr)
     ok_all = True
-    for c in args.cells:
+    for c in cells:
         lin = res[(c, "linear")]
         for e in effects:
             r = res[(c, e)]
@@ -183,20 +257,56 @@ def main() -> None:
                 f"{c:<7} {e:<13} {r['shape']:7.4f} {r['abs']:7.4f} {ratio:6.2f}"
                 f" {r['residual']:7.4f} {r['kept']:>3d}/{r['touchups']:<2d} {r['bias_px']:+9.4f}"
                 f" {r['response']!s:<9} {'yes' if r['warned'] else 'no':<6} {r['model']!s:<8}"
-                f" {r['t_sim']:6.1f} {r['t_run']:6.1f}{flag}",
+                f" {r['t_sim']:6.1f} {r['t_run']:6.1f} {r['miss_across_um']:6.2f}"
+                f" {r['miss_along_um']:6.1f}{flag}",
                 flush=True,
             )
         print(f"{c:<7} nominal robot {lin['nominal']:7.3f} mm shape RMS")
     print(
         "mm shape/abs RMS of the shipped model vs truth (500 poses); x lin = shape / linear-image"
         " shape; resid = the training residual vtcal reported; s bias = detector long axis minus"
-        " the exact projected contour's (still captures)"
+        " the exact projected contour's (still captures); across / along um = RMS miss of the"
+        " corrected pins against the truth, per-target means out"
     )
+    return ok_all
+
+
+def _print_means(
+    allres: dict[tuple[str, str, int], dict[str, Any]],
+    cells: list[str],
+    effects: list[str],
+    seeds: list[int],
+) -> bool:
+    """Means over the seeds, their ratio to the linear twins' mean; True when every judged
+    effect's ratio of means is <= 1.5 and 'all' is under 0.1 mm on every seed."""
+    print(f"means over seeds {seeds}")
     print(
-        f"limits (not judged against 1.5x; vtcal must warn): {sorted(LIMITS)};"
-        f" 'all' = {' + '.join(ALL_OF)} + vibration"
+        f"{'cell':<7} {'effect':<17} {'shape':>7} {'x lin':>6} {'max':>7}"
+        f" {'across um':>9} {'x lin':>6} {'along um':>9} {'x lin':>6}"
     )
-    print(f"targets met: {ok_all} ({time.perf_counter() - t0:.0f} s)")
+    ok = True
+    for c in cells:
+
+        def mean(e: str, k: str, c: str = c) -> float:
+            return float(np.mean([allres[(c, e, sd)][k] for sd in seeds]))
+
+        lin = {k: mean("linear", k) for k in ("shape", "miss_across_um", "miss_along_um")}
+        for e in effects:
+            m = {k: mean(e, k) for k in lin}
+            worst = max(allres[(c, e, sd)]["shape"] for sd in seeds)
+            flag = ""
+            if e in LIMITS:
+                flag = " (limit)"
+            elif e != "linear" and m["shape"] > 1.5 * lin["shape"]:
+                flag, ok = " >1.5x", False
+            if e == "all" and worst >= 0.1:
+                flag, ok = flag + " >=0.1mm", False
+            print(
+                f"{c:<7} {e:<17} {m['shape']:7.4f} {m['shape'] / lin['shape']:6.2f} {worst:7.4f}"
+                f" {m['miss_across_um']:9.2f} {m['miss_across_um'] / lin['miss_across_um']:6.2f}"
+                f" {m['miss_along_um']:9.1f} {m['miss_along_um'] / lin['miss_along_um']:6.2f}{flag}"
+            )
+    return ok
 
 
 if __name__ == "__main__":
