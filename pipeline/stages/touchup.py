@@ -74,6 +74,7 @@ from pipeline.stages.touchup_jacobian import (
     diameter_from_jacobian,
     estimate_jacobian,
     pair_change,
+    pair_scatters,
     size_row_scales,
     view_geometry,
 )
@@ -551,8 +552,7 @@ def extract_touchups(
     finals = [final_block(fr, c.T, c.still, **same) for fr in seg_frames]
     des = _designated(meta, inferred, finals, c, config, info.path)
     loop_start = loop_starts(seg_frames, c.T, c.still, **same)
-    # 4. targets from final (or last seen) poses and the pin estimate, then 3. the image
-    # Jacobian from pairs translating the flange point at the pin
+    # 4. targets and the pin estimate (final poses), then 3. the image Jacobian at the pin
     rep = _representatives(seg_frames, finals, c)
     labels, p_pin = group_targets(
         c.T[np.array(rep)],
@@ -582,10 +582,7 @@ def extract_touchups(
             )
         )
     table = pd.DataFrame(out)
-    # each touch-up's pair scatter S_i (F2 in pipeline.estimation.correction_frame)
-    S = np.zeros((len(seg_frames), 3, 3))
-    np.add.at(S, pair_seg, dF_all[:, :, None] * dF_all[:, None, :])
-    for col, vals in scatter_columns(S).items():
+    for col, vals in scatter_columns(pair_scatters(pair_seg, dF_all, len(seg_frames))).items():
         table[col] = vals
     # stable column order: declared first, then extras
     table.attrs["image_jacobian"] = J_global.tolist()

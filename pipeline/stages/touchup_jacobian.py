@@ -81,6 +81,18 @@ def pair_change(
     return dm
 
 
+def pair_scatters(pair_seg: np.ndarray, dF: np.ndarray, n: int) -> np.ndarray:
+    """Each touch-up's pair scatter ``S_i = sum_{p in i} v_p v_p^T``, ``(n, 3, 3)`` m^2.
+
+    ``v_p`` the pairs' translations ``dF`` (``(N, 3)``), ``pair_seg`` their touch-up;
+    what identification weighs the nominal-to-calibrated map with
+    (:mod:`pipeline.estimation.correction_frame`, F2).
+    """
+    S = np.zeros((n, 3, 3))
+    np.add.at(S, pair_seg, dF[:, :, None] * dF[:, None, :])
+    return S
+
+
 def estimate_jacobian(dF: np.ndarray, dm: np.ndarray) -> np.ndarray | None:
     """Image Jacobian from pairs: ``dm (N, 3) ~ J dF (N, 3)``; None if ill-posed.
 
