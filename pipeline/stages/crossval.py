@@ -157,14 +157,20 @@ def refit_config(config: IdentifyConfig, full: Mapping[str, Any]) -> IdentifyCon
     the test would leave the test's choice, made with the held-out touch-ups,
     out of what is validated (measured: 3.5 % lower held-out RMS on the
     standard LR Mate-like cell, an optimistic figure).
+
+    The corrections' map into the calibrated flange frame (``correction_map``) is the
+    full fit's: near the identity, a property of the kinematics, not of the held-out rows.
     """
     shape = full.get("print_shape")
     no_shape = isinstance(shape, dict) and shape.get("fitted") is False
+    frame = full.get("correction_frame") or {}
+    given = frame.get("matrix_minus_identity")
     return dataclasses.replace(
         config,
         check_plausibility=False,
         target_shape="none" if no_shape else config.target_shape,
         prediction_only=True,
+        correction_map=(np.eye(3) + np.asarray(given)).tolist() if given is not None else None,
     )
 
 

@@ -53,6 +53,9 @@ def correction_frame(
         raise BadInput(
             f"correction_frame {config.correction_frame!r}: expected 'calibrated' or 'nominal'"
         )
+    if config.correction_map is not None:
+        given = np.asarray(config.correction_map, dtype=float)
+        return _apply(data, given, {"method": "given", "note": "the full fit's map"})
     first_cfg = dataclasses.replace(
         config, prediction_only=True, target_shape="none", correction_frame="nominal"
     )
@@ -73,6 +76,21 @@ def correction_frame(
     else:
         M = translation_map(chain, first.chain, data.q, data.sw**2, p_point=first.p_flange_pin)
         how = "mean over the used poses (F1)"
+    return _apply(
+        data,
+        M,
+        {
+            "method": "calibrated",
+            "first_fit": first.model,
+            "average": how,
+            "note": "corrections taken from nominal to calibrated flange translations",
+        },
+    )
+
+
+def _apply(data: FitData, M: F64, summary: dict[str, Any]) -> tuple[FitData, Frame]:
+    """``d_i -> M d_i`` for every row (and the print-size levers); the summary completed."""
+    eye = np.eye(3)
     d = data.d @ M.T
     new = dataclasses.replace(
         data,
@@ -80,18 +98,16 @@ def correction_frame(
         d_all=data.d_all @ M.T,
         shape_g=None if data.shape_g is None else data.shape_g @ M.T,
     )
-    moved = np.linalg.norm(d - data.d, axis=1)
+    moved = np.linalg.norm(d - data.d, axis=1) * 1e6
+    big = float(moved.max()) if len(moved) else 0.0
     return new, Frame(
         M,
         {
-            "method": "calibrated",
-            "first_fit": first.model,
-            "average": how,
+            **summary,
             "matrix_minus_identity": (M - eye).tolist(),
-            "rms_change_um": float(np.sqrt(np.mean(moved**2)) * 1e6) if len(moved) else 0.0,
-            "max_change_um": float(moved.max() * 1e6) if len(moved) else 0.0,
-            "note": "corrections taken from nominal to calibrated flange translations "
-            f"(M_bar - I up to {np.abs(M - eye).max():.1e}; they moved by up to "
-            f"{(moved.max() * 1e6 if len(moved) else 0.0):.1f} um)",
+            "rms_change_um": float(np.sqrt(np.mean(moved**2))) if len(moved) else 0.0,
+            "max_change_um": big,
+            "note": f"{summary['note']} (M - I up to {np.abs(M - eye).max():.1e}; "
+            f"the corrections moved by up to {big:.1f} um)",
         },
     )

@@ -77,6 +77,8 @@ class IdentifyConfig:
         flange translations (:mod:`pipeline.estimation.correction_frame`: the touch-up stage's
         image Jacobian was measured with nominal translations), then the fit;
         ``nominal``: the corrections as the table has them
+    correction_map : a given ``M_eff`` (3 x 3 nested list) instead of the first fit's:
+        cross-validation's refits take the full fit's (:func:`pipeline.stages.crossval.refit_config`)
     """
 
     model: str = "auto"
@@ -101,6 +103,7 @@ class IdentifyConfig:
     check_plausibility: bool = True
     prediction_only: bool = False
     correction_frame: str = "calibrated"
+    correction_map: list[list[float]] | None = None
 
 
 @dataclass
