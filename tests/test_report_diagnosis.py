@@ -172,3 +172,26 @@ def test_clipped_edges_say_how_much_they_were_corrected() -> None:
     assert "+0.330 px" in rows[0]["found"]
     det["clip_correction_px"] = 0.0
     assert clip_rows(det) == []
+
+
+def test_the_correction_frame_is_shown_from_identify_json() -> None:
+    from pipeline.report.diagnosis import frame_rows
+
+    ident = {
+        "best_model": "full",
+        "models": {
+            "full": {
+                "correction_frame": {
+                    "method": "calibrated",
+                    "matrix_minus_identity": [[0.0, 0.003, 0.0], [0.0, 0.0, -0.0012], [0, 0, 0]],
+                    "rms_change_um": 1.5,
+                    "max_change_um": 4.25,
+                }
+            }
+        },
+    }
+    rows = frame_rows(ident)
+    assert len(rows) == 1
+    assert "3.0 per thousand" in rows[0]["found"] and "4.25 um" in rows[0]["found"]
+    assert frame_rows({"best_model": "full", "models": {"full": {}}}) == []
+    assert frame_rows(None) == []

@@ -193,6 +193,25 @@ def size_correction_rows(tu: pd.DataFrame | None) -> tuple[list[dict[str, str]],
     return rows, warn
 
 
+def frame_rows(identify: dict[str, Any] | None) -> list[dict[str, str]]:
+    """The map that took the corrections into the calibrated flange frame (identify.json)."""
+    ident = identify or {}
+    best = ident.get("best_model")
+    cf = ((ident.get("models") or {}).get(best) or ident).get("correction_frame")
+    if not isinstance(cf, dict) or "matrix_minus_identity" not in cf:
+        return []
+    dev = float(np.abs(np.asarray(cf["matrix_minus_identity"], dtype=float)).max())
+    return [
+        _row(
+            "corrections in the calibrated flange frame",
+            f"the nominal robot's flange translations were off by up to {1e3 * dev:.1f} "
+            f"per thousand; the corrections moved by {float(cf.get('rms_change_um', 0.0)):.2f} um "
+            f"RMS, up to {float(cf.get('max_change_um', 0.0)):.2f} um ({cf.get('method', '?')})",
+            "ok",
+        )
+    ]
+
+
 def _print_rows(data: RunData, model: str | None) -> list[dict[str, str]]:
     t = data.targets
     if t is None:
@@ -339,7 +358,7 @@ def camera_section(data: RunData) -> dict[str, Any]:
     rows += clip_rows(data.detections)
     rows += _corrected_rows(data.inliers)
     more_rows, w_corr = size_correction_rows(data.touchups)
-    rows += more_rows
+    rows += more_rows + frame_rows(data.identify)
     warn += w_corr
     rows += _print_rows(data, model)
     tr = along_view_trend(data)
