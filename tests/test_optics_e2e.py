@@ -4,26 +4,21 @@ Twins of one simulated cell (same seed: same robot, targets, plan and noise
 draws), each calibrated by the whole pipeline and judged against the truth:
 
 * sRGB-encoded images calibrate within 1.5x of the linear twin on the standard
-  cell's 36 touch-ups (before vtcal linearised its grey levels, every long axis
-  read ~0.4-0.8 px short and the pin sat millimetres off along the view: ~1.2 mm
-  here). With 24 touch-ups they do not yet: 0.042 / 0.029 mm against 0.015 / 0.009
-  mm on seeds 7 / 9 (0.035 / 0.060 mm before one image Jacobian served every
-  target). The controller's own detector reads the encoded image ~0.43 px short,
-  every touch-up is corrected by ~1.4 mm along the view; what is left is the
-  encoded image's ~1.5x long-axis noise (docs/detection.md);
+  cell's 36 touch-ups, seed 7 (before vtcal linearised its grey levels, every long
+  axis read ~0.4-0.8 px short and the pin sat millimetres off along the view:
+  ~1.2 mm here). The controller's own detector reads the encoded image ~0.43 px
+  short, so every touch-up is corrected by ~1.4 mm along the view; what is left is
+  the encoded image's ~1.5x long-axis noise (docs/detection.md);
 * uneven light with a controller whose simpler detector it fools (binary blob
   moments at one global threshold, ~1.5 px short and a few tenths of a pixel off
   centre) keeps its touch-ups (before: 17 of 18 rejected as "not converged") and
-  calibrates to under 0.1 mm (0.068 mm on seed 7; the same limit as above, with
-  ~4.7 mm of along-view correction per touch-up).
-
+  calibrates to under 0.1 mm (~4.7 mm of along-view correction per touch-up);
 * prints 20 um out of round (2 um rough) calibrate to under 0.05 mm, with the print
-  shape identified (0.020 / 0.008 / 0.020 mm on seeds 7 / 8 / 9 against the linear
-  twins' 0.013 / 0.018 / 0.009 mm; without the print-shape fit the same cell is
-  0.13 mm off with 36 touch-ups: the long axis follows the camera's roll).
+  shape identified (without the print-shape fit the same cell is 0.13 mm off with
+  36 touch-ups: the long axis follows the camera's roll).
 
-What limits the first two is written up in ``docs/detection.md`` ("Real cameras: what is
-left").
+The figures per effect and seed are bench_optics' (docs/detection.md, "Real
+cameras end to end", where what limits the first two is written up).
 """
 
 from __future__ import annotations
