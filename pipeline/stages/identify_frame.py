@@ -1,6 +1,6 @@
 """Identification, step 0: the residual corrections in the calibrated flange frame.
 
-See :mod:`pipeline.estimation.correction_frame` for why and the maths (F1).
+See :mod:`pipeline.estimation.correction_frame` for why and the maths (F1)-(F2).
 """
 
 from __future__ import annotations
@@ -22,7 +22,7 @@ from pipeline.stages.identify_types import AUTO_ORDER, IdentifyConfig, IdentifyR
 
 @dataclass
 class Frame:
-    """The map applied to the corrections (:func:`_correction_frame`) and its summary."""
+    """The map applied to the corrections (:func:`correction_frame`) and its summary."""
 
     M: F64
     summary: dict[str, Any]
@@ -37,12 +37,13 @@ def correction_frame(
     """The corrections in the calibrated flange frame (``IdentifyConfig.correction_frame``).
 
     1. A first fit of the first model of ``AUTO_ORDER`` that can be fitted (prediction
-       only, no print shape); 2. ``M_bar`` of (F1) in
-       :mod:`pipeline.estimation.correction_frame` from the nominal to its calibrated
-       chain, weighted by every row's pair scatter ``S_i`` (F2) where the table has
-       them, else over the used poses (weights ``w_i``); 3. ``d_i -> M_bar d_i`` for every row,
-       and the print-size levers ``g_i`` likewise (flange-frame vectors from the same
-       Jacobian). Nothing changes for ``nominal``, or when no first fit is possible.
+       only, no print shape); 2. ``M_eff``: the map (F1) of
+       :mod:`pipeline.estimation.correction_frame` from the nominal to the first fit's
+       calibrated chain, at its pin, averaged with every row's pair scatter ``S_i`` (F2)
+       where the table has them, else over the used poses (weights ``w_i``);
+       3. ``d_i -> M_eff d_i`` for every row, and the print-size levers ``g_i`` likewise
+       (flange-frame vectors from the same Jacobian). Nothing changes for ``nominal``
+       or when no first fit is possible; ``config.correction_map`` replaces 1-2.
     ``fit_one(model, config)`` fits one error model to ``data``
     (:func:`pipeline.stages.identify._identify_one`).
     """
