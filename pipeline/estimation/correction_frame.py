@@ -5,15 +5,15 @@ pure flange translation apart, and each translation ``v_n`` is computed with the
 *nominal* kinematics (``R_a^T (t_b - t_a)`` of the two nominal flange poses). The
 arm moved by the true kinematics, so the translation that really happened is
 ``v = M(q) v_n``, with ``M`` a few thousandths off the identity (link-length and
-axis errors). ``J`` then maps nominal translations to image changes, ``J = J_c M^-1``
+axis errors). ``J`` then maps nominal translations to image changes, ``J = J_c M``
 (``J_c`` the camera's own), and each correction ``d = -J^-1 e`` comes out in that
 frame: ``d = M^-1 d_c``. Where the corrections are millimetres (a controller that
 stopped short in size), a few thousandths of them is micrometres across the view,
 far above a touch-up's noise there (~1 um), and it varies with the correction, so
-no constant absorbs it. The fix: after a first fit, ``d_c = M_bar d`` with ``M_bar``
+no constant absorbs it. The fix: after a first fit, ``d_c = M_eff d`` with ``M_eff``
 from the calibrated kinematics (:func:`translation_map`), then fit again
-(:mod:`pipeline.stages.identify`). ``M_bar`` is a pose average because ``J`` is one
-matrix for every pose.
+(:mod:`pipeline.stages.identify`). ``M_eff`` is a pose average (F2) because ``J`` is
+one matrix for every pose.
 
 The maths. The image moves with the point of the flange at the target, the pin
 ``p`` (flange frame), not with the flange origin: a flange step of body twist
