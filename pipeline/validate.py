@@ -288,7 +288,7 @@ def validate(
     ``targets``.
 
     The corrections are judged with the calibrated robot in its own flange frame,
-    ``d_i -> M_bar d_i`` (:mod:`pipeline.estimation.correction_frame`, as identification
+    ``d_i -> M_eff d_i`` (:mod:`pipeline.estimation.correction_frame`, as identification
     fits them), and as the table has them with the nominal robot.
     """
     import dataclasses

@@ -73,7 +73,7 @@ class IdentifyConfig:
         metadata names every target of the cell, a truncated run may not have reached them all)
     correction_frame : the frame the residual corrections ``d_i`` are taken in. ``calibrated``:
         a first fit (the first of ``AUTO_ORDER`` that can be fitted, prediction only), then
-        ``d_i -> M_bar d_i`` with ``M_bar`` the pose-averaged map from nominal to calibrated
+        ``d_i -> M_eff d_i`` with ``M_eff`` the pose-averaged map from nominal to calibrated
         flange translations (:mod:`pipeline.estimation.correction_frame`: the touch-up stage's
         image Jacobian was measured with nominal translations), then the fit;
         ``nominal``: the corrections as the table has them
@@ -122,7 +122,7 @@ class IdentifyResult:
     error_model : the fitted model: ``error_model.pin_and_jacobian(x, q, pin)`` predicts
         the pin exactly, also where ``chain`` (the URDF's rigid kinematics) cannot
         (a model with ``urdf_exact = False``)
-    correction_map : (3, 3) ``M_bar`` the fit applied to the table's corrections
+    correction_map : (3, 3) ``M_eff`` the fit applied to the table's corrections
         (``IdentifyConfig.correction_frame``; the identity for ``nominal``)
     """
 
@@ -139,9 +139,9 @@ class IdentifyResult:
     correction_map: F64 = field(repr=False, default_factory=lambda: np.eye(3))
 
     def predict(self, q: F64, d: F64) -> F64:
-        """Pin positions ``T_base_flange(q_i; x) (p_pin + M_bar d_i)`` of the fitted model, (N, 3).
+        """Pin positions ``T_base_flange(q_i; x) (p_pin + M_eff d_i)`` of the fitted model, (N, 3).
 
-        ``d`` as the table has it; ``M_bar`` is :attr:`correction_map`."""
+        ``d`` as the table has it; ``M_eff`` is :attr:`correction_map`."""
         pts = self.p_flange_pin[None, :] + np.asarray(d, dtype=float) @ self.correction_map.T
         if self.error_model is not None:
             p, _, _ = self.error_model.pin_and_jacobian(self.x, q, pts, jac=False)
