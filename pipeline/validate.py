@@ -46,6 +46,7 @@ import numpy as np
 import pandas as pd
 
 from pipeline.errors import BadInput, CalibrationFailed
+from pipeline.estimation.correction_frame import PAIR_COLUMNS, scatter_from_columns, translation_map
 from pipeline.evaluate import fit_pin_and_targets
 from pipeline.kinematics.chain import Chain, fk
 from pipeline.kinematics.se3 import F64
@@ -72,6 +73,8 @@ class Touchups:
     tk : (N,) target index 0..K-1
     labels : K target labels (text), first-appearance order
     n_rows, n_unusable : rows of the input, rows not judged (rejected, not converged, ...)
+    S : (N, 3, 3) the touch-ups' image-Jacobian pair scatters when the input has them
+        (``pair_s**`` columns, :mod:`pipeline.estimation.correction_frame` F2), else None
     """
 
     q: F64
@@ -80,6 +83,7 @@ class Touchups:
     labels: list[str]
     n_rows: int
     n_unusable: int
+    S: F64 | None = None
 
     @property
     def K(self) -> int:
@@ -163,7 +167,10 @@ def usable_touchups(df: pd.DataFrame, joint_names: list[str], source: str) -> To
             "touch-ups: a consistency needs at least two per target (touch each target up "
             "again at other orientations)"
         )
-    return Touchups(q[idx], d[idx], tk, order, len(df), len(df) - len(idx))
+    S = None
+    if all(c in df.columns for c in PAIR_COLUMNS):
+        S = scatter_from_columns(df[list(PAIR_COLUMNS)].to_numpy(dtype=float))[idx]
+    return Touchups(q[idx], d[idx], tk, order, len(df), len(df) - len(idx), S)
 
 
 def predicted_points(chain: Chain, pin: F64, data: Touchups) -> F64:
@@ -293,9 +300,7 @@ def validate(
     """
     import dataclasses
 
-    from pipeline.estimation.correction_frame import translation_map
-
-    M = translation_map(nominal, calibrated, data.q)
+    M = translation_map(nominal, calibrated, data.q, S=data.S, p_point=calibrated_pin)
     data_c = dataclasses.replace(data, d=data.d @ M.T)
     refit_cal = judge(
         CALIBRATED_REFIT, calibrated, refit_pin(calibrated, data_c), data_c, distances
