@@ -190,3 +190,29 @@ def test_large_corrections_land_on_the_truth(uneven: dict[str, object]) -> None:
     M_fit = res.correction_map - np.eye(3)
     assert np.linalg.norm(M_fit - M_true) < 0.25 * np.linalg.norm(M_true)  # 0.18 measured
     assert res.summary["correction_frame"]["method"] == "calibrated"
+
+
+def test_a_map_the_poses_do_not_determine_is_not_applied() -> None:
+    """Weakly excited poses (0.01 rad spread): the first fit's kinematics wander in
+    directions the touch-ups do not see, its map is far from the identity (0.35), and
+    identification keeps the corrections as they are, saying why."""
+    from test_identify import LRMATE_CENTRE, PIN
+
+    from pipeline.evaluate import synthetic_touchups
+    from pipeline.robots import builtin_urdf
+
+    urdf = builtin_urdf("lrmate")
+    nominal = load_chain(urdf, "base_link", "flange")
+    rng = np.random.default_rng(2)
+    table, tg = synthetic_touchups(
+        nominal, PIN, 3, 12, rng, spread_rad=0.01, centre_spread_rad=0.01,
+        q_centre=LRMATE_CENTRE, noise_pin_m=5e-6,
+    )  # fmt: skip
+    table["dx_flange"] = 1e-4  # a correction the map would change
+    d02 = float(np.linalg.norm(tg[0] - tg[2]))
+    cfg = IdentifyConfig(model="full", distances=[(0, 2, d02)])
+    res = identify(table, urdf, "base_link", "flange", cfg)
+    assert not isinstance(res, dict)
+    np.testing.assert_array_equal(res.correction_map, np.eye(3))
+    cf = res.summary["correction_frame"]
+    assert cf["method"] == "nominal" and "do not determine it" in cf["note"], cf

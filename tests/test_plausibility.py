@@ -241,7 +241,11 @@ def test_a_weakly_excited_identification_says_so_with_its_figure(spread, weak):
     res = identify(table, urdf, "base_link", "flange", IdentifyConfig(model="full", distances=[(0, 2, d02)]))  # fmt: skip
     lines = [h for h in res.summary["headline"] if h.startswith("conditioning:")]
     if weak:
-        assert len(lines) == 1 and "cond 4.01e+04 > 1e+04" in lines[0], res.summary["headline"]
+        # the figure is the fit's own (4.0e4-4.9e4 across numpy / scipy builds: the poses
+        # barely excite the arm, which is the point)
+        cond = float(res.summary["cond"])
+        assert cond > 1e4
+        assert len(lines) == 1 and f"cond {cond:.2e} > 1e+04" in lines[0], res.summary["headline"]
     else:
         assert lines == [] and res.summary["conditioning_note"].startswith("every identifiable")
 

@@ -164,7 +164,7 @@ def refit_config(config: IdentifyConfig, full: Mapping[str, Any]) -> IdentifyCon
     shape = full.get("print_shape")
     no_shape = isinstance(shape, dict) and shape.get("fitted") is False
     frame = full.get("correction_frame") or {}
-    given = frame.get("matrix_minus_identity")
+    given = frame.get("matrix_minus_identity", np.zeros((3, 3)) if frame else None)
     return dataclasses.replace(
         config,
         check_plausibility=False,
