@@ -52,7 +52,7 @@ from __future__ import annotations
 import numpy as np
 
 from pipeline.kinematics.chain import Chain, fk, jacobian
-from pipeline.kinematics.se3 import F64
+from pipeline.kinematics.se3 import F64, skew
 
 #: condition number of the nominal body Jacobian above which a pose is left out
 SINGULAR_COND = 1e4
@@ -115,8 +115,7 @@ def translation_map(
     Jc = body_jacobian(calibrated, q2)
     ww = np.ones(len(q2)) if w is None else np.asarray(w, dtype=float)
     ok = (np.linalg.cond(Jn) < SINGULAR_COND) & (ww > 0)
-    p = np.zeros(3) if p_point is None else np.asarray(p_point, dtype=float)
-    px = np.array([[0.0, -p[2], p[1]], [p[2], 0.0, -p[0]], [-p[1], p[0], 0.0]])
+    px = skew(np.zeros(3) if p_point is None else p_point)
 
     def per_pose(sel: np.ndarray) -> F64:
         A = Jc[sel] @ np.linalg.pinv(Jn[sel])
