@@ -46,7 +46,12 @@ import numpy as np
 import pandas as pd
 
 from pipeline.errors import BadInput, CalibrationFailed
-from pipeline.estimation.correction_frame import PAIR_COLUMNS, scatter_from_columns, translation_map
+from pipeline.estimation.correction_frame import (
+    MAX_FRAME_DEVIATION,
+    frame_deviation,
+    table_scatters,
+    translation_map,
+)
 from pipeline.evaluate import fit_pin_and_targets
 from pipeline.kinematics.chain import Chain, fk
 from pipeline.kinematics.se3 import F64
@@ -167,10 +172,10 @@ def usable_touchups(df: pd.DataFrame, joint_names: list[str], source: str) -> To
             "touch-ups: a consistency needs at least two per target (touch each target up "
             "again at other orientations)"
         )
-    S = None
-    if all(c in df.columns for c in PAIR_COLUMNS):
-        S = scatter_from_columns(df[list(PAIR_COLUMNS)].to_numpy(dtype=float))[idx]
-    return Touchups(q[idx], d[idx], tk, order, len(df), len(df) - len(idx), S)
+    S = table_scatters(df)
+    return Touchups(
+        q[idx], d[idx], tk, order, len(df), len(df) - len(idx), None if S is None else S[idx]
+    )
 
 
 def predicted_points(chain: Chain, pin: F64, data: Touchups) -> F64:
@@ -296,11 +301,14 @@ def validate(
 
     The corrections are judged with the calibrated robot in its own flange frame,
     ``d_i -> M_eff d_i`` (:mod:`pipeline.estimation.correction_frame`, as identification
-    fits them), and as the table has them with the nominal robot.
+    fits them; not where the map is more than ``MAX_FRAME_DEVIATION`` off the identity,
+    as identification does not), and as the table has them with the nominal robot.
     """
     import dataclasses
 
     M = translation_map(nominal, calibrated, data.q, S=data.S, p_point=calibrated_pin)
+    if frame_deviation(M) > MAX_FRAME_DEVIATION:  # as identification: not a robot's map
+        M = np.eye(3)
     data_c = dataclasses.replace(data, d=data.d @ M.T)
     refit_cal = judge(
         CALIBRATED_REFIT, calibrated, refit_pin(calibrated, data_c), data_c, distances

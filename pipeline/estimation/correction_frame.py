@@ -50,6 +50,7 @@ mean is used.
 from __future__ import annotations
 
 import numpy as np
+import pandas as pd
 
 from pipeline.kinematics.chain import Chain, fk, jacobian
 from pipeline.kinematics.se3 import F64, skew
@@ -60,6 +61,27 @@ SINGULAR_COND = 1e4
 #: nominal flange translations of the image-Jacobian pairs taken during touch-up ``i``, m^2
 PAIR_COLUMNS = ("pair_sxx", "pair_syy", "pair_szz", "pair_sxy", "pair_sxz", "pair_syz")
 _PAIR_INDEX = ((0, 0), (1, 1), (2, 2), (0, 1), (0, 2), (1, 2))
+
+
+#: largest ``|M_eff - I|`` entry applied: a robot whose nominal model moves the flange
+#: 5 % off its true motion is not one a touch-up calibration starts from, so a larger
+#: map comes from kinematics the poses do not determine (measured: 0.35 on a weakly
+#: excited synthetic table, cond 5e4) and is not applied
+MAX_FRAME_DEVIATION = 0.05
+
+
+def frame_deviation(M: F64) -> float:
+    """Largest ``|M - I|`` entry; above :data:`MAX_FRAME_DEVIATION` the map is not applied."""
+    return float(np.abs(np.asarray(M, dtype=float) - np.eye(3)).max())
+
+
+def table_scatters(df: pd.DataFrame) -> F64 | None:
+    """Every row's pair scatter ``(M, 3, 3)`` from a table's :data:`PAIR_COLUMNS` (NaN
+    where not a number), None when the table lacks them (another writer's)."""
+    if not all(c in df.columns for c in PAIR_COLUMNS):
+        return None
+    cols = [pd.to_numeric(df[c], errors="coerce").to_numpy(dtype=float) for c in PAIR_COLUMNS]
+    return scatter_from_columns(np.stack(cols, axis=1))
 
 
 def scatter_columns(S: F64) -> dict[str, F64]:

@@ -14,7 +14,7 @@ import numpy as np
 import pandas as pd
 
 from pipeline.errors import BadInput, CalibrationFailed
-from pipeline.estimation.correction_frame import PAIR_COLUMNS, scatter_from_columns
+from pipeline.estimation.correction_frame import table_scatters
 from pipeline.kinematics.chain import Chain
 from pipeline.kinematics.se3 import F64
 from pipeline.stages.identify_types import IdentifyConfig
@@ -64,7 +64,8 @@ def prepare_data(touchups: pd.DataFrame, chain: Chain, config: IdentifyConfig) -
     2. every row that cannot be used gets its reason (:func:`_row_reasons`);
     3. target labels numbered (:func:`_target_numbers`): integers keep their value;
     4. the known distances matched to the used targets (:func:`_known_distances`);
-    5. the print-shape levers of the used rows, when the table has them.
+    5. the print-shape levers of the used rows and every row's image-Jacobian pair
+       scatter, when the table has them.
     """
     df = touchups.reset_index(drop=True)
     names = chain.joint_names
@@ -118,11 +119,6 @@ def prepare_data(touchups: pd.DataFrame, chain: Chain, config: IdentifyConfig) -
         )[ui]
         if len(sh) and np.all(np.isfinite(sh)):
             shape_g, shape_l = sh[:, :3], sh[:, 3:]
-    pair_scatter = None
-    if all(c in df.columns for c in PAIR_COLUMNS):
-        pair_scatter = scatter_from_columns(
-            np.stack([pd.to_numeric(df[c], errors="coerce") for c in PAIR_COLUMNS], axis=1)
-        )
     return FitData(
         q=q_all[ui],
         d=d_all[ui],
@@ -140,7 +136,7 @@ def prepare_data(touchups: pd.DataFrame, chain: Chain, config: IdentifyConfig) -
         tk_all=tk_all,
         shape_g=shape_g,
         shape_l=shape_l,
-        pair_scatter_all=pair_scatter,
+        pair_scatter_all=table_scatters(df),
     )
 
 

@@ -13,17 +13,15 @@ from typing import Any
 import numpy as np
 
 from pipeline.errors import BadInput, CalibrationFailed
-from pipeline.estimation.correction_frame import translation_map
+from pipeline.estimation.correction_frame import (
+    MAX_FRAME_DEVIATION,
+    frame_deviation,
+    translation_map,
+)
 from pipeline.kinematics.chain import Chain
 from pipeline.kinematics.se3 import F64
 from pipeline.stages.identify_data import FitData
 from pipeline.stages.identify_types import AUTO_ORDER, IdentifyConfig, IdentifyResult
-
-#: largest ``|M_eff - I|`` entry applied: a robot whose nominal model moves the flange
-#: 5 % off its true motion is not one a touch-up calibration starts from, so a larger
-#: map comes from a first fit the poses do not determine (measured: 0.35 on a
-#: weakly excited synthetic table, cond 5e4) and is not applied
-MAX_FRAME_DEVIATION = 0.05
 
 
 @dataclass
@@ -50,7 +48,7 @@ def correction_frame(
        3. ``d_i -> M_eff d_i`` for every row, and the print-size levers ``g_i`` likewise
        (flange-frame vectors from the same Jacobian). Nothing changes for ``nominal``,
        when no first fit is possible or when its map is more than
-       :data:`MAX_FRAME_DEVIATION` off the identity; ``config.correction_map`` replaces 1-2.
+       :data:`pipeline.estimation.correction_frame.MAX_FRAME_DEVIATION` off the identity; ``config.correction_map`` replaces 1-2.
     ``fit_one(model, config)`` fits one error model to ``data``
     (:func:`pipeline.stages.identify._identify_one`).
     """
@@ -84,7 +82,7 @@ def correction_frame(
     else:
         M = translation_map(chain, first.chain, data.q, data.sw**2, p_point=first.p_flange_pin)
         how = "mean over the used poses (F1)"
-    dev = float(np.abs(M - eye).max())
+    dev = frame_deviation(M)
     if dev > MAX_FRAME_DEVIATION:
         return data, Frame(
             eye,
