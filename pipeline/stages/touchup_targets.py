@@ -47,14 +47,7 @@ def group_targets(
     rng = np.random.default_rng(seed)
     eps = radius_m * 0.25
 
-    def score(p: np.ndarray) -> tuple[int, float]:
-        c = R @ p + t
-        d = np.linalg.norm(c[:, None, :] - c[None, :, :], axis=-1)
-        ok = (d < eps) & (ang > 0.05)
-        return int(ok.any(axis=1).sum()), float(np.sum(np.minimum(d, eps)))
-
     best_p = np.zeros(3)
-    best = (-1, np.inf)
     pairs = [(i, j) for i in range(n) for j in range(i + 1, n) if ang[i, j] > 0.05]
     # hypotheses: two pairs assumed to share a target each (6 equations, 3 unknowns);
     # every combination of pairs of consecutive touch-ups first (runs usually touch
@@ -77,13 +70,8 @@ def group_targets(
                 hyps.append((pairs[int(x)], pairs[int(y)]))
     elif pairs:
         hyps.append((pairs[0], pairs[0]))
-    for (i, j), (k, m) in hyps:
-        A = np.concatenate([R[i] - R[j], R[k] - R[m]])
-        b = np.concatenate([t[j] - t[i], t[m] - t[k]])
-        p, *_ = np.linalg.lstsq(A, b, rcond=None)
-        sc = score(p)
-        if sc[0] > best[0] or (sc[0] == best[0] and sc[1] < best[1]):
-            best, best_p = sc, p
+    if hyps:
+        best_p = _best_hypothesis(R, t, np.asarray(hyps, dtype=np.int64), ang > 0.05, eps)
     labels = _cluster(R @ best_p + t, radius_m)
     # refine p with the groups: R_i p + t_i = c_g for every member
     for _ in range(2):
@@ -105,6 +93,52 @@ def group_targets(
         best_p = p_new
         labels = _cluster(R @ best_p + t, radius_m)
     return labels, best_p
+
+
+def _best_hypothesis(
+    R: np.ndarray, t: np.ndarray, hyps: np.ndarray, distinct: np.ndarray, eps: float
+) -> np.ndarray:
+    """The RANSAC winner among the hypotheses ``hyps`` ``(H, 2, 2)`` (two index pairs each).
+
+    Each hypothesis solves ``[R_i - R_j; R_k - R_m] p = [t_j - t_i; t_m - t_k]`` in the
+    least-squares (minimum-norm) sense; its score is the number of touch-ups that
+    coincide (``|c_a - c_b| < eps``, ``c = R p + t``) with another of distinct
+    orientation (``distinct`` (n, n)), ties broken by the smaller ``sum min(|c_a - c_b|,
+    eps)``; the first best wins. All hypotheses are solved and scored as arrays, in
+    blocks of about 1e5 distances (from each block's Gram matrices).
+
+    Returns
+    -------
+    p : (3,) the winning pin hypothesis (flange frame)
+    """
+    i, j, k, m = hyps[:, 0, 0], hyps[:, 0, 1], hyps[:, 1, 0], hyps[:, 1, 1]
+    A = np.concatenate([R[i] - R[j], R[k] - R[m]], axis=1)  # (H, 6, 3)
+    b = np.concatenate([t[j] - t[i], t[m] - t[k]], axis=1)  # (H, 6)
+    # minimum-norm least squares with lstsq's default cut-off (eps * max(M, N))
+    P = np.einsum("hab,hb->ha", np.linalg.pinv(A, rcond=np.finfo(float).eps * 6), b)
+    n = len(t)
+    block = max(1, 100_000 // max(1, n * n))  # a block's distances stay in cache
+    counts = np.empty(len(P), dtype=np.int64)
+    sums = np.empty(len(P))
+    eps2 = eps * eps
+    for s0 in range(0, len(P), block):
+        c = np.einsum("nab,hb->hna", R, P[s0 : s0 + block]) + t[None]  # (h, n, 3)
+        c -= c.mean(axis=1, keepdims=True)
+        sq = np.einsum("hna,hna->hn", c, c)
+        # |c_a - c_b|^2 from the Gram matrix (rounding ~1e-8 m on ~1 m points)
+        d2 = c @ c.transpose(0, 2, 1)
+        d2 *= -2.0
+        d2 += sq[:, :, None]
+        d2 += sq[:, None, :]
+        near = d2 < eps2
+        counts[s0 : s0 + block] = (near & distinct[None]).any(axis=2).sum(axis=1)
+        # sum of min(d, eps): eps for every far pair, the distance for every near one
+        np.maximum(d2, 0.0, out=d2)
+        np.sqrt(d2, out=d2, where=near)
+        d2[~near] = eps
+        sums[s0 : s0 + block] = d2.reshape(len(d2), -1).sum(axis=1)
+    top = np.flatnonzero(counts == counts.max())
+    return np.asarray(P[top[int(np.argmin(sums[top]))]])
 
 
 def _cluster(c: np.ndarray, radius: float) -> np.ndarray:
