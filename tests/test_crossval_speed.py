@@ -111,3 +111,26 @@ def test_prediction_only_refits_predict_what_full_refits_do(monkeypatch) -> None
     np.testing.assert_array_equal(
         a.targets[["x", "y", "z"]].to_numpy(), b.targets[["x", "y", "z"]].to_numpy()
     )
+
+
+def test_identify_fits_its_models_in_forked_processes_as_in_one() -> None:
+    tab, dist = cell(9, per_target=6)
+
+    def run(workers: int) -> dict[str, IdentifyResult]:
+        res = identify(
+            tab,
+            URDF,
+            "base_link",
+            "flange",
+            IdentifyConfig(model="all", distances=dist, workers=workers),
+        )
+        assert isinstance(res, dict)
+        return res
+
+    one, two = run(1), run(2)
+    assert list(one) == list(two)
+    for m in one:
+        for name in ("parameters", "residuals", "targets"):
+            pd.testing.assert_frame_equal(getattr(one[m], name), getattr(two[m], name))
+        assert one[m].calibrated_urdf == two[m].calibrated_urdf
+        np.testing.assert_array_equal(one[m].x, two[m].x)

@@ -314,6 +314,7 @@ def cross_validate(
     chain = load_chain(urdf, base_link, flange_link)
     names = list(chain.joint_names)
     df = table.reset_index(drop=True)
+    df.attrs = {}  # pandas deep-copies attrs on every operation: the folds need none
     missing = [c for c in ("touchup_id", "target_id", *names) if c not in df.columns]
     if missing:
         raise BadInput(f"touch-up table: missing column(s) {missing} for cross-validation")

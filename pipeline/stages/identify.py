@@ -90,6 +90,7 @@ from pipeline.stages.identify_types import (
     IdentifyResult,
     TooFewTouchups,
 )
+from pipeline.stages.parallel_map import parallel_map
 
 #: the public names of identification, importable from here (the parts live in
 #: identify_types, identify_data, identify_shape, identify_notes, identify_tables, and
@@ -144,6 +145,9 @@ def identify(
     """
     config = config or IdentifyConfig()
     chain = load_chain(urdf, base_link, flange_link)
+    if touchups.attrs:  # pandas deep-copies attrs on every operation; the fit reads none
+        touchups = touchups.copy(deep=False)
+        touchups.attrs = {}
     data = prepare_data(touchups, chain, config)
     refuse_early(data, len(touchups))
     implausible = (
@@ -181,13 +185,21 @@ def _identify_models(
 ) -> IdentifyResult | dict[str, IdentifyResult]:
     """The model(s) ``config.model`` names (``all``, ``auto`` or one), fitted to ``data``."""
     if config.model == "all":
+
+        def one(name: str) -> IdentifyResult | str:
+            try:
+                return _identify_one(name, chain, data, urdf, flange_link, config)
+            except (BadInput, CalibrationFailed) as exc:
+                return f"{name}: {exc}"
+
+        names = model_names()
         results: dict[str, IdentifyResult] = {}
         errors: list[str] = []
-        for name in model_names():
-            try:
-                results[name] = _identify_one(name, chain, data, urdf, flange_link, config)
-            except (BadInput, CalibrationFailed) as exc:
-                errors.append(f"{name}: {exc}")
+        for name, r in zip(names, parallel_map(one, names, config.workers), strict=True):
+            if isinstance(r, str):
+                errors.append(r)
+            else:
+                results[name] = r
         if not results:
             raise CalibrationFailed("no error model could be identified: " + " | ".join(errors))
         for r in results.values():

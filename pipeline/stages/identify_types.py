@@ -79,6 +79,9 @@ class IdentifyConfig:
         ``nominal``: the corrections as the table has them
     correction_map : a given ``M_eff`` (3 x 3 nested list) instead of the first fit's:
         cross-validation's refits take the full fit's (:func:`pipeline.stages.crossval.refit_config`)
+    workers : processes the error models of ``model="all"`` are fitted in; 1 in this
+        process, 0 picks 2 when the machine has a core to spare
+        (:func:`pipeline.stages.parallel_map.parallel_map`). The results are the same.
     """
 
     model: str = "auto"
@@ -104,6 +107,7 @@ class IdentifyConfig:
     prediction_only: bool = False
     correction_frame: str = "calibrated"
     correction_map: list[list[float]] | None = None
+    workers: int = 0
 
 
 @dataclass
