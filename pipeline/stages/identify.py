@@ -186,7 +186,7 @@ def _identify_models(
     """The model(s) ``config.model`` names (``all``, ``auto`` or one), fitted to ``data``."""
     if config.model == "all":
 
-        def one(name: str) -> IdentifyResult | str:
+        def fit_one(name: str) -> IdentifyResult | str:
             try:
                 return _identify_one(name, chain, data, urdf, flange_link, config)
             except (BadInput, CalibrationFailed) as exc:
@@ -195,7 +195,7 @@ def _identify_models(
         names = model_names()
         results: dict[str, IdentifyResult] = {}
         errors: list[str] = []
-        for name, r in zip(names, parallel_map(one, names, config.workers), strict=True):
+        for name, r in zip(names, parallel_map(fit_one, names, config.workers), strict=True):
             if isinstance(r, str):
                 errors.append(r)
             else:
