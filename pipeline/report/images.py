@@ -3,8 +3,9 @@
 Images are not artefacts (a run folder stays small); when the recording named
 in ``recording.json`` is still reachable, the few images the report shows are
 read back from it by frame index (the 0-based index of the image message on
-the image topic, in file order, as ingest numbers them). When it is not, the
-outputs simply go without images.
+the image topic in log-time order, ties in file order, as ingest numbers
+them), in a streaming pass. When it is not reachable, the outputs simply go
+without images.
 """
 
 from __future__ import annotations
@@ -56,53 +57,93 @@ class Frame:
 
 
 def load_images(path: Path, image_topic: str | None, indices: Iterable[int]) -> dict[int, Frame]:
-    """The wanted frames ``{frame index: Frame}`` of a recording, in one streaming pass.
+    """The wanted frames ``{frame index: Frame}`` of a recording.
 
-    The pass stops as soon as every wanted frame is found. Frames that cannot
-    be decoded (or a file that ends early) are simply missing from the result;
-    nothing raises for a damaged recording.
+    Parameters
+    ----------
+    path : the recording (an MCAP file or a bag)
+    image_topic : the topic ingest read images from (None: the first of
+        :data:`~pipeline.io_mcap.DEFAULT_IMAGE_TOPICS` with an image message)
+    indices : wanted frame indices, as ingest numbers frames
+
+    Frames that cannot be decoded (or a file that ends early) are simply
+    missing from the result; nothing raises for a damaged recording.
     """
     want = {int(i) for i in indices if int(i) >= 0}
-    out: dict[int, Frame] = {}
     if not want:
-        return out
+        return {}
+    found = _streamed(path, image_topic, want)
+    out: dict[int, Frame] = {}
+    for idx in sorted(found):
+        frame = _frame(*found[idx])
+        if frame is not None:
+            out[idx] = frame
+    return out
+
+
+#: one image message: (schema name, message encoding, bytes)
+_Raw = tuple[str, str, bytes]
+
+
+def _frame(schema: str, enc: str, data: bytes) -> Frame | None:
+    """A Frame of one image message, None when it does not decode."""
+    try:
+        em = decode_image_message(schema, enc, data)
+    except Exception:  # noqa: BLE001 - an undecodable frame is just not shown
+        return None
+    media = {"png": "image/png", "jpeg": "image/jpeg", "jpg": "image/jpeg"}.get(
+        em.encoding.lower(), ""
+    )
+    if em.kind == "compressed" and media:
+        return Frame(em, bytes(em.data), media)
+    try:  # a raw image is checked now (its pixels are what gets shown)
+        frame = Frame(em)
+        _ = frame.gray
+    except Exception:  # noqa: BLE001 - an undecodable frame is just not shown
+        return None
+    return frame
+
+
+def _streamed(path: Path, image_topic: str | None, want: set[int]) -> dict[int, _Raw]:
+    """The wanted image messages ``{frame index: message}``, streaming the recording.
+
+    Frame indices are ranks in log-time order, ties in file order (as ingest
+    numbers them): one pass when the image messages come in that order, which
+    recorders write; a second pass for the right ones when they do not.
+    """
     state = StreamState(path=str(path))
     topic = image_topic
-    count = 0
+    log_times: list[int] = []  # of every image message on the topic, in file order
+    kept: dict[int, _Raw] = {}  # by position in the file
     try:
         for msg in iter_recording(locate(path), state):
             t, schema, enc = state.topic_type(msg.channel_id)
-            if schema not in IMAGE_TYPES:
+            if schema not in IMAGE_TYPES or (t != topic and topic is not None):
                 continue
             if topic is None:
                 if t not in DEFAULT_IMAGE_TOPICS:
                     continue
                 topic = t
-            if t != topic:
-                continue
-            idx = count
-            count += 1
-            if idx not in want:
-                continue
-            try:
-                em = decode_image_message(schema, enc, msg.data)
-            except Exception:  # noqa: BLE001 - an undecodable frame is just not shown
-                continue
-            fmt = em.encoding.lower()
-            media = {"png": "image/png", "jpeg": "image/jpeg", "jpg": "image/jpeg"}.get(fmt, "")
-            if em.kind == "compressed" and media:
-                out[idx] = Frame(em, bytes(em.data), media)
-            else:
-                try:  # a raw image is checked now (its pixels are what gets shown)
-                    frame = Frame(em)
-                    _ = frame.gray
-                except Exception:  # noqa: BLE001 - an undecodable frame is just not shown
-                    continue
-                out[idx] = frame
-            if len(out) == len(want) or count > max(want):
-                break
-    except Exception:  # noqa: BLE001 - unreachable/damaged recording: no images
-        return out
+            if len(log_times) in want:
+                kept[len(log_times)] = (schema, enc, msg.data)
+            log_times.append(int(msg.log_time))
+    except Exception:  # noqa: BLE001 - unreachable/damaged recording: what was read
+        pass
+    order = np.argsort(np.asarray(log_times, dtype=np.int64), kind="stable")
+    if np.array_equal(order, np.arange(len(order))):
+        return kept
+    # out of log-time order: the file positions of the wanted ranks, in a second pass
+    at = {int(order[r]): r for r in want if r < len(order)}
+    state, pos, out = StreamState(path=str(path)), 0, {}
+    try:
+        for msg in iter_recording(locate(path), state):
+            t, schema, enc = state.topic_type(msg.channel_id)
+            if schema in IMAGE_TYPES and t == topic:
+                if pos in at:
+                    out[at[pos]] = (schema, enc, msg.data)
+                pos += 1
+    except Exception:  # noqa: BLE001 - unreachable/damaged recording: what was read
+        pass
     return out
 
 
