@@ -4,8 +4,9 @@ Images are not artefacts (a run folder stays small); when the recording named
 in ``recording.json`` is still reachable, the few images the report shows are
 read back from it by frame index (the 0-based index of the image message on
 the image topic in log-time order, ties in file order, as ingest numbers
-them), in a streaming pass. When it is not reachable, the outputs simply go
-without images.
+them): through the MCAP index when the file has one that agrees with ingest's
+count, else in a streaming pass. When it is not reachable, the outputs simply
+go without images.
 """
 
 from __future__ import annotations
@@ -27,6 +28,7 @@ from pipeline.io_mcap import (
     decode_image_message,
     image_to_gray,
 )
+from pipeline.io_mcap_index import topic_messages
 from pipeline.io_recording import iter_recording
 from pipeline.recording_layout import locate
 
@@ -56,7 +58,12 @@ class Frame:
         return _to_u8(image_to_gray(self.message))
 
 
-def load_images(path: Path, image_topic: str | None, indices: Iterable[int]) -> dict[int, Frame]:
+def load_images(
+    path: Path,
+    image_topic: str | None,
+    indices: Iterable[int],
+    n_images: int | None = None,
+) -> dict[int, Frame]:
     """The wanted frames ``{frame index: Frame}`` of a recording.
 
     Parameters
@@ -65,6 +72,11 @@ def load_images(path: Path, image_topic: str | None, indices: Iterable[int]) -> 
     image_topic : the topic ingest read images from (None: the first of
         :data:`~pipeline.io_mcap.DEFAULT_IMAGE_TOPICS` with an image message)
     indices : wanted frame indices, as ingest numbers frames
+    n_images : how many images ingest read on the topic (``recording.json``);
+        with the topic, it lets an indexed MCAP file be read through its index
+        (:func:`pipeline.io_mcap_index.topic_messages`: only the chunks holding
+        wanted frames), when the index counts as many; otherwise, or when the
+        file has no usable index, the recording is streamed.
 
     Frames that cannot be decoded (or a file that ends early) are simply
     missing from the result; nothing raises for a damaged recording.
@@ -72,7 +84,11 @@ def load_images(path: Path, image_topic: str | None, indices: Iterable[int]) -> 
     want = {int(i) for i in indices if int(i) >= 0}
     if not want:
         return {}
-    found = _streamed(path, image_topic, want)
+    found = None
+    if image_topic is not None and n_images is not None:
+        found = _indexed(path, image_topic, want, n_images)
+    if found is None:
+        found = _streamed(path, image_topic, want)
     out: dict[int, Frame] = {}
     for idx in sorted(found):
         frame = _frame(*found[idx])
@@ -102,6 +118,20 @@ def _frame(schema: str, enc: str, data: bytes) -> Frame | None:
     except Exception:  # noqa: BLE001 - an undecodable frame is just not shown
         return None
     return frame
+
+
+def _indexed(path: Path, topic: str, want: set[int], n_images: int) -> dict[int, _Raw] | None:
+    """The wanted image messages through the MCAP index, or None (stream instead)."""
+    try:
+        layout = locate(path)
+    except Exception:  # noqa: BLE001 - unreachable recording: the stream says so
+        return None
+    if layout.read_by_rosbags:
+        return None
+    got = topic_messages(layout.files, topic, want, n_images)
+    if got is None:
+        return None
+    return {k: (m.schema_name, m.message_encoding, m.data) for k, m in got.items()}
 
 
 def _streamed(path: Path, image_topic: str | None, want: set[int]) -> dict[int, _Raw]:
@@ -148,11 +178,11 @@ def _streamed(path: Path, image_topic: str | None, want: set[int]) -> dict[int, 
 
 
 def load_frames(
-    path: Path, image_topic: str | None, indices: Iterable[int]
+    path: Path, image_topic: str | None, indices: Iterable[int], n_images: int | None = None
 ) -> dict[int, np.ndarray]:
     """Grey images ``{frame index: (H, W) uint8}`` of the wanted frames (see :func:`load_images`)."""
     out = {}
-    for k, f in load_images(path, image_topic, indices).items():
+    for k, f in load_images(path, image_topic, indices, n_images).items():
         try:
             out[k] = f.gray
         except Exception:  # noqa: BLE001 - an undecodable frame is just not shown
