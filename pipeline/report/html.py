@@ -189,8 +189,8 @@ def _report_images(data: RunData) -> dict[int, np.ndarray] | None:
         return None
     from pipeline.report.images import load_frames
 
-    image_topic = (data.recording or {}).get("image_topic")
-    return load_frames(path, image_topic, thumbnail_frames(data))
+    rec = data.recording or {}
+    return load_frames(path, rec.get("image_topic"), thumbnail_frames(data), rec.get("n_images"))
 
 
 def build_report(

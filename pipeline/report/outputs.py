@@ -3,7 +3,7 @@
 :func:`pipeline.report.html.build_report` and :func:`pipeline.report.rrd.build_rrd`
 each work alone (``vtcal report --no-rrd``); together they would each read the
 artefacts and each stream the recording for images. Here the artefacts are
-read once and the recording is streamed once, for the union of the frames
+read once and the recording is read once, for the union of the frames
 the two show (the thumbnails of rejected touch-ups, the last capture of every
 touch-up). The files are the same as the two functions write alone.
 """
@@ -54,8 +54,10 @@ def build_outputs(
     path = data.recording_path()
     frames: dict[int, Frame] | None = None
     if path is not None:
-        topic = (data.recording or {}).get("image_topic")
-        frames = load_images(path, topic, sorted({*thumbs, *shots}))
+        rec = data.recording or {}
+        frames = load_images(
+            path, rec.get("image_topic"), sorted({*thumbs, *shots}), rec.get("n_images")
+        )
     html = build_report(
         run_dir,
         html_path,

@@ -500,7 +500,8 @@ def _images(data: RunData) -> dict[int, Frame] | None:
     path = data.recording_path()
     if path is None:
         return None
-    return load_images(path, (data.recording or {}).get("image_topic"), image_frames(data))
+    rec = data.recording or {}
+    return load_images(path, rec.get("image_topic"), image_frames(data), rec.get("n_images"))
 
 
 def _notes(
