@@ -96,6 +96,16 @@ def test_border_no_target_and_occluder():
     assert not detect_target(img3, DetectConfig(polarity="dark_on_light"))["found"]
 
 
+@pytest.mark.parametrize("shape", [(0, 0), (1, 1), (3, 3), (1, 50), (50, 1), (3, 500)])
+@pytest.mark.parametrize("compiled", [True, False])
+def test_a_few_pixel_image_finds_nothing_and_does_not_raise(shape, compiled):
+    img = np.full(shape, 200, np.uint8)
+    if img.size:
+        img[shape[0] // 2, shape[1] // 2] = 0
+    r = detect_target(img, DetectConfig(compiled=compiled))
+    assert not r["found"] and r["reason"] == "no_blob"
+
+
 def test_conic_fit_exact_and_geometric_jacobian():
     u0, v0, a, b, th = 100.3, 80.7, 30.0, 21.0, 0.4
     t = np.linspace(0, 2 * np.pi, 50, endpoint=False)

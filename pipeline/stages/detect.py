@@ -270,6 +270,8 @@ def _detect(
     if img.dtype not in (np.uint8, np.uint16, np.float32):
         img = img.astype(np.float32)
     k = max(int(cfg.downsample), 1)
+    if min(img.shape) // k < 2:  # no coarse grid to search (a few-pixel image): nothing found
+        return empty_result("no_blob")
     small, bg, lo, hi = coarse_image(img, k, cfg.compiled)
     pol = cfg.polarity or _auto_polarity(bg, lo, hi)
     if pol not in POLARITIES:
