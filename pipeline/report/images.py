@@ -57,6 +57,14 @@ class Frame:
         """The grey image, (H, W) uint8."""
         return _to_u8(image_to_gray(self.message))
 
+    @cached_property
+    def rrd_blob(self) -> tuple[bytes, str]:
+        """``(bytes, media type)`` run.rrd logs: the message's own PNG/JPEG bytes, else
+        the grey image as PNG (:func:`png_bytes`)."""
+        if self.encoded is not None:
+            return self.encoded, self.media_type
+        return png_bytes(self.gray), "image/png"
+
 
 def load_images(
     path: Path,

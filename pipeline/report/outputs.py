@@ -6,18 +6,23 @@ artefacts and each stream the recording for images. Here the artefacts are
 read once and the recording is read once, for the union of the frames
 the two show (the thumbnails of rejected touch-ups, the last capture of every
 touch-up). The files are the same as the two functions write alone.
+
+The frames are read (and a raw frame encoded for run.rrd) in a second thread while
+this one imports the Rerun SDK (0.2-0.3 s of Python imports): decompressing a
+chunk and encoding a PNG release the GIL (docs/speed.md has the figures).
 """
 
 from __future__ import annotations
 
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 import numpy as np
 
-from pipeline.report.data import load_run
+from pipeline.report.data import RunData, load_run
 from pipeline.report.html import build_report, thumbnail_frames
 from pipeline.report.images import Frame, load_images
-from pipeline.report.rrd import build_rrd, image_frames
+from pipeline.report.touchup_views import image_frames
 
 
 def _grey(frames: dict[int, Frame], wanted: list[int]) -> dict[int, np.ndarray]:
@@ -30,6 +35,22 @@ def _grey(frames: dict[int, Frame], wanted: list[int]) -> dict[int, np.ndarray]:
             except Exception:  # noqa: BLE001 - an undecodable frame is just not shown
                 continue
     return out
+
+
+def _read(path: Path, data: RunData, thumbs: list[int], shots: list[int]) -> dict[int, Frame]:
+    """The wanted frames, each shot's run.rrd bytes made (an undecodable one is left as
+    it is: build_rrd meets it again and leaves it out)."""
+    rec = data.recording or {}
+    frames = load_images(
+        path, rec.get("image_topic"), sorted({*thumbs, *shots}), rec.get("n_images")
+    )
+    for k in shots:
+        if k in frames:
+            try:
+                _ = frames[k].rrd_blob
+            except Exception:  # noqa: BLE001 - an undecodable frame is just not shown
+                continue
+    return frames
 
 
 def build_outputs(
@@ -52,12 +73,11 @@ def build_outputs(
     data = load_run(run_dir)
     thumbs, shots = thumbnail_frames(data), image_frames(data)
     path = data.recording_path()
-    frames: dict[int, Frame] | None = None
-    if path is not None:
-        rec = data.recording or {}
-        frames = load_images(
-            path, rec.get("image_topic"), sorted({*thumbs, *shots}), rec.get("n_images")
-        )
+    with ThreadPoolExecutor(max_workers=1) as pool:
+        reading = None if path is None else pool.submit(_read, path, data, thumbs, shots)
+        from pipeline.report.rrd import build_rrd  # the Rerun SDK, while the frames are read
+
+        frames = None if reading is None else reading.result()
     html = build_report(
         run_dir,
         html_path,

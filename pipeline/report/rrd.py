@@ -46,11 +46,12 @@ from pipeline.artefacts import atomic_write_bytes
 from pipeline.kinematics.chain import Chain, fk
 from pipeline.report.data import RunData, load_run, run_uuid
 from pipeline.report.figures import pin_positions, skeleton_points, target_positions
-from pipeline.report.images import Frame, ellipse_polyline, load_images, png_bytes
+from pipeline.report.images import Frame, ellipse_polyline, load_images
 from pipeline.report.touchup_views import (
     convergence_traces,
     designated,
     detection_ellipse,
+    image_frames,
     touchup_frames,
 )
 
@@ -58,8 +59,6 @@ APP_ID = "vtcal"
 CAMERA = "world/robot/calibrated/flange/camera"
 #: residual arrows are drawn this many times their length
 RESIDUAL_SCALE = 100
-#: at most this many camera images are logged (one per touch-up: its last capture)
-MAX_IMAGES = 200
 GREY = (150, 150, 160)
 BLUE = (31, 111, 235)
 RED = (209, 36, 47)
@@ -443,11 +442,7 @@ def _log_images(
         if not fr or fr[-1] not in shown:
             continue
         when.set(rec, int(i))
-        im = shown[fr[-1]]
-        if im.encoded is not None:
-            blob, media = im.encoded, im.media_type
-        else:
-            blob, media = png_bytes(im.gray), "image/png"
+        blob, media = shown[fr[-1]].rrd_blob
         rec.log(img_path, rr.EncodedImage(contents=blob, media_type=media))
         ell = detection_ellipse(data, fr[-1])
         if ell is not None:
@@ -485,15 +480,6 @@ def _blueprint() -> rrb.Blueprint:
         ),
         collapse_panels=False,
     )
-
-
-def image_frames(data: RunData) -> list[int]:
-    """Frame indices of the camera images logged: each touch-up's last capture (at most 200)."""
-    tu = data.touchup_table()
-    if tu is None:
-        return []
-    frames = touchup_frames(data)
-    return [frames[int(t)][-1] for t in tu["touchup_id"] if frames.get(int(t))][:MAX_IMAGES]
 
 
 def _images(data: RunData) -> dict[int, Frame] | None:

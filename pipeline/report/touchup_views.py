@@ -137,3 +137,16 @@ def convergence_traces(data: RunData) -> dict[int, np.ndarray]:
         if len(e):
             out[tid] = e
     return out
+
+
+#: camera images run.rrd logs at most (each touch-up's last capture)
+MAX_IMAGES = 200
+
+
+def image_frames(data: RunData) -> list[int]:
+    """Frame indices of the camera images logged: each touch-up's last capture (at most 200)."""
+    tu = data.touchup_table()
+    if tu is None:
+        return []
+    frames = touchup_frames(data)
+    return [frames[int(t)][-1] for t in tu["touchup_id"] if frames.get(int(t))][:MAX_IMAGES]
