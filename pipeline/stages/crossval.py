@@ -53,9 +53,10 @@ import pandas as pd
 
 from pipeline.errors import BadInput, CalibrationFailed
 from pipeline.estimation.measurement import target_positions
-from pipeline.kinematics.chain import load_chain
 from pipeline.kinematics.se3 import F64
-from pipeline.stages.identify import IdentifyConfig, IdentifyResult, identify
+from pipeline.stages.crossval_refit import RefitTable, refit, refit_config, refit_table
+from pipeline.stages.identify import IdentifyConfig, IdentifyResult
+from pipeline.stages.identify_types import Robot
 from pipeline.stages.parallel_map import parallel_map
 
 
@@ -127,53 +128,6 @@ def _predict(res: IdentifyResult, q: F64, d: F64) -> F64:
     return res.predict(q, d)
 
 
-def _fit(
-    table: pd.DataFrame,
-    use: np.ndarray,
-    urdf: str,
-    base: str,
-    flange: str,
-    cfg: IdentifyConfig,
-) -> IdentifyResult:
-    t = table.copy()
-    t["inlier"] = use
-    res = identify(t, urdf, base, flange, cfg)
-    assert isinstance(res, IdentifyResult)
-    return res
-
-
-def refit_config(config: IdentifyConfig, full: Mapping[str, Any]) -> IdentifyConfig:
-    """Settings of the refits on part of the touch-ups, from the fit on all of them.
-
-    ``full`` is that fit's summary (:attr:`IdentifyResult.summary`, or its entry in
-    ``identify.json["models"]``).
-
-    Two checks of the full fit are not repeated on each subset: the plausibility
-    guardrails (the full table passed them, or the user accepted it), and the
-    print-shape F-test when it found no print shape on every touch-up (a subset
-    has less evidence): the refits then fit none (``target_shape="none"``)
-    instead of fitting it to test it. When the full fit kept a print shape,
-    each refit tests it again as the identify stage does: fitting it without
-    the test would leave the test's choice, made with the held-out touch-ups,
-    out of what is validated (measured: 3.5 % lower held-out RMS on the
-    standard LR Mate-like cell, an optimistic figure).
-
-    The corrections' map into the calibrated flange frame (``correction_map``) is the
-    full fit's: near the identity, a property of the kinematics, not of the held-out rows.
-    """
-    shape = full.get("print_shape")
-    no_shape = isinstance(shape, dict) and shape.get("fitted") is False
-    frame = full.get("correction_frame") or {}
-    given = frame.get("matrix_minus_identity", np.zeros((3, 3)) if frame else None)
-    return dataclasses.replace(
-        config,
-        check_plausibility=False,
-        target_shape="none" if no_shape else config.target_shape,
-        prediction_only=True,
-        correction_map=(np.eye(3) + np.asarray(given)).tolist() if given is not None else None,
-    )
-
-
 def heldout_predictions(
     table: pd.DataFrame,
     use: np.ndarray,
@@ -205,8 +159,18 @@ def heldout_predictions(
     fit's target ``tx, ty, tz`` (NaN if the target has no training data),
     the training fit's per-axis ``sigma_m`` and ``status`` ('' or why not scored).
     """
-    chain = load_chain(urdf, base_link, flange_link)
-    names = list(chain.joint_names)
+    df = table.reset_index(drop=True)
+    df.attrs = {}  # pandas deep-copies attrs on every operation: the folds need none
+    t = refit_table(df, Robot.load(urdf, base_link, flange_link), config)
+    return _heldout(t, use, fold, config, every_row)
+
+
+def _heldout(
+    rt: RefitTable, use: np.ndarray, fold: np.ndarray, config: IdentifyConfig, every_row: bool
+) -> pd.DataFrame:
+    """:func:`heldout_predictions` on a table prepared for refits."""
+    table = rt.df
+    names = list(rt.robot.chain.joint_names)
     q_all = table[names].to_numpy(dtype=float)
     d_all = np.zeros((len(table), 3))
     for j, c in enumerate(("dx_flange", "dy_flange", "dz_flange")):
@@ -220,7 +184,7 @@ def heldout_predictions(
         train = use & (fold != f)
         hi = np.flatnonzero(use if every_row else held)
         try:
-            res = _fit(table, train, urdf, base_link, flange_link, config)
+            res = refit(rt, train, config)
         except (BadInput, CalibrationFailed) as exc:
             for i in hi:
                 out.append(
@@ -311,8 +275,8 @@ def cross_validate(
     """
     from pipeline.models import get_model, model_names
 
-    chain = load_chain(urdf, base_link, flange_link)
-    names = list(chain.joint_names)
+    robot = Robot.load(urdf, base_link, flange_link)
+    names = list(robot.chain.joint_names)
     df = table.reset_index(drop=True)
     df.attrs = {}  # pandas deep-copies attrs on every operation: the folds need none
     missing = [c for c in ("touchup_id", "target_id", *names) if c not in df.columns]
@@ -324,12 +288,11 @@ def cross_validate(
         models = [m for m in model_names() if get_model(m).urdf_exact]
     else:
         models = [identify_config.model]
-    s = _split(df, names, config)
-    robot = (urdf, base_link, flange_link)
     base_cfg = dataclasses.replace(identify_config, n_workspace=4)
+    s = _split(refit_table(df, robot, base_cfg), names, config)  # the table prepared once
 
     def one_model(m: str) -> tuple[list[dict[str, Any]], dict[str, Any]]:
-        return _validate_model(m, s, robot, base_cfg, config.loto, (full_fits or {}).get(m))
+        return _validate_model(m, s, base_cfg, config.loto, (full_fits or {}).get(m))
 
     rows: list[dict[str, Any]] = []
     summary_models: dict[str, Any] = {}
@@ -349,7 +312,7 @@ def cross_validate(
 class _Split:
     """The touch-up table as cross-validation reads it: usable rows, folds, inputs of (1)."""
 
-    df: pd.DataFrame
+    t: RefitTable  # the table, prepared for the refits
     use: np.ndarray  # usable rows
     q_all: np.ndarray  # (n, dof) joint vectors
     d_all: np.ndarray  # (n, 3) residual corrections (0 where missing)
@@ -359,8 +322,9 @@ class _Split:
     fold: np.ndarray  # fold of each usable row, -1 elsewhere
 
 
-def _split(df: pd.DataFrame, names: list[str], config: CrossvalConfig) -> _Split:
+def _split(t: RefitTable, names: list[str], config: CrossvalConfig) -> _Split:
     """Usable rows, ``k`` (at most the largest target's usable touch-ups) and the folds."""
+    df = t.df
     use = usable_rows(df, names)
     q_all = df[names].to_numpy(dtype=float)
     d_all = np.zeros((len(df), 3))
@@ -373,7 +337,7 @@ def _split(df: pd.DataFrame, names: list[str], config: CrossvalConfig) -> _Split
     k = int(max(2, min(config.k, int(cnt.max()) if cnt.size else 2)))
     fold = np.full(len(df), -1, dtype=np.int64)
     fold[use] = fold_assignment(tid[use], k, np.random.default_rng(config.seed))
-    return _Split(df, use, q_all, d_all, tid, tu, k, fold)
+    return _Split(t, use, q_all, d_all, tid, tu, k, fold)
 
 
 def _heldout_row(
@@ -398,7 +362,6 @@ def _heldout_row(
 def _validate_model(
     m: str,
     s: _Split,
-    robot: tuple[str, str, str],
     base_cfg: IdentifyConfig,
     loto: bool,
     known: Any,
@@ -413,27 +376,25 @@ def _validate_model(
         if isinstance(known, Mapping) and {"rms_mm", "n_identified"} <= set(known):
             full_summary: Mapping[str, Any] = known  # the identify stage's own fit
         else:
-            full_summary = _fit(s.df, s.use, *robot, mcfg).summary
+            full_summary = refit(s.t, s.use, mcfg).summary
         info["train_rms_mm"] = float(full_summary["rms_mm"])
         info["n_identified"] = int(full_summary["n_identified"])
         mcfg = refit_config(mcfg, full_summary)
     except (BadInput, CalibrationFailed) as exc:
         info["train_rms_mm"] = math.nan
         info["error"] = str(exc)
-    rows = _kfold(m, s, robot, mcfg, info)
+    rows = _kfold(m, s, mcfg, info)
     loto_failed = 0
     if loto:
-        loto_rows, loto_failed = _leave_one_target_out(m, s, robot, mcfg)
+        loto_rows, loto_failed = _leave_one_target_out(m, s, mcfg)
         rows += loto_rows
     info["loto_failed_targets"] = loto_failed
     return rows, info
 
 
-def _kfold(
-    m: str, s: _Split, robot: tuple[str, str, str], mcfg: IdentifyConfig, info: dict[str, Any]
-) -> list[dict[str, Any]]:
+def _kfold(m: str, s: _Split, mcfg: IdentifyConfig, info: dict[str, Any]) -> list[dict[str, Any]]:
     """The k-fold rows of model ``m``; its failed folds and noise estimate go to ``info``."""
-    pred = heldout_predictions(s.df, s.use, s.fold, *robot, mcfg)
+    pred = _heldout(s.t, s.use, s.fold, mcfg, every_row=False)
     failed = int(pred.loc[pred["status"].str.startswith("fold not fitted"), "fold"].nunique())
     pv = pred[["px", "py", "pz"]].to_numpy(dtype=float)
     tv = pred[["tx", "ty", "tz"]].to_numpy(dtype=float)
@@ -452,7 +413,7 @@ def _kfold(
 
 
 def _leave_one_target_out(
-    m: str, s: _Split, robot: tuple[str, str, str], mcfg: IdentifyConfig
+    m: str, s: _Split, mcfg: IdentifyConfig
 ) -> tuple[list[dict[str, Any]], int]:
     """The leave-one-target-out rows of model ``m``, and how many targets could not be fitted."""
     rows: list[dict[str, Any]] = []
@@ -468,7 +429,7 @@ def _leave_one_target_out(
                 rows.append(add(f, int(i), int(train.sum()), None, "single touch-up"))
             continue
         try:
-            res = _fit(s.df, train, *robot, mcfg)
+            res = refit(s.t, train, mcfg)
         except (BadInput, CalibrationFailed) as exc:
             loto_failed += 1
             for i in hi:

@@ -65,10 +65,9 @@ from pipeline.estimation.measurement import Problem, initial_pin_targets, partia
 from pipeline.estimation.uncertainty import covariance, predicted_errors, residual_variance
 from pipeline.estimation.whitening import flange_whitening
 from pipeline.evaluate import workspace_poses
-from pipeline.kinematics.chain import Chain, load_chain
 from pipeline.kinematics.se3 import F64
 from pipeline.kinematics.urdf_write import write_calibrated_urdf
-from pipeline.models import make_model, model_names
+from pipeline.models import model_names
 from pipeline.models.observability import indices_from_singular_values, project_out
 from pipeline.stages.identify_data import FitData, implausible_rows, prepare_data, refuse_early
 from pipeline.stages.identify_frame import correction_frame
@@ -88,6 +87,7 @@ from pipeline.stages.identify_types import (
     DEFAULT_MODEL,
     IdentifyConfig,
     IdentifyResult,
+    Robot,
     TooFewTouchups,
 )
 from pipeline.stages.parallel_map import parallel_map
@@ -106,6 +106,7 @@ __all__ = [
     "conditioning_note",
     "design_jacobian",
     "fit_outputs",
+    "fit_prepared",
     "identify",
     "predicted_errors",
 ]
@@ -144,17 +145,42 @@ def identify(
         poses identical, or too few touch-ups for the model (says how many to add).
     """
     config = config or IdentifyConfig()
-    chain = load_chain(urdf, base_link, flange_link)
+    robot = Robot.load(urdf, base_link, flange_link)
     if touchups.attrs:  # pandas deep-copies attrs on every operation; the fit reads none
         touchups = touchups.copy(deep=False)
         touchups.attrs = {}
-    data = prepare_data(touchups, chain, config)
-    refuse_early(data, len(touchups))
-    implausible = (
-        implausible_rows(chain, data, touchups, urdf, base_link, flange_link, config)
-        if config.check_plausibility
-        else []
-    )
+    return fit_prepared(prepare_data(touchups, robot.chain, config), robot, config, touchups)
+
+
+def fit_prepared(
+    data: FitData,
+    robot: Robot,
+    config: IdentifyConfig,
+    touchups: pd.DataFrame | None = None,
+) -> IdentifyResult | dict[str, IdentifyResult]:
+    """:func:`identify` from the table's rows as prepared: its one path after the table.
+
+    Parameters
+    ----------
+    data : the rows of a touch-up table as :func:`pipeline.stages.identify_data.prepare_data`
+        gives them (or :func:`pipeline.stages.identify_data.restrict`, for a subset of a
+        table prepared once)
+    robot : the nominal robot (URDF, chain base -> flange, its error models)
+    config : IdentifyConfig
+    touchups : the table ``data`` was prepared from, read by the plausibility guardrails
+        (values of URDF joints outside the chain); needed when ``config.check_plausibility``
+
+    Returns and raises as :func:`identify`.
+    """
+    chain, urdf = robot.chain, robot.urdf
+    refuse_early(data, len(data.rows))
+    implausible: list[str] = []
+    if config.check_plausibility:
+        if touchups is None:
+            raise ValueError("fit_prepared: the plausibility guardrails need the touch-up table")
+        implausible = implausible_rows(
+            chain, data, touchups, urdf, chain.base_link, chain.tip_link, config
+        )
     if implausible and not config.accept_implausible:
         raise CalibrationFailed(
             "implausible input: "
@@ -162,12 +188,9 @@ def identify(
             + " (rerun with --accept-implausible if it is right)"
         )
     data, frame = correction_frame(
-        chain,
-        data,
-        config,
-        lambda name, cfg: _identify_one(name, chain, data, urdf, flange_link, cfg),
+        chain, data, config, lambda name, cfg: _identify_one(name, robot, data, cfg)
     )
-    out = _identify_models(chain, data, urdf, flange_link, config, implausible)
+    out = _identify_models(robot, data, config, implausible)
     for r in out.values() if isinstance(out, dict) else [out]:
         r.correction_map = frame.M
         if not config.prediction_only:
@@ -176,10 +199,8 @@ def identify(
 
 
 def _identify_models(
-    chain: Chain,
+    robot: Robot,
     data: FitData,
-    urdf: str,
-    flange_link: str,
     config: IdentifyConfig,
     implausible: list[str],
 ) -> IdentifyResult | dict[str, IdentifyResult]:
@@ -188,7 +209,7 @@ def _identify_models(
 
         def fit_one(name: str) -> IdentifyResult | str:
             try:
-                return _identify_one(name, chain, data, urdf, flange_link, config)
+                return _identify_one(name, robot, data, config)
             except (BadInput, CalibrationFailed) as exc:
                 return f"{name}: {exc}"
 
@@ -210,7 +231,7 @@ def _identify_models(
         refusals: list[str] = []
         for name in AUTO_ORDER:
             try:
-                res = _identify_one(name, chain, data, urdf, flange_link, config)
+                res = _identify_one(name, robot, data, config)
             except TooFewTouchups as exc:
                 refusals.append(str(exc))
                 continue
@@ -222,7 +243,7 @@ def _identify_models(
             res.summary["implausible"] = implausible
             return res
         raise TooFewTouchups(" | ".join(refusals))
-    one = _identify_one(config.model, chain, data, urdf, flange_link, config)
+    one = _identify_one(config.model, robot, data, config)
     one.summary["implausible"] = implausible
     return one
 
@@ -245,12 +266,9 @@ class _Setup:
     initial_rms: float  # m, at nominal kinematics
 
 
-def _setup(name: str, chain: Chain, data: FitData, urdf: str, config: IdentifyConfig) -> _Setup:
+def _setup(name: str, robot: Robot, data: FitData, config: IdentifyConfig) -> _Setup:
     """Step 1: model, start point, scaling, identifiability; refuses too few touch-ups."""
-    try:
-        model = make_model(name, chain)
-    except KeyError as exc:
-        raise BadInput(f"--model {name!r}: {exc.args[0]}") from exc
+    model, chain = robot.model(name), robot.chain
     x0 = model.zero()
     pin0, tg0 = initial_pin_targets(model, data, x0)
     prob = Problem(model, data, config)
@@ -258,7 +276,7 @@ def _setup(name: str, chain: Chain, data: FitData, urdf: str, config: IdentifyCo
     Lc = float(max(np.sqrt(np.mean(np.sum(tg0**2, axis=1))), 0.1))
     pscale = model.column_scale(Lc)  # column scale: J[:, j] * pscale[j]
     st = structure(
-        name, urdf, chain.base_link, chain.tip_link, bool(data.dist), float(config.rank_tol)
+        name, robot.urdf, chain.base_link, chain.tip_link, bool(data.dist), float(config.rank_tol)
     )
     if st.gauge is not None:
         # the gauge row is defined in the structure's scaling; x_scaled = x * pscale
@@ -387,19 +405,12 @@ def _uncertainty(s: _Setup, f: _Solved, config: IdentifyConfig) -> Uncertainty:
     return Uncertainty(std_z, corr, sigma2, int(dof), obs, pred)
 
 
-def _identify_one(
-    name: str,
-    chain: Chain,
-    data: FitData,
-    urdf: str,
-    flange_link: str,
-    config: IdentifyConfig,
-) -> IdentifyResult:
+def _identify_one(name: str, robot: Robot, data: FitData, config: IdentifyConfig) -> IdentifyResult:
     """Fit one error model, in steps: 1 set up and rate identifiability (:func:`_setup`),
     2 solve (:func:`_solve`), 3 uncertainty (:func:`_uncertainty`), 4 the three tables
     and the calibrated URDF, 5 the summary (:mod:`pipeline.stages.identify_tables`)."""
     t0 = time.perf_counter()
-    s = _setup(name, chain, data, urdf, config)
+    s = _setup(name, robot, data, config)
     f = _solve(s, data, config)
     if config.prediction_only:
         return _prediction_only(name, s, f, t0)
@@ -436,7 +447,9 @@ def _identify_one(
         parameters=parameter_table(fit, u),
         residuals=residual_table(fit),
         targets=target_table(fit, u),
-        calibrated_urdf=write_calibrated_urdf(urdf, model.origins(x), flange_link, pin),
+        calibrated_urdf=write_calibrated_urdf(
+            robot.urdf, model.origins(x), robot.chain.tip_link, pin
+        ),
         summary=summary,
         chain=model.chain(x),
         p_flange_pin=pin,

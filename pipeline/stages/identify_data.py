@@ -25,6 +25,8 @@ from pipeline.stages.print_shape import SHAPE_COLUMNS
 MAX_JOINT = 1e3
 MAX_CORRECTION_M = 1.0
 MAX_WEIGHT = 1e6
+#: the first reason :func:`_row_reasons` gives a row; "rejected as outlier" comes after it
+NOT_CONVERGED = "not converged"
 
 
 @dataclass
@@ -66,7 +68,18 @@ def prepare_data(touchups: pd.DataFrame, chain: Chain, config: IdentifyConfig) -
     4. the known distances matched to the used targets (:func:`_known_distances`);
     5. the print-shape levers of the used rows and every row's image-Jacobian pair
        scatter, when the table has them.
+
+    Fits on subsets of one table's rows (cross-validation) prepare it once instead
+    (:func:`prepare_table`, :func:`restrict`).
     """
+    return _prepare(touchups, chain, config)[0]
+
+
+def _prepare(
+    touchups: pd.DataFrame, chain: Chain, config: IdentifyConfig
+) -> tuple[FitData, F64 | None, set[str]]:
+    """:func:`prepare_data`, with what :func:`restrict` needs besides: every row's
+    print-shape columns ``(M, 6)`` (None without them) and the text of every target label."""
     df = touchups.reset_index(drop=True)
     names = chain.joint_names
     missing = [c for c in ("touchup_id", "target_id", *names) if c not in df.columns]
@@ -111,15 +124,14 @@ def prepare_data(touchups: pd.DataFrame, chain: Chain, config: IdentifyConfig) -
         }
     )
     ui = np.flatnonzero(used)
-    shape_g = shape_l = None
+    shape_all = None
     if all(c in df.columns for c in SHAPE_COLUMNS):
-        sh = np.stack(
+        shape_all = np.stack(
             [pd.to_numeric(df[c], errors="coerce").to_numpy(dtype=float) for c in SHAPE_COLUMNS],
             axis=1,
-        )[ui]
-        if len(sh) and np.all(np.isfinite(sh)):
-            shape_g, shape_l = sh[:, :3], sh[:, 3:]
-    return FitData(
+        )
+    shape_g, shape_l = _used_shape(shape_all, ui)
+    data = FitData(
         q=q_all[ui],
         d=d_all[ui],
         sw=np.sqrt(w[ui]),
@@ -138,6 +150,117 @@ def prepare_data(touchups: pd.DataFrame, chain: Chain, config: IdentifyConfig) -
         shape_l=shape_l,
         pair_scatter_all=table_scatters(df),
     )
+    return data, shape_all, all_text
+
+
+def _used_shape(shape_all: F64 | None, ui: np.ndarray) -> tuple[F64 | None, F64 | None]:
+    """The used rows' print-size levers ``g`` and long-axis directions ``l``, ``(N, 3)`` each,
+    from every row's ``(M, 6)`` shape columns; (None, None) without them, without used rows
+    or when a used row's are not numbers."""
+    if shape_all is None:
+        return None, None
+    sh = shape_all[ui]
+    if len(sh) and np.all(np.isfinite(sh)):
+        return sh[:, :3], sh[:, 3:]
+    return None, None
+
+
+@dataclass
+class PreparedTable:
+    """A touch-up table prepared once for fits on subsets of its rows (:func:`restrict`).
+
+    Attributes
+    ----------
+    data : :func:`prepare_data` of the table with every row an inlier (its ``inlier``
+        column, if any, left out): M rows, the usable ones used
+    shape_all : (M, 6) every row's print-shape columns (``SHAPE_COLUMNS`` order), NaN
+        where not a number; None when the table lacks them
+    all_labels : the text of every target label of the table, used or not (the names a
+        known distance may give)
+    rejected : (M,) the reason a row gets when a subset leaves it out: "rejected as
+        outlier", with the table's ``reason`` in brackets when it gives one
+    """
+
+    data: FitData
+    shape_all: F64 | None
+    all_labels: set[str]
+    rejected: list[str]
+
+
+def prepare_table(touchups: pd.DataFrame, chain: Chain, config: IdentifyConfig) -> PreparedTable:
+    """The pandas work of :func:`prepare_data` done once for fits on subsets of the rows.
+
+    Raises what :func:`prepare_data` raises on the table (whatever ``inlier`` column a
+    subset's table has, the same: its checks read the columns and every target label).
+    """
+    table = touchups.drop(columns="inlier") if "inlier" in touchups.columns else touchups
+    data, shape_all, all_labels = _prepare(table, chain, config)
+    df = table.reset_index(drop=True)
+    return PreparedTable(data, shape_all, all_labels, _outlier_reasons(df, np.arange(len(df))))
+
+
+def restrict(prep: PreparedTable, keep: np.ndarray, config: IdentifyConfig) -> FitData:
+    """What :func:`prepare_data` gives on the prepared table with ``inlier = keep``, from ``prep``.
+
+    Parameters
+    ----------
+    prep : the table, prepared once (:func:`prepare_table`)
+    keep : (M,) bool, the table's rows to let in (the ``inlier`` column of the subset)
+    config : the fit's settings (its known distances are matched to the targets kept)
+
+    Returns
+    -------
+    FitData equal field by field to ``prepare_data(table.assign(inlier=keep), chain,
+    config)``: the rows ``keep`` leaves out are not used and have "rejected as outlier"
+    among their reasons (after "not converged", as :func:`_row_reasons` orders them);
+    a target with no used row left leaves the numbering (``tk``, ``K``, ``target_ids``,
+    ``target_labels``; the others keep their order), and a known distance naming it is
+    dropped with its note. The arrays are copies: the result shares nothing with ``prep``.
+    """
+    base = prep.data
+    M = len(base.rows)
+    keep = np.asarray(keep, dtype=bool)
+    if keep.shape != (M,):
+        raise ValueError(f"keep has shape {keep.shape}, expected ({M},)")
+    sel = keep[base.used_idx]  # the used rows that stay, (N_base,)
+    ui = base.used_idx[sel]
+    present = np.zeros(base.K, dtype=bool)
+    present[base.tk[sel]] = True
+    new_k = np.full(base.K + 1, -1, dtype=np.int64)  # the last entry: tk_all = -1 stays -1
+    new_k[: base.K][present] = np.arange(int(present.sum()))
+    tk_all = new_k[base.tk_all]
+    kept = np.flatnonzero(present).tolist()
+    labels = [base.target_labels[k] for k in kept]
+    dist, dropped = _known_distances(config, labels, prep.all_labels)
+    reasons = base.rows["reason"].tolist()
+    for i in np.flatnonzero(~keep).tolist():
+        # base reasons are _row_reasons' fixed phrases, none with "; " inside
+        parts = reasons[i].split("; ") if reasons[i] else []
+        at = 1 if parts[:1] == [NOT_CONVERGED] else 0
+        reasons[i] = "; ".join([*parts[:at], prep.rejected[i], *parts[at:]])
+    used = np.zeros(M, dtype=bool)
+    used[ui] = True
+    shape_g, shape_l = _used_shape(prep.shape_all, ui)
+    ps = base.pair_scatter_all
+    return FitData(
+        q=base.q[sel],
+        d=base.d[sel],
+        sw=base.sw[sel],
+        tk=tk_all[ui],
+        K=len(kept),
+        target_ids=[base.target_ids[k] for k in kept],
+        target_labels=labels,
+        dist=dist,
+        dropped_distances=dropped,
+        rows=base.rows.assign(used=used, reason=reasons),
+        used_idx=ui,
+        q_all=base.q_all.copy(),
+        d_all=base.d_all.copy(),
+        tk_all=tk_all,
+        shape_g=shape_g,
+        shape_l=shape_l,
+        pair_scatter_all=None if ps is None else ps.copy(),
+    )
 
 
 def _row_reasons(df: pd.DataFrame, q_all: F64, d_all: F64, w: F64) -> list[list[str]]:
@@ -146,12 +269,11 @@ def _row_reasons(df: pd.DataFrame, q_all: F64, d_all: F64, w: F64) -> list[list[
     reason = [[] for _ in range(M)]  # type: list[list[str]]
     if "converged" in df.columns:
         for i in np.flatnonzero(~df["converged"].fillna(False).to_numpy(dtype=bool)).tolist():
-            reason[i].append("not converged")
+            reason[i].append(NOT_CONVERGED)
     if "inlier" in df.columns:
-        rej = df["reason"].astype(str).to_numpy() if "reason" in df.columns else None
-        for i in np.flatnonzero(~df["inlier"].fillna(False).to_numpy(dtype=bool)).tolist():
-            extra = f" ({rej[i]})" if rej is not None and rej[i] not in ("", "nan", "None") else ""
-            reason[i].append("rejected as outlier" + extra)
+        out = np.flatnonzero(~df["inlier"].fillna(False).to_numpy(dtype=bool))
+        for i, why in zip(out.tolist(), _outlier_reasons(df, out), strict=True):
+            reason[i].append(why)
     for i in np.flatnonzero(~(w > 0)).tolist():
         reason[i].append("weight not positive")
     for i in np.flatnonzero(w > MAX_WEIGHT).tolist():
@@ -167,6 +289,17 @@ def _row_reasons(df: pd.DataFrame, q_all: F64, d_all: F64, w: F64) -> list[list[
         reason[i].append(f"correction beyond {MAX_CORRECTION_M:g} m")
         d_all[i] = 0.0
     return reason
+
+
+def _outlier_reasons(df: pd.DataFrame, rows: np.ndarray) -> list[str]:
+    """The reason of each of ``rows`` (positions) as a row the ``inlier`` column rejects:
+    "rejected as outlier", with the table's ``reason`` in brackets when it gives one."""
+    rej = df["reason"].astype(str).to_numpy() if "reason" in df.columns else None
+    out = []
+    for i in rows.tolist():
+        extra = f" ({rej[i]})" if rej is not None and rej[i] not in ("", "nan", "None") else ""
+        out.append("rejected as outlier" + extra)
+    return out
 
 
 def _target_numbers(

@@ -1,4 +1,4 @@
-"""The identify stage's options, its result per error model, and its failure."""
+"""The identify stage's options, the robot a fit is of, its result per error model, and its failure."""
 
 from __future__ import annotations
 
@@ -8,9 +8,10 @@ from typing import Any
 import numpy as np
 import pandas as pd
 
-from pipeline.errors import CalibrationFailed
-from pipeline.kinematics.chain import Chain
+from pipeline.errors import BadInput, CalibrationFailed
+from pipeline.kinematics.chain import Chain, load_chain
 from pipeline.kinematics.se3 import F64
+from pipeline.models import make_model
 from pipeline.models.base import ErrorModel
 
 DEFAULT_MODEL = "full"
@@ -108,6 +109,39 @@ class IdentifyConfig:
     correction_frame: str = "calibrated"
     correction_map: list[list[float]] | None = None
     workers: int = 0
+
+
+@dataclass
+class Robot:
+    """The nominal robot fits are of: its URDF, its chain and its error models, each made once.
+
+    A model holds the nominal chain and no fit state (its methods take ``x``), so one
+    object serves every fit of that model: cross-validation's refits share them.
+
+    Attributes
+    ----------
+    urdf : nominal URDF XML
+    chain : base link -> flange (or tool) link of ``urdf``
+    """
+
+    urdf: str
+    chain: Chain
+    _models: dict[str, ErrorModel] = field(default_factory=dict, repr=False, compare=False)
+
+    @classmethod
+    def load(cls, urdf: str, base_link: str, flange_link: str) -> Robot:
+        """The robot of ``urdf`` from ``base_link`` to ``flange_link``."""
+        return cls(urdf, load_chain(urdf, base_link, flange_link))
+
+    def model(self, name: str) -> ErrorModel:
+        """The error model ``name`` of :attr:`chain` (:func:`pipeline.models.make_model`),
+        made on first use; BadInput for an unknown name."""
+        if name not in self._models:
+            try:
+                self._models[name] = make_model(name, self.chain)
+            except KeyError as exc:
+                raise BadInput(f"--model {name!r}: {exc.args[0]}") from exc
+        return self._models[name]
 
 
 @dataclass
