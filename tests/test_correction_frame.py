@@ -216,3 +216,16 @@ def test_a_map_the_poses_do_not_determine_is_not_applied() -> None:
     np.testing.assert_array_equal(res.correction_map, np.eye(3))
     cf = res.summary["correction_frame"]
     assert cf["method"] == "nominal" and "do not determine it" in cf["note"], cf
+
+
+def test_a_pose_with_a_missing_joint_is_left_out_of_the_map() -> None:
+    """A row whose joint is not a number (identification does not use it) has no
+    Jacobian: the map is that of the other poses (it raised LinAlgError)."""
+    nominal, true, q = _chains()
+    q = np.vstack([q, q[:1]])
+    q[-1, 2] = np.nan
+    S = np.repeat(np.eye(3)[None], len(q), axis=0)
+    for scatters in (None, S):
+        M = translation_map(nominal, true, q, S=scatters)
+        M_ok = translation_map(nominal, true, q[:-1], S=None if scatters is None else S[:-1])
+        np.testing.assert_allclose(M, M_ok, rtol=0, atol=1e-15)

@@ -134,3 +134,12 @@ def test_identify_fits_its_models_in_forked_processes_as_in_one() -> None:
             pd.testing.assert_frame_equal(getattr(one[m], name), getattr(two[m], name))
         assert one[m].calibrated_urdf == two[m].calibrated_urdf
         np.testing.assert_array_equal(one[m].x, two[m].x)
+
+
+def test_a_result_the_children_cannot_send_back_is_made_here() -> None:
+    class Local:  # defined in a function: instances cannot be pickled
+        def __init__(self, v: int) -> None:
+            self.v = v
+
+    out = parallel_map(Local, [1, 2, 3], workers=2)
+    assert [o.v for o in out] == [1, 2, 3]

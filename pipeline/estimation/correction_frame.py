@@ -129,14 +129,18 @@ def translation_map(
     -------
     (3, 3) ``M_eff`` (the identity for identical chains). Poses within
     ``1 / SINGULAR_COND`` of a singularity (condition number of ``Jb_n`` above it)
-    are left out: there a small flange translation is not a small joint step; the
-    identity when every pose is.
+    are left out: there a small flange translation is not a small joint step; so are
+    poses with a joint that is not a number. The identity when every pose is.
     """
     q2 = np.atleast_2d(np.asarray(q, dtype=float))
     Jn = body_jacobian(nominal, q2)
     Jc = body_jacobian(calibrated, q2)
     ww = np.ones(len(q2)) if w is None else np.asarray(w, dtype=float)
-    ok = (np.linalg.cond(Jn) < SINGULAR_COND) & (ww > 0)
+    # a pose with a missing joint (a row identification does not use) has no Jacobian
+    fin = np.all(np.isfinite(Jn), axis=(1, 2)) & np.all(np.isfinite(Jc), axis=(1, 2))
+    cond = np.full(len(q2), np.inf)
+    cond[fin] = np.linalg.cond(Jn[fin])
+    ok = (cond < SINGULAR_COND) & (ww > 0)
     px = skew(np.zeros(3) if p_point is None else p_point)
 
     def per_pose(sel: np.ndarray) -> F64:

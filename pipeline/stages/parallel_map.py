@@ -17,6 +17,7 @@ worker: the batch already uses the cores, one recording per worker).
 from __future__ import annotations
 
 import multiprocessing
+import multiprocessing.pool
 import os
 from collections.abc import Callable, Sequence
 from typing import Any, TypeVar
@@ -57,7 +58,8 @@ def parallel_map(fn: Callable[[T], R], tasks: Sequence[T], workers: int = 1) -> 
 
     Returns
     -------
-    list of results, as the serial map's
+    list of results, as the serial map's (a result that cannot be pickled back from a
+    child makes the whole map run again serially)
     """
     global _TASK
     if workers == 0:
@@ -75,5 +77,9 @@ def parallel_map(fn: Callable[[T], R], tasks: Sequence[T], workers: int = 1) -> 
     try:
         with multiprocessing.get_context("fork").Pool(n) as pool:
             return list(pool.map(_call, tasks, chunksize=1))
+    except multiprocessing.pool.MaybeEncodingError:  # type: ignore[attr-defined]
+        # a result the children cannot send back (an object of a class defined inside a
+        # function, say): the map again, in this process
+        return [fn(t) for t in tasks]
     finally:
         _TASK = None
