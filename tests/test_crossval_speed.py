@@ -143,3 +143,12 @@ def test_a_result_the_children_cannot_send_back_is_made_here() -> None:
 
     out = parallel_map(Local, [1, 2, 3], workers=2)
     assert [o.v for o in out] == [1, 2, 3]
+
+
+def test_free_workers_count_a_core_free_when_half_of_it_is(monkeypatch) -> None:  # type: ignore[no-untyped-def]
+    from pipeline.stages import parallel_map as pm
+
+    monkeypatch.setattr(pm.os, "cpu_count", lambda: 2)
+    for load, want in ((0.2, 2), (1.01, 2), (1.49, 2), (1.51, 1), (3.0, 1)):
+        monkeypatch.setattr(pm.os, "getloadavg", lambda load=load: (load, 0.0, 0.0))
+        assert pm.free_workers() == want, load
