@@ -11,8 +11,8 @@ far in Mahalanobis distance (:func:`robust_flange_whitening`).
 from __future__ import annotations
 
 import numpy as np
-from scipy import stats
 
+from pipeline.estimation.distributions import chi2_ppf
 from pipeline.estimation.measurement import Problem
 from pipeline.kinematics.se3 import F64
 
@@ -68,7 +68,7 @@ def robust_flange_whitening(R: F64, r: F64, w: F64, n_est: int, flange: bool) ->
         return np.eye(3)
     ef = np.einsum("nji,nj->ni", R, r)
     keep = np.ones(len(ef), dtype=bool)
-    cut = float(stats.chi2.ppf(0.975, 3))
+    cut = chi2_ppf(0.975, 3)
     for _ in range(3):
         wk = w * keep
         mu = (wk[:, None] * ef).sum(axis=0) / wk.sum()

@@ -9,6 +9,7 @@ from typing import Any
 
 import numpy as np
 
+from pipeline.estimation.distributions import f_sf
 from pipeline.estimation.measurement import Problem
 from pipeline.kinematics.se3 import F64
 from pipeline.stages.identify_data import FitData
@@ -118,8 +119,6 @@ def _attempt(
     """Fit the ``theta`` columns ``cols`` from ``sol0`` on ``D0``; (sol, data, summary, significant)."""
     import dataclasses
 
-    from scipy.stats import f as f_dist
-
     from pipeline.stages import print_shape as ps
 
     assert D0.shape_g is not None
@@ -158,7 +157,7 @@ def _attempt(
     std[cols] = np.sqrt(np.clip(np.diag(cov)[-ne:], 0, None)) / cn[-ne:]
     rss1 = _rss(prob, D, s1.x)
     F = ((rss0 - rss1) / ne) / max(rss1 / dof1, 1e-300)
-    p_value = float(f_dist.sf(F, ne, dof1)) if rss1 > 0 else 0.0
+    p_value = f_sf(F, ne, dof1) if rss1 > 0 else 0.0
     what = "print shape" if ne == n_all else "relative print sizes"
     out: dict[str, Any] = {
         "fitted": False,

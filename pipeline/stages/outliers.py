@@ -80,9 +80,9 @@ from typing import Any
 
 import numpy as np
 import pandas as pd
-from scipy import stats
 
 from pipeline.estimation.correction_frame import PAIR_COLUMNS
+from pipeline.estimation.distributions import f_sf
 from pipeline.estimation.measurement import target_positions
 from pipeline.estimation.whitening import robust_flange_whitening
 from pipeline.kinematics.se3 import F64
@@ -416,7 +416,7 @@ def _group_test(f: _Fit, pos: np.ndarray, w: np.ndarray) -> tuple[float, float, 
     rss = float(f.e @ f.e)
     s2 = max(rss - S, 1e-300) / (f.dof - r)
     F = S / (r * s2)
-    p = float(stats.f.sf(F, r, f.dof - r))
+    p = float(f_sf(F, r, f.dof - r))
     return p, float(np.sqrt(S / s2)), r, delta
 
 
@@ -453,7 +453,7 @@ def _prediction_test(f: _Fit, out: pd.DataFrame, i: int, info: Any) -> tuple[flo
     V = np.eye(3) + G @ G.T
     e = Bi @ (p[0] - f.targets[tid])
     S = float(e @ np.linalg.solve(V, e)) / f.sigma2
-    return float(stats.f.sf(S / 3.0, 3, f.dof)), float(np.sqrt(S))
+    return float(f_sf(S / 3.0, 3, f.dof)), float(np.sqrt(S))
 
 
 def _leverage(f: _Fit) -> F64:
