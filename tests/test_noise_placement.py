@@ -8,26 +8,12 @@ after the curve they scatter ~1.4x more, by the curve's slope at the contour.
 
 from __future__ import annotations
 
-import importlib.util
-from pathlib import Path
-
 import numpy as np
-
-REPO = Path(__file__).resolve().parent.parent
-
-
-def _bench():  # type: ignore[no-untyped-def]
-    spec = importlib.util.spec_from_file_location(
-        "bench_noise_placement", REPO / "benchmarks" / "bench_noise_placement.py"
-    )
-    assert spec is not None and spec.loader is not None
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
+from test_real_images import load_bench
 
 
 def test_an_encoded_image_with_noise_before_the_curve_measures_as_a_linear_one() -> None:
-    B = _bench()
+    B = load_bench("bench_noise_placement")
     n = 80
     lin = B.long_axes("linear", 1.0, True, n)
     for kind, gamma in (("srgb", 1.0), ("gamma", 2.2)):

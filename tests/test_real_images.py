@@ -20,14 +20,17 @@ REPO = Path(__file__).resolve().parent.parent
 DOTS = REPO / "datasets" / "real" / "dots"
 
 
-def _bench():
-    spec = importlib.util.spec_from_file_location(
-        "bench_real_images", REPO / "benchmarks" / "bench_real_images.py"
-    )
+def load_bench(name: str):
+    """The module ``benchmarks/NAME.py`` (benchmarks are scripts, not a package)."""
+    spec = importlib.util.spec_from_file_location(name, REPO / "benchmarks" / f"{name}.py")
     assert spec is not None and spec.loader is not None
     mod = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(mod)
     return mod
+
+
+def _bench():
+    return load_bench("bench_real_images")
 
 
 @pytest.fixture(scope="module")
