@@ -293,3 +293,22 @@ def test_split_bag_run_is_cached_by_content(short_msgs: list[Msg], tmp_path: Pat
     single = tmp_path / "one.bag"
     write_ros1_bag(single, short_msgs)
     assert recording_hash(locate(single)) == file_hash(single)
+
+
+@pytest.mark.parametrize("kind", ["split", "db3"])
+def test_a_bag_run_shows_the_recordings_images(runs: dict[str, Path], kind: str) -> None:
+    """The report reads its frames back from a bag directory as from the MCAP file
+    (a rosbag2 directory was taken for a missing recording: no images)."""
+    from pipeline.report.data import load_run
+    from pipeline.report.images import load_images
+
+    frames = {}
+    for name in ("mcap", kind):
+        data = load_run(runs[name])
+        path = data.recording_path()
+        assert path is not None, name
+        rec = data.recording or {}
+        frames[name] = load_images(path, rec.get("image_topic"), [0, 7, 74], rec.get("n_images"))
+    assert sorted(frames[kind]) == sorted(frames["mcap"]) == [0, 7, 74]
+    for k in frames["mcap"]:
+        np.testing.assert_array_equal(frames[kind][k].gray, frames["mcap"][k].gray)

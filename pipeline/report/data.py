@@ -148,7 +148,8 @@ class RunData:
         return "unknown robot"
 
     def recording_path(self) -> Path | None:
-        """The recording file, if recording.json names one that still exists."""
+        """The recording (a file, or a rosbag2 directory), if recording.json names one that
+        still exists."""
         p = (self.recording or {}).get("path")
         if not p:
             return None
@@ -156,7 +157,7 @@ class RunData:
         # a relative path is as given on the command line: try the working folder, then
         # the run folder
         for cand in (path, self.run_dir / path) if not path.is_absolute() else (path,):
-            if cand.is_file():
+            if cand.is_file() or cand.is_dir():
                 return cand.resolve()
         return None
 
