@@ -6,6 +6,8 @@ labels are the targets' first-touch order 0, 1, 2, ...
 
 from __future__ import annotations
 
+from typing import Any
+
 from pipeline.errors import BadInput
 
 
@@ -37,3 +39,9 @@ def parse_distances(text: str) -> list[tuple[int | str, int | str, float]]:
             raise BadInput(f"known distance {item!r}: expected A:B=METRES with METRES > 0")
         out.append((_label(a.strip()), _label(b.strip()), d))
     return out
+
+
+def metadata_distances(metadata: Any) -> list[tuple[int | str, int | str, float]]:
+    """The known distances of a recording's ``touchup`` metadata (``known_distances``,
+    :func:`parse_distances`); [] without metadata or the key."""
+    return parse_distances(str((metadata or {}).get("known_distances", "") or ""))

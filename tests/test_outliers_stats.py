@@ -189,3 +189,17 @@ def test_too_small_for_statistics_says_so_and_rejects_nothing_more() -> None:
     assert out.loc[0, "reason"] == "not converged"
     assert out.loc[1:, "note"].str.startswith("statistical check skipped").all()
     assert out["studentized"].isna().all()
+
+
+def test_an_accepted_implausible_distance_still_gets_the_statistical_tests() -> None:
+    """The outlier stage's fits leave the guardrails to the identify stage: a known
+    distance the nominal robot contradicts (accepted with --accept-implausible there)
+    made every statistical test skip, and a bad touch-up went unflagged."""
+    tab, tg, true, info = make_cell(7)
+    names = list(info.joint_names)
+    move_to(tab, [4], true, (tg[0] + np.array([0.0, 0.0008, 0.0]))[None], names)
+    d = float(np.linalg.norm(tg[0] - tg[2]))
+    info.metadata = {"known_distances": f"0:2={1.5 * d:.9f}"}  # a typo the guardrail names
+    out = flag_outliers(tab, info, OutlierConfig())
+    assert not out["note"].astype(str).str.contains("statistical check skipped").any()
+    assert 4 in set(out.loc[~out["inlier"], "touchup_id"])

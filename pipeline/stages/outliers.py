@@ -300,24 +300,24 @@ class _Fit:
     M: F64  # (3, 3) the fit's correction map (IdentifyResult.correction_map)
 
 
-def _distances(info: Any) -> list[tuple[int | str, int | str, float]]:
-    from pipeline.known_distances import parse_distances
-
-    meta = getattr(info, "metadata", None) or {}
-    return parse_distances(str(meta.get("known_distances", "") or ""))
-
-
 def _fit(out: pd.DataFrame, info: Any, model: str, config: OutlierConfig) -> _Fit:
     """Identify on the current inliers and build the linearised problem."""
     from pipeline.kinematics.chain import load_chain
+    from pipeline.known_distances import metadata_distances
     from pipeline.models import make_model
     from pipeline.stages.identify import IdentifyConfig, IdentifyResult, identify
 
-    dist = _distances(info)
+    dist = metadata_distances(getattr(info, "metadata", None))
     labels = set(out["target_id"].astype(int).tolist())
     dist = [d for d in dist if int(d[0]) in labels and int(d[1]) in labels]
+    # no guardrails: they are the identify stage's to judge (and --accept-implausible's);
+    # here an accepted implausible input made every statistical test skip
     icfg = IdentifyConfig(
-        model=model, distances=dist, n_workspace=4, noise_model=config.noise_model
+        model=model,
+        distances=dist,
+        n_workspace=4,
+        noise_model=config.noise_model,
+        check_plausibility=False,
     )
     res = identify(out, info.urdf, info.base_link, info.flange_link, icfg)
     assert isinstance(res, IdentifyResult)
