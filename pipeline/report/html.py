@@ -184,13 +184,13 @@ def thumbnail_frames(data: RunData) -> list[int]:
 
 def _report_images(data: RunData) -> dict[int, np.ndarray] | None:
     """Images of the rejected touch-ups' last captures, if the recording is reachable."""
-    path = data.recording_path()
-    if path is None or data.touchup_table() is None:
+    if data.touchup_table() is None:
         return None
-    from pipeline.report.images import load_frames
+    from pipeline.report.images import grey_images, recording_frames
 
-    rec = data.recording or {}
-    return load_frames(path, rec.get("image_topic"), thumbnail_frames(data), rec.get("n_images"))
+    thumbs = thumbnail_frames(data)
+    frames = recording_frames(data, thumbs)
+    return None if frames is None else grey_images(frames, thumbs)
 
 
 def build_report(

@@ -16,6 +16,7 @@ from collections.abc import Iterable
 from dataclasses import dataclass, field
 from functools import cached_property
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import cv2
 import numpy as np
@@ -31,6 +32,9 @@ from pipeline.io_mcap import (
 from pipeline.io_mcap_index import topic_messages
 from pipeline.io_recording import iter_recording
 from pipeline.recording_layout import locate
+
+if TYPE_CHECKING:
+    from pipeline.report.data import RunData
 
 
 @dataclass
@@ -185,17 +189,27 @@ def _streamed(path: Path, image_topic: str | None, want: set[int]) -> dict[int, 
     return out
 
 
-def load_frames(
-    path: Path, image_topic: str | None, indices: Iterable[int], n_images: int | None = None
-) -> dict[int, np.ndarray]:
-    """Grey images ``{frame index: (H, W) uint8}`` of the wanted frames (see :func:`load_images`)."""
+def grey_images(frames: dict[int, Frame], wanted: Iterable[int]) -> dict[int, np.ndarray]:
+    """Grey images ``{frame index: (H, W) uint8}`` of the wanted frames that ``frames``
+    holds (undecodable ones left out)."""
     out = {}
-    for k, f in load_images(path, image_topic, indices, n_images).items():
-        try:
-            out[k] = f.gray
-        except Exception:  # noqa: BLE001 - an undecodable frame is just not shown
-            continue
+    for k in wanted:
+        if k in frames:
+            try:
+                out[k] = frames[k].gray
+            except Exception:  # noqa: BLE001 - an undecodable frame is just not shown
+                continue
     return out
+
+
+def recording_frames(data: RunData, indices: Iterable[int]) -> dict[int, Frame] | None:
+    """The wanted frames of a run's recording (:func:`load_images` with the topic and
+    image count ``recording.json`` holds); None when the recording is not reachable."""
+    path = data.recording_path()
+    if path is None:
+        return None
+    rec = data.recording or {}
+    return load_images(path, rec.get("image_topic"), indices, rec.get("n_images"))
 
 
 def _to_u8(g: np.ndarray) -> np.ndarray:

@@ -17,33 +17,18 @@ from __future__ import annotations
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
-import numpy as np
-
 from pipeline.report.data import RunData, load_run
 from pipeline.report.html import build_report, thumbnail_frames
-from pipeline.report.images import Frame, load_images
+from pipeline.report.images import Frame, grey_images, recording_frames
 from pipeline.report.touchup_views import image_frames
 
 
-def _grey(frames: dict[int, Frame], wanted: list[int]) -> dict[int, np.ndarray]:
-    """The decoded grey images of the wanted frames (undecodable ones left out)."""
-    out = {}
-    for k in wanted:
-        if k in frames:
-            try:
-                out[k] = frames[k].gray
-            except Exception:  # noqa: BLE001 - an undecodable frame is just not shown
-                continue
-    return out
-
-
-def _read(path: Path, data: RunData, thumbs: list[int], shots: list[int]) -> dict[int, Frame]:
+def _read(data: RunData, thumbs: list[int], shots: list[int]) -> dict[int, Frame] | None:
     """The wanted frames, each shot's run.rrd bytes made (an undecodable one is left as
-    it is: build_rrd meets it again and leaves it out)."""
-    rec = data.recording or {}
-    frames = load_images(
-        path, rec.get("image_topic"), sorted({*thumbs, *shots}), rec.get("n_images")
-    )
+    it is: build_rrd meets it again and leaves it out); None without the recording."""
+    frames = recording_frames(data, sorted({*thumbs, *shots}))
+    if frames is None:
+        return None
     for k in shots:
         if k in frames:
             try:
@@ -72,18 +57,17 @@ def build_outputs(
     run_dir = Path(run_dir)
     data = load_run(run_dir)
     thumbs, shots = thumbnail_frames(data), image_frames(data)
-    path = data.recording_path()
     with ThreadPoolExecutor(max_workers=1) as pool:
-        reading = None if path is None else pool.submit(_read, path, data, thumbs, shots)
+        reading = pool.submit(_read, data, thumbs, shots)
         from pipeline.report.rrd import build_rrd  # the Rerun SDK, while the frames are read
 
-        frames = None if reading is None else reading.result()
+        frames = reading.result()
     html = build_report(
         run_dir,
         html_path,
         tolerance_mm,
         data=data,
-        images=None if frames is None else _grey(frames, thumbs),
+        images=None if frames is None else grey_images(frames, thumbs),
     )
     rrd = build_rrd(
         run_dir,

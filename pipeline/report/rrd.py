@@ -46,7 +46,7 @@ from pipeline.artefacts import atomic_write_bytes
 from pipeline.kinematics.chain import Chain, fk
 from pipeline.report.data import RunData, load_run, run_uuid
 from pipeline.report.figures import pin_positions, skeleton_points, target_positions
-from pipeline.report.images import Frame, ellipse_polyline, load_images
+from pipeline.report.images import Frame, ellipse_polyline, recording_frames
 from pipeline.report.touchup_views import (
     convergence_traces,
     designated,
@@ -483,11 +483,7 @@ def _blueprint() -> rrb.Blueprint:
 
 
 def _images(data: RunData) -> dict[int, Frame] | None:
-    path = data.recording_path()
-    if path is None:
-        return None
-    rec = data.recording or {}
-    return load_images(path, rec.get("image_topic"), image_frames(data), rec.get("n_images"))
+    return recording_frames(data, image_frames(data))
 
 
 def _notes(
