@@ -42,7 +42,7 @@ from pipeline.catalog import STAGE_NAMES, run_paths
 from pipeline.errors import BadInput, CalibrationFailed
 from pipeline.fileio import atomic_write_bytes, config_hash
 from pipeline.jsonio import json_bytes, jsonable, write_json
-from pipeline.known_distances import parse_distances
+from pipeline.known_distances import metadata_distances
 from pipeline.recording_layout import locate
 from pipeline.runner import Context, Progress, StageRecord, hashes, is_fresh, plan, run_stages
 
@@ -175,7 +175,7 @@ def run_pipeline(
     recording = Path(recording)
     out = Path(out)
     locate(recording)  # a missing file, a directory that is not a bag: BadInput now
-    parse_distances(cfg.overrides.get("known_distances", ""))  # before the long ingest
+    metadata_distances(cfg.overrides)  # bad values fail before the long ingest
     fp = run_ledger.fingerprint(recording, cfg, until)
     if not force:
         hit = _from_ledger(out, fp)
@@ -204,7 +204,7 @@ def run_pipeline(
         from pipeline.stages.ingest import RecordingInfo
 
         info = RecordingInfo(**json.loads(P["recording"].read_text()))
-        parse_distances(info.metadata.get("known_distances", ""))  # bad values fail now
+        metadata_distances(info.metadata)  # bad values fail now
         if info.implausible and not cfg.stage_options.get("identify", {}).get(
             "accept_implausible", False
         ):
@@ -259,7 +259,7 @@ def stage_configs(cfg: RunConfig, info: Any, touchups: Path) -> dict[str, Any]:
             identify.IdentifyConfig,
             opts.get("identify", {}),
             model="all",
-            distances=parse_distances(info.metadata.get("known_distances", "")),
+            distances=metadata_distances(info.metadata),
             strict_distances=False,
             target_diameter_m=_diameter(info.metadata.get("target_diameter_m")),
             implied_target_diameter_m=_implied_diameter(touchups),

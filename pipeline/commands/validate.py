@@ -244,7 +244,7 @@ def _known_distances(
     given: list[tuple[int | str, int | str, float]], labels: list[str], inp: _Input
 ) -> tuple[list[tuple[str, str, float]], list[str]]:
     """(kept, dropped): the --distance ones (all must match a target), else the recording's."""
-    from pipeline.known_distances import parse_distances
+    from pipeline.known_distances import metadata_distances
     from pipeline.validate import match_distances
 
     if given:
@@ -252,7 +252,7 @@ def _known_distances(
         if dropped:
             raise BadInput(f"--distance: {dropped[0]}")
     else:
-        meta = parse_distances(inp.metadata.get("known_distances", ""))
+        meta = metadata_distances(inp.metadata)
         kept, dropped = match_distances(meta, labels, inp.source)
         for line in dropped:
             click.echo(f"note: {line}")
