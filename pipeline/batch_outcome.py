@@ -110,12 +110,9 @@ def internal_error_line(exc: BaseException) -> str:
 
 def worker_failure(item: BatchItem, run_dir: Path, exc: BaseException) -> RecordingOutcome:
     """Outcome for a task whose worker did not return (died, not picklable, ...)."""
-    return RecordingOutcome(
-        name=item.name,
-        recording=str(item.recording),
-        run_dir=str(run_dir),
-        robot=item.robot,
-        notes=item.notes,
+    return _item_outcome(
+        item,
+        run_dir,
         status="error",
         error_kind="internal",
         error=one_line(f"worker failed: {type(exc).__name__}: {exc}"),
@@ -125,12 +122,9 @@ def worker_failure(item: BatchItem, run_dir: Path, exc: BaseException) -> Record
 
 def interrupted_outcome(it: BatchItem, out_dir: Path) -> RecordingOutcome:
     """The outcome of a recording the batch was interrupted before it finished."""
-    return RecordingOutcome(
-        it.name,
-        str(it.recording),
-        str(out_dir / it.name),
-        it.robot,
-        it.notes,
+    return _item_outcome(
+        it,
+        out_dir / it.name,
         error="interrupted before it finished",
         error_kind="interrupted",
         exit_code=130,
@@ -225,13 +219,20 @@ def cached_outcome(
 
 
 def _new_outcome(item: BatchItem, out: Path) -> RecordingOutcome:
+    """An outcome of ``item`` made in this process (it names this process as the worker)."""
+    return _item_outcome(item, out, worker=f"{socket.gethostname()}:{os.getpid()}")
+
+
+def _item_outcome(item: BatchItem, run_dir: Path, **fields: Any) -> RecordingOutcome:
+    """An outcome of ``item`` run into ``run_dir``: the item's name, recording, robot and
+    notes, then ``fields``."""
     return RecordingOutcome(
         name=item.name,
         recording=str(item.recording),
-        run_dir=str(out),
+        run_dir=str(run_dir),
         robot=item.robot,
         notes=item.notes,
-        worker=f"{socket.gethostname()}:{os.getpid()}",
+        **fields,
     )
 
 
