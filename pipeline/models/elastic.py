@@ -139,6 +139,19 @@ class ElasticModel(FullOriginModel):
         s[self.n_kin :] = length * tau_ref
         return s
 
+    def _elastic_torque(self, q: F64) -> F64:
+        """(E2)'s torque on the elastic joints, (N, n_elastic), kept for the last ``q``.
+
+        A fit evaluates the model hundreds of times at the same joint vectors and
+        the torque depends on them only (the nominal arm), so the last one is reused.
+        """
+        last = getattr(self, "_tau_last", None)
+        if last is not None and last[0].shape == q.shape and np.array_equal(last[0], q):
+            return last[1]  # type: ignore[no-any-return]
+        tau = gravity_torque(self.nominal, q)[:, self.elastic_joints]
+        self._tau_last = (q.copy(), tau)
+        return tau
+
     def deflection(self, x: ArrayLike, q: ArrayLike) -> F64:
         """Equation (E1)'s ``c_j tau_j(q)`` per pose and joint, (N, n) rad."""
         x = np.asarray(x, dtype=float)
@@ -156,7 +169,7 @@ class ElasticModel(FullOriginModel):
     ) -> tuple[F64, F64, F64 | None]:
         x = np.asarray(x, dtype=float)
         q = np.atleast_2d(np.asarray(q, dtype=float))
-        tau = gravity_torque(self.nominal, q)[:, self.elastic_joints]
+        tau = self._elastic_torque(q)
         qd = q.copy()
         qd[:, self.elastic_joints] += tau * x[self.n_kin :]
         p, R, Jk = super().pin_and_jacobian(x[: self.n_kin], qd, p_flange, jac=jac)

@@ -31,14 +31,18 @@ from pipeline.kinematics.se3 import F64
 from pipeline.models.base import (
     ErrorModel,
     as_points,
+    joint_motions,
     motion,
     point_motion,
     register,
     rotation,
     so3_exp,
-    so3_right_jacobian,
+    so3_exp_many,
+    so3_right_jacobian_many,
     translation,
 )
+
+_I4 = np.eye(4)
 
 COMPONENTS = ("dx", "dy", "dz", "rx", "ry", "rz", "dq0")
 _UNITS = {"dx": "m", "dy": "m", "dz": "m", "rx": "rad", "ry": "rad", "rz": "rad", "dq0": "rad"}
@@ -67,7 +71,6 @@ class FullOriginModel(ErrorModel):
                 self.param_units.append(unit)
         self._k_idx = np.array([k for (k, _c) in self._slot], dtype=np.int64)
         self._c_idx = np.array([COMPONENTS.index(c) for (_k, c) in self._slot], dtype=np.int64)
-        self._pre_is_eye = [bool(np.allclose(P, np.eye(4), atol=0)) for P in L.pre]
         self._gather = 7 * self._k_idx + self._c_idx
         # among exactly dependent columns keep the zero offset (pivoting tie-break)
         self.param_priority = np.array(
@@ -101,33 +104,33 @@ class FullOriginModel(ErrorModel):
         N = q.shape[0]
         pf = as_points(p_flange, N)
         d, r, dq0 = self._unpack(x)
-        T = np.broadcast_to(np.eye(4), (N, 4, 4))
-        RXs, Ys = [], []
+        # A_k = pre_k @ Trans(xyz_k + d_k) @ R_k @ exp([r_k]), all joints at once
+        A = np.empty((L.n, 4, 4))
+        A[:] = _I4
+        A[:, :3, :3] = L.origin[:, :3, :3] @ so3_exp_many(r)
+        A[:, :3, 3] = L.origin[:, :3, 3] + d
+        A = L.pre @ A
+        M = joint_motions(L.axis, L.prismatic, q + dq0)
+        # T_base_{X_k} (before pre_k) and T_base_{Y_k} of every joint
+        Ts = np.empty((L.n, N, 4, 4))
+        Ys = np.empty((L.n, N, 4, 4))
+        T = np.broadcast_to(_I4, (N, 4, 4))
         for k in range(L.n):
-            F = self._fixed_part(k, d[k], r[k])
-            if self._pre_is_eye[k]:
-                RXs.append(T[:, :3, :3])
-                Y = T @ F
-            else:
-                RXs.append(T[:, :3, :3] @ L.pre[k][:3, :3])
-                Y = T @ (L.pre[k] @ F)
-            Ys.append(Y)
-            T = Y @ motion(L.axis[k], bool(L.prismatic[k]), q[:, k] + dq0[k])
+            Ts[k] = T
+            Ys[k] = T @ A[k]
+            T = Ys[k] @ M[:, k]
         T = T @ L.tail
         R = T[:, :3, :3]
         p = np.einsum("nij,nj->ni", R, pf) + T[:, :3, 3]
         if not jac:
             return p, R, None
         # all seven columns of every joint, then the model's subset in one gather
-        blocks = np.empty((N, 3, L.n, 7))
-        for k in range(L.n):
-            blocks[:, :, k, :3] = RXs[k]
-            tw = np.zeros((6, 4))
-            tw[3:, :3] = so3_right_jacobian(r[k])
-            if L.prismatic[k]:
-                tw[:3, 3] = L.axis[k]
-            else:
-                tw[3:, 3] = L.axis[k]
-            blocks[:, :, k, 3:] = point_motion(Ys[k], tw, p)
-        J = blocks.reshape(N, 3, 7 * L.n)[:, :, self._gather]
+        blocks = np.empty((L.n, N, 3, 7))
+        blocks[..., :3] = Ts[:, :, :3, :3] @ L.pre[:, None, :3, :3]
+        tw = np.zeros((L.n, 6, 4))
+        tw[:, 3:, :3] = so3_right_jacobian_many(r)
+        tw[:, :3, 3] = np.where(L.prismatic[:, None], L.axis, 0.0)
+        tw[:, 3:, 3] = np.where(L.prismatic[:, None], 0.0, L.axis)
+        blocks[..., 3:] = point_motion(Ys, tw[:, None], p)
+        J = blocks.transpose(1, 2, 0, 3).reshape(N, 3, 7 * L.n)[:, :, self._gather]
         return p, R, J

@@ -38,7 +38,7 @@ from numpy.typing import ArrayLike
 from pipeline.errors import BadInput
 from pipeline.kinematics.chain import Chain, fk, fk_frames
 from pipeline.kinematics.se3 import F64, invert_transform, matrix_from_axis_angle
-from pipeline.models.base import ErrorModel, as_points, motion, point_motion, register
+from pipeline.models.base import ErrorModel, as_points, joint_motions, point_motion, register
 
 _EX, _EY, _EZ = np.eye(3)
 
@@ -176,6 +176,16 @@ class MDHModel(ErrorModel):
                 self.param_joints.append(jn)
                 self.param_units.append("m" if names[c] in ("a", "d") else "rad")
         self.param_nominal = [float(self.nom[i, c]) for i, c in self._slots]
+        # each parameter's unit twist at the frame just before its factor (P, 1, 6, 1)
+        unit = {0: (3, _EX), 1: (3, _EY), 2: (0, _EX), 3: (3, _EZ), 4: (0, _EZ)}
+        self._slot_joint = np.array([i for i, _c in self._slots], dtype=np.int64)
+        self._slot_comp = np.array([c for _i, c in self._slots], dtype=np.int64)
+        self._slot_twist = np.zeros((len(self._slots), 1, 6, 1))
+        for j, (_i, c) in enumerate(self._slots):
+            off, e = unit[c]
+            self._slot_twist[j, 0, off : off + 3, 0] = e
+        self._axes_z = np.tile(_EZ, (n, 1))
+        self._prismatic = np.zeros(n, dtype=bool)  # MDH: revolute joints only
 
     @staticmethod
     def _link(i: int, v: F64) -> F64:
@@ -197,34 +207,44 @@ class MDHModel(ErrorModel):
             out[jn] = self._pre_inv[i] @ left @ self.E[i] @ self._link(i, v[i]) @ self.C[i]
         return out
 
+    def _factors(self, v: F64) -> F64:
+        """Cumulative products of every joint's link factors, (n, 6, 4, 4).
+
+        ``A[i] = (E_i, E_i Rx, E_i Rx Ry, E_i Rx Ry Tx, E_i Rx Ry Tx Rz, E_i L_i)``:
+        the frame just before parameter ``c`` of link ``i`` is ``T @ A[i, c]``.
+        """
+        n = self.layout.n
+        F = np.empty((n, 5, 4, 4))
+        F[:] = np.eye(4)
+        F[:, 0, :3, :3] = matrix_from_axis_angle(_EX, v[:, 0])
+        F[:, 1, :3, :3] = matrix_from_axis_angle(_EY, v[:, 1])
+        F[:, 2, 0, 3] = v[:, 2]
+        F[:, 3, :3, :3] = matrix_from_axis_angle(_EZ, v[:, 3])
+        F[:, 4, 2, 3] = v[:, 4]
+        A = np.empty((n, 6, 4, 4))
+        A[:, 0] = self.E
+        for c in range(5):
+            A[:, c + 1] = A[:, c] @ F[:, c]
+        return A
+
     def pin_and_jacobian(
         self, x: ArrayLike, q: ArrayLike, p_flange: ArrayLike, *, jac: bool = True
     ) -> tuple[F64, F64, F64 | None]:
         q = np.atleast_2d(np.asarray(q, dtype=float))
-        N = q.shape[0]
+        N, n = q.shape
         pf = as_points(p_flange, N)
-        v = self._values(x)
+        A = self._factors(self._values(x))
+        M = joint_motions(self._axes_z, self._prismatic, q)
         T = np.broadcast_to(self.B, (N, 4, 4))
-        sites = []
-        for i in range(self.layout.n):
-            alpha, beta, a, theta, d = v[i]
-            S0 = T @ self.E[i]
-            S1 = S0 @ _rx(alpha)
-            S2 = S1 @ _ry(beta)
-            S3 = S2 @ _tx(a)
-            S4 = S3 @ _rz(theta)
-            T = S4 @ _tz(d) @ motion(_EZ, False, q[:, i])
-            sites.append((S0, S1, S2, S3, S4))
+        sites = np.empty((n, 5, N, 4, 4))
+        for i in range(n):
+            sites[i] = T @ A[i, :5, None]
+            T = (T @ A[i, 5]) @ M[:, i]
         T = T @ self.T_n_flange
         R = T[:, :3, :3]
         p = np.einsum("nij,nj->ni", R, pf) + T[:, :3, 3]
         if not jac:
             return p, R, None
-        J = np.zeros((N, 3, self.n_params))
-        unit = {0: (3, _EX), 1: (3, _EY), 2: (0, _EX), 3: (3, _EZ), 4: (0, _EZ)}
-        for j, (i, c) in enumerate(self._slots):
-            off, e = unit[c]
-            tw = np.zeros((6, 1))
-            tw[off : off + 3, 0] = e
-            J[:, :, j] = point_motion(sites[i][c], tw, p)[:, :, 0]
-        return p, R, J
+        sel = sites[self._slot_joint, self._slot_comp]  # (P, N, 4, 4)
+        J = point_motion(sel, self._slot_twist, p)[..., 0].transpose(1, 2, 0)
+        return p, R, np.ascontiguousarray(J)

@@ -34,13 +34,11 @@ from pipeline.kinematics.se3 import F64, invert_transform
 from pipeline.models.base import (
     ErrorModel,
     as_points,
-    motion,
+    joint_motions,
     point_motion,
     register,
-    rotation,
-    so3_exp,
-    so3_right_jacobian,
-    translation,
+    so3_exp_many,
+    so3_right_jacobian_many,
 )
 
 _COMP = ("tx", "ty", "tz", "rx", "ry", "rz")
@@ -68,12 +66,12 @@ class POEModel(ErrorModel):
     def _home(self, x: ArrayLike) -> tuple[F64, F64, F64]:
         """Corrected home frames ``G_k'`` and each ``exp([r_k])``, ``r_k``."""
         x = np.asarray(x, dtype=float).reshape(self.layout.n, 6)
-        Gp = np.empty_like(self.G)
-        E = np.empty((self.layout.n, 3, 3))
-        for k in range(self.layout.n):
-            E[k] = so3_exp(x[k, 3:])
-            Gp[k] = self.G[k] @ translation(x[k, :3]) @ rotation(E[k])
-        return Gp, E, x[:, 3:]
+        E = so3_exp_many(x[:, 3:])
+        H = np.empty_like(self.G)
+        H[:] = np.eye(4)
+        H[:, :3, :3] = E
+        H[:, :3, 3] = x[:, :3]
+        return self.G @ H, E, x[:, 3:]
 
     def _relative(self, Gp: F64) -> F64:
         """``G_{k-1}'^{-1} G_k'`` (the corrected segment from joint k-1 to k)."""
@@ -96,25 +94,21 @@ class POEModel(ErrorModel):
         pf = as_points(p_flange, N)
         Gp, E, r = self._home(x)
         rel = self._relative(Gp)
+        M = joint_motions(L.axis, L.prismatic, q)
+        Fs = np.empty((L.n, N, 4, 4))  # T_base at each corrected home frame (before its motion)
+        Ws = np.empty((L.n, N, 4, 4))  # ... and after it
         T = np.broadcast_to(np.eye(4), (N, 4, 4))
-        Fs, Ws = [], []
         for k in range(L.n):
-            F = T @ rel[k]
-            T = F @ motion(L.axis[k], bool(L.prismatic[k]), q[:, k])
-            Fs.append(F)
-            Ws.append(T)
+            Fs[k] = T @ rel[k]
+            Ws[k] = T = Fs[k] @ M[:, k]
         T = T @ L.tail
         R = T[:, :3, :3]
         p = np.einsum("nij,nj->ni", R, pf) + T[:, :3, 3]
         if not jac:
             return p, R, None
-        J = np.zeros((N, 3, self.n_params))
-        for k in range(L.n):
-            tw = np.zeros((6, 6))
-            tw[:3, :3] = E[k].T
-            tw[3:, 3:] = so3_right_jacobian(r[k])
-            cols = point_motion(Fs[k], tw, p)
-            if k < L.n - 1:
-                cols = cols - point_motion(Ws[k], tw, p)
-            J[:, :, 6 * k : 6 * k + 6] = cols
-        return p, R, J
+        tw = np.zeros((L.n, 1, 6, 6))
+        tw[:, 0, :3, :3] = E.transpose(0, 2, 1)
+        tw[:, 0, 3:, 3:] = so3_right_jacobian_many(r)
+        cols = point_motion(Fs, tw, p)  # (n, N, 3, 6)
+        cols[:-1] -= point_motion(Ws[:-1], tw[:-1], p)
+        return p, R, np.ascontiguousarray(cols.transpose(1, 2, 0, 3).reshape(N, 3, 6 * L.n))
