@@ -8,6 +8,7 @@ inside the package as ``pipeline/_data/schemas`` and ``pipeline/_data/reports``
 
 from __future__ import annotations
 
+import os
 from pathlib import Path
 
 PACKAGE_DIR = Path(__file__).resolve().parent
@@ -23,3 +24,13 @@ def data_dir(name: str) -> Path:
 
 SCHEMA_DIR = data_dir("schemas")
 TEMPLATE_DIR = data_dir("reports")
+
+
+def user_cache_dir(name: str) -> Path:
+    """A folder of vtcal's user cache: ``$XDG_CACHE_HOME/vtcal/NAME`` (``~/.cache`` by default).
+
+    Only things that are recomputed when missing live there (compiled report
+    templates, the import lists of the code key); the folder is not created here.
+    """
+    base = os.environ.get("XDG_CACHE_HOME") or str(Path.home() / ".cache")
+    return Path(base) / "vtcal" / name

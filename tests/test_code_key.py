@@ -143,3 +143,58 @@ def test_the_closure_follows_imports_and_stops_at_the_stage() -> None:
     identify = set(code_key.module_closure("pipeline.stages.identify"))
     # the error models are imported by the registry at run time: every one is code of identify
     assert {"pipeline.models.full", "pipeline.models.offsets", "pipeline.models.base"} <= identify
+
+
+@pytest.fixture
+def fresh_import_cache(tmp_path, monkeypatch):
+    """The import cache in a temporary user cache folder, nothing parsed in this process."""
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "cache"))
+
+    def reset() -> None:
+        monkeypatch.setattr(code_key, "_STORE", None)
+        monkeypatch.setattr(code_key, "_STORE_NEW", set())
+        monkeypatch.setattr(code_key, "_USED", set())
+        code_key._imports.cache_clear()
+        code_key.module_closure.cache_clear()
+
+    reset()
+    yield reset
+    code_key._imports.cache_clear()
+    code_key.module_closure.cache_clear()
+
+
+def test_import_parses_are_kept_by_source_and_used_again(fresh_import_cache) -> None:
+    """A module's parsed imports are written to the user cache and read back by the next
+    process; an entry is found by the module's bytes, so the cache is what answers."""
+    mod = "pipeline.stages.crossval"
+    closure = code_key.module_closure(mod)
+    assert "pipeline.stages.identify" in closure
+    code_key.save_import_cache()
+    path = code_key.import_cache_path()
+    entries = json.loads(path.read_text())["entries"]
+    assert len(entries) >= len(closure) - 3  # every parsed module (packages included)
+
+    fresh_import_cache()  # a "new process": the file is all it has
+    assert code_key.module_closure(mod) == closure
+    key = code_key._import_key(mod, code_key._module_path(mod).read_bytes())
+    assert key in entries
+    # the cache is what answers: a planted entry for crossval's bytes is believed
+    entries[key] = ["pipeline.stages.outliers"]
+    path.write_text(json.dumps({"format": 1, "entries": entries}))
+    fresh_import_cache()
+    assert code_key._imports(mod) == frozenset({"pipeline.stages.outliers"})
+    # other bytes (an edited module) are another key: parsed afresh
+    assert code_key._import_key(mod, b"import pipeline.jsonio\n") != key
+
+
+def test_a_damaged_import_cache_only_means_parsing(fresh_import_cache) -> None:
+    expected = code_key.module_closure("pipeline.stages.outliers")
+    digest = code_key.stage_code_digest("outliers")
+    for damage in ("{not json", json.dumps({"format": 1, "entries": {"x": 3}}), "[]"):
+        path = code_key.import_cache_path()
+        path.parent.mkdir(parents=True, exist_ok=True)
+        path.write_text(damage)
+        fresh_import_cache()
+        assert code_key.module_closure("pipeline.stages.outliers") == expected
+        assert code_key.stage_code_digest("outliers") == digest
+        assert json.loads(path.read_text())["format"] == 1  # rewritten whole

@@ -21,7 +21,7 @@ from typing import Any
 
 import jinja2
 
-from pipeline.resources import TEMPLATE_DIR
+from pipeline.resources import TEMPLATE_DIR, user_cache_dir
 
 #: the settings of every template environment (part of the cache key)
 ENV_OPTIONS: dict[str, Any] = {
@@ -34,8 +34,7 @@ ENV_OPTIONS: dict[str, Any] = {
 
 def template_cache_dir() -> Path:
     """Where compiled templates are kept: ``$XDG_CACHE_HOME/vtcal/jinja2`` (``~/.cache``)."""
-    base = os.environ.get("XDG_CACHE_HOME") or str(Path.home() / ".cache")
-    return Path(base) / "vtcal" / "jinja2"
+    return user_cache_dir("jinja2")
 
 
 class _BytecodeCache(jinja2.FileSystemBytecodeCache):
