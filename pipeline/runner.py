@@ -316,6 +316,7 @@ def run_report(context: Context) -> dict[str, str] | None:
         _call(STAGE["report"], context, [])
         records.append(StageRecord("report", "ran", outputs, time.perf_counter() - t0))
         return None
+    t0 = time.perf_counter()  # the key's code digest and the report's imports are waited for too
     key = report_key(context)
     P = run_paths(context.out)
     previous = json.loads(P["run"].read_text()) if P["run"].exists() else {}
@@ -328,7 +329,6 @@ def run_report(context: Context) -> dict[str, str] | None:
     ):
         records.append(StageRecord("report", "cached", outputs))
         return key
-    t0 = time.perf_counter()  # the report's imports (rerun, pandas) are waited for too
     # the report shows the stage table: give it this run's, not the previous one
     run = {"version": __version__, "stages": records, "tolerance_mm": context.tolerance_mm}
     atomic_write_bytes(P["run"], json_bytes(run))

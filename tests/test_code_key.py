@@ -198,3 +198,18 @@ def test_a_damaged_import_cache_only_means_parsing(fresh_import_cache) -> None:
         assert code_key.module_closure("pipeline.stages.outliers") == expected
         assert code_key.stage_code_digest("outliers") == digest
         assert json.loads(path.read_text())["format"] == 1  # rewritten whole
+
+
+def test_the_reports_code_key_does_not_load_the_rerun_sdk() -> None:
+    """The report's key imports its entry modules; the Rerun SDK (0.25 s) is left to the
+    report itself, where it loads while the frames are read (pipeline.report.outputs).
+    Before, the key loaded it outside the report's timed span."""
+    code = (
+        "import sys\n"
+        "from pipeline.code_key import stage_code_digest\n"
+        "stage_code_digest('report')\n"
+        "import pipeline.report.rrd, pipeline.report.outputs\n"
+        "print('rerun' in sys.modules)\n"
+    )
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    assert out.stdout.strip() == "False"

@@ -20,6 +20,7 @@ from pathlib import Path
 from pipeline.report.data import RunData, load_run
 from pipeline.report.html import build_report, thumbnail_frames
 from pipeline.report.images import Frame, grey_images, recording_frames
+from pipeline.report.rrd import build_rrd
 from pipeline.report.touchup_views import image_frames
 
 
@@ -59,7 +60,7 @@ def build_outputs(
     thumbs, shots = thumbnail_frames(data), image_frames(data)
     with ThreadPoolExecutor(max_workers=1) as pool:
         reading = pool.submit(_read, data, thumbs, shots)
-        from pipeline.report.rrd import build_rrd  # the Rerun SDK, while the frames are read
+        import pipeline.report.rrd_log  # noqa: F401 - the Rerun SDK, while the frames are read
 
         frames = reading.result()
     html = build_report(
