@@ -16,7 +16,8 @@ from support.demo_run import make_demo_run
 from pipeline.cli import cli
 from pipeline.kinematics.chain import fk, load_chain
 from pipeline.report.data import load_run, run_uuid
-from pipeline.report.rrd import RESIDUAL_SCALE, build_rrd
+from pipeline.report.rrd import build_rrd
+from pipeline.report.rrd_log import RESIDUAL_SCALE
 
 
 @pytest.fixture(scope="module")

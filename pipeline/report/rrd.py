@@ -37,57 +37,11 @@ from __future__ import annotations
 
 from pathlib import Path
 
-import numpy as np
-
 from pipeline.artefacts import atomic_write_bytes
 from pipeline.report.data import RunData, load_run, run_uuid
 from pipeline.report.images import Frame
-from pipeline.report.touchup_views import designated
 
 APP_ID = "vtcal"
-CAMERA = "world/robot/calibrated/flange/camera"
-#: residual arrows are drawn this many times their length
-RESIDUAL_SCALE = 100
-GREY = (150, 150, 160)
-BLUE = (31, 111, 235)
-RED = (209, 36, 47)
-GREEN = (45, 164, 78)
-ORANGE = (227, 98, 9)
-#: vtcal puts pixel centres at integers, Rerun's image space at half-integers
-#: (the image spans [0, W] x [0, H]): 2-D overlays are shifted by half a pixel
-PX = 0.5
-
-
-def camera_guess(
-    data: RunData, p_flange_pin: np.ndarray | None
-) -> tuple[np.ndarray, float, tuple[int, int]] | None:
-    """Nominal camera: ``(T_flange_camera (4,4), focal px, (width, height))`` or None.
-
-    The camera frame (x right, y down, z optical axis, as OpenCV) sits at the
-    flange origin with its z axis towards the virtual pin; the focal length
-    is ``f = s0 d / D`` (seed paper eq. 1, with ``d = |p_flange_pin|``); the
-    image size is ``2 * designated + 1`` (designated pixel at the centre).
-    """
-    d0 = designated(data)
-    if p_flange_pin is None or d0 is None:
-        return None
-    d = float(np.linalg.norm(p_flange_pin))
-    if d <= 0:
-        return None
-    try:
-        D = float(data.meta.get("target_diameter_m", "nan"))
-    except ValueError:
-        D = float("nan")
-    s0 = d0[2]
-    f = s0 * d / D if np.isfinite(D) and D > 0 and np.isfinite(s0) else 2.0 * (d0[0] + 0.5)
-    z = p_flange_pin / d
-    x = np.cross([0.0, 1.0, 0.0], z) if abs(z[1]) < 0.9 else np.cross(z, [0.0, 0.0, 1.0])
-    x /= np.linalg.norm(x)
-    y = np.cross(z, x)
-    T = np.eye(4)
-    T[:3, :3] = np.stack([x, y, z], axis=1)
-    size = (int(round(2 * d0[0] + 1)), int(round(2 * d0[1] + 1)))
-    return T, f, size
 
 
 def build_rrd(
