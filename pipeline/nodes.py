@@ -143,7 +143,11 @@ def choose(data: dict[str, Any], config: Any, context: Any) -> dict[str, Any]:
 
 def report(data: dict[str, Any], config: Any, context: Any) -> dict[str, Any]:
     """report.html and run.rrd from the run folder's artefacts alone (written by their writers)."""
-    from pipeline.report import outputs
+    warm = getattr(context, "warm_report", None)
+    built = warm.build(context.out, context.tolerance_mm) if warm is not None else None
+    if built is None:  # no warm process (pipeline.report.warm), or it is gone
+        from pipeline.report import outputs
 
-    html, rrd = outputs.build_outputs(context.out, context.tolerance_mm)
+        built = outputs.build_outputs(context.out, context.tolerance_mm)
+    html, rrd = built
     return {"report": html, "rrd": rrd}

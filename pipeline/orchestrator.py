@@ -217,7 +217,15 @@ def run_pipeline(
         ctx.robot = (info.urdf, info.base_link, info.flange_link)
         if "choose" in rest:
             ctx.source = _recording_source(recording, P["frames"], fp)
-    key = run_stages(rest, ctx, names)
+    if "report" in rest and "touchups" in rest:
+        from pipeline.report.warm import WarmReport
+
+        ctx.warm_report = WarmReport.start()  # loads the Rerun SDK on an idle core
+    try:
+        key = run_stages(rest, ctx, names)
+    finally:
+        if ctx.warm_report is not None:
+            ctx.warm_report.close()
     # run.json's tolerance is the one the report judged with: none without a report
     tolerance = cfg.tolerance_mm if "report" in names else None
     return _finish(out, P, ctx.records, key, fingerprint=fp, tolerance_mm=tolerance)

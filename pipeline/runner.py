@@ -76,6 +76,8 @@ class Context:
     ledger : write the stage table to ``run.json`` before the report (``vtcal run``)
     progress : progress callback
     records : what each stage did, in order (filled by :func:`run_stages`)
+    warm_report : a :class:`pipeline.report.warm.WarmReport` the report stage hands
+        its work to (told to read the frames once the touch-ups stage is done), or None
     """
 
     out: Path
@@ -90,6 +92,7 @@ class Context:
     ledger: bool = False
     progress: Progress | None = None
     records: list[StageRecord] = field(default_factory=list)
+    warm_report: Any = None
 
 
 def plan(until: str | None, *, crossval: bool = True, report: bool = True) -> list[str]:
@@ -377,6 +380,8 @@ def run_stages(names: list[str], context: Context, plan_names: list[str]) -> dic
             key = run_report(context)
         else:
             run_stage(name, context, plan_names)
+            if name == "touchups" and context.warm_report is not None:
+                context.warm_report.prefetch(context.out)
     return key
 
 

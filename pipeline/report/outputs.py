@@ -24,18 +24,43 @@ from pipeline.report.rrd import build_rrd
 from pipeline.report.touchup_views import image_frames
 
 
-def _read(data: RunData, thumbs: list[int], shots: list[int]) -> dict[int, Frame] | None:
-    """The wanted frames, each shot's run.rrd bytes made (an undecodable one is left as
-    it is: build_rrd meets it again and leaves it out); None without the recording."""
-    frames = recording_frames(data, sorted({*thumbs, *shots}))
-    if frames is None:
-        return None
+def _read(
+    data: RunData, thumbs: list[int], shots: list[int], have: dict[int, Frame]
+) -> dict[int, Frame] | None:
+    """The wanted frames (those in ``have`` are not read again), each shot's run.rrd bytes
+    made (an undecodable one is left as it is: build_rrd meets it again and leaves it
+    out); None without the recording."""
+    missing = sorted({*thumbs, *shots} - have.keys())
+    frames = dict(have)
+    if missing:
+        more = recording_frames(data, missing)
+        if more is None:
+            return None
+        frames.update(more)
+    _encode(frames, shots)
+    return frames
+
+
+def _encode(frames: dict[int, Frame], shots: list[int]) -> None:
     for k in shots:
         if k in frames:
             try:
                 _ = frames[k].rrd_blob
             except Exception:  # noqa: BLE001 - an undecodable frame is just not shown
                 continue
+
+
+def prefetch_frames(run_dir: Path) -> dict[int, Frame]:
+    """Every touch-up's last capture, read and encoded for run.rrd, before the report runs.
+
+    Needs only ``touchups.parquet``, ``frames.parquet`` and ``recording.json`` (the
+    touch-ups stage has run); :mod:`pipeline.report.warm` calls it while the later
+    stages run and hands the frames to :func:`build_outputs`.
+    """
+    data = load_run(run_dir)
+    shots = image_frames(data)
+    frames = recording_frames(data, shots) or {}
+    _encode(frames, shots)
     return frames
 
 
@@ -45,6 +70,7 @@ def build_outputs(
     *,
     html_path: Path | None = None,
     rrd_path: Path | None = None,
+    frames: dict[int, Frame] | None = None,
 ) -> tuple[Path, Path]:
     """Write ``report.html`` and ``run.rrd`` of ``run_dir``; return their paths.
 
@@ -54,26 +80,27 @@ def build_outputs(
     tolerance_mm : the report's PASS/FAIL tolerance (default: run.json's, else the
         recording's key)
     html_path, rrd_path : destinations (default inside ``run_dir``)
+    frames : frames already read (:func:`prefetch_frames`); only the others are read
     """
     run_dir = Path(run_dir)
     data = load_run(run_dir)
     thumbs, shots = thumbnail_frames(data), image_frames(data)
     with ThreadPoolExecutor(max_workers=1) as pool:
-        reading = pool.submit(_read, data, thumbs, shots)
+        reading = pool.submit(_read, data, thumbs, shots, frames or {})
         import pipeline.report.rrd_log  # noqa: F401 - the Rerun SDK, while the frames are read
 
-        frames = reading.result()
+        got = reading.result()
     html = build_report(
         run_dir,
         html_path,
         tolerance_mm,
         data=data,
-        images=None if frames is None else grey_images(frames, thumbs),
+        images=None if got is None else grey_images(got, thumbs),
     )
     rrd = build_rrd(
         run_dir,
         rrd_path,
         data=data,
-        images=None if frames is None else {k: frames[k] for k in shots if k in frames},
+        images=None if got is None else {k: got[k] for k in shots if k in got},
     )
     return html, rrd

@@ -1,0 +1,148 @@
+"""The report built by a process started early, on a core the solver stages leave idle.
+
+What the report stage waits for is mostly not its own work: loading the Rerun
+SDK (0.25-0.3 s of Python imports) and decompressing the recording's frames for
+the touch-ups' last captures (0.05-0.2 s). Both can be done before the stage
+starts: the SDK needs nothing of the run, the frames only the touch-ups table.
+
+:class:`WarmReport` forks one process right after ingest (``vtcal run``'s
+orchestrator), which imports the SDK and the report's modules while this process
+runs the touch-ups and outlier stages (one core each). After the touch-ups stage
+it is told to read the frames it will show (:meth:`WarmReport.prefetch`); when
+the report stage comes, it is handed the run folder, builds ``report.html`` and
+``run.rrd`` from the artefacts as :func:`pipeline.report.outputs.build_outputs`
+always does (the same files, written atomically), and sends back their paths or
+the exception it met, which is raised here. The stage's seconds are still
+measured around the whole of it; what moved is the waiting, onto a core that
+was idle.
+
+It is not started where it cannot help or must not run: without ``fork``, in a
+child process (a ``vtcal batch`` or Dask worker: the batch uses the cores), in a
+daemonic process, or when the 1-minute load leaves no core free
+(:func:`pipeline.stages.parallel_map.free_workers`). If the process dies or
+cannot be reached, the report stage builds the outputs itself, as before.
+"""
+
+from __future__ import annotations
+
+import multiprocessing
+import multiprocessing.connection
+import signal
+from pathlib import Path
+from typing import Any
+
+
+def can_start() -> bool:
+    """True when a warm report process may be forked now (see the module docstring)."""
+    from pipeline.stages.parallel_map import free_workers
+
+    return (
+        "fork" in multiprocessing.get_all_start_methods()
+        and multiprocessing.parent_process() is None
+        and not multiprocessing.current_process().daemon
+        and free_workers() >= 2
+    )
+
+
+class WarmReport:
+    """A forked process that builds a run's report when asked (see the module docstring)."""
+
+    def __init__(self, process: Any, conn: multiprocessing.connection.Connection) -> None:
+        self._process = process
+        self._conn: multiprocessing.connection.Connection | None = conn
+
+    @classmethod
+    def start(cls) -> WarmReport | None:
+        """Fork the process, or None when :func:`can_start` says no or the fork fails."""
+        if not can_start():
+            return None
+        ctx = multiprocessing.get_context("fork")
+        here, there = ctx.Pipe()
+        proc = ctx.Process(target=_serve, args=(there, here), name="vtcal-report", daemon=True)
+        try:
+            proc.start()
+        except OSError:
+            return None
+        there.close()
+        return cls(proc, here)
+
+    def _send(self, message: Any) -> bool:
+        if self._conn is None:
+            return False
+        try:
+            self._conn.send(message)
+            return True
+        except (OSError, ValueError):  # the process is gone
+            self.close()
+            return False
+
+    def prefetch(self, run_dir: Path) -> None:
+        """Have the frames of every touch-up's last capture read (touchups.parquet exists)."""
+        self._send(("prefetch", str(run_dir)))
+
+    def build(self, run_dir: Path, tolerance_mm: float | None) -> tuple[Path, Path] | None:
+        """``(report.html, run.rrd)`` built by the process; None when it could not be asked.
+
+        An exception the build raised there is raised here.
+        """
+        if not self._send(("build", str(run_dir), tolerance_mm)):
+            return None
+        assert self._conn is not None
+        try:
+            status, value = self._conn.recv()
+        except (EOFError, OSError):  # died while building: the caller builds
+            self.close()
+            return None
+        self.close()
+        if status == "error":
+            raise value
+        return Path(value[0]), Path(value[1])
+
+    def close(self) -> None:
+        """Stop the process (it exits when told or when the pipe closes); idempotent."""
+        if self._conn is not None:
+            try:
+                self._conn.send(None)
+            except (OSError, ValueError):
+                pass
+            self._conn.close()
+            self._conn = None
+        self._process.join(timeout=5)
+        if self._process.is_alive():  # pragma: no cover - stuck: do not wait for it
+            self._process.terminate()
+            self._process.join(timeout=5)
+
+
+def _serve(
+    conn: multiprocessing.connection.Connection, parent_end: multiprocessing.connection.Connection
+) -> None:
+    """The process: load the SDK and the report's modules, then answer messages until told to stop."""
+    signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C is the run's to handle
+    parent_end.close()
+
+    import pipeline.report.rrd_log  # noqa: F401 - the Rerun SDK: what this process is for
+    from pipeline.report.outputs import build_outputs, prefetch_frames
+
+    frames: dict[int, Any] = {}
+    while True:
+        try:
+            message = conn.recv()
+        except (EOFError, OSError):
+            return
+        if message is None:
+            return
+        if message[0] == "prefetch":
+            try:
+                frames = prefetch_frames(Path(message[1]))
+            except Exception:  # noqa: BLE001 - only an optimisation: the build reads them
+                frames = {}
+            continue
+        try:
+            html, rrd = build_outputs(Path(message[1]), message[2], frames=frames)
+            conn.send(("ok", (str(html), str(rrd))))
+        except BaseException as exc:  # noqa: BLE001 - sent back and raised by the run
+            try:
+                conn.send(("error", exc))
+            except Exception:  # noqa: BLE001 - an exception that does not pickle
+                conn.send(("error", RuntimeError(f"report: {type(exc).__name__}: {exc}")))
+        return

@@ -1,0 +1,109 @@
+"""The report built by the warm process (pipeline.report.warm) is the report built here.
+
+``vtcal run`` forks a process after ingest that loads the Rerun SDK and reads the
+touch-ups' frames while the solver stages run, then builds report.html and run.rrd.
+These tests hold it to the in-process build byte for byte, check that an error
+there is the run's error, that a dead process only means building here, and that
+it is not started where it must not run.
+"""
+
+from __future__ import annotations
+
+import shutil
+from pathlib import Path
+
+import pytest
+
+from pipeline.errors import BadInput
+from pipeline.orchestrator import RunConfig, run_pipeline
+from pipeline.report import outputs, warm
+from pipeline.stages import parallel_map
+
+REPO = Path(__file__).resolve().parent.parent
+SAMPLE = REPO / "datasets" / "samples" / "sample_lrmate.mcap"
+
+
+@pytest.fixture
+def cores_free(monkeypatch):
+    """Two free cores whatever the machine's load (the start condition under test)."""
+    monkeypatch.setattr(parallel_map, "free_workers", lambda limit=2: 2)
+
+
+@pytest.fixture(scope="module")
+def sample_run(tmp_path_factory) -> Path:
+    """The shipped sample run end to end, the report by the warm process (counted)."""
+    out = tmp_path_factory.mktemp("warm") / "run"
+    used = []
+    mp = pytest.MonkeyPatch()
+    mp.setattr(parallel_map, "free_workers", lambda limit=2: 2)
+    build = warm.WarmReport.build
+
+    def counting(self, run_dir, tolerance_mm):
+        got = build(self, run_dir, tolerance_mm)
+        used.append(got is not None)
+        return got
+
+    mp.setattr(warm.WarmReport, "build", counting)
+    try:
+        run_pipeline(SAMPLE, out, RunConfig(), force=True)
+    finally:
+        mp.undo()
+    assert used == [True]  # the run's report came from the warm process
+    return out
+
+
+def test_the_warm_report_is_the_in_process_report(sample_run, tmp_path, cores_free) -> None:
+    a, b = tmp_path / "a", tmp_path / "b"
+    shutil.copytree(sample_run, a)
+    shutil.copytree(sample_run, b)
+    w = warm.WarmReport.start()
+    assert w is not None
+    w.prefetch(a)
+    got = w.build(a, None)
+    assert got == (a / "report.html", a / "run.rrd")
+    outputs.build_outputs(b, None)
+    assert (a / "report.html").read_bytes() == (b / "report.html").read_bytes()
+    assert _rrd_content(a / "run.rrd") == _rrd_content(b / "run.rrd")
+    # the run's own recording was built the same way (its page shows the run's timings)
+    assert _rrd_content(sample_run / "run.rrd") == _rrd_content(b / "run.rrd")
+
+
+def _rrd_content(path: Path) -> list[str]:
+    """What run.rrd holds, chunk by chunk, without the row ids (they carry a clock)."""
+    from rerun.chunk import RrdReader
+
+    rows = []
+    for chunk in RrdReader(path).stream().to_chunks():
+        rb = chunk.to_record_batch()
+        cols = {n: rb.column(n).to_pylist() for n in rb.schema.names if "RowId" not in n}
+        rows.append(repr((chunk.entity_path, sorted(cols.items()))))
+    assert len(rows) > 10
+    return sorted(rows)
+
+
+def test_an_error_in_the_warm_process_is_raised_here(sample_run, tmp_path, monkeypatch, cores_free):
+    def broken(run_dir, tolerance_mm=None, **_):
+        raise BadInput(f"{run_dir}: something the report could not read")
+
+    monkeypatch.setattr(outputs, "build_outputs", broken)  # before the fork: inherited
+    w = warm.WarmReport.start()
+    assert w is not None
+    with pytest.raises(BadInput, match="something the report could not read"):
+        w.build(tmp_path, None)
+
+
+def test_a_dead_warm_process_means_building_here(tmp_path, cores_free) -> None:
+    w = warm.WarmReport.start()
+    assert w is not None
+    w._process.kill()
+    w._process.join()
+    assert w.build(tmp_path, None) is None
+    w.close()  # idempotent
+
+
+def test_not_started_without_a_free_core_or_in_a_worker(monkeypatch) -> None:
+    monkeypatch.setattr(parallel_map, "free_workers", lambda limit=2: 1)
+    assert warm.WarmReport.start() is None
+    monkeypatch.setattr(parallel_map, "free_workers", lambda limit=2: 2)
+    monkeypatch.setattr(warm.multiprocessing, "parent_process", lambda: object())
+    assert warm.WarmReport.start() is None
