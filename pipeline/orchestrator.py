@@ -198,6 +198,26 @@ def run_pipeline(
         ledger=True,
         progress=progress,
     )
+    if "report" in names and "touchups" in names:
+        from pipeline.report.warm import WarmReport
+
+        # loads the Rerun SDK on the core ingest leaves idle (pipeline.report.warm)
+        ctx.warm_report = WarmReport.start()
+    try:
+        key = _run_plan(ctx, cfg, names, recording, fp)
+    finally:
+        if ctx.warm_report is not None:
+            ctx.warm_report.close()
+    # run.json's tolerance is the one the report judged with: none without a report
+    tolerance = cfg.tolerance_mm if "report" in names else None
+    return _finish(out, P, ctx.records, key, fingerprint=fp, tolerance_mm=tolerance)
+
+
+def _run_plan(
+    ctx: Context, cfg: RunConfig, names: list[str], recording: Path, fp: dict[str, Any]
+) -> dict[str, str] | None:
+    """Ingest, then (steps 3-4 of :func:`run_pipeline`) the rest of the plan; the report's key."""
+    P = run_paths(ctx.out)
     run_stages(["ingest"], ctx, names)
     rest = names[1:]
     if rest:
@@ -217,18 +237,7 @@ def run_pipeline(
         ctx.robot = (info.urdf, info.base_link, info.flange_link)
         if "choose" in rest:
             ctx.source = _recording_source(recording, P["frames"], fp)
-    if "report" in rest and "touchups" in rest:
-        from pipeline.report.warm import WarmReport
-
-        ctx.warm_report = WarmReport.start()  # loads the Rerun SDK on an idle core
-    try:
-        key = run_stages(rest, ctx, names)
-    finally:
-        if ctx.warm_report is not None:
-            ctx.warm_report.close()
-    # run.json's tolerance is the one the report judged with: none without a report
-    tolerance = cfg.tolerance_mm if "report" in names else None
-    return _finish(out, P, ctx.records, key, fingerprint=fp, tolerance_mm=tolerance)
+    return run_stages(rest, ctx, names)
 
 
 def ingest_configs(cfg: RunConfig) -> dict[str, Any]:

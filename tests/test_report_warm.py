@@ -105,5 +105,9 @@ def test_not_started_without_a_free_core_or_in_a_worker(monkeypatch) -> None:
     monkeypatch.setattr(parallel_map, "free_workers", lambda limit=2: 1)
     assert warm.WarmReport.start() is None
     monkeypatch.setattr(parallel_map, "free_workers", lambda limit=2: 2)
+    monkeypatch.setenv("VTCAL_WARM_REPORT", "0")
+    assert warm.WarmReport.start() is None
+    monkeypatch.delenv("VTCAL_WARM_REPORT")
+    monkeypatch.setattr(parallel_map, "free_workers", lambda limit=2: 2)
     monkeypatch.setattr(warm.multiprocessing, "parent_process", lambda: object())
     assert warm.WarmReport.start() is None

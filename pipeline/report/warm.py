@@ -5,9 +5,10 @@ SDK (0.25-0.3 s of Python imports) and decompressing the recording's frames for
 the touch-ups' last captures (0.05-0.2 s). Both can be done before the stage
 starts: the SDK needs nothing of the run, the frames only the touch-ups table.
 
-:class:`WarmReport` forks one process right after ingest (``vtcal run``'s
-orchestrator), which imports the SDK and the report's modules while this process
-runs the touch-ups and outlier stages (one core each). After the touch-ups stage
+:class:`WarmReport` forks one process when ``vtcal run`` starts (the orchestrator),
+which imports the SDK and the report's modules while this process ingests the
+recording: ingest keeps one core busy (98 % CPU of one core over its wall time
+on the UR5e-like cell), so the imports take the other. After the touch-ups stage
 it is told to read the frames it will show (:meth:`WarmReport.prefetch`); when
 the report stage comes, it is handed the run folder, builds ``report.html`` and
 ``run.rrd`` from the artefacts as :func:`pipeline.report.outputs.build_outputs`
@@ -16,7 +17,8 @@ the exception it met, which is raised here. The stage's seconds are still
 measured around the whole of it; what moved is the waiting, onto a core that
 was idle.
 
-It is not started where it cannot help or must not run: without ``fork``, in a
+It is not started where it cannot help or must not run: with the environment
+variable ``VTCAL_WARM_REPORT=0``, without ``fork``, in a
 child process (a ``vtcal batch`` or Dask worker: the batch uses the cores), in a
 daemonic process, or when the 1-minute load leaves no core free
 (:func:`pipeline.stages.parallel_map.free_workers`). If the process dies or
@@ -27,6 +29,7 @@ from __future__ import annotations
 
 import multiprocessing
 import multiprocessing.connection
+import os
 import signal
 from pathlib import Path
 from typing import Any
@@ -37,7 +40,8 @@ def can_start() -> bool:
     from pipeline.stages.parallel_map import free_workers
 
     return (
-        "fork" in multiprocessing.get_all_start_methods()
+        os.environ.get("VTCAL_WARM_REPORT", "1") != "0"
+        and "fork" in multiprocessing.get_all_start_methods()
         and multiprocessing.parent_process() is None
         and not multiprocessing.current_process().daemon
         and free_workers() >= 2
