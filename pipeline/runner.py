@@ -305,7 +305,9 @@ def report_key(context: Context) -> dict[str, str]:
     stage = STAGE["report"]
     P = run_paths(context.out)
     key = hashes({k: P[k] for k in stage.inputs})
-    key["code"] = stage_code_digest("report")  # the report's code is an input too
+    warm = context.warm_report
+    code = warm.code_digest() if warm is not None else None  # pipeline.report.warm
+    key["code"] = code or stage_code_digest("report")  # the report's code is an input too
     key["tolerance_mm"] = repr(context.tolerance_mm)  # the verdict it shows
     return key
 

@@ -111,3 +111,26 @@ def test_not_started_without_a_free_core_or_in_a_worker(monkeypatch) -> None:
     monkeypatch.setattr(parallel_map, "free_workers", lambda limit=2: 2)
     monkeypatch.setattr(warm.multiprocessing, "parent_process", lambda: object())
     assert warm.WarmReport.start() is None
+
+
+def test_the_warm_process_computes_the_reports_code_digest_as_here(monkeypatch, cores_free):
+    """The report's cache key takes its code digest from the warm process (a fork of this
+    one): the same as here, a function replaced before the run included."""
+    from pipeline import code_key
+    from pipeline.report import html
+
+    w = warm.WarmReport.start()
+    assert w is not None
+    assert w.code_digest() == code_key.stage_code_digest("report")
+    w.close()
+    assert w.code_digest() is None  # closed: the caller computes it
+
+    def other_build_report(*args, **kwargs):  # a plug-in's page
+        return None
+
+    monkeypatch.setattr(html, "build_report", other_build_report)
+    changed = code_key.stage_code_digest("report")
+    w = warm.WarmReport.start()
+    assert w is not None
+    assert w.code_digest() == changed
+    w.close()

@@ -84,6 +84,24 @@ class WarmReport:
         """Have the frames of every touch-up's last capture read (touchups.parquet exists)."""
         self._send(("prefetch", str(run_dir)))
 
+    def code_digest(self) -> str | None:
+        """The report's code digest (:func:`pipeline.code_key.stage_code_digest`) computed
+        there, where the report's modules are loaded anyway; None when it cannot be asked.
+
+        The process is a fork of this one, made when the run started, and reads the same
+        source files, so the digest is the one this process would compute; computing it
+        here would import the report's modules only for it (0.07-0.12 s).
+        """
+        if not self._send(("digest",)):
+            return None
+        assert self._conn is not None
+        try:
+            status, value = self._conn.recv()
+        except (EOFError, OSError):
+            self.close()
+            return None
+        return str(value) if status == "digest" else None
+
     def build(self, run_dir: Path, tolerance_mm: float | None) -> tuple[Path, Path] | None:
         """``(report.html, run.rrd)`` built by the process; None when it could not be asked.
 
@@ -125,6 +143,7 @@ def _serve(
     parent_end.close()
 
     import pipeline.report.rrd_log  # noqa: F401 - the Rerun SDK: what this process is for
+    from pipeline.code_key import stage_code_digest
     from pipeline.report.outputs import build_outputs, prefetch_frames
 
     frames: dict[int, Any] = {}
@@ -135,6 +154,12 @@ def _serve(
             return
         if message is None:
             return
+        if message[0] == "digest":
+            try:
+                conn.send(("digest", stage_code_digest("report")))
+            except Exception as exc:  # noqa: BLE001 - the run computes it itself
+                conn.send(("error", RuntimeError(str(exc))))
+            continue
         if message[0] == "prefetch":
             try:
                 frames = prefetch_frames(Path(message[1]))
