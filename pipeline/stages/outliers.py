@@ -240,8 +240,7 @@ def flag_outliers(table: pd.DataFrame, info: Any, config: OutlierConfig) -> pd.D
     reasons = ["; ".join(r for r, m in masks.items() if m[i]) for i in range(len(base))]
     out["inlier"] = [r == "" for r in reasons]
     out["reason"] = reasons
-    out["studentized"] = np.nan
-    out["leverage"] = np.nan
+    out["studentized"] = out["leverage"] = np.nan
     conv = base["converged"].fillna(True).to_numpy(dtype=bool) if "converged" in base else None
     fixed = (~conv & correctable(base, config)) if conv is not None else np.zeros(len(base), bool)
     out["note"] = [
@@ -559,12 +558,13 @@ def _statistical(out: pd.DataFrame, info: Any, config: OutlierConfig) -> pd.Data
             got = _choose_fit(out, info, _fixed(config, f.model))
             f = got if isinstance(got, _Fit) else f
     if f is not None:
-        lev = _leverage(f)
-        w = out["weight"].to_numpy(dtype=float)[f.rows]
-        for k, r in enumerate(f.rows):
+        lev, w = _leverage(f), out["weight"].to_numpy(dtype=float)[f.rows]
+        at = out.index.get_indexer(np.asarray(f.rows, dtype=np.int64))  # one write per column
+        levc, stud = np.full(len(out), np.nan), out["studentized"].to_numpy(float).copy()
+        for k in range(len(f.rows)):
             _, sig, rk, _ = _group_test(f, np.array([k]), w[[k]])
-            out.loc[int(r), "leverage"] = float(lev[k])
-            out.loc[int(r), "studentized"] = sig if rk else np.nan
+            levc[at[k]], stud[at[k]] = lev[k], sig if rk else np.nan
+        out["leverage"], out["studentized"] = levc, stud
     out["note"] = ["; ".join(n) for n in notes]
     return out
 
