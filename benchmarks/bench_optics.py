@@ -10,10 +10,11 @@ The shipped ``calibrated.urdf`` is judged against the truth as
 volume the touch-ups covered) and printed next to the linear-image figure
 (ratio; target <= 1.5x, and all effects together < 0.1 mm shape).
 
-Every effect but two has the simulator's 2 grey levels of noise added after the
-response curve (``[camera] noise_sigma``). "linear, read noise" and "srgb, read
-noise" add the same noise before the curve, as a real sensor's read noise; compare
-those two with each other (``benchmarks/bench_noise_placement.py`` has why).
+The simulator's 2 grey levels of noise (``[camera] noise_sigma``) enter before
+the response curve, as a real sensor's read and shot noise do (``[optics]
+noise_domain = "sensor"``, the default since stop 28). "srgb, output noise" adds
+them after the curve instead, as every row did before
+(``benchmarks/bench_noise_placement.py`` has what that does to an encoded image).
 
 Uneven light is 90 % across the 60 mm plate (15 % across the target) plus a ring
 light's sheen, recorded by the simpler controller it fools (``[touchup]
@@ -27,7 +28,7 @@ reported.
     python benchmarks/bench_optics.py --cells lrmate --effects linear srgb
     python benchmarks/bench_optics.py --list
     python benchmarks/bench_optics.py --seeds 7 8 9        # per seed, then means over seeds
-    python benchmarks/bench_optics.py --seeds 7 8 9 --effects "linear, read noise" "srgb, read noise"
+    python benchmarks/bench_optics.py --seeds 7 8 9 --effects linear srgb "srgb, output noise"
 """
 
 from __future__ import annotations
@@ -73,13 +74,9 @@ EFFECTS["curve declared"] = EFFECTS["curve"]
 #: sRGB output, uneven light, imperfect prints, defocus, sensor noise, Bayer, JPEG, vibration
 ALL_OF = ["srgb", "defocus", "uneven light", "sensor noise", "bayer", "jpeg q90", "print"]
 EFFECTS["all"] = {k: v for e in ALL_OF + ["vibration"] for k, v in EFFECTS[e].items()}
-#: the same 2 grey levels of noise entering before the response curve, as a real
-#: sensor's read noise does (``[camera] noise_sigma`` adds it after the curve): the
-#: encoded image's twin is then "linear, read noise" (bench_noise_placement.py)
-READ_NOISE_E = 2.0 / 255.0 * 10000.0  # 2 grey levels of the 10,000 e- full well
-EFFECTS["linear, read noise"] = {"read_noise_e": READ_NOISE_E}
-EFFECTS["srgb, read noise"] = {"response": "srgb", "read_noise_e": READ_NOISE_E}
-NOISE_BEFORE_CURVE = {"linear, read noise", "srgb, read noise"}
+#: the simulator's noise added to the encoded grey levels instead of before the curve
+#: (vtcal's simulator before stop 28; not how a camera's noise enters)
+EFFECTS["srgb, output noise"] = {"response": "srgb", "noise_domain": "output"}
 #: effects vtcal cannot undo from the images alone; it must say so (the "warned" column)
 LIMITS = {"gamma2.2", "curve", "saturated"}
 
@@ -99,8 +96,6 @@ def one_case(cell: str, effect: str, seed: int, work: str) -> dict[str, Any]:
     raw["optics"] = dict(EFFECTS[effect])
     if effect in BINARY_CONTROLLER:
         raw.setdefault("touchup", {})["controller"] = "binary"
-    if effect in NOISE_BEFORE_CURVE:
-        raw.setdefault("camera", {})["noise_sigma"] = 0.0
     sc = scenario_from_dict(raw, where=f"{cell}-{effect}", base_dir=str(REPO))
     tag = f"{cell}_{effect.replace(' ', '_')}_{seed}"
     rec = Path(work) / f"{tag}.mcap"

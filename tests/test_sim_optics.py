@@ -53,7 +53,12 @@ def test_defaults_are_off_and_unknown_values_are_refused() -> None:
     assert not OpticsCfg().any()
     assert OpticsCfg(response="srgb").sensor_active()
     assert OpticsCfg(out_of_round_um=10).print_active()
-    for bad in ({"response": "log"}, {"demosaic": "magic"}, {"jpeg_quality": 101}):
+    for bad in (
+        {"response": "log"},
+        {"demosaic": "magic"},
+        {"jpeg_quality": 101},
+        {"noise_domain": "adc"},
+    ):
         with pytest.raises(BadInput, match="optics"):
             tiny(bad)
 
@@ -189,3 +194,47 @@ def test_vibration_moves_the_image_but_not_the_encoders(tmp_path: Path) -> None:
     assert first["q_true"] == first_v["q_true"]  # same joints ...
     d = np.subtract(first["true_centre_px"], first_v["true_centre_px"])
     assert np.linalg.norm(d) > 0.05  # ... another image position
+
+
+def _linear_noise(domain: str, kind: str, level: float) -> float:
+    """Std of the signal a flat field at ``level`` (fraction of full scale) decodes to."""
+    resp = Response(kind=kind)
+    sensor = Sensor(response=resp, noise_sigma=2.0, noise_domain=domain, vignetting=0.0)
+    L = np.full((160, 160), 255.0 * level)
+    img, _ = form_image(
+        L,
+        sensor,
+        principal_point=(80.0, 80.0),
+        rng_noise=np.random.default_rng(5),
+        rng_optics=np.random.default_rng(6),
+    )
+    grid = np.linspace(0.0, 1.0, 20001)
+    decoded = np.interp(img.astype(float) / 255.0, resp.encode(grid), grid)
+    return float(decoded.std() * 255.0)
+
+
+def test_the_cameras_noise_enters_before_its_response_curve() -> None:
+    """``noise_domain = "sensor"`` (the default): 2 grey levels of noise on the signal at
+    any brightness, as a sensor's read noise; ``output``: the encoded image's noise, which
+    the sRGB curve's slope shrinks on the dark side and stretches on the bright side."""
+    assert Sensor().noise_domain == "sensor" and OpticsCfg().noise_domain == "sensor"
+    dark, bright = (_linear_noise("sensor", "srgb", lv) for lv in (0.15, 0.8))
+    assert 1.8 < dark < 2.2 and 1.8 < bright < 2.2, (dark, bright)
+    dark_o, bright_o = (_linear_noise("output", "srgb", lv) for lv in (0.15, 0.8))
+    assert bright_o / dark_o > 2.0, (dark_o, bright_o)  # slope ratio f'(0.15) / f'(0.8) ~ 2.9
+
+
+def test_a_linear_camera_gives_the_same_image_in_either_noise_domain() -> None:
+    L = np.random.default_rng(1).uniform(20.0, 240.0, (64, 80))
+    imgs = []
+    for domain in ("sensor", "output"):
+        sensor = Sensor(noise_sigma=2.0, noise_domain=domain)
+        img, _ = form_image(
+            L,
+            sensor,
+            principal_point=(40.0, 32.0),
+            rng_noise=np.random.default_rng(2),
+            rng_optics=np.random.default_rng(3),
+        )
+        imgs.append(img)
+    assert np.array_equal(imgs[0], imgs[1])

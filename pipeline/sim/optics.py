@@ -396,8 +396,12 @@ class Sensor:
         Relative response of the three filters to the (neutral) scene; white
         balance divides them out again after demosaicing.
     noise_sigma : float
-        Additive noise after the response curve (grey levels, per channel):
-        the simulator's ``[camera] noise_sigma``.
+        Additive noise of ``noise_sigma`` grey levels (per channel): the simulator's
+        ``[camera] noise_sigma``.
+    noise_domain : ``sensor`` | ``output``
+        Where it enters: ``sensor``, on the signal before the response curve
+        (``noise_sigma / 255`` of the full scale, as read noise does); ``output``, on
+        the encoded grey levels. The same for a linear response.
     vignetting : float
         ``1 - v (r / r_corner)^2`` on the irradiance.
     """
@@ -412,6 +416,7 @@ class Sensor:
     demosaic: str = "bilinear"
     bayer_sensitivity: tuple[float, float, float] = (0.55, 1.0, 0.45)
     noise_sigma: float = 2.0
+    noise_domain: str = "sensor"
     vignetting: float = 0.15
 
 
@@ -459,7 +464,11 @@ def form_image(
     7. Bayer: 12-bit raw ``rint(E 4095)``, demosaicing (OpenCV, RGGB), white
        balance (divide by the sensitivities);
     8. ``E`` clipped to 0..1, response ``V = f(E)``, ``DN = 255 V + N(0, noise_sigma^2)``,
-       ``rint``, clipped to ``uint8``.
+       ``rint``, clipped to ``uint8``; with ``noise_domain = "sensor"`` and a response
+       that is not linear, the same draw ``n`` enters before the curve instead:
+       ``DN = 255 f(clip(E + n / 255, 0, 1))``. Behind a curve of slope ``f'`` the
+       output-domain noise seen on the signal is ``1 / f'`` times larger where the
+       curve is flat (``bench_noise_placement.py``); a camera's noise is its sensor's.
 
     Parameters
     ----------
@@ -506,10 +515,14 @@ def form_image(
         else:
             bgr = cv2.cvtColor(raw, code) / full
         E = bgr / sens[::-1]  # white balance (BGR order)
-    V = sensor.response.encode(np.clip(E, 0.0, 1.0))
-    dn = 255.0 * V
-    if sensor.noise_sigma > 0:
-        dn = dn + rng_noise.normal(0.0, sensor.noise_sigma, size=dn.shape)
+    before = sensor.noise_domain == "sensor" and sensor.response.kind != "linear"
+    n = rng_noise.normal(0.0, sensor.noise_sigma, size=E.shape) if sensor.noise_sigma > 0 else None
+    if n is not None and before:
+        dn = 255.0 * sensor.response.encode(np.clip(E + n / 255.0, 0.0, 1.0))
+    else:
+        dn = 255.0 * sensor.response.encode(np.clip(E, 0.0, 1.0))
+        if n is not None:
+            dn = dn + n
     out = np.clip(np.rint(dn), 0, 255).astype(np.uint8)
     grey = cv2.cvtColor(out, cv2.COLOR_BGR2GRAY) if out.ndim == 3 else out
     return out, grey

@@ -114,6 +114,7 @@ class OpticsState:
             bayer=op.bayer,
             demosaic=op.demosaic,
             noise_sigma=sc.camera.noise_sigma,
+            noise_domain=op.noise_domain,
             vignetting=sc.camera.vignetting,
         )
         self.defocus: Defocus | None = None

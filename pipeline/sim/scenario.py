@@ -144,7 +144,11 @@ class OpticsCfg:
         (direction drawn per target); sheen_grey, sheen_width_rad : specular lobe of a ring
         light; out_of_round_um, roughness_um, diameter_scale_error, diameter_sigma_um : the
         printed targets (:func:`pipeline.sim.optics.draw_print`); vibration_* : damped
-        oscillation of the camera after each move (:class:`pipeline.sim.optics.Vibration`).
+        oscillation of the camera after each move (:class:`pipeline.sim.optics.Vibration`);
+        noise_domain : where ``[camera] noise_sigma`` enters when the response is not
+        linear: ``sensor`` (before the curve, as a real sensor's read and shot noise do;
+        the default) or ``output`` (added to the encoded grey levels, vtcal's simulator
+        before stop 28). A linear response gives the same image either way.
     """
 
     response: str = "linear"
@@ -170,6 +174,7 @@ class OpticsCfg:
     vibration_rad: float = 0.0
     vibration_hz: float = 15.0
     vibration_damping_s: float = 0.3
+    noise_domain: str = "sensor"
 
     def sensor_active(self) -> bool:
         """Whether the image is formed by :func:`pipeline.sim.optics.form_image`."""
@@ -272,6 +277,8 @@ def scenario_from_dict(
     op = sc.optics
     if op.response not in ("linear", "srgb", "gamma", "curve"):
         raise BadInput(f"{where} [optics] response {op.response!r} is not linear/srgb/gamma/curve")
+    if op.noise_domain not in ("sensor", "output"):
+        raise BadInput(f"{where} [optics] noise_domain {op.noise_domain!r} is not sensor/output")
     if op.demosaic not in ("bilinear", "ea", "vng"):
         raise BadInput(f"{where} [optics] demosaic {op.demosaic!r} is not bilinear/ea/vng")
     if not 0 <= op.jpeg_quality <= 100:
