@@ -559,7 +559,7 @@ def _statistical(out: pd.DataFrame, info: Any, config: OutlierConfig) -> pd.Data
             f = got if isinstance(got, _Fit) else f
     if f is not None:
         lev, w = _leverage(f), out["weight"].to_numpy(dtype=float)[f.rows]
-        at = out.index.get_indexer(np.asarray(f.rows, dtype=np.int64))  # one write per column
+        at = out.index.get_indexer(pd.Index(np.asarray(f.rows, dtype=np.int64)))  # 1 write/column
         levc, stud = np.full(len(out), np.nan), out["studentized"].to_numpy(float).copy()
         for k in range(len(f.rows)):
             _, sig, rk, _ = _group_test(f, np.array([k]), w[[k]])
