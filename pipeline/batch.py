@@ -255,7 +255,8 @@ class _Slot:
         The worker got the same SIGINT and normally hands its interrupted task
         back at once; one interrupted inside a C extension (or an import) may
         never do so, and ``shutdown(wait=True)`` would then hang the batch. Its
-        process is given ``grace_s`` to end, then terminated. Its recording is
+        process is given ``grace_s`` to end, then terminated (killed if that is not
+        enough within ``grace_s``). Its recording is
         unfinished either way (atomic writes: nothing half-written stays; the
         next run redoes it).
         """
@@ -268,6 +269,9 @@ class _Slot:
             proc.join(grace_s)
             if proc.is_alive():
                 proc.terminate()
+                proc.join(grace_s)
+            if proc.is_alive():  # SIGTERM not acted on in time (a loaded machine): SIGKILL
+                proc.kill()
                 proc.join(grace_s)
 
 
