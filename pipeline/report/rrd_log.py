@@ -10,6 +10,8 @@ the SDK: the report stage imports it while its frames are read
 
 from __future__ import annotations
 
+from typing import Any
+
 import numpy as np
 import pandas as pd
 import rerun as rr
@@ -257,6 +259,25 @@ def _log_camera(
     )
 
 
+def _skeletons(
+    rec: rr.RecordingStream,
+    path: str,
+    indexes: list[rr.TimeColumn],
+    strips: list[Any],
+    radius: float,
+    colors: list[Any],
+    labels: list[str],
+) -> None:
+    """One robot skeleton per drawn touch-up row, sent as columns (``rr.send_columns``)."""
+    rec.send_columns(
+        path,
+        indexes=indexes,
+        columns=rr.LineStrips3D.columns(
+            strips=strips, radii=[radius] * len(strips), colors=colors, labels=labels
+        ),
+    )
+
+
 class _Timelines:
     """The time of each touch-up row: ``touchup`` (its id) and ``stamp`` (its last capture),
     the stamp only when every touch-up has one (a column has no gaps)."""
@@ -320,27 +341,27 @@ def _log_pose_columns(
         )
     n = int(drawn.size)
     if n and sk_nom is not None:
-        rec.send_columns(
+        _skeletons(
+            rec,
             "world/robot/nominal",
-            indexes=when.columns(drawn),
-            columns=rr.LineStrips3D.columns(
-                strips=[sk_nom[i] for i in drawn],
-                radii=[0.003] * n,
-                colors=[GREY] * n,
-                labels=["nominal"] * n,
-            ),
+            when.columns(drawn),
+            [sk_nom[i] for i in drawn],
+            0.003,
+            [GREY] * n,
+            ["nominal"] * n,
         )
     if n and sk_cal is not None:
         status = ["used" if inl[i] else f"rejected: {reasons[i]}" for i in range(len(touch))]
-        rec.send_columns(
+        labels = [f"#{touch[i]} target {targets_col[i]} ({status[i]})" for i in drawn]
+        colors = [BLUE if inl[i] else RED for i in drawn]
+        _skeletons(
+            rec,
             "world/robot/calibrated",
-            indexes=when.columns(drawn),
-            columns=rr.LineStrips3D.columns(
-                strips=[sk_cal[i] for i in drawn],
-                radii=[0.004] * n,
-                colors=[BLUE if inl[i] else RED for i in drawn],
-                labels=[f"#{touch[i]} target {targets_col[i]} ({status[i]})" for i in drawn],
-            ),
+            when.columns(drawn),
+            [sk_cal[i] for i in drawn],
+            0.004,
+            colors,
+            labels,
         )
     if n and T_flange is not None:
         rec.send_columns(
