@@ -305,11 +305,16 @@ def cross_validate(
         for m in models
         for sch in (("kfold", "loto") if config.loto and _known(known.get(m)) else ("both",))
     ]
+    # handed out longest first (a model's identify seconds times its refits), so the two
+    # processes finish together; the results are put back in the order of ``tasks``
+    n_tgt = len(np.unique(s.tid[s.use].astype(str)))
+    refits = {"kfold": s.k, "loto": n_tgt, "both": s.k + n_tgt}
+    order = sorted(range(len(tasks)), key=lambda i: -_task_cost(known, tasks[i], refits))
+    done = parallel_map(one_task, [tasks[i] for i in order], config.workers)
+    results = [done[order.index(i)] for i in range(len(tasks))]
     rows: list[dict[str, Any]] = []
     summary_models: dict[str, Any] = {}
-    for (m, _), (m_rows, info) in zip(
-        tasks, parallel_map(one_task, tasks, config.workers), strict=True
-    ):
+    for (m, _), (m_rows, info) in zip(tasks, results, strict=True):
         rows += m_rows  # a model's k-fold rows, then its leave-one-target-out rows
         summary_models[m] = {**summary_models.get(m, {}), **info}
     out = pd.DataFrame(rows, columns=_HELDOUT_COLUMNS)
@@ -368,6 +373,13 @@ def _heldout_row(
         "error_mm": float(np.linalg.norm(e) * 1e3) if e is not None else math.nan,
         "status": why,
     }
+
+
+def _task_cost(known: Mapping[str, Any], task: tuple[str, str], refits: dict[str, int]) -> float:
+    """A task's expected cost: its model's identify seconds (1 if unknown) times its refits."""
+    summary = known.get(task[0])
+    sec = summary.get("seconds") if isinstance(summary, Mapping) else None
+    return (float(sec) if isinstance(sec, (int, float)) else 1.0) * refits[task[1]]
 
 
 def _known(known: Any) -> bool:
