@@ -6,7 +6,8 @@ Gaussian blur 1 px) is imaged ``--n`` times through the simulator's sensor model
 response, each with its noise placed in one of two ways:
 
 * **after the curve**: ``DN = 255 f(E) + N(0, 2^2)``, the simulator's ``[camera]
-  noise_sigma`` (what ``bench_optics.py`` uses for every effect);
+  noise_sigma`` with ``[optics] noise_domain = "output"`` (every row of
+  ``bench_optics.py`` before stop 28; the simulator's default is now ``sensor``);
 * **before the curve**: read noise of the same 2 grey levels on the irradiance,
   ``DN = 255 f(E + N(0, (2/255)^2))``, as a real sensor's read and shot noise
   enter before the camera encodes its output.
@@ -15,8 +16,8 @@ vtcal detects each image with the response declared and prints the mean long
 axis and its scatter per capture, and the scatter's ratio to the linear image's
 with the same placement. After the curve, an encoding's slope at the halfway
 contour (``f'`` ~0.68 for sRGB at the contour's 47 % irradiance) scales the noise
-seen on the irradiance by ``1 / f'``: that is the excess of the sRGB rows of
-``bench_optics.py``, not the detector's. Before the curve the ratio is ~1.
+seen on the irradiance by ``1 / f'``: that was the excess of the sRGB rows of
+``bench_optics.py`` up to stop 27, not the detector's. Before the curve the ratio is ~1.
 
     python benchmarks/bench_noise_placement.py [--n 200]
 """
@@ -48,7 +49,7 @@ def long_axes(kind: str, gamma: float, before: bool, n: int, seed: int = 1) -> n
     if before:
         sen = Sensor(response=resp, noise_sigma=0.0, vignetting=0.0, read_noise_e=2.0 / 255 * 1e4)
     else:
-        sen = Sensor(response=resp, noise_sigma=2.0, vignetting=0.0)
+        sen = Sensor(response=resp, noise_sigma=2.0, noise_domain="output", vignetting=0.0)
     declared = f"gamma:{gamma}" if kind == "gamma" else kind
     cfg = DetectConfig(polarity="dark_on_light", response=declared)
     L, rng, out = irradiance(), np.random.default_rng(seed), []
