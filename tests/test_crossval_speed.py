@@ -6,6 +6,7 @@ from pathlib import Path
 
 import numpy as np
 import pandas as pd
+import pytest
 
 from pipeline.evaluate import perturbed_chain, random_deviations
 from pipeline.evaluate import synthetic_touchups as synth
@@ -152,3 +153,28 @@ def test_free_workers_count_a_core_free_when_half_of_it_is(monkeypatch) -> None:
     for load, want in ((0.2, 2), (1.01, 2), (1.49, 2), (1.51, 1), (3.0, 1)):
         monkeypatch.setattr(pm.os, "getloadavg", lambda load=load: (load, 0.0, 0.0))
         assert pm.free_workers() == want, load
+
+
+def test_this_process_and_a_forked_one_share_the_tasks() -> None:
+    """Two workers are this process and one fork taking tasks by a shared index: both
+    take some (a fast one more), the results come back in the tasks' order, and a task's
+    exception is raised here."""
+    import os
+    import time
+
+    def where(t: int) -> tuple[int, int]:
+        time.sleep(0.05)
+        return t, os.getpid()
+
+    out = parallel_map(where, list(range(8)), workers=2)
+    assert [t for t, _ in out] == list(range(8))
+    pids = {pid for _, pid in out}
+    assert os.getpid() in pids and len(pids) == 2
+
+    def boom(t: int) -> int:
+        if t == 5:
+            raise ValueError("task 5 failed")
+        return t
+
+    with pytest.raises(ValueError, match="task 5 failed"):
+        parallel_map(boom, list(range(8)), workers=2)

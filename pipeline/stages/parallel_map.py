@@ -45,9 +45,26 @@ def free_workers(limit: int = 2) -> int:
     return max(1, min(limit, int(cores - load + 1.5)))
 
 
-def _call(arg: Any) -> Any:
-    assert _TASK is not None
-    return _TASK(arg)
+#: the tasks and the shared index of the next one (set just before the fork, inherited)
+_TASKS: Sequence[Any] | None = None
+_NEXT: Any = None
+
+
+def _drain() -> list[tuple[int, Any]]:
+    """Take tasks by the shared index until none is left; ``(index, result)`` of each.
+
+    Run by every child and by this process itself, so a fast worker takes more tasks
+    (the order they are taken in is the tasks' order: put the longest first).
+    """
+    assert _TASK is not None and _TASKS is not None and _NEXT is not None
+    out: list[tuple[int, Any]] = []
+    while True:
+        with _NEXT.get_lock():
+            i = _NEXT.value
+            _NEXT.value = i + 1
+        if i >= len(_TASKS):
+            return out
+        out.append((i, _TASK(_TASKS[i])))
 
 
 def parallel_map(fn: Callable[[T], R], tasks: Sequence[T], workers: int = 1) -> list[R]:
@@ -76,13 +93,19 @@ def parallel_map(fn: Callable[[T], R], tasks: Sequence[T], workers: int = 1) -> 
         or "fork" not in multiprocessing.get_all_start_methods()
     ):
         return [fn(t) for t in tasks]
-    _TASK = fn
+    global _NEXT, _TASKS
+    ctx = multiprocessing.get_context("fork")
+    _TASK, _TASKS, _NEXT = fn, tasks, ctx.Value("i", 0)
     try:
-        with multiprocessing.get_context("fork").Pool(n) as pool:
-            return list(pool.map(_call, tasks, chunksize=1))
+        with ctx.Pool(n - 1) as pool:  # this process is the n-th worker
+            pending = [pool.apply_async(_drain) for _ in range(n - 1)]
+            done = dict(_drain())
+            for p in pending:
+                done.update(p.get())
+        return [done[i] for i in range(len(tasks))]
     except multiprocessing.pool.MaybeEncodingError:  # type: ignore[attr-defined]
         # a result the children cannot send back (an object of a class defined inside a
         # function, say): the map again, in this process
         return [fn(t) for t in tasks]
     finally:
-        _TASK = None
+        _TASK, _TASKS, _NEXT = None, None, None
