@@ -19,7 +19,8 @@ joint vector interpolated at each image stamp):
    probing shifts come back to the base pose before the loop), else at the
    first capture. The final pose is that of the last still capture; the
    captures at that pose at the end of the segment are the repeated captures
-   at convergence, and their detections are averaged.
+   at convergence, and their detections are averaged (the early ones weighing
+   less when they scatter more: a camera still swinging, :mod:`touchup_settle`).
 3. **Image Jacobian.** Every pair of consecutive still captures with good
    detections whose flange poses differ by a small pure translation
    ``d_F = R_a^T (t_b - t_a)`` (flange frame) gives three equations
@@ -79,6 +80,7 @@ from pipeline.stages.touchup_jacobian import (
     view_geometry,
 )
 from pipeline.stages.touchup_segments import final_block, loop_starts, relative_pose, segments
+from pipeline.stages.touchup_settle import settle_weights, wmean
 from pipeline.stages.touchup_targets import group_targets
 from pipeline.stages.touchup_tilt import tilt_bias
 
@@ -141,6 +143,8 @@ class _Captures:
     u: np.ndarray
     v: np.ndarray
     s: np.ndarray
+    w: np.ndarray | None = None  # weights of the final centres (touchup_settle), None: plain
+    ws: np.ndarray | None = None  # ... of the final sizes
 
 
 class _Designated(NamedTuple):
@@ -364,26 +368,24 @@ def _target_jacobians(
 
 
 def _final_shapes(finals: list[np.ndarray], c: _Captures) -> tuple[list[list[int]], np.ndarray]:
-    """Step 5: the averaged final captures of each touch-up, and their ellipse.
-
-    Returns the captures averaged (good detections, else any found) and ``(n, 5)``
-    u, v, s, s_minor, long-axis angle (NaN where none was found).
-    """
+    """Step 5: each touch-up's final captures (good, else any found), averaged (weighted
+    where the camera had not settled: touchup_settle), as ``(n, 5)`` u, v, s, s_minor, angle."""
     u, v, s = c.u, c.v, c.s
     s_minor = c.df["s_minor"].to_numpy(float)
     ang2 = 2.0 * c.df["angle"].to_numpy(float)
     uses = []
     shape = np.full((len(finals), 5), np.nan)  # u, v, s, s_minor, long-axis angle
-    for k, b in enumerate(finals):
-        use_k = [int(i) for i in b if c.good[i]] or [int(i) for i in b if c.found[i]]
-        uses.append(use_k)
+    for b in finals:
+        uses.append([int(i) for i in b if c.good[i]] or [int(i) for i in b if c.found[i]])
+    c.w, c.ws = settle_weights(uses, (u, v)), settle_weights(uses, (s,))  # unsettled camera
+    for k, use_k in enumerate(uses):
         if use_k:
             shape[k] = [
-                np.mean(u[use_k]),
-                np.mean(v[use_k]),
-                np.mean(s[use_k]),
-                np.mean(s_minor[use_k]),
-                0.5 * np.arctan2(np.mean(np.sin(ang2[use_k])), np.mean(np.cos(ang2[use_k]))),
+                wmean(u, use_k, c.w),
+                wmean(v, use_k, c.w),
+                wmean(s, use_k, c.ws),
+                wmean(s_minor, use_k, c.ws),
+                0.5 * np.arctan2(wmean(np.sin(ang2), use_k, c.w), wmean(np.cos(ang2), use_k, c.w)),
             ]
     return uses, shape
 
@@ -414,9 +416,7 @@ def _measurement(
         mu = mv = ms = float("nan")
         row.update(converged=False, dx_flange=0.0, dy_flange=0.0, dz_flange=0.0)
     else:
-        mu = float(np.mean(c.u[use]))
-        mv = float(np.mean(c.v[use]))
-        ms = float(np.mean(c.s[use]))
+        mu, mv, ms = wmean(c.u, use, c.w), wmean(c.v, use, c.w), wmean(c.s, use, c.ws)
         conv = abs(mu - u0) <= des.thr and abs(mv - v0) <= des.thr and abs(ms - s0) <= des.thr_s
         # the image of the circle's centre, and the size an untilted target would show
         mu_c, mv_c, ms_c = mu + bias[0], mv + bias[1], ms - bias[2]
