@@ -143,8 +143,6 @@ class _Captures:
     u: np.ndarray
     v: np.ndarray
     s: np.ndarray
-    w: np.ndarray | None = None  # weights of the final centres (touchup_settle), None: plain
-    ws: np.ndarray | None = None  # ... of the final sizes
 
 
 class _Designated(NamedTuple):
@@ -377,21 +375,22 @@ def _final_shapes(finals: list[np.ndarray], c: _Captures) -> tuple[list[list[int
     shape = np.full((len(finals), 5), np.nan)  # u, v, s, s_minor, long-axis angle
     for b in finals:
         uses.append([int(i) for i in b if c.good[i]] or [int(i) for i in b if c.found[i]])
-    c.w, c.ws = settle_weights(uses, (u, v)), settle_weights(uses, (s,))  # unsettled camera
+    w, ws = settle_weights(uses, (u, v)), settle_weights(uses, (s,))  # an unsettled camera
     for k, use_k in enumerate(uses):
         if use_k:
             shape[k] = [
-                wmean(u, use_k, c.w),
-                wmean(v, use_k, c.w),
-                wmean(s, use_k, c.ws),
-                wmean(s_minor, use_k, c.ws),
-                0.5 * np.arctan2(wmean(np.sin(ang2), use_k, c.w), wmean(np.cos(ang2), use_k, c.w)),
+                wmean(u, use_k, w),
+                wmean(v, use_k, w),
+                wmean(s, use_k, ws),
+                wmean(s_minor, use_k, ws),
+                0.5 * np.arctan2(wmean(np.sin(ang2), use_k, w), wmean(np.cos(ang2), use_k, w)),
             ]
     return uses, shape
 
 
 def _measurement(
     use: list[int],
+    m: np.ndarray,
     c: _Captures,
     des: _Designated,
     J: np.ndarray,
@@ -400,7 +399,8 @@ def _measurement(
 ) -> dict[str, Any]:
     """Step 5: one touch-up's averaged measurement, its convergence and its correction.
 
-    ``use`` are the averaged final captures (none: lost). The tilt ``bias``
+    ``use`` are the averaged final captures (none: lost), ``m`` their averaged
+    ``(u, v, s)`` (:func:`_final_shapes`). The tilt ``bias``
     ``(du, dv, ds)`` turns the ellipse into the image of the circle's centre and
     the size an untilted target would show; then ``d_F = -J^{-1} e_T``.
 
@@ -416,7 +416,7 @@ def _measurement(
         mu = mv = ms = float("nan")
         row.update(converged=False, dx_flange=0.0, dy_flange=0.0, dz_flange=0.0)
     else:
-        mu, mv, ms = wmean(c.u, use, c.w), wmean(c.v, use, c.w), wmean(c.s, use, c.ws)
+        mu, mv, ms = float(m[0]), float(m[1]), float(m[2])
         conv = abs(mu - u0) <= des.thr and abs(mv - v0) <= des.thr and abs(ms - s0) <= des.thr_s
         # the image of the circle's centre, and the size an untilted target would show
         mu_c, mv_c, ms_c = mu + bias[0], mv + bias[1], ms - bias[2]
@@ -458,6 +458,7 @@ def _touchup_row(
     k: int,
     fr: np.ndarray,
     block: np.ndarray,
+    m: np.ndarray,
     loop_start: int,
     label: int,
     c: _Captures,
@@ -466,7 +467,8 @@ def _touchup_row(
     tilt: _Tilt,
     depth_scaled: bool = True,
 ) -> dict[str, Any]:
-    """One row of the table: touch-up ``k``, frames ``fr``, final captures ``block``.
+    """One row of the table: touch-up ``k``, frames ``fr``, final captures ``block`` and
+    their averaged ``m = (u, v, s)``.
 
     ``J`` is the image Jacobian of its target and where it comes from
     (``"global"`` or ``"target"``).
@@ -499,7 +501,7 @@ def _touchup_row(
         row[nm] = float(q[j])
     row["stamp_ns"] = int(c.df["stamp_ns"].iloc[ref[-1]])
     row["jacobian_source"] = J[1]
-    row.update(_measurement(use, c, des, J[0], tilt.bias[k], depth_scaled))
+    row.update(_measurement(use, m, c, des, J[0], tilt.bias[k], depth_scaled))
     row.update(
         tilt_deg=float(tilt.tilt_deg[k]),
         tilt_resolved=bool(tilt.resolved[k]),
@@ -576,11 +578,8 @@ def extract_touchups(
     for k, fr in enumerate(seg_frames):
         g = int(labels[k])
         J = (J_target[g], "target") if g in J_target else (J_global, "global")
-        out.append(
-            _touchup_row(
-                k, fr, finals[k], loop_start[k], g, c, des, J, tilt, config.depth_scaled_jacobian
-            )
-        )
+        row = (k, fr, finals[k], shape[k, :3], loop_start[k], g, c, des, J, tilt)
+        out.append(_touchup_row(*row, config.depth_scaled_jacobian))
     table = pd.DataFrame(out)
     for col, vals in scatter_columns(pair_scatters(pair_seg, dF_all, len(seg_frames))).items():
         table[col] = vals
