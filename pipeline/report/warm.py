@@ -80,6 +80,19 @@ class WarmReport:
             self.close()
             return False
 
+    def _ask(self, message: Any) -> tuple[str, Any] | None:
+        """Send ``message`` and wait for the reply ``(status, value)``; None when the
+        process cannot be reached (it is then closed)."""
+        if not self._send(message):
+            return None
+        assert self._conn is not None
+        try:
+            reply: tuple[str, Any] = self._conn.recv()
+        except (EOFError, OSError):
+            self.close()
+            return None
+        return reply
+
     def prefetch(self, run_dir: Path) -> None:
         """Have the frames of every touch-up's last capture read (touchups.parquet exists)."""
         self._send(("prefetch", str(run_dir)))
@@ -92,33 +105,21 @@ class WarmReport:
         source files, so the digest is the one this process would compute; computing it
         here would import the report's modules only for it (0.07-0.12 s).
         """
-        if not self._send(("digest",)):
-            return None
-        assert self._conn is not None
-        try:
-            status, value = self._conn.recv()
-        except (EOFError, OSError):
-            self.close()
-            return None
-        return str(value) if status == "digest" else None
+        reply = self._ask(("digest",))
+        return str(reply[1]) if reply is not None and reply[0] == "digest" else None
 
     def build(self, run_dir: Path, tolerance_mm: float | None) -> tuple[Path, Path] | None:
         """``(report.html, run.rrd)`` built by the process; None when it could not be asked.
 
         An exception the build raised there is raised here.
         """
-        if not self._send(("build", str(run_dir), tolerance_mm)):
-            return None
-        assert self._conn is not None
-        try:
-            status, value = self._conn.recv()
-        except (EOFError, OSError):  # died while building: the caller builds
-            self.close()
-            return None
+        reply = self._ask(("build", str(run_dir), tolerance_mm))
         self.close()
-        if status == "error":
-            raise value
-        return Path(value[0]), Path(value[1])
+        if reply is None:  # died while building: the caller builds
+            return None
+        if reply[0] == "error":
+            raise reply[1]
+        return Path(reply[1][0]), Path(reply[1][1])
 
     def close(self) -> None:
         """Stop the process (it exits when told or when the pipe closes); idempotent."""
