@@ -127,6 +127,7 @@ class ElasticModel(FullOriginModel):
         self.param_priority = np.concatenate(
             [self.param_priority, np.ones(len(self.elastic_joints))]
         )
+        self._tau_last: tuple[F64, F64] | None = None  # (q, torque) of _elastic_torque
 
     def column_scale(self, length: float) -> F64:
         """Metres a unit of each parameter moves the pin by, roughly (for scaling).
@@ -145,9 +146,9 @@ class ElasticModel(FullOriginModel):
         A fit evaluates the model hundreds of times at the same joint vectors and
         the torque depends on them only (the nominal arm), so the last one is reused.
         """
-        last = getattr(self, "_tau_last", None)
+        last = self._tau_last
         if last is not None and last[0].shape == q.shape and np.array_equal(last[0], q):
-            return last[1]  # type: ignore[no-any-return]
+            return last[1]
         tau = gravity_torque(self.nominal, q)[:, self.elastic_joints]
         self._tau_last = (q.copy(), tau)
         return tau
