@@ -22,7 +22,7 @@ from pipeline.kinematics.chain import load_chain
 from pipeline.kinematics.se3 import F64
 from pipeline.models import make_model
 from pipeline.models.observability import project_out
-from pipeline.stages.identify_data import prepare_data
+from pipeline.stages.identify_data import FitData, prepare_data
 from pipeline.stages.identify_types import IdentifyConfig
 
 
@@ -54,27 +54,9 @@ def structure(
     of the nominal robot) instead of holding one arbitrary length. Cached per
     robot and model.
     """
-    from pipeline.evaluate import synthetic_touchups
-
     chain = load_chain(urdf, base_link, flange_link)
     model = make_model(name, chain)
-    rng = np.random.default_rng(20240601)
-    lo = np.where(np.isfinite(chain.lower), chain.lower, -np.pi)
-    hi = np.where(np.isfinite(chain.upper), chain.upper, np.pi)
-    p_c = np.array([0.013, -0.009, 0.15])
-    # well-spread exact touch-ups: around the zero pose, else around mid-range
-    for centre in (np.clip(0.0, lo, hi), 0.5 * (lo + hi)):
-        table, tg = synthetic_touchups(
-            chain, p_c, 3, 15, rng, q_centre=centre, centre_spread_rad=0.8
-        )
-        if len(table) >= 36 and table["target_id"].nunique() == 3:
-            break
-    if len(table) < 12 or table["target_id"].nunique() < 2:
-        raise CalibrationFailed(
-            f"model {name}: cannot place exact touch-ups on the nominal robot "
-            f"{base_link} -> {flange_link} to rate identifiability (joint limits too tight?)"
-        )
-    data = prepare_data(table, chain, IdentifyConfig(distances=[(0, 1, 1.0)]))
+    data, tg, p_c = exact_touchups(urdf, base_link, flange_link)
     prob = Problem(model, data, IdentifyConfig(distance_weight=1.0))
     P = model.n_params
     _, J = prob.full_eval(model.zero(), p_c, tg)
@@ -100,6 +82,39 @@ def structure(
             gauge = np.zeros(P)
             gauge[kept] = v / np.linalg.norm(v)
     return Structure(kept=kept, held=reasons, gauge=gauge, length=Lc)
+
+
+@lru_cache(maxsize=16)
+def exact_touchups(urdf: str, base_link: str, flange_link: str) -> tuple[FitData, F64, F64]:
+    """The exact synthetic touch-ups :func:`structure` rates every model on, (data, targets, pin).
+
+    3 targets x 15 poses of the nominal robot, spread over the joint ranges (around the
+    zero pose, else around mid-range), with a known distance between targets 0 and 1
+    of 1 m; ``targets`` (3, 3) m and the pin ``p_flange_pin`` (3,) m they touch. They
+    depend on the robot alone, not on the error model, so they are made once per
+    robot and process (their inverse kinematics is most of a model's rating) and
+    shared by every model's :func:`structure`.
+    """
+    from pipeline.evaluate import synthetic_touchups
+
+    chain = load_chain(urdf, base_link, flange_link)
+    rng = np.random.default_rng(20240601)
+    lo = np.where(np.isfinite(chain.lower), chain.lower, -np.pi)
+    hi = np.where(np.isfinite(chain.upper), chain.upper, np.pi)
+    p_c = np.array([0.013, -0.009, 0.15])
+    for centre in (np.clip(0.0, lo, hi), 0.5 * (lo + hi)):
+        table, tg = synthetic_touchups(
+            chain, p_c, 3, 15, rng, q_centre=centre, centre_spread_rad=0.8
+        )
+        if len(table) >= 36 and table["target_id"].nunique() == 3:
+            break
+    if len(table) < 12 or table["target_id"].nunique() < 2:
+        raise CalibrationFailed(
+            f"cannot place exact touch-ups on the nominal robot {base_link} -> "
+            f"{flange_link} to rate identifiability (joint limits too tight?)"
+        )
+    data = prepare_data(table, chain, IdentifyConfig(distances=[(0, 1, 1.0)]))
+    return data, tg, p_c
 
 
 def select_columns(A: F64, tol: float) -> tuple[np.ndarray, np.ndarray, F64]:

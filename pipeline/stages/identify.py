@@ -60,7 +60,7 @@ from scipy.optimize import least_squares
 
 from pipeline.errors import BadInput, CalibrationFailed
 from pipeline.estimation.design import design_jacobian
-from pipeline.estimation.identifiability import select_columns, structure
+from pipeline.estimation.identifiability import exact_touchups, select_columns, structure
 from pipeline.estimation.measurement import Problem, initial_pin_targets, partial_loss
 from pipeline.estimation.uncertainty import covariance, predicted_errors, residual_variance
 from pipeline.estimation.whitening import flange_whitening
@@ -214,6 +214,8 @@ def _identify_models(
                 return f"{name}: {exc}"
 
         names = model_names()
+        if config.workers != 1:
+            _share_exact_touchups(robot)
         results: dict[str, IdentifyResult] = {}
         errors: list[str] = []
         for name, r in zip(names, parallel_map(fit_one, names, config.workers), strict=True):
@@ -246,6 +248,22 @@ def _identify_models(
     one = _identify_one(config.model, robot, data, config)
     one.summary["implausible"] = implausible
     return one
+
+
+def _share_exact_touchups(robot: Robot) -> None:
+    """Make the robot's exact synthetic touch-ups here, before the fits fork.
+
+    Every model's structural identifiability (:func:`structure`) rates it on the same
+    exact touch-ups (:func:`pipeline.estimation.identifiability.exact_touchups`, cached
+    per process); made once in this process, the forked workers (and a later stage's)
+    find them made instead of each solving their inverse kinematics again. When they
+    cannot be made, each model's fit says so.
+    """
+    chain = robot.chain
+    try:
+        exact_touchups(robot.urdf, chain.base_link, chain.tip_link)
+    except CalibrationFailed:
+        pass
 
 
 @dataclass
