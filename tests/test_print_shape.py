@@ -187,3 +187,41 @@ def test_design_rows_are_the_first_order_extent_of_an_ellipse():
     phi_f = phi - np.arctan2(e1[0, 1], e1[0, 0])
     model = B @ np.array([e * np.cos(2 * phi_f), e * np.sin(2 * phi_f)])
     assert np.max(np.abs(model - exact)) < 3 * e**2
+
+
+def _both_tests(table, urdf, monkeypatch, **cfg):
+    """(summary with the Gauss-Newton test, summary with every test refitted)."""
+    from pipeline.stages import identify_shape
+
+    fast = identify(table, urdf, "base_link", "flange", IdentifyConfig(**cfg)).summary
+    fast = fast["print_shape"]
+
+    def refitted(prob, D0, W0, sol0, rss0, cols, config, n_free):
+        return {"significant_by_refit": True}, True  # always refit: the old test
+
+    monkeypatch.setattr(identify_shape, "_linear_test", refitted)
+    slow = identify(table, urdf, "base_link", "flange", IdentifyConfig(**cfg)).summary
+    return fast, slow["print_shape"]
+
+
+@pytest.mark.parametrize("seed", [5, 6, 7])
+def test_gauss_newton_test_gives_the_refits_f_without_refitting(seed, monkeypatch):
+    # perfect prints, pin noise: nothing significant, so nothing is refitted
+    urdf, _, _, table, _, _ = _printed_case(np.zeros(3), np.zeros(3), seed=seed, noise_pin=10e-6)
+    fast, slow = _both_tests(table, urdf, monkeypatch)
+    assert not fast["fitted"] and len(fast["tried"]) == 2, fast
+    for a, b in zip(fast["tried"], slow["tried"], strict=True):
+        assert a["F"] == pytest.approx(b["F"], rel=1e-3, abs=1e-3), (a, b)
+        assert a["p_value"] == pytest.approx(b["p_value"], rel=1e-2, abs=1e-6), (a, b)
+
+
+def test_a_significant_shape_is_refitted_and_its_figures_are_the_refits(monkeypatch):
+    e = np.array([1.0e-3, 0.6e-3, 1.4e-3])
+    urdf, _, _, table, _, _ = _printed_case(e, np.array([0.0, 4e-4, -3e-4]))
+    fast, slow = _both_tests(table, urdf, monkeypatch, target_diameter_m=0.01)
+    assert fast["fitted"] and slow["fitted"]
+    assert "test" not in fast  # the refit's summary, not the Gauss-Newton test's
+    assert fast["F"] == slow["F"]
+    assert [t["ellipticity"] for t in fast["targets"]] == [
+        t["ellipticity"] for t in slow["targets"]
+    ]

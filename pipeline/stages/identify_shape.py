@@ -15,6 +15,9 @@ from pipeline.kinematics.se3 import F64
 from pipeline.stages.identify_data import FitData
 from pipeline.stages.identify_types import IdentifyConfig
 
+#: joint Gauss-Newton steps of the print-shape test without a refit (:func:`_linear_test`)
+LINEAR_STEPS = 2
+
 
 def fit_print_shape(
     prob: Problem, sol: Any, solve: Any, config: IdentifyConfig, n_free: int
@@ -30,6 +33,13 @@ def fit_print_shape(
     alone (``kappa``, ``K - 1`` parameters: a per-target constant along the view, which
     is also what a per-target error of the image Jacobian's size row leaves after a
     large residual correction) with the same test. Otherwise the fit is the one before.
+
+    Each test is first made without refitting (:func:`_linear_test`: two joint
+    Gauss-Newton steps from the fit without print shape, the same F to 1e-3 on the
+    tests' cells and to four digits on the standard ones); only a significant one (or
+    ``target_shape = "fit"``) is refitted, and the refit's test decides. On the
+    standard cells no print shape is significant and identification takes half the
+    time it took with every test refitted (docs/speed.md "Stop 29").
 
     Returns
     -------
@@ -62,9 +72,15 @@ def fit_print_shape(
     tries = [np.arange(n_all)] + ([np.arange(K - 1)] if K > 1 else [])
     tried: list[dict[str, Any]] = []
     for i, cols in enumerate(tries):
-        s1, D1, out, significant = _attempt(prob, D0, W0, sol0, rss0, cols, solve, config, n_free)
+        forced = config.target_shape == "fit" and i == 0
+        out, significant = _linear_test(prob, D0, W0, sol0, rss0, cols, config, n_free)
+        s1, D1 = sol0, D0
+        if significant or (forced and "F" in out):
+            s1, D1, out, significant = _attempt(
+                prob, D0, W0, sol0, rss0, cols, solve, config, n_free
+            )
         tried.append(out)
-        if significant or (config.target_shape == "fit" and i == 0 and "F" in out):
+        if significant or (forced and "F" in out):
             out["fitted"] = True
             out["tried"] = [{k: t.get(k) for k in ("parameters", "F", "p_value")} for t in tried]
             return s1, D1, out
@@ -103,6 +119,81 @@ def _joint(prob: Problem, D: FitData, cols: np.ndarray, z: F64) -> tuple[F64, F6
     S = np.zeros((prob.m, ne))
     S[: 3 * N] = (V[:, :, None] * Bc[:, None, :] * D.sw[:, None, None]).reshape(3 * N, ne)
     return np.hstack([Jf[:, prob.columns()], S]), r, B
+
+
+def _linear_test(
+    prob: Problem,
+    D0: FitData,
+    W0: Any,
+    sol0: Any,
+    rss0: float,
+    cols: np.ndarray,
+    config: IdentifyConfig,
+    n_free: int,
+) -> tuple[dict[str, Any], bool]:
+    """The F-test of ``theta[cols]`` with the refit replaced by Gauss-Newton steps.
+
+    From the fit without print shape ``z0`` (``sol0``), :data:`LINEAR_STEPS` joint
+    Gauss-Newton steps on ``[z, theta[cols]]`` (the design ``B`` and the Jacobian
+    recomputed at each point, as :func:`_attempt` has them),
+
+    ``[dz; dtheta] = argmin || r(z, theta) + A(z, theta) [dz; dtheta] ||``,
+
+    and ``rss1`` is the unwhitened residual sum evaluated exactly at the point they
+    reach. Near ``z0`` the problem in ``theta`` is linear (the rows' corrections are
+    ``d_i + g_i (B_i . theta)``) and ``z0`` is already the minimum for ``theta = 0``,
+    so the steps land where the refit does (the F of both, measured on the standard
+    cells: docs/speed.md "Stop 29"). A significant result (or ``target_shape = "fit"``)
+    is refitted by :func:`_attempt` before anything of it is used: the refit's test is
+    the one kept.
+
+    Returns
+    -------
+    summary : as :func:`_attempt`'s (the target figures NaN: not a fit)
+    significant : ``p < shape_alpha``
+    """
+    import dataclasses
+
+    from pipeline.stages import print_shape as ps
+
+    assert D0.shape_g is not None
+    G: F64 = D0.shape_g
+    K, N = D0.K, len(D0.q)
+    n_all = 3 * K - 1
+    ne = len(cols)
+    dof1 = 3 * N + len(D0.dist) - (n_free + 3 + 3 * K) - ne
+    if dof1 < 5:
+        return {"fitted": False, "note": "print shape not fitted: too few touch-ups"}, False
+    D = dataclasses.replace(D0, d=D0.d.copy(), d_all=D0.d_all.copy())
+    prob.data, prob.W = D, W0
+    theta = np.zeros(n_all)
+    z = np.array(sol0.x, dtype=float)
+    for _ in range(LINEAR_STEPS):
+        A, r, B = _joint(prob, D, cols, z)
+        cn = np.maximum(np.linalg.norm(A, axis=0), 1e-300)
+        step = np.linalg.lstsq(A / cn, -r, rcond=None)[0] / cn
+        z = z + step[:-ne]
+        theta[cols] += step[-ne:]
+        D.d[:] = D0.d + G * (B @ theta)[:, None]
+    rss1 = _rss(prob, D, z)
+    prob.data = D0
+    F = ((rss0 - rss1) / ne) / max(rss1 / dof1, 1e-300)
+    p_value = f_sf(F, ne, dof1) if rss1 > 0 else 0.0
+    what = "print shape" if ne == n_all else "relative print sizes"
+    out: dict[str, Any] = {
+        "fitted": False,
+        "parameters": "size and out-of-roundness" if ne == n_all else "size",
+        "F": float(F),
+        "p_value": p_value,
+        "alpha": config.shape_alpha,
+        "rss_before_mm2": 1e6 * rss0,
+        "rss_after_mm2": 1e6 * rss1,
+        "n_params": ne,
+        "test": f"Gauss-Newton ({LINEAR_STEPS} steps from the fit without it)",
+        "targets": ps.summarise(theta, np.full(n_all, np.nan), K, config.target_diameter_m),
+        "note": f"{what} tested ({ne} parameters, F = {F:.1f}, p = {p_value:.2g})",
+    }
+    return out, p_value < config.shape_alpha
 
 
 def _attempt(
