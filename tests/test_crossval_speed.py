@@ -106,12 +106,14 @@ def test_prediction_only_refits_predict_what_full_refits_do(monkeypatch) -> None
     one = dataclasses.replace(idc, model="poe")
     a = fit(tab, one)
     b = fit(tab, dataclasses.replace(one, prediction_only=True))
-    assert b.calibrated_urdf == "" and b.parameters.empty
+    assert b.calibrated_urdf == "" and b.parameters.empty and b.targets.empty
     for key in ("rms_mm", "sigma_mm", "n_identified"):
         assert abs(a.summary[key] - b.summary[key]) <= 1e-12 * max(1.0, abs(a.summary[key]))
-    np.testing.assert_array_equal(
-        a.targets[["x", "y", "z"]].to_numpy(), b.targets[["x", "y", "z"]].to_numpy()
-    )
+    assert a.target_xyz.keys() == b.target_xyz.keys() == set(a.targets["target_id"])
+    for t, xyz in a.target_xyz.items():
+        np.testing.assert_array_equal(xyz, b.target_xyz[t])
+        row = a.targets.loc[a.targets["target_id"] == t, ["x", "y", "z"]].to_numpy()[0]
+        np.testing.assert_array_equal(xyz, row)
 
 
 def test_identify_fits_its_models_in_forked_processes_as_in_one() -> None:

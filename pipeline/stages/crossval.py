@@ -52,7 +52,6 @@ import numpy as np
 import pandas as pd
 
 from pipeline.errors import BadInput, CalibrationFailed
-from pipeline.estimation.measurement import target_positions
 from pipeline.kinematics.se3 import F64
 from pipeline.stages.crossval_refit import RefitTable, refit, refit_config, refit_table
 from pipeline.stages.identify import IdentifyConfig, IdentifyResult
@@ -169,6 +168,17 @@ def _heldout(
     rt: RefitTable, use: np.ndarray, fold: np.ndarray, config: IdentifyConfig, every_row: bool
 ) -> pd.DataFrame:
     """:func:`heldout_predictions` on a table prepared for refits."""
+    return pd.DataFrame(_heldout_rows(rt, use, fold, config, every_row), columns=_PRED_COLUMNS)
+
+
+#: the columns of :func:`heldout_predictions`' table
+_PRED_COLUMNS = "row held fold n_train px py pz tx ty tz sigma_m status".split()
+
+
+def _heldout_rows(
+    rt: RefitTable, use: np.ndarray, fold: np.ndarray, config: IdentifyConfig, every_row: bool
+) -> list[dict[str, Any]]:
+    """The rows of :func:`heldout_predictions`' table, one dict each (its columns)."""
     table = rt.df
     names = list(rt.robot.chain.joint_names)
     q_all = table[names].to_numpy(dtype=float)
@@ -191,7 +201,7 @@ def _heldout(
                     _pred_row(i, f, held, train, nan3, nan3, math.nan, f"fold not fitted: {exc}")
                 )
             continue
-        tg = target_positions(res.targets)
+        tg = res.target_xyz
         p = _predict(res, q_all[hi], d_all[hi])
         sig = float(res.summary.get("sigma_mm", math.nan)) / 1e3
         for j, i in enumerate(hi):
@@ -200,23 +210,7 @@ def _heldout(
                 out.append(_pred_row(i, f, held, train, p[j], nan3, sig, "target not in training"))
             else:
                 out.append(_pred_row(i, f, held, train, p[j], t, sig, ""))
-    return pd.DataFrame(
-        out,
-        columns=[
-            "row",
-            "held",
-            "fold",
-            "n_train",
-            "px",
-            "py",
-            "pz",
-            "tx",
-            "ty",
-            "tz",
-            "sigma_m",
-            "status",
-        ],
-    )
+    return out
 
 
 def _pred_row(
@@ -427,19 +421,17 @@ def _validate_model(
 
 def _kfold(m: str, s: _Split, mcfg: IdentifyConfig, info: dict[str, Any]) -> list[dict[str, Any]]:
     """The k-fold rows of model ``m``; its failed folds and noise estimate go to ``info``."""
-    pred = _heldout(s.t, s.use, s.fold, mcfg, every_row=False)
-    failed = int(pred.loc[pred["status"].str.startswith("fold not fitted"), "fold"].nunique())
-    pv = pred[["px", "py", "pz"]].to_numpy(dtype=float)
-    tv = pred[["tx", "ty", "tz"]].to_numpy(dtype=float)
-    st = pred["status"].astype(str).tolist()
-    meta = pred[["fold", "row", "n_train"]].to_numpy(dtype=np.int64)
+    pred = _heldout_rows(s.t, s.use, s.fold, mcfg, every_row=False)
+    failed = len({r["fold"] for r in pred if r["status"].startswith("fold not fitted")})
     add = functools.partial(_heldout_row, s, m, "kfold")
     rows = []
-    for j in range(len(pred)):
-        e = None if st[j] else pv[j] - tv[j]
-        rows.append(add(int(meta[j, 0]), int(meta[j, 1]), int(meta[j, 2]), e, st[j]))
+    for r in pred:
+        e = None
+        if not r["status"]:
+            e = np.array([r["px"], r["py"], r["pz"]]) - np.array([r["tx"], r["ty"], r["tz"]])
+        rows.append(add(r["fold"], r["row"], r["n_train"], e, r["status"]))
     info["kfold_failed_folds"] = failed
-    sig = pred.loc[pred["status"] == "", "sigma_m"].to_numpy(dtype=float)
+    sig = np.array([r["sigma_m"] for r in pred if r["status"] == ""], dtype=float)
     sig = sig[np.isfinite(sig)]
     info["kfold_noise_mm"] = float(np.sqrt(3 * np.mean(sig**2)) * 1e3) if sig.size else math.nan
     return rows

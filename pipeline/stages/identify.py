@@ -473,7 +473,13 @@ def _identify_one(name: str, robot: Robot, data: FitData, config: IdentifyConfig
         p_flange_pin=pin,
         x=x,
         error_model=model,
+        target_xyz=_target_xyz(data, tg),
     )
+
+
+def _target_xyz(data: FitData, tg: F64) -> dict[int, F64]:
+    """``{target_id: (3,) fitted position}`` of the fit's targets ``tg`` (K, 3) m."""
+    return {int(t): tg[k] for k, t in enumerate(data.target_ids)}
 
 
 def _pin_distances(model: Any, f: _Solved) -> F64:
@@ -491,18 +497,10 @@ def _prediction_only(name: str, s: _Setup, f: _Solved, t0: float) -> IdentifyRes
     """A fit for prediction alone (``IdentifyConfig.prediction_only``): what a held-out
     score needs, the model, pin and target positions, the residual RMS and the
     residual scale ``sigma = sqrt(|r|^2 / (m - p))`` (as :func:`covariance` has it),
-    without the covariance, the tables and the URDF (about 30 % of a refit)."""
+    without the covariance, the tables and the URDF (about 30 % of a refit): the
+    targets are :attr:`IdentifyResult.target_xyz` alone."""
     model, data = s.model, f.data
     sigma2, dof = residual_variance(f.r, len(s.prob.columns()))
-    targets = pd.DataFrame(
-        {
-            "model": name,
-            "target_id": np.array(data.target_ids, dtype=np.int64),
-            "x": f.tg[:, 0],
-            "y": f.tg[:, 1],
-            "z": f.tg[:, 2],
-        }
-    )
     summary = {
         "rms_mm": weighted_rms(_pin_distances(model, f), data.sw) * 1e3,
         "sigma_mm": math.sqrt(sigma2) * 1e3 if dof > 0 else float("nan"),
@@ -513,13 +511,14 @@ def _prediction_only(name: str, s: _Setup, f: _Solved, t0: float) -> IdentifyRes
         model=name,
         parameters=pd.DataFrame(),
         residuals=pd.DataFrame(),
-        targets=targets,
+        targets=pd.DataFrame(),
         calibrated_urdf="",
         summary=summary,
         chain=model.chain(f.x),
         p_flange_pin=f.pin,
         x=f.x,
         error_model=model,
+        target_xyz=_target_xyz(data, f.tg),
     )
 
 

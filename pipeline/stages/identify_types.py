@@ -162,6 +162,8 @@ class IdentifyResult:
         (a model with ``urdf_exact = False``)
     correction_map : (3, 3) ``M_eff`` the fit applied to the table's corrections
         (``IdentifyConfig.correction_frame``; the identity for ``nominal``)
+    target_xyz : ``{target_id: (3,) fitted position, m}``: the positions of ``targets``,
+        also where a prediction-only fit makes no targets table
     """
 
     model: str
@@ -175,6 +177,7 @@ class IdentifyResult:
     x: F64 = field(repr=False, default_factory=lambda: np.zeros(0))
     error_model: ErrorModel | None = field(repr=False, default=None)
     correction_map: F64 = field(repr=False, default_factory=lambda: np.eye(3))
+    target_xyz: dict[int, F64] = field(repr=False, default_factory=dict)
 
     def predict(self, q: F64, d: F64) -> F64:
         """Pin positions ``T_base_flange(q_i; x) (p_pin + M_eff d_i)`` of the fitted model, (N, 3).
