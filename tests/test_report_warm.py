@@ -12,6 +12,7 @@ from __future__ import annotations
 import shutil
 from pathlib import Path
 
+import pandas as pd
 import pytest
 
 from pipeline.errors import BadInput
@@ -134,3 +135,33 @@ def test_the_warm_process_computes_the_reports_code_digest_as_here(monkeypatch, 
     assert w is not None
     assert w.code_digest() == changed
     w.close()
+
+
+def test_the_reports_views_made_once_per_load_are_the_direct_ones(sample_run) -> None:
+    """touchup_table, touchup_frames and detection_ellipse are made once per load
+    (``RunData.derived``): the same values as made directly, handed out as copies."""
+    import numpy as np
+
+    from pipeline.report.data import load_run
+    from pipeline.report.touchup_views import detection_ellipse, touchup_frames
+
+    data = load_run(sample_run)
+    first = data.touchup_table()
+    assert first is not None and len(first)
+    first["reason"] = "changed by a caller"
+    again = data.touchup_table()
+    assert again is not None and not (again["reason"] == "changed by a caller").any()
+    pd.testing.assert_frame_equal(again, load_run(sample_run)._touchup_table())
+    frames = touchup_frames(data)
+    frames[next(iter(frames))].append(-1)
+    assert -1 not in sum(touchup_frames(data).values(), [])
+    det = data.detections
+    assert det is not None
+    for f in sorted(set(det["frame_index"].tolist())):
+        rows = det[det["frame_index"] == f]
+        r = rows.iloc[0]
+        want = None
+        if np.isfinite(r["u"]):
+            want = (r["u"], r["v"], r["s"], r["s_minor"], r["angle"])
+        assert detection_ellipse(data, f) == want, f
+    assert detection_ellipse(data, int(det["frame_index"].max()) + 1) is None

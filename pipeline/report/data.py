@@ -198,7 +198,15 @@ class RunData:
 
     # ------------------------------------------------------------ touch-ups
     def touchup_table(self) -> pd.DataFrame | None:
-        """Inliers (touch-ups + verdict) if present, else touch-ups with every row an inlier."""
+        """Inliers (touch-ups + verdict) if present, else touch-ups with every row an inlier.
+
+        Made once per load (a dozen sections ask for it) and handed out as a copy."""
+        if "touchup_table" not in self.derived:
+            self.derived["touchup_table"] = self._touchup_table()
+        df = self.derived["touchup_table"]
+        return None if df is None else df.copy()
+
+    def _touchup_table(self) -> pd.DataFrame | None:
         if self.inliers is not None:
             df = self.inliers.copy()
             if self.touchups is not None and "touchup_id" in self.touchups:

@@ -35,8 +35,15 @@ def touchup_frames(data: RunData) -> dict[int, list[int]]:
 
     From a ``touchup_id`` column of frames.parquet, else list-valued ``frames``
     columns of the touch-up table, else a single ``frame``/``last_frame`` column,
-    else by matching the touch-up's ``stamp_ns`` to a frame's stamp.
+    else by matching the touch-up's ``stamp_ns`` to a frame's stamp. Made once per
+    load (``data.derived``).
     """
+    if "touchup_frames" not in data.derived:
+        data.derived["touchup_frames"] = _touchup_frames(data)
+    return {k: list(v) for k, v in data.derived["touchup_frames"].items()}
+
+
+def _touchup_frames(data: RunData) -> dict[int, list[int]]:
     out: dict[int, list[int]] = {}
     fr = data.frames
     fc = frame_col(fr)
@@ -74,20 +81,36 @@ def touchup_frames(data: RunData) -> dict[int, list[int]]:
 
 
 def detection_ellipse(data: RunData, frame: int) -> tuple[float, float, float, float, float] | None:
-    """``(u, v, s, s_minor, angle)`` of the detection in a frame, or None."""
+    """``(u, v, s, s_minor, angle)`` of the (first) detection in a frame, or None."""
+    if "detection_ellipses" not in data.derived:
+        data.derived["detection_ellipses"] = _detection_ellipses(data)
+    return data.derived["detection_ellipses"].get(int(frame))
+
+
+def _detection_ellipses(data: RunData) -> dict[int, tuple[float, float, float, float, float]]:
+    """:func:`detection_ellipse` of every frame with a finite detection, from one pass."""
     det = data.detections
     fc = frame_col(det)
     if det is None or fc is None or not {"u", "v", "s"} <= set(det.columns):
-        return None
-    rows = det[det[fc] == frame]
-    if not len(rows):
-        return None
-    r = rows.iloc[0]
-    if not np.isfinite(float(r["u"])):
-        return None
-    sm = float(r["s_minor"]) if "s_minor" in r else float(r["s"])
-    ang = float(r["angle"]) if "angle" in r else 0.0
-    return float(r["u"]), float(r["v"]), float(r["s"]), sm, ang
+        return {}
+    cols = {c: det[c].to_numpy(dtype=float) for c in ("u", "v", "s")}
+    sm = det["s_minor"].to_numpy(dtype=float) if "s_minor" in det else cols["s"]
+    ang = det["angle"].to_numpy(dtype=float) if "angle" in det else np.zeros(len(det))
+    out: dict[int, tuple[float, float, float, float, float]] = {}
+    seen: set[int] = set()
+    for i, f in enumerate(det[fc].tolist()):
+        if f is None or (isinstance(f, float) and not np.isfinite(f)) or int(f) in seen:
+            continue
+        seen.add(int(f))  # the frame's first row is its detection, finite or not
+        if np.isfinite(cols["u"][i]):
+            out[int(f)] = (
+                float(cols["u"][i]),
+                float(cols["v"][i]),
+                float(cols["s"][i]),
+                float(sm[i]),
+                float(ang[i]),
+            )
+    return out
 
 
 def convergence_traces(data: RunData) -> dict[int, np.ndarray]:
