@@ -180,3 +180,36 @@ def test_this_process_and_a_forked_one_share_the_tasks() -> None:
 
     with pytest.raises(ValueError, match="task 5 failed"):
         parallel_map(boom, list(range(8)), workers=2)
+
+
+def test_work_this_run_keeps_busy_is_not_a_free_core(monkeypatch) -> None:  # type: ignore[no-untyped-def]
+    """A registered probe's busy cores are left out of ``workers=0`` (identification),
+    unless the map does not yield to them (cross-validation)."""
+    import os
+    import time
+
+    from pipeline.stages import parallel_map as pm
+
+    monkeypatch.setattr(pm.os, "cpu_count", lambda: 2)
+    monkeypatch.setattr(pm.os, "getloadavg", lambda: (0.1, 0.0, 0.0))
+    busy = [1]
+
+    def probe() -> int:
+        return busy[0]
+
+    def pid(_: int) -> int:
+        time.sleep(0.05)  # long enough for the forked worker to take some
+        return os.getpid()
+
+    pm.register_busy(probe)
+    try:
+        assert pm.free_workers() == 1
+        assert pm.free_workers(count_busy=False) == 2
+        assert set(pm.parallel_map(pid, [1, 2, 3, 4], 0)) == {os.getpid()}
+        assert len(set(pm.parallel_map(pid, [1, 2, 3, 4], 0, yield_to_busy=False))) == 2
+        busy[0] = 0  # the other work is done: the core is free again
+        assert pm.free_workers() == 2
+    finally:
+        pm.unregister_busy(probe)
+    busy[0] = 1
+    assert pm.free_workers() == 2  # unregistered

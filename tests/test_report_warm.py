@@ -27,7 +27,7 @@ SAMPLE = REPO / "datasets" / "samples" / "sample_lrmate.mcap"
 @pytest.fixture
 def cores_free(monkeypatch):
     """Two free cores whatever the machine's load (the start condition under test)."""
-    monkeypatch.setattr(parallel_map, "free_workers", lambda limit=2: 2)
+    monkeypatch.setattr(parallel_map, "free_workers", lambda limit=2, **k: 2)
 
 
 @pytest.fixture(scope="module")
@@ -36,7 +36,7 @@ def sample_run(tmp_path_factory) -> Path:
     out = tmp_path_factory.mktemp("warm") / "run"
     used = []
     mp = pytest.MonkeyPatch()
-    mp.setattr(parallel_map, "free_workers", lambda limit=2: 2)
+    mp.setattr(parallel_map, "free_workers", lambda limit=2, **k: 2)
     build = warm.WarmReport.build
 
     def counting(self, run_dir, tolerance_mm):
@@ -103,13 +103,13 @@ def test_a_dead_warm_process_means_building_here(tmp_path, cores_free) -> None:
 
 
 def test_not_started_without_a_free_core_or_in_a_worker(monkeypatch) -> None:
-    monkeypatch.setattr(parallel_map, "free_workers", lambda limit=2: 1)
+    monkeypatch.setattr(parallel_map, "free_workers", lambda limit=2, **k: 1)
     assert warm.WarmReport.start() is None
-    monkeypatch.setattr(parallel_map, "free_workers", lambda limit=2: 2)
+    monkeypatch.setattr(parallel_map, "free_workers", lambda limit=2, **k: 2)
     monkeypatch.setenv("VTCAL_WARM_REPORT", "0")
     assert warm.WarmReport.start() is None
     monkeypatch.delenv("VTCAL_WARM_REPORT")
-    monkeypatch.setattr(parallel_map, "free_workers", lambda limit=2: 2)
+    monkeypatch.setattr(parallel_map, "free_workers", lambda limit=2, **k: 2)
     monkeypatch.setattr(warm.multiprocessing, "parent_process", lambda: object())
     assert warm.WarmReport.start() is None
 
@@ -165,3 +165,28 @@ def test_the_reports_views_made_once_per_load_are_the_direct_ones(sample_run) ->
             want = (r["u"], r["v"], r["s"], r["s_minor"], r["angle"])
         assert detection_ellipse(data, f) == want, f
     assert detection_ellipse(data, int(det["frame_index"].max()) + 1) is None
+
+
+def test_the_warm_process_is_a_busy_core_while_it_reads_frames(sample_run, cores_free) -> None:
+    """From :meth:`WarmReport.prefetch` until the process says it has read the frames,
+    the fits started meanwhile count its core as busy; the messages after it are still
+    answered in order."""
+    import time
+
+    from pipeline import code_key
+
+    w = warm.WarmReport.start()
+    assert w is not None
+    try:
+        assert w.cores_busy() == 0
+        assert w.cores_busy in parallel_map._BUSY
+        w.prefetch(sample_run)
+        assert w.cores_busy() == 1  # it imports the SDK before it reads: not done yet
+        deadline = time.monotonic() + 60
+        while w.cores_busy() and time.monotonic() < deadline:
+            time.sleep(0.02)
+        assert w.cores_busy() == 0
+        assert w.code_digest() == code_key.stage_code_digest("report")
+    finally:
+        w.close()
+    assert w.cores_busy not in parallel_map._BUSY

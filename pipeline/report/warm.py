@@ -9,7 +9,9 @@ starts: the SDK needs nothing of the run, the frames only the touch-ups table.
 which imports the SDK and the report's modules while this process ingests the
 recording: ingest keeps one core busy (98 % CPU of one core over its wall time
 on the UR5e-like cell), so the imports take the other. After the touch-ups stage
-it is told to read the frames it will show (:meth:`WarmReport.prefetch`); when
+it is told to read the frames it will show (:meth:`WarmReport.prefetch`; until it
+says it has, the fits count its core as busy and do not fork onto it: see
+:func:`pipeline.stages.parallel_map.register_busy`); when
 the report stage comes, it is handed the run folder, builds ``report.html`` and
 ``run.rrd`` from the artefacts as :func:`pipeline.report.outputs.build_outputs`
 always does (the same files, written atomically), and sends back their paths or
@@ -34,17 +36,17 @@ import signal
 from pathlib import Path
 from typing import Any
 
+from pipeline.stages import parallel_map
+
 
 def can_start() -> bool:
     """True when a warm report process may be forked now (see the module docstring)."""
-    from pipeline.stages.parallel_map import free_workers
-
     return (
         os.environ.get("VTCAL_WARM_REPORT", "1") != "0"
         and "fork" in multiprocessing.get_all_start_methods()
         and multiprocessing.parent_process() is None
         and not multiprocessing.current_process().daemon
-        and free_workers() >= 2
+        and parallel_map.free_workers() >= 2
     )
 
 
@@ -54,6 +56,27 @@ class WarmReport:
     def __init__(self, process: Any, conn: multiprocessing.connection.Connection) -> None:
         self._process = process
         self._conn: multiprocessing.connection.Connection | None = conn
+        self._reading = False
+        parallel_map.register_busy(self.cores_busy)
+
+    def cores_busy(self) -> int:
+        """1 while the process reads frames (:meth:`prefetch` until it says it is done),
+        else 0: registered with :func:`pipeline.stages.parallel_map.register_busy`, so
+        the fits started meanwhile do not fork onto the core it uses."""
+        if self._reading and self._conn is not None:
+            try:
+                while self._reading and self._conn.poll(0):
+                    self._note(self._conn.recv())
+            except (EOFError, OSError):
+                self._reading = False
+        return 1 if self._reading and self._conn is not None else 0
+
+    def _note(self, message: Any) -> Any:
+        """``message`` unless it is the process's "frames read" notice (then None)."""
+        if message == ("prefetched",):
+            self._reading = False
+            return None
+        return message
 
     @classmethod
     def start(cls) -> WarmReport | None:
@@ -87,15 +110,18 @@ class WarmReport:
             return None
         assert self._conn is not None
         try:
-            reply: tuple[str, Any] = self._conn.recv()
+            reply: tuple[str, Any] | None = None
+            while reply is None:
+                reply = self._note(self._conn.recv())
         except (EOFError, OSError):
             self.close()
             return None
         return reply
 
     def prefetch(self, run_dir: Path) -> None:
-        """Have the frames of every touch-up's last capture read (touchups.parquet exists)."""
-        self._send(("prefetch", str(run_dir)))
+        """Have the frames of every touch-up's last capture read (touchups.parquet exists);
+        the process counts as a busy core (:meth:`cores_busy`) until it has read them."""
+        self._reading = self._send(("prefetch", str(run_dir)))
 
     def code_digest(self) -> str | None:
         """The report's code digest (:func:`pipeline.code_key.stage_code_digest`) computed
@@ -123,6 +149,8 @@ class WarmReport:
 
     def close(self) -> None:
         """Stop the process (it exits when told or when the pipe closes); idempotent."""
+        parallel_map.unregister_busy(self.cores_busy)
+        self._reading = False
         if self._conn is not None:
             try:
                 self._conn.send(None)
@@ -166,6 +194,7 @@ def _serve(
                 frames = prefetch_frames(Path(message[1]))
             except Exception:  # noqa: BLE001 - only an optimisation: the build reads them
                 frames = {}
+            conn.send(("prefetched",))  # its core is free again (WarmReport.cores_busy)
             continue
         try:
             html, rrd = build_outputs(Path(message[1]), message[2], frames=frames)

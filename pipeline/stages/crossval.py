@@ -304,7 +304,7 @@ def cross_validate(
     n_tgt = len(np.unique(s.tid[s.use].astype(str)))
     refits = {"kfold": s.k, "loto": n_tgt, "both": s.k + n_tgt}
     order = sorted(range(len(tasks)), key=lambda i: -_task_cost(known, tasks[i], refits))
-    done = parallel_map(one_task, [tasks[i] for i in order], config.workers)
+    done = parallel_map(one_task, [tasks[i] for i in order], config.workers, yield_to_busy=False)
     results = [done[order.index(i)] for i in range(len(tasks))]
     rows: list[dict[str, Any]] = []
     summary_models: dict[str, Any] = {}
