@@ -70,7 +70,9 @@ def touchups(data: dict[str, Any], config: Any, context: Any) -> dict[str, Any]:
         data["frames"], data["detections"], _info(data["recording"]), config
     )
     implied = table.attrs.get("implied_target_diameter_m", float("nan"))
-    return {"touchups": Parquet(table, {"implied_target_diameter_m": repr(float(implied))})}
+    meta = {"implied_target_diameter_m": repr(float(implied))}
+    meta["settle"] = json.dumps(table.attrs.get("settle") or {})  # the report shows it
+    return {"touchups": Parquet(table, meta)}
 
 
 def outliers(data: dict[str, Any], config: Any, context: Any) -> dict[str, Any]:

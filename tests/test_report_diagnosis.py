@@ -195,3 +195,37 @@ def test_the_correction_frame_is_shown_from_identify_json() -> None:
     assert "3.0 per thousand" in rows[0]["found"] and "4.25 um" in rows[0]["found"]
     assert frame_rows({"best_model": "full", "models": {"full": {}}}) == []
     assert frame_rows(None) == []
+
+
+def test_the_camera_settle_the_touchups_stage_found_is_shown(tmp_path: Path) -> None:
+    """touchups.parquet's ``vtcal.settle`` (the repeated final captures' scatter by place
+    and the weights used) becomes two rows of the camera section."""
+    import json
+
+    import pyarrow as pa
+    import pyarrow.parquet as pq
+
+    from pipeline.report.diagnosis import settle_rows
+
+    settle = {
+        "centre": {
+            "tested": True,
+            "weighted": True,
+            "p_value": 1e-9,
+            "scatter_px": [0.011, 0.028],
+            "weights": [1.0, 0.25, 0.04],
+        },
+        "size": {"tested": True, "weighted": False, "p_value": 0.4, "scatter_px": [0.01, 0.01]},
+    }
+    table = pa.table({"touchup_id": [0]})
+    path = tmp_path / "touchups.parquet"
+    pq.write_table(
+        table.replace_schema_metadata({b"vtcal.settle": json.dumps(settle).encode()}), path
+    )
+    rows = settle_rows(RunData(run_dir=tmp_path))
+    assert [r["effect"] for r in rows] == ["camera settle (centre)", "camera settle (long axis)"]
+    assert "still swinging" in rows[0]["found"] and "0.011, 0.028 px" in rows[0]["found"]
+    assert "1.00, 0.25, 0.04" in rows[0]["found"]
+    assert rows[1]["found"].startswith("settled") and "plain means" in rows[1]["found"]
+    path.unlink()
+    assert settle_rows(RunData(run_dir=tmp_path)) == []  # no touch-ups table: nothing to say

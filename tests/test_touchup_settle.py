@@ -45,3 +45,26 @@ def test_lost_touchups_and_short_blocks_are_taken_as_they_are() -> None:
     uses = [[]] + [use[1:] for use in uses[:4]] + uses[4:]  # one lost, four with two captures
     w = settle_weights(uses, (u, v))
     assert w is not None and np.all(np.isfinite(w)) and np.all(w > 0)
+
+
+def test_the_summary_says_what_the_weights_did() -> None:
+    """settle_summary (touchups.parquet's ``vtcal.settle``, shown by the report) gives the
+    scatter of each place against the last, the test and the weights settle_weights used."""
+    from pipeline.stages.touchup_settle import settle_summary
+
+    uses, u, v = _captures((0.05, 0.02, 0.008))
+    sizes = (np.zeros_like(u) + np.random.default_rng(3).normal(0, 0.01, len(u)),)
+    got = settle_summary(uses, (u, v), sizes)
+    centre, size = got["centre"], got["size"]
+    assert centre["tested"] and centre["weighted"] and centre["p_value"] < 1e-3
+    # RMS per coordinate of (x_j - x_0): the first capture about 0.042 px from the last
+    assert centre["scatter_px"][1] > 2 * centre["scatter_px"][0] > 0
+    assert 0.03 < centre["scatter_px"][1] < 0.05
+    w = settle_weights(uses, (u, v))
+    assert w is not None
+    assert np.allclose(centre["weights"], [w[2], w[1], w[0]])  # the last capture's first
+    assert size["tested"] and not size["weighted"] and size["weights"] == []
+    still = settle_summary(uses, (v * 0 + 1,), sizes)  # no scatter at all: D = 0
+    assert not still["centre"]["weighted"]
+    short = settle_summary([x[:2] for x in uses], (u, v), sizes)
+    assert not short["centre"]["tested"] and not short["size"]["tested"]

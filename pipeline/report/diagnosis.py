@@ -12,6 +12,8 @@ long axis' direction on the plate. This section shows, from the artefacts only:
   (``recording.json`` ``camera``, :mod:`pipeline.stages.response`);
 * the illumination gradient across the target;
 * touch-ups that stopped off target and were corrected rather than rejected;
+* whether the camera had settled at each touch-up's repeated final captures,
+  and the weights their averages used (:mod:`pipeline.stages.touchup_settle`);
 * per-target print shape, where identification estimated one
   (``targets.parquet`` columns ``print_*``);
 * the along-view residual of every used touch-up against the tilt ``theta``
@@ -24,12 +26,14 @@ long axis' direction on the plate. This section shows, from the artefacts only:
 
 from __future__ import annotations
 
+import json
 import math
 from typing import Any
 
 import numpy as np
 import pandas as pd
 
+from pipeline.artefacts import read_meta
 from pipeline.kinematics.chain import fk
 from pipeline.report.data import RunData
 
@@ -191,6 +195,49 @@ def size_correction_rows(tu: pd.DataFrame | None) -> tuple[list[dict[str, str]],
             "along the view."
         )
     return rows, warn
+
+
+def settle_rows(data: RunData) -> list[dict[str, str]]:
+    """Whether the camera had settled at the touch-ups' repeated final captures.
+
+    From ``touchups.parquet``'s ``vtcal.settle`` metadata
+    (:func:`pipeline.stages.touchup_settle.settle_summary`): the scatter of each
+    capture before the last against the last, and the weights the averages used.
+    """
+    path = data.run_dir / "touchups.parquet"
+    try:
+        found = json.loads(read_meta(path).get("settle", "{}")) if path.exists() else {}
+    except (OSError, ValueError):
+        return []
+    rows = []
+    for key, what in (("centre", "centre"), ("size", "long axis")):
+        part = found.get(key) or {}
+        if not part:
+            continue
+        if not part.get("tested"):
+            rows.append(
+                _row(
+                    f"camera settle ({what})",
+                    "fewer than three repeated captures at the end of a touch-up: not tested",
+                    "na",
+                )
+            )
+            continue
+        sc = ", ".join(f"{x:.3f}" for x in part.get("scatter_px", []))
+        p_value = float(part.get("p_value", math.nan))
+        if part.get("weighted"):
+            wt = ", ".join(f"{x:.2f}" for x in part.get("weights", []))
+            text = (
+                f"still swinging: the captures 1, 2, ... before the last differ from it by "
+                f"{sc} px RMS (p = {p_value:.2g}); averaged with weights {wt} (the last first)"
+            )
+        else:
+            text = (
+                f"settled: the captures before the last differ from it by {sc} px RMS, "
+                f"no dependence on their place (p = {p_value:.2g}); plain means"
+            )
+        rows.append(_row(f"camera settle ({what})", text, "ok"))
+    return rows
 
 
 def frame_rows(identify: dict[str, Any] | None) -> list[dict[str, str]]:
@@ -357,6 +404,7 @@ def camera_section(data: RunData) -> dict[str, Any]:
     rows, warn = _response_rows(cam)
     rows += clip_rows(data.detections)
     rows += _corrected_rows(data.inliers)
+    rows += settle_rows(data)
     more_rows, w_corr = size_correction_rows(data.touchups)
     rows += more_rows + frame_rows(data.identify)
     warn += w_corr

@@ -80,7 +80,7 @@ from pipeline.stages.touchup_jacobian import (
     view_geometry,
 )
 from pipeline.stages.touchup_segments import final_block, loop_starts, relative_pose, segments
-from pipeline.stages.touchup_settle import settle_weights, wmean
+from pipeline.stages.touchup_settle import settle_summary, settle_weights, wmean
 from pipeline.stages.touchup_targets import group_targets
 from pipeline.stages.touchup_tilt import tilt_bias
 
@@ -595,5 +595,6 @@ def extract_touchups(
         "threshold_size_px": des.thr_s,
     }
     table.attrs["n_jacobian_pairs"] = len(pair_seg)
+    table.attrs["settle"] = settle_summary(uses, (c.u, c.v), (c.s,))
     table.attrs["implied_target_diameter_m"] = diameter_from_jacobian(J_global, des.s0)
     return table

@@ -33,6 +33,7 @@ on the still twin (docs/detection.md).
 from __future__ import annotations
 
 from collections.abc import Sequence
+from typing import Any
 
 import numpy as np
 
@@ -62,9 +63,38 @@ def settle_weights(
     scatter found, or too few repeated captures to tell (fewer than three at the end
     of every touch-up).
     """
+    return _settle(uses, xs, alpha)[0]
+
+
+def settle_summary(
+    uses: Sequence[Sequence[int]],
+    centre: Sequence[np.ndarray],
+    size: Sequence[np.ndarray],
+    alpha: float = ALPHA,
+) -> dict[str, dict[str, Any]]:
+    """What :func:`settle_weights` found, for the report (``touchups.parquet`` metadata).
+
+    Returns
+    -------
+    ``{"centre": ..., "size": ...}``, each with ``tested`` (three or more repeated
+    captures), ``weighted``, ``p_value`` (the F-test, Bonferroni-corrected),
+    ``scatter_px`` (``sqrt(D_j / k)`` for ``j = 1, 2, ...``: the RMS difference of
+    the capture ``j`` places before the last from the last, per coordinate) and
+    ``weights`` (``w_j`` for ``j = 0, 1, ...``, the last capture's first; empty when
+    not weighted).
+    """
+    return {"centre": _settle(uses, centre, alpha)[1], "size": _settle(uses, size, alpha)[1]}
+
+
+def _settle(
+    uses: Sequence[Sequence[int]], xs: Sequence[np.ndarray], alpha: float
+) -> tuple[np.ndarray | None, dict[str, Any]]:
+    """(:func:`settle_weights`' result, :func:`settle_summary`'s entry) of ``xs``."""
+    info: dict[str, Any] = {"tested": False, "weighted": False, "p_value": float("nan")}
+    info.update(scatter_px=[], weights=[])
     depth = max((len(x) for x in uses), default=0)
     if depth < 3:
-        return None
+        return None, info
     sums, dof = np.zeros(depth), np.zeros(depth)
     for use in uses:
         last = use[-1] if len(use) else -1
@@ -74,14 +104,16 @@ def settle_weights(
             dof[j] += len(xs)
     places = np.flatnonzero(dof[1:] >= 2) + 1
     if places.size < 2:
-        return None
+        return None, info
     D = sums[places] / dof[places]
     lo, hi = int(np.argmin(D)), int(np.argmax(D))
     if not D[lo] > 0 or not np.all(np.isfinite(D)):
-        return None
+        return None, info
     p = f_sf(float(D[hi] / D[lo]), float(dof[places[hi]]), float(dof[places[lo]]))
-    if min(1.0, p * places.size * (places.size - 1)) >= alpha:
-        return None
+    p = min(1.0, p * places.size * (places.size - 1))
+    info.update(tested=True, p_value=float(p), scatter_px=[float(x) for x in np.sqrt(D)])
+    if p >= alpha:
+        return None, info
     sigma2 = float(D[lo]) / 2.0
     var = np.full(depth, sigma2)
     var[places] = np.maximum(D - sigma2, sigma2)
@@ -89,7 +121,8 @@ def settle_weights(
     for use in uses:
         for j, i in enumerate(reversed(use)):
             w[i] = sigma2 / var[j]
-    return w
+    info.update(weighted=True, weights=[float(x) for x in sigma2 / var])
+    return w, info
 
 
 def wmean(x: np.ndarray, idx: Sequence[int], w: np.ndarray | None) -> float:
