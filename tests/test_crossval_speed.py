@@ -152,9 +152,50 @@ def test_free_workers_count_a_core_free_when_half_of_it_is(monkeypatch) -> None:
     from pipeline.stages import parallel_map as pm
 
     monkeypatch.setattr(pm.os, "cpu_count", lambda: 2)
+    monkeypatch.setattr(pm, "runnable_others", lambda: None)  # the load alone
     for load, want in ((0.2, 2), (1.01, 2), (1.49, 2), (1.51, 1), (3.0, 1)):
         monkeypatch.setattr(pm.os, "getloadavg", lambda load=load: (load, 0.0, 0.0))
         assert pm.free_workers() == want, load
+
+
+def test_a_lagging_load_average_does_not_hide_an_idle_core(monkeypatch) -> None:  # type: ignore[no-untyped-def]
+    """Runs one after another leave the 1-minute load at 1.4-1.6 on an idle 2-core machine:
+    nothing else runnable now, a core is free; another task runnable now, it is not."""
+    from pipeline.stages import parallel_map as pm
+
+    monkeypatch.setattr(pm.os, "cpu_count", lambda: 2)
+    monkeypatch.setattr(pm.os, "getloadavg", lambda: (1.6, 1.2, 1.0))
+    monkeypatch.setattr(pm, "runnable_others", lambda: 0)
+    assert pm.free_workers() == 2
+    monkeypatch.setattr(pm, "runnable_others", lambda: 1)
+    assert pm.free_workers() == 1
+    monkeypatch.setattr(pm.os, "getloadavg", lambda: (0.3, 0.2, 0.1))
+    assert pm.free_workers() == 2  # the load says free: as before
+
+
+def test_runnable_others_reads_the_kernels_count(monkeypatch, tmp_path) -> None:  # type: ignore[no-untyped-def]
+    import builtins
+
+    from pipeline.stages import parallel_map as pm
+
+    readings = iter(["0.50 0.40 0.30 3/120 999\n", "0.50 0.40 0.30 1/120 999\n"] * 2)
+    real_open = builtins.open
+
+    def fake_open(path, *a, **k):  # type: ignore[no-untyped-def]
+        if str(path) == "/proc/loadavg":
+            f = tmp_path / "loadavg"
+            f.write_text(next(readings))
+            return real_open(f, *a, **k)
+        return real_open(path, *a, **k)
+
+    monkeypatch.setattr(builtins, "open", fake_open)
+    assert pm.runnable_others(samples=2, gap_s=0.0) == 2  # the largest reading, less this one
+
+    def no_file(path, *a, **k):  # type: ignore[no-untyped-def]
+        raise FileNotFoundError(path)
+
+    monkeypatch.setattr(builtins, "open", no_file)
+    assert pm.runnable_others() is None
 
 
 def test_this_process_and_a_forked_one_share_the_tasks() -> None:
@@ -192,6 +233,7 @@ def test_work_this_run_keeps_busy_is_not_a_free_core(monkeypatch) -> None:  # ty
 
     monkeypatch.setattr(pm.os, "cpu_count", lambda: 2)
     monkeypatch.setattr(pm.os, "getloadavg", lambda: (0.1, 0.0, 0.0))
+    monkeypatch.setattr(pm, "runnable_others", lambda: 0)
     busy = [1]
 
     def probe() -> int:

@@ -24,6 +24,7 @@ from __future__ import annotations
 import multiprocessing
 import multiprocessing.pool
 import os
+import time
 from collections.abc import Callable, Sequence
 from typing import Any, TypeVar
 
@@ -51,23 +52,48 @@ def unregister_busy(probe: Callable[[], int]) -> None:
 
 
 def free_workers(limit: int = 2, *, count_busy: bool = True) -> int:
-    """Processes worth starting now: cores not busy by the 1-minute load, at most ``limit``.
+    """Processes worth starting now: cores not busy, at most ``limit``.
 
-    ``os.cpu_count() - load + 1`` rounded to the nearest, at least 1 (this process
-    itself): a core counts as free when the load leaves at least half of it. (Rounded
-    down, an idle 2-core machine whose load average reads 0.93-1.01 while vmstat shows
-    it 99-100 % idle forked or not at random.) Work this run has started beside it
-    (:func:`register_busy`) is left out too: a load average lags a fraction of a
-    second's burst. Measured: the UR5e-like cell's identification took 0.19-0.24 s in
-    two processes while the warm report process read frames, 0.14-0.16 s in one.
+    By the 1-minute load, ``os.cpu_count() - load + 1`` rounded to the nearest, at
+    least 1 (this process itself): a core counts as free when the load leaves at
+    least half of it. (Rounded down, an idle 2-core machine whose load average reads
+    0.93-1.01 while vmstat shows it 99-100 % idle forked or not at random.) A load
+    average lags: vtcal runs one after another leave it at 1.4-1.6 on an idle 2-core
+    machine for a minute, and the next run then started no warm report and fitted in
+    one process (its report 0.5-0.77 s instead of 0.2). So where the kernel tells
+    how many tasks are runnable right now (:func:`runnable_others`), the cores no
+    other task wants at this moment count as free as well: the larger of the two
+    counts is taken. Work this run has started beside it (:func:`register_busy`) is
+    then left out: measured, the UR5e-like cell's identification took 0.19-0.24 s
+    in two processes while the warm report process read frames, 0.14-0.16 s in one.
     """
     cores = os.cpu_count() or 1
     try:
         load = os.getloadavg()[0]
     except OSError:  # pragma: no cover - no load average on this platform
         return 1
+    n = int(cores - load + 1.5)
+    others = runnable_others()
+    if others is not None:
+        n = max(n, cores - others)
     busy = sum(max(0, int(probe())) for probe in list(_BUSY)) if count_busy else 0
-    return max(1, min(limit, int(cores - load + 1.5)) - busy)
+    return max(1, min(limit, n) - busy)
+
+
+def runnable_others(samples: int = 3, gap_s: float = 0.0005) -> int | None:
+    """Tasks other than this one runnable now: the largest of a few readings of the
+    fourth field of ``/proc/loadavg`` (``runnable/total``, this reading thread among
+    the runnable) minus one; None where there is no such file (not Linux)."""
+    seen = []
+    try:
+        for i in range(samples):
+            with open("/proc/loadavg", encoding="ascii") as f:
+                seen.append(int(f.read().split()[3].split("/")[0]))
+            if i + 1 < samples:
+                time.sleep(gap_s)
+    except (OSError, ValueError, IndexError):
+        return None
+    return max(0, max(seen) - 1)
 
 
 #: the tasks and the shared index of the next one (set just before the fork, inherited)
