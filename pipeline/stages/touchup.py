@@ -62,7 +62,7 @@ table's rows here.
 from __future__ import annotations
 
 from dataclasses import asdict, dataclass
-from typing import Any, NamedTuple
+from typing import Any
 
 import numpy as np
 import pandas as pd
@@ -79,10 +79,12 @@ from pipeline.stages.touchup_jacobian import (
     size_row_scales,
     view_geometry,
 )
+from pipeline.stages.touchup_rows import final_shapes, touchup_row
 from pipeline.stages.touchup_segments import final_block, loop_starts, relative_pose, segments
-from pipeline.stages.touchup_settle import settle_summary, settle_weights, wmean
+from pipeline.stages.touchup_settle import settle_summary
 from pipeline.stages.touchup_targets import group_targets
 from pipeline.stages.touchup_tilt import tilt_bias
+from pipeline.stages.touchup_types import Captures, Designated, Tilt
 
 #: the public names of touch-up extraction, importable from here (the image
 #: Jacobian and the tilt bias live in touchup_jacobian and touchup_tilt)
@@ -129,42 +131,6 @@ class TouchupConfig:
         return asdict(self)
 
 
-@dataclass
-class _Captures:
-    """The frames joined with their detections, one entry per image in frame order."""
-
-    df: pd.DataFrame
-    names: list[str]  # joint names
-    Q: np.ndarray  # (n, dof) joint vectors
-    T: np.ndarray  # (n, 4, 4) nominal flange poses
-    found: np.ndarray
-    good: np.ndarray  # found, with a good quality
-    still: np.ndarray  # neither moving nor in a joint-state gap
-    u: np.ndarray
-    v: np.ndarray
-    s: np.ndarray
-
-
-class _Designated(NamedTuple):
-    """The designated centre and size, and the convergence thresholds (px)."""
-
-    u0: float
-    v0: float
-    s0: float
-    thr: float
-    thr_s: float
-
-
-class _Tilt(NamedTuple):
-    """Per touch-up tilt bias (:func:`tilt_bias`) and view geometry (:func:`view_geometry`)."""
-
-    bias: np.ndarray  # (n, 3)
-    tilt_deg: np.ndarray  # (n,)
-    resolved: np.ndarray  # (n,)
-    view_g: np.ndarray  # (3,)
-    axis_l: np.ndarray  # (n, 3)
-
-
 def _meta_float(meta: dict[str, str], key: str) -> float | None:
     v = meta.get(key)
     if v is None or str(v).strip() == "":
@@ -180,13 +146,7 @@ def _meta_float(meta: dict[str, str], key: str) -> float | None:
     return x
 
 
-def _pose_key(T: np.ndarray) -> tuple[int, int, int]:
-    """Position rounded to 20 um: captures at one pose share the key."""
-    p = np.round(T[:3, 3] / 2e-5).astype(int)
-    return int(p[0]), int(p[1]), int(p[2])
-
-
-def _captures(frames: pd.DataFrame, detections: pd.DataFrame, info: Any) -> _Captures:
+def _captures(frames: pd.DataFrame, detections: pd.DataFrame, info: Any) -> Captures:
     """Frames joined with detections in frame order, with the nominal flange poses."""
     names = list(info.joint_names)
     df = frames.merge(detections, on="frame_index", how="left", suffixes=("", "_det"))
@@ -196,7 +156,7 @@ def _captures(frames: pd.DataFrame, detections: pd.DataFrame, info: Any) -> _Cap
     chain = load_chain(info.urdf, info.base_link, info.flange_link)
     Q = df[names].to_numpy(dtype=float)
     found = df["found"].fillna(False).to_numpy(bool)
-    return _Captures(
+    return Captures(
         df=df,
         names=names,
         Q=Q,
@@ -214,10 +174,10 @@ def _designated(
     meta: dict[str, str],
     inferred: dict[str, str],
     finals: list[np.ndarray],
-    c: _Captures,
+    c: Captures,
     config: TouchupConfig,
     path: Any,
-) -> _Designated:
+) -> Designated:
     """The designated centre and size and the thresholds: from the metadata, else inferred.
 
     A size missing from the metadata, and a centre ``inferred`` marks as guessed,
@@ -252,15 +212,15 @@ def _designated(
         thr_s = config.default_threshold_size_px
         meta["threshold_size_px"] = repr(thr_s)
         inferred["threshold_size_px"] = f"{thr_s} (default)"
-    return _Designated(u0, v0, s0, thr, thr_s)
+    return Designated(u0, v0, s0, thr, thr_s)
 
 
 def _jacobian_pairs(
     seg_frames: list[np.ndarray],
-    c: _Captures,
+    c: Captures,
     config: TouchupConfig,
     path: Any,
-    des: _Designated,
+    des: Designated,
     p_pin: np.ndarray,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Step 3: the pairs and the global image Jacobian they give.
@@ -311,7 +271,7 @@ def _jacobian_pairs(
 
 
 def _representatives(
-    seg_frames: list[np.ndarray], finals: list[np.ndarray], c: _Captures
+    seg_frames: list[np.ndarray], finals: list[np.ndarray], c: Captures
 ) -> list[int]:
     """Step 4: per segment, the capture whose pose stands for the touch-up's final pose."""
     rep = []
@@ -365,159 +325,6 @@ def _target_jacobians(
     return J_global, J_target
 
 
-def _final_shapes(finals: list[np.ndarray], c: _Captures) -> tuple[list[list[int]], np.ndarray]:
-    """Step 5: each touch-up's final captures (good, else any found), averaged (weighted
-    where the camera had not settled: touchup_settle), as ``(n, 5)`` u, v, s, s_minor, angle."""
-    u, v, s = c.u, c.v, c.s
-    s_minor = c.df["s_minor"].to_numpy(float)
-    ang2 = 2.0 * c.df["angle"].to_numpy(float)
-    uses = []
-    shape = np.full((len(finals), 5), np.nan)  # u, v, s, s_minor, long-axis angle
-    for b in finals:
-        uses.append([int(i) for i in b if c.good[i]] or [int(i) for i in b if c.found[i]])
-    w, ws = settle_weights(uses, (u, v)), settle_weights(uses, (s,))  # an unsettled camera
-    for k, use_k in enumerate(uses):
-        if use_k:
-            shape[k] = [
-                wmean(u, use_k, w),
-                wmean(v, use_k, w),
-                wmean(s, use_k, ws),
-                wmean(s_minor, use_k, ws),
-                0.5 * np.arctan2(wmean(np.sin(ang2), use_k, w), wmean(np.cos(ang2), use_k, w)),
-            ]
-    return uses, shape
-
-
-def _measurement(
-    use: list[int],
-    m: np.ndarray,
-    c: _Captures,
-    des: _Designated,
-    J: np.ndarray,
-    bias: np.ndarray,
-    depth_scaled: bool = True,
-) -> dict[str, Any]:
-    """Step 5: one touch-up's averaged measurement, its convergence and its correction.
-
-    ``use`` are the averaged final captures (none: lost), ``m`` their averaged
-    ``(u, v, s)`` (:func:`_final_shapes`). The tilt ``bias``
-    ``(du, dv, ds)`` turns the ellipse into the image of the circle's centre and
-    the size an untilted target would show; then ``d_F = -J^{-1} e_T``.
-
-    ``J``'s centre rows hold at the designated size ``s0`` (:func:`_jacobian_pairs`).
-    A touch-up that stopped at size ``s`` sees a lateral offset ``x`` as
-    ``(f / z) x = (s / D) x`` pixels, so (``depth_scaled``) its centre errors are
-    taken at ``s0`` first, ``e_u s0 / s``, ``e_v s0 / s``: the lateral offset they
-    stand for, whatever the depth the controller stopped at.
-    """
-    u0, v0, s0 = des.u0, des.v0, des.s0
-    row: dict[str, Any] = {}
-    if not use:
-        mu = mv = ms = float("nan")
-        row.update(converged=False, dx_flange=0.0, dy_flange=0.0, dz_flange=0.0)
-    else:
-        mu, mv, ms = float(m[0]), float(m[1]), float(m[2])
-        conv = abs(mu - u0) <= des.thr and abs(mv - v0) <= des.thr and abs(ms - s0) <= des.thr_s
-        # the image of the circle's centre, and the size an untilted target would show
-        mu_c, mv_c, ms_c = mu + bias[0], mv + bias[1], ms - bias[2]
-        e_T = np.array([mu_c - u0, mv_c - v0, 1.0 / ms_c - 1.0 / s0])
-        if depth_scaled:
-            e_T[:2] *= s0 / ms_c
-        try:
-            d = -np.linalg.solve(J, e_T)
-        except np.linalg.LinAlgError:
-            d = np.zeros(3)
-        row.update(
-            converged=bool(conv),
-            dx_flange=float(d[0]),
-            dy_flange=float(d[1]),
-            dz_flange=float(d[2]),
-        )
-    df = c.df
-    row.update(
-        u=mu,
-        v=mv,
-        s=ms,
-        e_u=mu - u0,
-        e_v=mv - v0,
-        e_s_px=ms - s0,
-        e_sinv=(1.0 / ms - 1.0 / s0) if np.isfinite(ms) else float("nan"),
-        fit_residual_px=float(np.max(df["residual_px"].to_numpy(float)[use]))
-        if use
-        else float("nan"),
-        border_contact=bool(np.any(df["border_contact"].fillna(False).to_numpy(bool)[use]))
-        if use
-        else False,
-        ambiguous=bool(np.any(df["ambiguous"].fillna(False).to_numpy(bool)[use])) if use else False,
-        weight=1.0,
-    )
-    return row
-
-
-def _touchup_row(
-    k: int,
-    fr: np.ndarray,
-    block: np.ndarray,
-    m: np.ndarray,
-    loop_start: int,
-    label: int,
-    c: _Captures,
-    des: _Designated,
-    J: tuple[np.ndarray, str],
-    tilt: _Tilt,
-    depth_scaled: bool = True,
-) -> dict[str, Any]:
-    """One row of the table: touch-up ``k``, frames ``fr``, final captures ``block`` and
-    their averaged ``m = (u, v, s)``.
-
-    ``J`` is the image Jacobian of its target and where it comes from
-    (``"global"`` or ``"target"``).
-    """
-    avg = [i for i in block if c.good[i]]
-    use = avg or [i for i in block if c.found[i]]
-    loop_fr = [i for i in fr if i >= loop_start]
-    hist = [i for i in loop_fr if c.found[i]]
-    row: dict[str, Any] = {
-        "touchup_id": k,
-        "target_id": label,
-        "lost": len(use) == 0,
-        "first_frame": int(fr[0]),
-        "last_frame": int(fr[-1]),
-        "loop_start_frame": int(loop_start),
-        "n_probe_frames": int(sum(1 for i in fr if i < loop_start)),
-        "frame_indices": [int(i) for i in fr],
-        "converged_frame_indices": [int(i) for i in use],
-        "n_captures": len(fr),
-        "n_converged_captures": len(avg),
-        "n_iterations": int(max(len({_pose_key(c.T[i]) for i in loop_fr if c.still[i]}) - 1, 0)),
-        "moving": bool(len(block) == 0),
-        "e_u_history": [float(c.u[i] - des.u0) for i in hist],
-        "e_v_history": [float(c.v[i] - des.v0) for i in hist],
-        "e_s_history": [float(c.s[i] - des.s0) for i in hist],
-    }
-    ref = use if use else (list(block) if len(block) else [int(fr[-1])])
-    q = c.Q[ref].mean(axis=0)
-    for j, nm in enumerate(c.names):
-        row[nm] = float(q[j])
-    row["stamp_ns"] = int(c.df["stamp_ns"].iloc[ref[-1]])
-    row["jacobian_source"] = J[1]
-    row.update(_measurement(use, m, c, des, J[0], tilt.bias[k], depth_scaled))
-    row.update(
-        tilt_deg=float(tilt.tilt_deg[k]),
-        tilt_resolved=bool(tilt.resolved[k]),
-        bias_u_px=float(tilt.bias[k, 0]),
-        bias_v_px=float(tilt.bias[k, 1]),
-        bias_s_px=float(tilt.bias[k, 2]),
-        view_gx=float(tilt.view_g[0]),
-        view_gy=float(tilt.view_g[1]),
-        view_gz=float(tilt.view_g[2]),
-        axis_lx=float(tilt.axis_l[k, 0]),
-        axis_ly=float(tilt.axis_l[k, 1]),
-        axis_lz=float(tilt.axis_l[k, 2]),
-    )
-    return row
-
-
 def extract_touchups(
     frames: pd.DataFrame,
     detections: pd.DataFrame,
@@ -567,19 +374,19 @@ def extract_touchups(
     )
     J_global, J_target = _target_jacobians(J_global, pair_seg, dF_all, dm_all, labels, config)
     # 5. averaged final captures, the tilt bias, then one row per touch-up
-    uses, shape = _final_shapes(finals, c)
+    uses, shape = final_shapes(finals, c)
     T_rep = np.array([c.T[uses[k][-1]] if uses[k] else c.T[rep[k]] for k in range(len(finals))])
     bias, tilt_deg, resolved = tilt_bias(shape, T_rep, labels, J_global, des.s0)
     if not config.tilt_correction:
         bias[:] = 0.0
     view_g, axis_l = view_geometry(J_global, des.s0, shape[:, 4])
-    tilt = _Tilt(bias, tilt_deg, resolved, view_g, axis_l)
+    tilt = Tilt(bias, tilt_deg, resolved, view_g, axis_l)
     out: list[dict[str, Any]] = []
     for k, fr in enumerate(seg_frames):
         g = int(labels[k])
         J = (J_target[g], "target") if g in J_target else (J_global, "global")
         row = (k, fr, finals[k], shape[k, :3], loop_start[k], g, c, des, J, tilt)
-        out.append(_touchup_row(*row, config.depth_scaled_jacobian))
+        out.append(touchup_row(*row, config.depth_scaled_jacobian))
     table = pd.DataFrame(out)
     for col, vals in scatter_columns(pair_scatters(pair_seg, dF_all, len(seg_frames))).items():
         table[col] = vals

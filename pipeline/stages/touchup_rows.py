@@ -1,0 +1,170 @@
+"""Step 5 of the touch-up stage: each touch-up's averaged final captures, then its row.
+
+:func:`final_shapes` averages every touch-up's repeated final captures (weighted
+where the camera had not settled, :mod:`pipeline.stages.touchup_settle`);
+:func:`measurement` turns one average into the table's measurement and its
+residual correction ``d_F = -J^-1 e_T``; :func:`touchup_row` makes the row.
+The stage itself: :mod:`pipeline.stages.touchup`.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+
+from pipeline.stages.touchup_settle import settle_weights, wmean
+from pipeline.stages.touchup_types import Captures, Designated, Tilt, pose_key
+
+
+def final_shapes(finals: list[np.ndarray], c: Captures) -> tuple[list[list[int]], np.ndarray]:
+    """Step 5: each touch-up's final captures (good, else any found), averaged (weighted
+    where the camera had not settled: touchup_settle), as ``(n, 5)`` u, v, s, s_minor, angle."""
+    u, v, s = c.u, c.v, c.s
+    s_minor = c.df["s_minor"].to_numpy(float)
+    ang2 = 2.0 * c.df["angle"].to_numpy(float)
+    uses = []
+    shape = np.full((len(finals), 5), np.nan)  # u, v, s, s_minor, long-axis angle
+    for b in finals:
+        uses.append([int(i) for i in b if c.good[i]] or [int(i) for i in b if c.found[i]])
+    w, ws = settle_weights(uses, (u, v)), settle_weights(uses, (s,))  # an unsettled camera
+    for k, use_k in enumerate(uses):
+        if use_k:
+            shape[k] = [
+                wmean(u, use_k, w),
+                wmean(v, use_k, w),
+                wmean(s, use_k, ws),
+                wmean(s_minor, use_k, ws),
+                0.5 * np.arctan2(wmean(np.sin(ang2), use_k, w), wmean(np.cos(ang2), use_k, w)),
+            ]
+    return uses, shape
+
+
+def measurement(
+    use: list[int],
+    m: np.ndarray,
+    c: Captures,
+    des: Designated,
+    J: np.ndarray,
+    bias: np.ndarray,
+    depth_scaled: bool = True,
+) -> dict[str, Any]:
+    """Step 5: one touch-up's averaged measurement, its convergence and its correction.
+
+    ``use`` are the averaged final captures (none: lost), ``m`` their averaged
+    ``(u, v, s)`` (:func:`final_shapes`). The tilt ``bias``
+    ``(du, dv, ds)`` turns the ellipse into the image of the circle's centre and
+    the size an untilted target would show; then ``d_F = -J^{-1} e_T``.
+
+    ``J``'s centre rows hold at the designated size ``s0`` (:func:`_jacobian_pairs`).
+    A touch-up that stopped at size ``s`` sees a lateral offset ``x`` as
+    ``(f / z) x = (s / D) x`` pixels, so (``depth_scaled``) its centre errors are
+    taken at ``s0`` first, ``e_u s0 / s``, ``e_v s0 / s``: the lateral offset they
+    stand for, whatever the depth the controller stopped at.
+    """
+    u0, v0, s0 = des.u0, des.v0, des.s0
+    row: dict[str, Any] = {}
+    if not use:
+        mu = mv = ms = float("nan")
+        row.update(converged=False, dx_flange=0.0, dy_flange=0.0, dz_flange=0.0)
+    else:
+        mu, mv, ms = float(m[0]), float(m[1]), float(m[2])
+        conv = abs(mu - u0) <= des.thr and abs(mv - v0) <= des.thr and abs(ms - s0) <= des.thr_s
+        # the image of the circle's centre, and the size an untilted target would show
+        mu_c, mv_c, ms_c = mu + bias[0], mv + bias[1], ms - bias[2]
+        e_T = np.array([mu_c - u0, mv_c - v0, 1.0 / ms_c - 1.0 / s0])
+        if depth_scaled:
+            e_T[:2] *= s0 / ms_c
+        try:
+            d = -np.linalg.solve(J, e_T)
+        except np.linalg.LinAlgError:
+            d = np.zeros(3)
+        row.update(
+            converged=bool(conv),
+            dx_flange=float(d[0]),
+            dy_flange=float(d[1]),
+            dz_flange=float(d[2]),
+        )
+    df = c.df
+    row.update(
+        u=mu,
+        v=mv,
+        s=ms,
+        e_u=mu - u0,
+        e_v=mv - v0,
+        e_s_px=ms - s0,
+        e_sinv=(1.0 / ms - 1.0 / s0) if np.isfinite(ms) else float("nan"),
+        fit_residual_px=float(np.max(df["residual_px"].to_numpy(float)[use]))
+        if use
+        else float("nan"),
+        border_contact=bool(np.any(df["border_contact"].fillna(False).to_numpy(bool)[use]))
+        if use
+        else False,
+        ambiguous=bool(np.any(df["ambiguous"].fillna(False).to_numpy(bool)[use])) if use else False,
+        weight=1.0,
+    )
+    return row
+
+
+def touchup_row(
+    k: int,
+    fr: np.ndarray,
+    block: np.ndarray,
+    m: np.ndarray,
+    loop_start: int,
+    label: int,
+    c: Captures,
+    des: Designated,
+    J: tuple[np.ndarray, str],
+    tilt: Tilt,
+    depth_scaled: bool = True,
+) -> dict[str, Any]:
+    """One row of the table: touch-up ``k``, frames ``fr``, final captures ``block`` and
+    their averaged ``m = (u, v, s)``.
+
+    ``J`` is the image Jacobian of its target and where it comes from
+    (``"global"`` or ``"target"``).
+    """
+    avg = [i for i in block if c.good[i]]
+    use = avg or [i for i in block if c.found[i]]
+    loop_fr = [i for i in fr if i >= loop_start]
+    hist = [i for i in loop_fr if c.found[i]]
+    row: dict[str, Any] = {
+        "touchup_id": k,
+        "target_id": label,
+        "lost": len(use) == 0,
+        "first_frame": int(fr[0]),
+        "last_frame": int(fr[-1]),
+        "loop_start_frame": int(loop_start),
+        "n_probe_frames": int(sum(1 for i in fr if i < loop_start)),
+        "frame_indices": [int(i) for i in fr],
+        "converged_frame_indices": [int(i) for i in use],
+        "n_captures": len(fr),
+        "n_converged_captures": len(avg),
+        "n_iterations": int(max(len({pose_key(c.T[i]) for i in loop_fr if c.still[i]}) - 1, 0)),
+        "moving": bool(len(block) == 0),
+        "e_u_history": [float(c.u[i] - des.u0) for i in hist],
+        "e_v_history": [float(c.v[i] - des.v0) for i in hist],
+        "e_s_history": [float(c.s[i] - des.s0) for i in hist],
+    }
+    ref = use if use else (list(block) if len(block) else [int(fr[-1])])
+    q = c.Q[ref].mean(axis=0)
+    for j, nm in enumerate(c.names):
+        row[nm] = float(q[j])
+    row["stamp_ns"] = int(c.df["stamp_ns"].iloc[ref[-1]])
+    row["jacobian_source"] = J[1]
+    row.update(measurement(use, m, c, des, J[0], tilt.bias[k], depth_scaled))
+    row.update(
+        tilt_deg=float(tilt.tilt_deg[k]),
+        tilt_resolved=bool(tilt.resolved[k]),
+        bias_u_px=float(tilt.bias[k, 0]),
+        bias_v_px=float(tilt.bias[k, 1]),
+        bias_s_px=float(tilt.bias[k, 2]),
+        view_gx=float(tilt.view_g[0]),
+        view_gy=float(tilt.view_g[1]),
+        view_gz=float(tilt.view_g[2]),
+        axis_lx=float(tilt.axis_l[k, 0]),
+        axis_ly=float(tilt.axis_l[k, 1]),
+        axis_lz=float(tilt.axis_l[k, 2]),
+    )
+    return row
