@@ -203,6 +203,8 @@ def run_pipeline(
 
         # loads the Rerun SDK on the core ingest leaves idle (pipeline.report.warm)
         ctx.warm_report = WarmReport.start()
+        if ctx.warm_report is not None:  # the frames it will show, once they are known
+            ctx.after_stage.setdefault("touchups", []).append(ctx.warm_report.prefetch)
     try:
         key = _run_plan(ctx, cfg, names, recording, fp)
     finally:

@@ -77,7 +77,10 @@ class Context:
     progress : progress callback
     records : what each stage did, in order (filled by :func:`run_stages`)
     warm_report : a :class:`pipeline.report.warm.WarmReport` the report stage hands
-        its work to (told to read the frames once the touch-ups stage is done), or None
+        its work to, or None
+    after_stage : ``{stage: [callable(run folder), ...]}`` called in order once the stage
+        has run or been found fresh (the warm report reads its frames after the
+        touch-ups stage)
     """
 
     out: Path
@@ -93,6 +96,7 @@ class Context:
     progress: Progress | None = None
     records: list[StageRecord] = field(default_factory=list)
     warm_report: Any = None
+    after_stage: dict[str, list[Callable[[Path], None]]] = field(default_factory=dict)
 
 
 def plan(until: str | None, *, crossval: bool = True, report: bool = True) -> list[str]:
@@ -382,8 +386,8 @@ def run_stages(names: list[str], context: Context, plan_names: list[str]) -> dic
             key = run_report(context)
         else:
             run_stage(name, context, plan_names)
-            if name == "touchups" and context.warm_report is not None:
-                context.warm_report.prefetch(context.out)
+            for hook in context.after_stage.get(name, ()):
+                hook(context.out)
     return key
 
 

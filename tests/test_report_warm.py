@@ -45,11 +45,20 @@ def sample_run(tmp_path_factory) -> Path:
         return got
 
     mp.setattr(warm.WarmReport, "build", counting)
+    prefetch = warm.WarmReport.prefetch
+    read_after = []
+
+    def reading(self, run_dir):
+        read_after.append((run_dir / "touchups.parquet").exists())
+        return prefetch(self, run_dir)
+
+    mp.setattr(warm.WarmReport, "prefetch", reading)
     try:
         run_pipeline(SAMPLE, out, RunConfig(), force=True)
     finally:
         mp.undo()
     assert used == [True]  # the run's report came from the warm process
+    assert read_after == [True]  # told to read its frames once, after the touch-ups stage
     return out
 
 
