@@ -132,8 +132,8 @@ def parallel_map(
         it (:func:`register_busy`). Identification yields (five short fits: forked onto
         a busy core they took 0.19-0.24 s on the UR5e-like cell, in this process alone
         0.14-0.16 s); cross-validation does not (32 refits: the warm report's reading
-        often still runs when it starts, and alone they took 0.26-0.33 s against
-        0.18-0.24 s in two processes beside it, eight runs each)
+        often still runs when it starts, and alone they took 0.26-0.33 s (eight runs) against
+        0.18-0.27 s in two processes beside it)
 
     Returns
     -------
