@@ -177,10 +177,22 @@ def _linear_test(
         D.d[:] = D0.d + G * (B @ theta)[:, None]
     rss1 = _rss(prob, D, z)
     prob.data = D0
+    out = _f_test(rss0, rss1, ne, dof1, n_all, config, "tested")
+    out["test"] = f"Gauss-Newton ({LINEAR_STEPS} steps from the fit without it)"
+    out["targets"] = ps.summarise(theta, np.full(n_all, np.nan), K, config.target_diameter_m)
+    return out, out["p_value"] < config.shape_alpha
+
+
+def _f_test(
+    rss0: float, rss1: float, ne: int, dof1: int, n_all: int, config: IdentifyConfig, verb: str
+) -> dict[str, Any]:
+    """The nested-model F-test of ``ne`` print-shape parameters on the residual sums
+    ``rss0`` (without) and ``rss1`` (with), ``dof1`` degrees of freedom with: the summary
+    :func:`_attempt` and :func:`_linear_test` share (their note says ``verb``)."""
     F = ((rss0 - rss1) / ne) / max(rss1 / dof1, 1e-300)
     p_value = f_sf(F, ne, dof1) if rss1 > 0 else 0.0
     what = "print shape" if ne == n_all else "relative print sizes"
-    out: dict[str, Any] = {
+    return {
         "fitted": False,
         "parameters": "size and out-of-roundness" if ne == n_all else "size",
         "F": float(F),
@@ -189,11 +201,8 @@ def _linear_test(
         "rss_before_mm2": 1e6 * rss0,
         "rss_after_mm2": 1e6 * rss1,
         "n_params": ne,
-        "test": f"Gauss-Newton ({LINEAR_STEPS} steps from the fit without it)",
-        "targets": ps.summarise(theta, np.full(n_all, np.nan), K, config.target_diameter_m),
-        "note": f"{what} tested ({ne} parameters, F = {F:.1f}, p = {p_value:.2g})",
+        "note": f"{what} {verb} ({ne} parameters, F = {F:.1f}, p = {p_value:.2g})",
     }
-    return out, p_value < config.shape_alpha
 
 
 def _attempt(
@@ -247,24 +256,13 @@ def _attempt(
     std = np.full(n_all, np.nan)
     std[cols] = np.sqrt(np.clip(np.diag(cov)[-ne:], 0, None)) / cn[-ne:]
     rss1 = _rss(prob, D, s1.x)
-    F = ((rss0 - rss1) / ne) / max(rss1 / dof1, 1e-300)
-    p_value = f_sf(F, ne, dof1) if rss1 > 0 else 0.0
-    what = "print shape" if ne == n_all else "relative print sizes"
-    out: dict[str, Any] = {
-        "fitted": False,
-        "parameters": "size and out-of-roundness" if ne == n_all else "size",
-        "F": float(F),
-        "p_value": p_value,
-        "alpha": config.shape_alpha,
-        "rss_before_mm2": 1e6 * rss0,
-        "rss_after_mm2": 1e6 * rss1,
-        "n_params": ne,
-        "held": "the size of target 0's print (the reference): a size error common to "
-        "every print moves every touch-up along the view like the virtual pin's own "
-        "coordinate",
-        "targets": ps.summarise(theta, std, K, config.target_diameter_m),
-        "note": f"{what} fitted ({ne} parameters, F = {F:.1f}, p = {p_value:.2g})",
-    }
+    out = _f_test(rss0, rss1, ne, dof1, n_all, config, "fitted")
+    out["held"] = (
+        "the size of target 0's print (the reference): a size error common to every print "
+        "moves every touch-up along the view like the virtual pin's own coordinate"
+    )
+    out["targets"] = ps.summarise(theta, std, K, config.target_diameter_m)
+    p_value = out["p_value"]
     if ne < n_all:  # sizes only: the out-of-roundness was not fitted, not zero
         for t in out["targets"]:
             for k in ("ellipticity", "ellipticity_std", "orientation_rad", "out_of_round_um"):
