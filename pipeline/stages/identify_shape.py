@@ -152,26 +152,17 @@ def _linear_test(
     summary : as :func:`_attempt`'s (the target figures NaN: not a fit)
     significant : ``p < shape_alpha``
     """
-    import dataclasses
-
     from pipeline.stages import print_shape as ps
 
-    assert D0.shape_g is not None
-    G: F64 = D0.shape_g
-    K, N = D0.K, len(D0.q)
-    n_all = 3 * K - 1
-    ne = len(cols)
-    dof1 = 3 * N + len(D0.dist) - (n_free + 3 + 3 * K) - ne
+    D, G, n_all, ne, dof1 = _dimensions(D0, cols, n_free)
     if dof1 < 5:
         return {"fitted": False, "note": "print shape not fitted: too few touch-ups"}, False
-    D = dataclasses.replace(D0, d=D0.d.copy(), d_all=D0.d_all.copy())
+    K = D0.K
     prob.data, prob.W = D, W0
     theta = np.zeros(n_all)
     z = np.array(sol0.x, dtype=float)
     for _ in range(LINEAR_STEPS):
-        A, r, B = _joint(prob, D, cols, z)
-        cn = np.maximum(np.linalg.norm(A, axis=0), 1e-300)
-        step = np.linalg.lstsq(A / cn, -r, rcond=None)[0] / cn
+        step, B = _gauss_newton_step(prob, D, cols, z)
         z = z + step[:-ne]
         theta[cols] += step[-ne:]
         D.d[:] = D0.d + G * (B @ theta)[:, None]
@@ -181,6 +172,28 @@ def _linear_test(
     out["test"] = f"Gauss-Newton ({LINEAR_STEPS} steps from the fit without it)"
     out["targets"] = ps.summarise(theta, np.full(n_all, np.nan), K, config.target_diameter_m)
     return out, out["p_value"] < config.shape_alpha
+
+
+def _dimensions(D0: FitData, cols: np.ndarray, n_free: int) -> tuple[FitData, F64, int, int, int]:
+    """(a copy of ``D0`` the shape's corrections go into, the levers ``G``, the number of
+    print parameters ``3K - 1``, the number ``ne`` tested, the degrees of freedom with
+    them) of a test of the columns ``cols``; ``n_free`` kinematic unknowns."""
+    import dataclasses
+
+    assert D0.shape_g is not None
+    K, N, ne = D0.K, len(D0.q), len(cols)
+    dof1 = 3 * N + len(D0.dist) - (n_free + 3 + 3 * K) - ne
+    D = dataclasses.replace(D0, d=D0.d.copy(), d_all=D0.d_all.copy())
+    return D, D0.shape_g, 3 * K - 1, ne, dof1
+
+
+def _gauss_newton_step(prob: Problem, D: FitData, cols: np.ndarray, z: F64) -> tuple[F64, F64]:
+    """One joint Gauss-Newton step on ``[z, theta[cols]]`` from ``z`` (columns scaled to
+    unit norm for the least squares), and the design ``B`` at ``z``."""
+    A, r, B = _joint(prob, D, cols, z)
+    cn = np.maximum(np.linalg.norm(A, axis=0), 1e-300)
+    step = np.linalg.lstsq(A / cn, -r, rcond=None)[0] / cn
+    return step, B
 
 
 def _f_test(
@@ -217,16 +230,9 @@ def _attempt(
     n_free: int,
 ) -> tuple[Any, FitData, dict[str, Any], bool]:
     """Fit the ``theta`` columns ``cols`` from ``sol0`` on ``D0``; (sol, data, summary, significant)."""
-    import dataclasses
-
     from pipeline.stages import print_shape as ps
 
-    assert D0.shape_g is not None
-    G: F64 = D0.shape_g
-    K, N = D0.K, len(D0.q)
-    n_all = 3 * K - 1
-    ne = len(cols)
-    dof1 = 3 * N + len(D0.dist) - (n_free + 3 + 3 * K) - ne
+    D, G, n_all, ne, dof1 = _dimensions(D0, cols, n_free)
     if dof1 < 5:
         return (
             sol0,
@@ -234,14 +240,12 @@ def _attempt(
             {"fitted": False, "note": "print shape not fitted: too few touch-ups"},
             False,
         )
-    D = dataclasses.replace(D0, d=D0.d.copy(), d_all=D0.d_all.copy())
+    K = D0.K
     prob.data, prob.W = D, W0
     theta = np.zeros(n_all)
     s1 = sol0
     for _ in range(3):
-        A, r, B = _joint(prob, D, cols, s1.x)
-        cn = np.maximum(np.linalg.norm(A, axis=0), 1e-300)
-        step = np.linalg.lstsq(A / cn, -r, rcond=None)[0] / cn
+        step, B = _gauss_newton_step(prob, D, cols, s1.x)
         theta[cols] += step[-ne:]
         D.d[:] = D0.d + G * (B @ theta)[:, None]
         D.d_all[D.used_idx] = D.d
