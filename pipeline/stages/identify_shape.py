@@ -5,7 +5,7 @@ See :mod:`pipeline.stages.print_shape` for the model and the F-test that decides
 
 from __future__ import annotations
 
-from typing import Any
+from typing import Any, NamedTuple
 
 import numpy as np
 
@@ -73,12 +73,11 @@ def fit_print_shape(
     tried: list[dict[str, Any]] = []
     for i, cols in enumerate(tries):
         forced = config.target_shape == "fit" and i == 0
-        out, significant = _linear_test(prob, D0, W0, sol0, rss0, cols, config, n_free)
+        start = _Start(prob, D0, W0, sol0, rss0)
+        out, significant = _linear_test(start, cols, config, n_free)
         s1, D1 = sol0, D0
         if significant or (forced and "F" in out):
-            s1, D1, out, significant = _attempt(
-                prob, D0, W0, sol0, rss0, cols, solve, config, n_free
-            )
+            s1, D1, out, significant = _attempt(start, cols, solve, config, n_free)
         tried.append(out)
         if significant or (forced and "F" in out):
             out["fitted"] = True
@@ -121,15 +120,19 @@ def _joint(prob: Problem, D: FitData, cols: np.ndarray, z: F64) -> tuple[F64, F6
     return np.hstack([Jf[:, prob.columns()], S]), r, B
 
 
+class _Start(NamedTuple):
+    """Where every print-shape test starts: the problem, its data and whitening, the
+    fit without a print shape and its unwhitened residual sum (:func:`_rss`)."""
+
+    prob: Problem
+    D0: FitData
+    W0: Any
+    sol0: Any
+    rss0: float
+
+
 def _linear_test(
-    prob: Problem,
-    D0: FitData,
-    W0: Any,
-    sol0: Any,
-    rss0: float,
-    cols: np.ndarray,
-    config: IdentifyConfig,
-    n_free: int,
+    start: _Start, cols: np.ndarray, config: IdentifyConfig, n_free: int
 ) -> tuple[dict[str, Any], bool]:
     """The F-test of ``theta[cols]`` with the refit replaced by Gauss-Newton steps.
 
@@ -154,6 +157,7 @@ def _linear_test(
     """
     from pipeline.stages import print_shape as ps
 
+    prob, D0, W0, sol0, rss0 = start
     D, G, n_all, ne, dof1 = _dimensions(D0, cols, n_free)
     if dof1 < 5:
         return {"fitted": False, "note": "print shape not fitted: too few touch-ups"}, False
@@ -219,18 +223,12 @@ def _f_test(
 
 
 def _attempt(
-    prob: Problem,
-    D0: FitData,
-    W0: Any,
-    sol0: Any,
-    rss0: float,
-    cols: np.ndarray,
-    solve: Any,
-    config: IdentifyConfig,
-    n_free: int,
+    start: _Start, cols: np.ndarray, solve: Any, config: IdentifyConfig, n_free: int
 ) -> tuple[Any, FitData, dict[str, Any], bool]:
     """Fit the ``theta`` columns ``cols`` from ``sol0`` on ``D0``; (sol, data, summary, significant)."""
     from pipeline.stages import print_shape as ps
+
+    prob, D0, W0, sol0, rss0 = start
 
     D, G, n_all, ne, dof1 = _dimensions(D0, cols, n_free)
     if dof1 < 5:
