@@ -305,7 +305,9 @@ def cross_validate(
     refits = {"kfold": s.k, "loto": n_tgt, "both": s.k + n_tgt}
     order = sorted(range(len(tasks)), key=lambda i: -_task_cost(known, tasks[i], refits))
     done = parallel_map(one_task, [tasks[i] for i in order], config.workers, yield_to_busy=False)
-    results = [done[order.index(i)] for i in range(len(tasks))]
+    results: list[Any] = [None] * len(tasks)
+    for j, i in enumerate(order):
+        results[i] = done[j]
     rows: list[dict[str, Any]] = []
     summary_models: dict[str, Any] = {}
     for (m, _), (m_rows, info) in zip(tasks, results, strict=True):

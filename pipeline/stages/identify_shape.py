@@ -71,9 +71,9 @@ def fit_print_shape(
     # one is kept (two tests at shape_alpha each)
     tries = [np.arange(n_all)] + ([np.arange(K - 1)] if K > 1 else [])
     tried: list[dict[str, Any]] = []
+    start = _Start(prob, D0, W0, sol0, rss0)
     for i, cols in enumerate(tries):
         forced = config.target_shape == "fit" and i == 0
-        start = _Start(prob, D0, W0, sol0, rss0)
         out, significant = _linear_test(start, cols, config, n_free)
         s1, D1 = sol0, D0
         if significant or (forced and "F" in out):

@@ -81,7 +81,6 @@ from pipeline.stages.touchup_jacobian import (
 )
 from pipeline.stages.touchup_rows import final_shapes, touchup_row
 from pipeline.stages.touchup_segments import final_block, loop_starts, relative_pose, segments
-from pipeline.stages.touchup_settle import settle_summary
 from pipeline.stages.touchup_targets import group_targets
 from pipeline.stages.touchup_tilt import tilt_bias
 from pipeline.stages.touchup_types import Captures, Designated, Tilt
@@ -374,7 +373,7 @@ def extract_touchups(
     )
     J_global, J_target = _target_jacobians(J_global, pair_seg, dF_all, dm_all, labels, config)
     # 5. averaged final captures, the tilt bias, then one row per touch-up
-    uses, shape = final_shapes(finals, c)
+    uses, shape, settled = final_shapes(finals, c)
     T_rep = np.array([c.T[uses[k][-1]] if uses[k] else c.T[rep[k]] for k in range(len(finals))])
     bias, tilt_deg, resolved = tilt_bias(shape, T_rep, labels, J_global, des.s0)
     if not config.tilt_correction:
@@ -402,6 +401,6 @@ def extract_touchups(
         "threshold_size_px": des.thr_s,
     }
     table.attrs["n_jacobian_pairs"] = len(pair_seg)
-    table.attrs["settle"] = settle_summary(uses, (c.u, c.v), (c.s,))
+    table.attrs["settle"] = settled
     table.attrs["implied_target_diameter_m"] = diameter_from_jacobian(J_global, des.s0)
     return table

@@ -13,13 +13,16 @@ from typing import Any
 
 import numpy as np
 
-from pipeline.stages.touchup_settle import settle_weights, wmean
+from pipeline.stages.touchup_settle import settle, wmean
 from pipeline.stages.touchup_types import Captures, Designated, Tilt, pose_key
 
 
-def final_shapes(finals: list[np.ndarray], c: Captures) -> tuple[list[list[int]], np.ndarray]:
+def final_shapes(
+    finals: list[np.ndarray], c: Captures
+) -> tuple[list[list[int]], np.ndarray, dict[str, Any]]:
     """Step 5: each touch-up's final captures (good, else any found), averaged (weighted
-    where the camera had not settled: touchup_settle), as ``(n, 5)`` u, v, s, s_minor, angle."""
+    where the camera had not settled: touchup_settle), as ``(n, 5)`` u, v, s, s_minor, angle;
+    and what the settle test found (:func:`pipeline.stages.touchup_settle.settle_summary`)."""
     u, v, s = c.u, c.v, c.s
     s_minor = c.df["s_minor"].to_numpy(float)
     ang2 = 2.0 * c.df["angle"].to_numpy(float)
@@ -27,7 +30,7 @@ def final_shapes(finals: list[np.ndarray], c: Captures) -> tuple[list[list[int]]
     shape = np.full((len(finals), 5), np.nan)  # u, v, s, s_minor, long-axis angle
     for b in finals:
         uses.append([int(i) for i in b if c.good[i]] or [int(i) for i in b if c.found[i]])
-    w, ws = settle_weights(uses, (u, v)), settle_weights(uses, (s,))  # an unsettled camera
+    w, ws, found = settle(uses, (u, v), (s,))  # an unsettled camera's early captures
     for k, use_k in enumerate(uses):
         if use_k:
             shape[k] = [
@@ -37,7 +40,7 @@ def final_shapes(finals: list[np.ndarray], c: Captures) -> tuple[list[list[int]]
                 wmean(s_minor, use_k, ws),
                 0.5 * np.arctan2(wmean(np.sin(ang2), use_k, w), wmean(np.cos(ang2), use_k, w)),
             ]
-    return uses, shape
+    return uses, shape, found
 
 
 def measurement(

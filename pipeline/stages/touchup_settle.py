@@ -83,7 +83,20 @@ def settle_summary(
     ``weights`` (``w_j`` for ``j = 0, 1, ...``, the last capture's first; empty when
     not weighted).
     """
-    return {"centre": _settle(uses, centre, alpha)[1], "size": _settle(uses, size, alpha)[1]}
+    return settle(uses, centre, size, alpha)[2]
+
+
+def settle(
+    uses: Sequence[Sequence[int]],
+    centre: Sequence[np.ndarray],
+    size: Sequence[np.ndarray],
+    alpha: float = ALPHA,
+) -> tuple[np.ndarray | None, np.ndarray | None, dict[str, dict[str, Any]]]:
+    """The centre's and the size's :func:`settle_weights` and their :func:`settle_summary`,
+    each pooled scatter computed once."""
+    wc, info_c = _settle(uses, centre, alpha)
+    ws, info_s = _settle(uses, size, alpha)
+    return wc, ws, {"centre": info_c, "size": info_s}
 
 
 def _settle(
