@@ -224,6 +224,7 @@ def detect_target(
     image: np.ndarray,
     config: DetectConfig | None = None,
     expected: tuple[float, float, float] | None = None,
+    gain: np.ndarray | None = None,
 ) -> dict[str, Any]:
     """Find the target ellipse in one grey image.
 
@@ -238,6 +239,9 @@ def detect_target(
     expected : (u, v, s), optional
         Where the target is expected (e.g. the previous capture): picks the
         blob closest to it among competitors.
+    gain : (H, W) float, optional
+        The sensor's per-pixel gain (:mod:`pipeline.stages.flat_field`): the
+        sub-pixel stage divides the linearised window by it.
 
     Returns
     -------
@@ -249,14 +253,17 @@ def detect_target(
     ``blurred``).
     """
     cfg = config or DetectConfig()
-    out = _detect(image, cfg, expected)
+    out = _detect(image, cfg, expected, gain)
     if out["found"] and cfg.clip_correction:
         out = _unclip(np.asarray(image), out, cfg)
     return out
 
 
 def _detect(
-    image: np.ndarray, cfg: DetectConfig, expected: tuple[float, float, float] | None
+    image: np.ndarray,
+    cfg: DetectConfig,
+    expected: tuple[float, float, float] | None,
+    gain: np.ndarray | None = None,
 ) -> dict[str, Any]:
     """:func:`detect_target` without the clipped-edge correction.
 
@@ -304,6 +311,8 @@ def _detect(
     if resp is not None:
         # sub-pixel stage on irradiance: the halfway level is halfway in light, not in grey
         img_roi = resp.linearise(img_roi)
+    if gain is not None:  # the sensor's fixed gain pattern divided out (flat_field)
+        img_roi = np.asarray(img_roi, dtype=np.float64) / gain[v0:v1, u0:u1]
     if cfg.compiled and _jit is not None:
         return _finish_compiled(
             img_roi.astype(np.float64),

@@ -40,6 +40,7 @@ from pipeline.io_recording import iter_recording, summarize
 from pipeline.kinematics.urdf import RobotDescription, chain_joints, parse_urdf
 from pipeline.recording_layout import locate
 from pipeline.stages.detect import DetectConfig
+from pipeline.stages.flat_field import CropStore, correct_flat_field
 from pipeline.stages.ingest_joints import (
     arm_joint_names,
     chain_joint_states,
@@ -183,7 +184,9 @@ def ingest_recording(
     for msg in iter_recording(layout, state):
         take_message(path, layout.path, msg, state, config, s, progress, n_total)
     if s.probing is not None:
-        s.dcfg, s.response_est, s.expected = resolve_response(s.probing, s.rows, s.dcfg)
+        s.dcfg, s.response_est, s.expected = resolve_response(s.probing, s.rows, s.dcfg, s.crops)
+    flat = correct_flat_field(s.crops, s.rows, s.dcfg, (s.height, s.width))
+    s.crops = CropStore()  # the crops are done with: free them before the tables
     if progress is not None:
         progress(len(s.rows), n_total)
     # metadata seen while streaming (summary-less files)
@@ -193,6 +196,7 @@ def ingest_recording(
     inferred: dict[str, str] = {}  # inferred metadata keys -> how (for the report)
     chain_names, J_t, Q, implausible = _chain(path, urdf, config, s, metadata, inferred, warnings)
     camera = _infer_metadata(metadata, inferred, s, polarity, resp_fixed, resp_source)
+    camera["flat_field"] = flat.summary
     frames, det_df = _tables(s, J_t, Q, chain_names, config, warnings)
     info = RecordingInfo(
         path=path,

@@ -32,6 +32,7 @@ from pipeline.io_mcap import (
 )
 from pipeline.io_recording import TOUCHUP_TOPIC, touchup_from_message
 from pipeline.stages.detect import RESULT_KEYS, DetectConfig, detect_target, empty_result
+from pipeline.stages.flat_field import CropStore
 from pipeline.stages.ingest_joints import JointGroups, strip_prefix
 from pipeline.stages.ingest_types import IngestConfig, Progress
 from pipeline.stages.response_estimate import ResponseEstimate, estimate_response
@@ -63,6 +64,8 @@ class Streamed:
     width, height : image size (px)
     seen_image_topics : other image-typed topics (for the "no images" message)
     n_joint_msgs : joint-state messages read
+    crops : crops of the clean detections, for the sensor's gain pattern
+        (:mod:`pipeline.stages.flat_field`)
     """
 
     image_topic: str | None
@@ -80,6 +83,7 @@ class Streamed:
     height: int = 0
     seen_image_topics: set[str] = field(default_factory=set)
     n_joint_msgs: int = 0
+    crops: CropStore = field(default_factory=CropStore)
 
 
 def take_message(
@@ -152,9 +156,10 @@ def _take_image(
             det = detect_target(grey, s.dcfg, s.expected)
             if det["found"] and det["quality_ok"]:
                 s.expected = (det["u"], det["v"], det["s"])
+                s.crops.add(k, grey, det)
     s.rows.append(det)
     if s.probing is not None and len(s.probing) >= RESPONSE_PROBE_IMAGES:
-        s.dcfg, s.response_est, s.expected = resolve_response(s.probing, s.rows, s.dcfg)
+        s.dcfg, s.response_est, s.expected = resolve_response(s.probing, s.rows, s.dcfg, s.crops)
         s.probing = None
     s.img_log.append(int(msg.log_time))
     s.img_stamp.append(int(enc.stamp_ns) if enc.stamp_ns > 0 else int(msg.log_time))
@@ -188,12 +193,16 @@ def _take_joint_state(
 
 
 def resolve_response(
-    probing: list[tuple[int, np.ndarray]], rows: list[dict[str, Any]], dcfg: DetectConfig
+    probing: list[tuple[int, np.ndarray]],
+    rows: list[dict[str, Any]],
+    dcfg: DetectConfig,
+    crops: CropStore | None = None,
 ) -> tuple[DetectConfig, ResponseEstimate, tuple[float, float, float] | None]:
     """Estimate the camera response from the held-back images, then detect them with it.
 
     ``rows[k]`` of every held-back image ``k`` is filled in place, in order, each
-    capture's detection steering the next one's (``expected``) as in the stream.
+    capture's detection steering the next one's (``expected``) as in the stream;
+    clean ones are kept in ``crops`` as the stream keeps its own.
     """
     est = estimate_response((g for _, g in probing), dcfg, max_images=RESPONSE_FIT_IMAGES)
     cfg = DetectConfig(**{**dcfg.to_dict(), "response": est.response.spec})
@@ -202,6 +211,8 @@ def resolve_response(
         det = detect_target(grey, cfg, expected)
         if det["found"] and det["quality_ok"]:
             expected = (det["u"], det["v"], det["s"])
+            if crops is not None:
+                crops.add(k, grey, det)
         rows[k] = det
     probing.clear()
     return cfg, est, expected
