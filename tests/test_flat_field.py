@@ -11,12 +11,17 @@ left alone to the bit.
 from __future__ import annotations
 
 import math
+import tomllib
+from pathlib import Path
 from typing import Any
 
 import cv2
 import numpy as np
+import pandas as pd
 import pytest
 
+from pipeline.sim.scenario import scenario_from_dict
+from pipeline.sim.simulator import write_recording
 from pipeline.stages.detect import DetectConfig, detect_target
 from pipeline.stages.flat_field import (
     ROUNDS,
@@ -26,7 +31,9 @@ from pipeline.stages.flat_field import (
     estimate_flat_field,
     redetect,
 )
+from pipeline.stages.ingest import IngestConfig, ingest_recording
 
+ROOT = Path(__file__).resolve().parents[1]
 H, W = 112, 128
 U0, V0 = 64.3, 55.6  # designated pixel
 SS = 4  # supersampling
@@ -163,3 +170,27 @@ def test_the_gain_enters_the_detector_on_linear_light() -> None:
     for key in ("u", "v", "s", "s_minor"):
         assert d1[key] == pytest.approx(d0[key], abs=1e-9)
         assert d2[key] == pytest.approx(d0[key], abs=1e-6)
+
+
+def _simulated(tmp: Path, name: str, optics: dict[str, Any]) -> tuple[pd.DataFrame, Any]:
+    raw = tomllib.loads((ROOT / "datasets" / "scenarios" / "standard.toml").read_text())
+    raw["poses"]["per_target"] = 4
+    raw["optics"] = optics
+    sc = scenario_from_dict(raw, where=name, base_dir=str(ROOT))
+    rec = tmp / f"{name}.mcap"
+    write_recording(sc, 7, rec)
+    _, dets, info = ingest_recording(rec, IngestConfig(), DetectConfig())
+    return dets, info
+
+
+def test_ingest_finds_a_simulated_sensors_pattern_and_leaves_a_clean_one_alone(
+    tmp_path: Path,
+) -> None:
+    """The standard cell's 12 touch-ups, with the simulator's 1 % PRNU and without."""
+    _, info = _simulated(tmp_path, "prnu", {"prnu_sigma": 0.01})
+    ff = info.camera["flat_field"]
+    assert ff["applied"] and ff["rounds"] == ROUNDS, ff
+    assert 0.8 < ff["prnu_percent"] < 1.2, ff
+    _, info0 = _simulated(tmp_path, "clean", {})
+    ff0 = info0.camera["flat_field"]
+    assert not ff0["applied"] and abs(ff0["z"]) < Z_MIN, ff0

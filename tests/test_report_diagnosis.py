@@ -12,6 +12,7 @@ from pipeline.report.data import RunData
 from pipeline.report.diagnosis import (
     along_view_trend,
     camera_section,
+    flat_field_rows,
     plate_basis,
     size_correction_rows,
 )
@@ -229,3 +230,28 @@ def test_the_camera_settle_the_touchups_stage_found_is_shown(tmp_path: Path) -> 
     assert rows[1]["found"].startswith("settled") and "plain means" in rows[1]["found"]
     path.unlink()
     assert settle_rows(RunData(run_dir=tmp_path)) == []  # no touch-ups table: nothing to say
+
+
+def test_the_sensor_gain_pattern_ingest_found_is_shown() -> None:
+    """Found and corrected, not found, and not estimated: each says which."""
+    applied = flat_field_rows(
+        {
+            "flat_field": {
+                "applied": True,
+                "rounds": 2,
+                "note": "fixed gain pattern (PRNU) 0.99 % found (split-half z = 55.4, "
+                "197 images, 11700 pixels): corrected",
+            }
+        }  # fmt: skip
+    )
+    assert applied[0]["effect"] == "sensor gain pattern (PRNU)"
+    assert "0.99 %" in applied[0]["found"] and "2 rounds" in applied[0]["found"]
+    none = flat_field_rows(
+        {"flat_field": {"applied": False, "note": "no fixed gain pattern (z = 0.3)"}}
+    )
+    assert none[0]["found"].startswith("no fixed gain pattern") and none[0]["status"] == "ok"
+    over = flat_field_rows(
+        {"flat_field": {"applied": False, "note": "not estimated: 3 clean images"}}
+    )
+    assert over[0]["status"] == "na"
+    assert flat_field_rows({"response": "linear"}) == []  # runs from before it: no row

@@ -10,6 +10,8 @@ long axis' direction on the plate. This section shows, from the artefacts only:
 
 * the response curve detection used and how it was chosen
   (``recording.json`` ``camera``, :mod:`pipeline.stages.response`);
+* the sensor's fixed gain pattern (PRNU), found and divided out or not
+  (``camera`` ``flat_field``, :mod:`pipeline.stages.flat_field`);
 * the illumination gradient across the target;
 * touch-ups that stopped off target and were corrected rather than rejected;
 * whether the camera had settled at each touch-up's repeated final captures,
@@ -105,6 +107,22 @@ def _response_rows(cam: dict[str, Any]) -> tuple[list[dict[str, str]], list[str]
             )
         )
     return rows, warn
+
+
+def flat_field_rows(cam: dict[str, Any]) -> list[dict[str, str]]:
+    """What ingest found of the sensor's fixed gain pattern (:mod:`pipeline.stages.flat_field`)."""
+    ff = cam.get("flat_field")
+    if not isinstance(ff, dict):
+        return []
+    note = str(ff.get("note", ""))
+    if ff.get("applied"):
+        found = (
+            f"{note}; every kept image detected again with it divided out "
+            f"({int(ff.get('rounds', 1))} rounds)"
+        )
+        return [_row("sensor gain pattern (PRNU)", found, "ok")]
+    status = "na" if note.startswith("not estimated") else "ok"
+    return [_row("sensor gain pattern (PRNU)", note, status)]
 
 
 def _corrected_rows(inl: pd.DataFrame | None) -> list[dict[str, str]]:
@@ -402,6 +420,7 @@ def camera_section(data: RunData) -> dict[str, Any]:
     cam = (data.recording or {}).get("camera") or {}
     model = (data.identify or {}).get("best_model")
     rows, warn = _response_rows(cam)
+    rows += flat_field_rows(cam)
     rows += clip_rows(data.detections)
     rows += _corrected_rows(data.inliers)
     rows += settle_rows(data)
