@@ -131,6 +131,10 @@ def one_case(cell: str, effect: str, seed: int, work: str) -> dict[str, Any]:
         or "assumed" in note
         or float(cam.get("saturated_fraction", 0.0) or 0.0) > 0.01
     )
+    ff = cam.get("flat_field") or {}
+    flat = (
+        f"{ff['prnu_percent']:.2f}%" if ff.get("applied") else f"z{ff.get('z', float('nan')):+.1f}"
+    )
     kept = int(inl["inlier"].sum())
     across, along = _touchup_misses(truth, inl, judged["model_summary"])
     return {
@@ -146,6 +150,7 @@ def one_case(cell: str, effect: str, seed: int, work: str) -> dict[str, Any]:
         "bias_px": bias,
         "response": str(cam.get("response", "?")).split(":")[0],
         "warned": warned,
+        "flat": flat,
         "t_sim": t_sim,
         "t_run": t_run,
         "miss_across_um": across,
@@ -246,7 +251,8 @@ def _print_seed(
     """One seed's table; True when every judged row meets its target."""
     hdr = (
         f"{'cell':<7} {'effect':<13} {'shape':>7} {'abs':>7} {'x lin':>6} {'resid':>7}"
-        f" {'kept':>6} {'s bias px':>9} {'response':<9} {'warned':<6} {'model':<8} {'sim s':>6}"
+        f" {'kept':>6} {'s bias px':>9} {'response':<9} {'PRNU':<6} {'warned':<6} {'model':<8}"
+        f" {'sim s':>6}"
         f" {'run s':>6} {'across':>6} {'along':>6}"
     )
     print(hdr)
@@ -266,7 +272,8 @@ def _print_seed(
             print(
                 f"{c:<7} {e:<13} {r['shape']:7.4f} {r['abs']:7.4f} {ratio:6.2f}"
                 f" {r['residual']:7.4f} {r['kept']:>3d}/{r['touchups']:<2d} {r['bias_px']:+9.4f}"
-                f" {r['response']!s:<9} {'yes' if r['warned'] else 'no':<6} {r['model']!s:<8}"
+                f" {r['response']!s:<9} {r['flat']:<6} {'yes' if r['warned'] else 'no':<6}"
+                f" {r['model']!s:<8}"
                 f" {r['t_sim']:6.1f} {r['t_run']:6.1f} {r['miss_across_um']:6.2f}"
                 f" {r['miss_along_um']:6.1f}{flag}",
                 flush=True,
@@ -275,7 +282,8 @@ def _print_seed(
     print(
         "mm shape/abs RMS of the shipped model vs truth (500 poses); x lin = shape / linear-image"
         " shape; resid = the training residual vtcal reported; s bias = detector long axis minus"
-        " the exact projected contour's (still captures); across / along um = RMS miss of the"
+        " the exact projected contour's (still captures); PRNU = the sensor gain pattern ingest"
+        " found and divided out (else its split-half z, no pattern); across / along um = RMS miss of the"
         " corrected pins against the truth, per-target means out"
     )
     return ok_all
