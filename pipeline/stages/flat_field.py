@@ -66,7 +66,7 @@ from pipeline.stages.detect import DetectConfig, detect_target
 from pipeline.stages.response import Response, parse_response
 
 #: half-width of a kept crop beyond the long half-axis (px)
-CROP_MARGIN_PX = 16
+CROP_MARGIN_PX = 10
 #: crops kept at most (bytes); beyond it no flat field is estimated (and it says so)
 MAX_CROP_BYTES = 256 * 2**20
 #: box (px) whose mean is taken off the per-pixel estimate: shading out, PRNU in
@@ -178,32 +178,35 @@ def _geometry(c: Crop) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
 
 
 def _model(c: Crop, resp: Response | None) -> tuple[np.ndarray, np.ndarray, np.ndarray, float]:
-    """One crop in linear light, its two-plane edge model and the distances.
+    """One crop in linear light: its residual from the two-plane edge model, the model, the bins.
 
-    Returns ``(L, m, d, C)``: linearised crop, model ``m`` (module docstring), signed
-    distance ``d`` (px) and contrast ``C = P - T`` at the centre.
+    Returns ``(e, m, i, C)``: residual ``e = L - m`` and model ``m`` (module docstring),
+    ``float32``; the distance bin ``i`` of every pixel (:data:`_BINS`); the contrast
+    ``C = P - T`` at the centre. The six coefficients by the normal equations.
     """
     L = resp.linearise(c.pixels) if resp is not None else c.pixels.astype(np.float64)
     du, dv, d = _geometry(c)
     w = ndtr(-d / max(c.edge_sigma, 0.3))
     A = np.stack([1.0 - w, (1.0 - w) * du, (1.0 - w) * dv, w, w * du, w * dv], axis=-1)
-    coef, *_ = np.linalg.lstsq(A.reshape(-1, 6), L.ravel(), rcond=None)
+    A2 = A.reshape(-1, 6)
+    try:
+        coef = np.linalg.solve(A2.T @ A2, A2.T @ L.ravel())
+    except np.linalg.LinAlgError:
+        coef = np.linalg.lstsq(A2, L.ravel(), rcond=None)[0]
     m = (A @ coef).reshape(L.shape)
-    return L, m, d, float(coef[0] - coef[3])
+    i = np.digitize(d, _BINS).astype(np.uint8)
+    return (L - m).astype(np.float32), m.astype(np.float32), i, float(coef[0] - coef[3])
 
 
-def _edge_profile(crops: list[Crop], resp: Response | None) -> np.ndarray:
+def _edge_profile(models: list[tuple[np.ndarray, np.ndarray, np.ndarray, float]]) -> np.ndarray:
     """Mean residual per distance bin, as a fraction of the contrast: the model's shape error."""
     sums = np.zeros(_BINS.size + 1)
     cnt = np.zeros(_BINS.size + 1)
-    step = max(len(crops) // _PROFILE_CROPS, 1)
-    for c in crops[::step]:
-        L, m, d, C = _model(c, resp)
+    for e, _, i, C in models:
         if abs(C) < 1e-9:
             continue
-        i = np.digitize(d, _BINS)
-        np.add.at(sums, i, (L - m) / C)
-        np.add.at(cnt, i, 1.0)
+        sums += np.bincount(i.ravel(), weights=e.ravel() / C, minlength=sums.size)
+        cnt += np.bincount(i.ravel(), minlength=cnt.size)
     out: np.ndarray = sums / np.maximum(cnt, 1.0)
     out[0] = out[-1] = 0.0  # beyond the bins: plate / target, no edge
     return out
@@ -242,11 +245,13 @@ def estimate_flat_field(store: CropStore, response_spec: str, shape: tuple[int, 
         return FlatField(None, {**base, "note": f"not estimated: {len(crops)} clean images"})
     r = parse_response(response_spec) if response_spec not in ("", "auto") else None
     resp = None if r is None or r.is_linear else r
-    prof = _edge_profile(crops, resp)
+    step = max(len(crops) // _PROFILE_CROPS, 1)
+    sample = {j: _model(crops[j], resp) for j in range(0, len(crops), step)}
+    prof = _edge_profile(list(sample.values()))
     acc = np.zeros((4,) + tuple(shape))  # num_a, den_a, num_b, den_b
     for i, c in enumerate(crops):
-        L, m, d, C = _model(c, resp)
-        e = L - m - C * prof[np.digitize(d, _BINS)]
+        e0, m, bins, C = sample.pop(i) if i in sample else _model(c, resp)
+        e = e0 - C * prof[bins]
         h, w = c.pixels.shape
         sl = (slice(c.v0, c.v0 + h), slice(c.u0, c.u0 + w))
         acc[2 * (i % 2)][sl] += e * m
