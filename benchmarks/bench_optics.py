@@ -283,7 +283,7 @@ def _print_seed(
         "mm shape/abs RMS of the shipped model vs truth (500 poses); x lin = shape / linear-image"
         " shape; resid = the training residual vtcal reported; s bias = detector long axis minus"
         " the exact projected contour's (still captures); PRNU = the sensor gain pattern ingest"
-        " found and divided out (else its split-half z, no pattern); across / along um = RMS miss of the"
+        " found and divided out (else its z, flat against edge samples: no pattern); across / along um = RMS miss of the"
         " corrected pins against the truth, per-target means out"
     )
     return ok_all
