@@ -158,6 +158,11 @@ def test_too_many_crops_or_too_few_say_so() -> None:
     few.add(1, imgs[0], {**det, "quality_ok": False})  # only clean detections are kept
     assert len(few.crops) == 1
     assert "1 clean images" in estimate_flat_field(few, "linear", (H, W)).summary["note"]
+    mixed = CropStore()
+    mixed.add(0, imgs[0], det)
+    mixed.add(1, np.pad(imgs[0], 4, mode="edge"), det)  # a recording whose image size changes
+    assert mixed.mixed and len(mixed.crops) == 1
+    assert "different sizes" in estimate_flat_field(mixed, "linear", (H, W)).summary["note"]
 
 
 def test_the_gain_enters_the_detector_on_linear_light() -> None:

@@ -41,13 +41,17 @@ shows only in ``b``:
 (``z`` ~ N(0, 1) without a pattern), and the gain map is applied only when
 ``z > Z_MIN``. (Two halves of the images, even / odd, would see the content's
 repeats too: on JPEG q90 and Bayer cells they gave z = 8.9 and 9.7, the roles
-0.3 and 0.1; with a 1 % PRNU 33 / 20 on the two standard cells.) Each pixel's
-combined estimate is shrunk toward 1 by its own noise (Wiener):
+0.3 and 0.1; with a 1 % PRNU 33 / 20 on the two standard cells.) The two
+estimates are combined per pixel by their variances, the edge one's raised by
+what the edge samples carry beyond pattern and noise (the content's repeats,
+``art^2 = mean((a - b)^2 - var_a - var_b)``; each role's noise ``kappa`` from its
+even and odd images' difference, where pattern and repeats cancel), and shrunk
+toward 1 by the result's noise (Wiener):
 
-    g(x) = 1 + delta(x) tau^2 / (tau^2 + kappa / sum_k m_k(x)^2),
+    delta = (a / var_a + b / (var_b + art^2)) / (1 / var_a + 1 / (var_b + art^2)),
+    g(x) = 1 + delta tau^2 / (tau^2 + var_delta).
 
-``kappa`` the residual variance from the two estimates' differences. The
-detector then divides the linearised window by ``g``
+The detector then divides the linearised window by ``g``
 (:func:`pipeline.stages.detect.detect_target`'s ``gain``) and every kept image is
 detected again (:func:`redetect`).
 
@@ -124,12 +128,16 @@ class CropStore:
     n_bytes : their size
     overflow : True once a crop did not fit (then no flat field is estimated)
     max_bytes : the limit
+    image_shape : the first kept image's ``(H, W)``
+    mixed : True once an image of another size came (then no flat field either)
     """
 
     crops: list[Crop] = field(default_factory=list)
     n_bytes: int = 0
     overflow: bool = False
     max_bytes: int = MAX_CROP_BYTES
+    image_shape: tuple[int, int] | None = None
+    mixed: bool = False
 
     def add(self, k: int, grey: np.ndarray, det: dict[str, Any]) -> None:
         """Keep the crop of image ``k`` around its detection (clean detections only)."""
@@ -139,6 +147,11 @@ class CropStore:
         if not (math.isfinite(u) and math.isfinite(v) and math.isfinite(s)):
             return
         H, W = grey.shape
+        if self.image_shape is None:
+            self.image_shape = (H, W)
+        elif self.image_shape != (H, W):
+            self.mixed = True
+            return
         hw = int(math.ceil(0.5 * s)) + CROP_MARGIN_PX
         v0, v1 = max(int(round(v)) - hw, 0), min(int(round(v)) + hw + 1, H)
         u0, u1 = max(int(round(u)) - hw, 0), min(int(round(u)) + hw + 1, W)
@@ -235,6 +248,46 @@ def _highpass(num: np.ndarray, den: np.ndarray) -> np.ndarray:
     return out
 
 
+def _accumulate(
+    crops: list[Crop], resp: Response | None, box: tuple[int, int, int, int]
+) -> np.ndarray:
+    """Sums of ``e' m`` and ``m^2`` per pixel of ``box``, by role and by parity.
+
+    Returns ``(2, 2, 2, h, w)``: [flat, edge] x [even, odd image] x [``sum e' m``,
+    ``sum m^2``], ``box = (v0, u0, v1, u1)`` the pixels any crop covers.
+    """
+    bv, bu, bv1, bu1 = box
+    acc = np.zeros((2, 2, 2, bv1 - bv, bu1 - bu))
+    step = max(len(crops) // _PROFILE_CROPS, 1)
+    sample = {j: _model(crops[j], resp) for j in range(0, len(crops), step)}
+    prof = _edge_profile(list(sample.values()))
+    for i, c in enumerate(crops):
+        e0, m, bins, C = sample.pop(i) if i in sample else _model(c, resp)
+        em = (e0 - C * prof[bins]) * m
+        mm = m * m
+        flat = _FLAT_BIN[bins]
+        h, w = c.pixels.shape
+        sl = (slice(c.v0 - bv, c.v0 - bv + h), slice(c.u0 - bu, c.u0 - bu + w))
+        for role, mask in ((0, flat), (1, ~flat)):
+            acc[role, i % 2, 0][sl] += np.where(mask, em, 0.0)
+            acc[role, i % 2, 1][sl] += np.where(mask, mm, 0.0)
+    return acc
+
+
+def _noise(acc_role: np.ndarray) -> float:
+    """``kappa`` of one role: the residual variance, from its even and odd estimates' difference.
+
+    ``var(delta_even - delta_odd) = kappa (1 / sum_even m^2 + 1 / sum_odd m^2)``:
+    pattern and content repeats cancel, only the noise is left.
+    """
+    (ne, de), (no, do) = acc_role
+    has = (de > 0) & (do > 0)
+    if not has.any():
+        return float("inf")
+    diff = (_highpass(ne, de) - _highpass(no, do))[has]
+    return float(np.mean(diff**2 / (1.0 / de[has] + 1.0 / do[has])))
+
+
 def estimate_flat_field(store: CropStore, response_spec: str, shape: tuple[int, int]) -> FlatField:
     """The recording's gain pattern from its kept crops (module docstring's maths).
 
@@ -253,42 +306,41 @@ def estimate_flat_field(store: CropStore, response_spec: str, shape: tuple[int, 
     if store.overflow:
         note = f"not estimated: more crops than {store.max_bytes // 2**20} MB"
         return FlatField(None, {**base, "note": note})
+    if store.mixed or (store.image_shape is not None and store.image_shape != tuple(shape)):
+        return FlatField(None, {**base, "note": "not estimated: images of different sizes"})
     if len(crops) < 8 or shape[0] <= 0 or shape[1] <= 0:
         return FlatField(None, {**base, "note": f"not estimated: {len(crops)} clean images"})
     r = parse_response(response_spec) if response_spec not in ("", "auto") else None
     resp = None if r is None or r.is_linear else r
-    step = max(len(crops) // _PROFILE_CROPS, 1)
-    sample = {j: _model(crops[j], resp) for j in range(0, len(crops), step)}
-    prof = _edge_profile(list(sample.values()))
-    acc = np.zeros((4,) + tuple(shape))  # flat num, den; edge num, den
-    for i, c in enumerate(crops):
-        e0, m, bins, C = sample.pop(i) if i in sample else _model(c, resp)
-        em = (e0 - C * prof[bins]) * m
-        mm = m * m
-        flat = _FLAT_BIN[bins]
-        h, w = c.pixels.shape
-        sl = (slice(c.v0, c.v0 + h), slice(c.u0, c.u0 + w))
-        acc[0][sl] += np.where(flat, em, 0.0)
-        acc[1][sl] += np.where(flat, mm, 0.0)
-        acc[2][sl] += np.where(flat, 0.0, em)
-        acc[3][sl] += np.where(flat, 0.0, mm)
-    a = _highpass(acc[0], acc[1])
-    b = _highpass(acc[2], acc[3])
-    both = (acc[1] > 0) & (acc[3] > 0)
+    box = (
+        min(c.v0 for c in crops),
+        min(c.u0 for c in crops),
+        max(c.v0 + c.pixels.shape[0] for c in crops),
+        max(c.u0 + c.pixels.shape[1] for c in crops),
+    )
+    acc = _accumulate(crops, resp, box)
+    sums = acc.sum(axis=1)  # by role: (2, 2, h, w)
+    den_a, den_b = sums[0, 1], sums[1, 1]
+    a = _highpass(sums[0, 0], den_a)
+    b = _highpass(sums[1, 0], den_b)
+    both = (den_a > 0) & (den_b > 0)
     n = int(both.sum())
     if n < 50:
         return FlatField(None, {**base, "n_pixels": n, "note": f"not estimated: {n} pixels"})
     prod = a[both] * b[both]
     z = float(prod.sum() / math.sqrt(max(float((prod**2).sum()), 1e-300)))
     tau2 = float(max(prod.mean(), 0.0))
-    diff = (a - b)[both]
-    kappa = float(np.mean(diff**2 / (1.0 / acc[1][both] + 1.0 / acc[3][both])))
+    var_a = _noise(acc[0]) / np.where(den_a > 0, den_a, np.inf)
+    var_b = _noise(acc[1]) / np.where(den_b > 0, den_b, np.inf)
+    # what the edge samples carry beyond the pattern and the noise: the content's repeats
+    art2 = float(max(np.mean((a - b)[both] ** 2 - var_a[both] - var_b[both]), 0.0))
     summary = {
         **base,
         "n_pixels": n,
         "z": z,
         "z_min": Z_MIN,
         "prnu_percent": 100.0 * math.sqrt(tau2),
+        "edge_excess_percent": 100.0 * math.sqrt(art2),
         "flat_edge_corr": float(np.corrcoef(a[both], b[both])[0, 1]),
     }
     if not z > Z_MIN:
@@ -297,10 +349,14 @@ def estimate_flat_field(store: CropStore, response_spec: str, shape: tuple[int, 
             f"{len(crops)} images, {n} pixels)"
         )
         return FlatField(None, {**summary, "note": note})
-    den = acc[1] + acc[3]
-    delta = _highpass(acc[0] + acc[2], den)
-    var = kappa / np.where(den > 0, den, np.inf)
-    gain = 1.0 + delta * (tau2 / (tau2 + var))
+    w_a = np.where(den_a > 0, 1.0 / np.maximum(var_a, 1e-300), 0.0)
+    w_b = np.where(den_b > 0, 1.0 / np.maximum(var_b + art2, 1e-300), 0.0)
+    wsum = w_a + w_b
+    has = wsum > 0
+    delta = np.where(has, (w_a * a + w_b * b) / np.where(has, wsum, 1.0), 0.0)
+    var = np.where(has, 1.0 / np.where(has, wsum, 1.0), np.inf)
+    gain = np.ones(shape)
+    gain[box[0] : box[2], box[1] : box[3]] = 1.0 + delta * (tau2 / (tau2 + var))
     note = (
         f"fixed gain pattern (PRNU) {100.0 * math.sqrt(tau2):.2f} % found "
         f"(z = {z:.1f}, flat against edge samples, {len(crops)} images, {n} pixels): corrected"
