@@ -92,7 +92,7 @@ ROUNDS = 2
 #: bins of the signed edge distance (px) for the model's shape error at the edge
 _BINS = np.arange(-8.0, 8.0001, 0.25)
 #: crops used for that shape error (it needs no more)
-_PROFILE_CROPS = 300
+_PROFILE_CROPS = 64
 #: which distance bins (``np.digitize(d, _BINS)``) lie farther than EDGE_PX from the edge
 _FLAT_BIN = np.concatenate([[True], (_BINS[1:] <= -EDGE_PX) | (_BINS[:-1] >= EDGE_PX), [True]])
 
@@ -223,11 +223,12 @@ def _model(c: Crop, resp: Response | None) -> tuple[np.ndarray, np.ndarray, np.n
     return (L - m).astype(np.float32), m.astype(np.float32), i, float(coef[0] - coef[3])
 
 
-def _edge_profile(models: list[tuple[np.ndarray, np.ndarray, np.ndarray, float]]) -> np.ndarray:
+def _edge_profile(crops: list[Crop], resp: Response | None) -> np.ndarray:
     """Mean residual per distance bin, as a fraction of the contrast: the model's shape error."""
     sums = np.zeros(_BINS.size + 1)
     cnt = np.zeros(_BINS.size + 1)
-    for e, _, i, C in models:
+    for c in crops:
+        e, _, i, C = _model(c, resp)
         if abs(C) < 1e-9:
             continue
         sums += np.bincount(i.ravel(), weights=e.ravel() / C, minlength=sums.size)
@@ -259,10 +260,9 @@ def _accumulate(
     bv, bu, bv1, bu1 = box
     acc = np.zeros((2, 2, 2, bv1 - bv, bu1 - bu))
     step = max(len(crops) // _PROFILE_CROPS, 1)
-    sample = {j: _model(crops[j], resp) for j in range(0, len(crops), step)}
-    prof = _edge_profile(list(sample.values()))
+    prof = _edge_profile(crops[::step], resp)
     for i, c in enumerate(crops):
-        e0, m, bins, C = sample.pop(i) if i in sample else _model(c, resp)
+        e0, m, bins, C = _model(c, resp)
         em = (e0 - C * prof[bins]) * m
         mm = m * m
         flat = _FLAT_BIN[bins]
