@@ -7,7 +7,10 @@ and handed to :func:`pipeline.stages.detect.detect_target` at once, so only one
 image is in memory at a time. Joint states (small) are kept, and after the
 pass every image stamp gets the joint vector interpolated at its
 ``header.stamp``, a stillness measure and the gap between the bracketing joint
-states (:mod:`pipeline.stages.ingest_joints` states the maths).
+states (:mod:`pipeline.stages.ingest_joints` states the maths). A small crop
+around every clean detection is kept too (at most 256 MB): after the pass they
+give the sensor's fixed gain pattern, and when there is one, the kept images
+are detected again with it divided out (:mod:`pipeline.stages.flat_field`).
 
 Outputs: the ``frames`` and ``detections`` artefacts (``schemas/frames.json``,
 ``schemas/detections.json``; one row per image, ``frame_index`` = the image's
