@@ -118,6 +118,31 @@ def _drain() -> list[tuple[int, Any]]:
         out.append((i, _TASK(_TASKS[i])))
 
 
+#: how often (s) a wait for a child's results checks that the children are alive
+LIVENESS_S = 0.25
+
+
+def _collect(
+    pending: multiprocessing.pool.AsyncResult,  # type: ignore[type-arg]
+    children: list[Any],
+    done: dict[int, Any],
+) -> bool:
+    """Wait for one child's results into ``done``; False as soon as a child has died.
+
+    A child killed mid-task (out of memory, a signal, a crash in compiled code) never
+    sends its results, and the pool replaces it without telling: a plain ``get()``
+    would wait for ever. Every :data:`LIVENESS_S` the children's exit codes are read
+    (a child only exits when the pool is closed).
+    """
+    while True:
+        try:
+            done.update(pending.get(timeout=LIVENESS_S))
+            return True
+        except multiprocessing.TimeoutError:
+            if any(c.exitcode is not None for c in children):
+                return False
+
+
 def parallel_map(
     fn: Callable[[T], R], tasks: Sequence[T], workers: int = 1, *, yield_to_busy: bool = True
 ) -> list[R]:
@@ -138,7 +163,8 @@ def parallel_map(
     Returns
     -------
     list of results, as the serial map's (a result that cannot be pickled back from a
-    child makes the whole map run again serially)
+    child makes the whole map run again serially; the tasks of a child that died are
+    run again in this process)
     """
     global _TASK
     if workers == 0:
@@ -161,10 +187,16 @@ def parallel_map(
     _TASK, _TASKS, _NEXT = fn, tasks, ctx.Value("i", 0)
     try:
         with ctx.Pool(n - 1) as pool:  # this process is the n-th worker
+            children = list(pool._pool)  # type: ignore[attr-defined]
             pending = [pool.apply_async(_drain) for _ in range(n - 1)]
             done = dict(_drain())
             for p in pending:
-                done.update(p.get())
+                if not _collect(p, children, done):
+                    break  # a child died holding tasks: the rest below, in this process
+        # tasks a dead child had taken (none when every child came back)
+        for i in range(len(tasks)):
+            if i not in done:
+                done[i] = fn(tasks[i])
         return [done[i] for i in range(len(tasks))]
     except multiprocessing.pool.MaybeEncodingError:  # type: ignore[attr-defined]
         # a result the children cannot send back (an object of a class defined inside a
