@@ -210,8 +210,8 @@ def empty_result(reason: str, n_blobs: int = 0) -> dict[str, Any]:
 
 
 @lru_cache(maxsize=16)
-def _response(spec: str) -> Response | None:
-    """The response of a spec string; None when linear (nothing to do)."""
+def nonlinear_response(spec: str) -> Response | None:
+    """The response of a spec string; None when linear or ``auto`` (nothing to undo)."""
     r = parse_response(spec)
     return None if r is None or r.is_linear else r
 
@@ -307,7 +307,7 @@ def _detect(
     if win is None:
         return empty_result("fit_failed", blob.n_blobs)
     img_roi, core_b, outer, u0, v0, u1, v1 = win
-    resp = _response(cfg.response)
+    resp = nonlinear_response(cfg.response)
     if resp is not None:
         # sub-pixel stage on irradiance: the halfway level is halfway in light, not in grey
         img_roi = resp.linearise(img_roi)
@@ -470,7 +470,7 @@ def _unclip(img: np.ndarray, out: dict[str, Any], cfg: DetectConfig) -> dict[str
         return out
     roi = raw.astype(np.float64)
     clip = top
-    resp = _response(cfg.response)
+    resp = nonlinear_response(cfg.response)
     if resp is not None:
         roi = np.asarray(resp.linearise(raw), dtype=np.float64)
         clip = float(np.asarray(resp.linearise(np.array([[top]], dtype=img.dtype)))[0, 0])

@@ -74,8 +74,8 @@ import cv2
 import numpy as np
 from scipy.special import ndtr
 
-from pipeline.stages.detect import DetectConfig, detect_target
-from pipeline.stages.response import Response, parse_response
+from pipeline.stages.detect import DetectConfig, detect_target, nonlinear_response
+from pipeline.stages.response import Response
 
 #: half-width of a kept crop beyond the long half-axis (px)
 CROP_MARGIN_PX = 10
@@ -116,6 +116,12 @@ class Crop:
     pixels: np.ndarray
     ellipse: tuple[float, float, float, float, float]
     edge_sigma: float
+
+
+def _ellipse(det: dict[str, Any]) -> tuple[float, float, float, float, float]:
+    """``(u, v, s, s_minor, angle)`` of a detection (:data:`Crop.ellipse`)."""
+    u, v, s, sm, ang = (float(det[k]) for k in ("u", "v", "s", "s_minor", "angle"))
+    return u, v, s, sm, ang
 
 
 @dataclass
@@ -162,8 +168,7 @@ class CropStore:
             self.overflow = True
             return
         sig = float(det.get("edge_sigma_px", float("nan")))
-        ell = (u, v, s, float(det["s_minor"]), float(det["angle"]))
-        self.crops.append(Crop(k, v0, u0, pix, ell, sig if math.isfinite(sig) else 1.0))
+        self.crops.append(Crop(k, v0, u0, pix, _ellipse(det), sig if math.isfinite(sig) else 1.0))
         self.n_bytes += pix.nbytes
 
 
@@ -310,8 +315,7 @@ def estimate_flat_field(store: CropStore, response_spec: str, shape: tuple[int, 
         return FlatField(None, {**base, "note": "not estimated: images of different sizes"})
     if len(crops) < 8 or shape[0] <= 0 or shape[1] <= 0:
         return FlatField(None, {**base, "note": f"not estimated: {len(crops)} clean images"})
-    r = parse_response(response_spec) if response_spec not in ("", "auto") else None
-    resp = None if r is None or r.is_linear else r
+    resp = nonlinear_response(response_spec)
     box = (
         min(c.v0 for c in crops),
         min(c.u0 for c in crops),
@@ -413,14 +417,7 @@ def correct_flat_field(
         for c in store.crops:
             r = rows[c.k]
             if r["found"] and r["quality_ok"]:
-                ell = (
-                    float(r["u"]),
-                    float(r["v"]),
-                    float(r["s"]),
-                    float(r["s_minor"]),
-                    float(r["angle"]),
-                )
-                moved.crops.append(replace(c, ellipse=ell))
+                moved.crops.append(replace(c, ellipse=_ellipse(r)))
         nxt = estimate_flat_field(moved, cfg.response, shape)
         if nxt.gain is None:
             break
