@@ -228,6 +228,26 @@ def test_the_camera_settle_the_touchups_stage_found_is_shown(tmp_path: Path) -> 
     assert "still swinging" in rows[0]["found"] and "0.011, 0.028 px" in rows[0]["found"]
     assert "1.00, 0.25, 0.04" in rows[0]["found"]
     assert rows[1]["found"].startswith("settled") and "plain means" in rows[1]["found"]
+    assert "one-mode" not in rows[0]["found"]  # written before the swing fit: nothing said
+    settle["centre"]["swing"] = {
+        "n": 36,
+        "r": 0.5,
+        "delta_deg": 50.0,
+        "spacing_s": 0.21,
+        "swing_last_px": 0.0061,
+        "shift_px": 0.007,
+    }
+    pq.write_table(
+        table.replace_schema_metadata({b"vtcal.settle": json.dumps(settle).encode()}), path
+    )
+    found = settle_rows(RunData(run_dir=tmp_path))[0]["found"]
+    assert "one-mode fit over 36 touch-ups" in found and "0.006 px RMS" in found
+    assert "decay 0.50 and phase step 50 deg" in found
+    settle["centre"]["swing"] = None
+    pq.write_table(
+        table.replace_schema_metadata({b"vtcal.settle": json.dumps(settle).encode()}), path
+    )
+    assert "not used" in settle_rows(RunData(run_dir=tmp_path))[0]["found"]
     path.unlink()
     assert settle_rows(RunData(run_dir=tmp_path)) == []  # no touch-ups table: nothing to say
 

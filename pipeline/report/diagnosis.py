@@ -220,7 +220,8 @@ def settle_rows(data: RunData) -> list[dict[str, str]]:
 
     From ``touchups.parquet``'s ``vtcal.settle`` metadata
     (:func:`pipeline.stages.touchup_settle.settle_summary`): the scatter of each
-    capture before the last against the last, and the weights the averages used.
+    capture before the last against the last, the weights the averages used, and
+    the one-mode swing fit of the centre (:mod:`pipeline.stages.touchup_swing`).
     """
     path = data.run_dir / "touchups.parquet"
     try:
@@ -249,6 +250,16 @@ def settle_rows(data: RunData) -> list[dict[str, str]]:
                 f"still swinging: the captures 1, 2, ... before the last differ from it by "
                 f"{sc} px RMS (p = {p_value:.2g}); averaged with weights {wt} (the last first)"
             )
+            sw = part.get("swing")
+            if sw:
+                text += (
+                    f"; the centre freed of the swing left in the last capture by a one-mode "
+                    f"fit over {sw['n']} touch-ups (decay {sw['r']:.2f} and phase step "
+                    f"{sw['delta_deg']:.0f} deg per capture, {sw['spacing_s']:.2f} s apart): "
+                    f"{sw['swing_last_px']:.3f} px RMS at the last capture"
+                )
+            elif key == "centre" and "swing" in part:
+                text += "; one-mode swing fit not used (too few touch-ups or unequal spacing)"
         else:
             text = (
                 f"settled: the captures before the last differ from it by {sc} px RMS, "

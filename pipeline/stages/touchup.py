@@ -20,7 +20,9 @@ joint vector interpolated at each image stamp):
    first capture. The final pose is that of the last still capture; the
    captures at that pose at the end of the segment are the repeated captures
    at convergence, and their detections are averaged (the early ones weighing
-   less when they scatter more: a camera still swinging, :mod:`touchup_settle`).
+   less when they scatter more: a camera still swinging, :mod:`touchup_settle`;
+   the centre then freed of the swing left in the last one by a one-mode fit,
+   :mod:`touchup_swing`).
 3. **Image Jacobian.** Every pair of consecutive still captures with good
    detections whose flange poses differ by a small pure translation
    ``d_F = R_a^T (t_b - t_a)`` (flange frame) gives three equations

@@ -1,7 +1,8 @@
 """Step 5 of the touch-up stage: each touch-up's averaged final captures, then its row.
 
 :func:`final_shapes` averages every touch-up's repeated final captures (weighted
-where the camera had not settled, :mod:`pipeline.stages.touchup_settle`);
+where the camera had not settled, :mod:`pipeline.stages.touchup_settle`, and the
+centre then freed of the swing left in the last one, :mod:`pipeline.stages.touchup_swing`);
 :func:`measurement` turns one average into the table's measurement and its
 residual correction ``d_F = -J^-1 e_T``; :func:`touchup_row` makes the row.
 The stage itself: :mod:`pipeline.stages.touchup`.
@@ -14,6 +15,7 @@ from typing import Any
 import numpy as np
 
 from pipeline.stages.touchup_settle import settle, wmean
+from pipeline.stages.touchup_swing import remove_swing
 from pipeline.stages.touchup_types import Captures, Designated, Tilt, pose_key
 
 
@@ -21,8 +23,11 @@ def final_shapes(
     finals: list[np.ndarray], c: Captures
 ) -> tuple[list[list[int]], np.ndarray, dict[str, Any]]:
     """Step 5: each touch-up's final captures (good, else any found), averaged (weighted
-    where the camera had not settled: touchup_settle), as ``(n, 5)`` u, v, s, s_minor, angle;
-    and what the settle test found (:func:`pipeline.stages.touchup_settle.settle_summary`)."""
+    where the camera had not settled: touchup_settle; the centre then freed of the swing
+    left in the last capture, touchup_swing), as ``(n, 5)`` u, v, s, s_minor, angle; and
+    what the settle test found (:func:`pipeline.stages.touchup_settle.settle_summary`, with
+    ``centre.swing`` the one-mode fit's :meth:`~pipeline.stages.touchup_swing.Swing.summary`
+    when the centres were weighted, None when it was not used)."""
     u, v, s = c.u, c.v, c.s
     s_minor = c.df["s_minor"].to_numpy(float)
     ang2 = 2.0 * c.df["angle"].to_numpy(float)
@@ -31,11 +36,17 @@ def final_shapes(
     for b in finals:
         uses.append([int(i) for i in b if c.good[i]] or [int(i) for i in b if c.found[i]])
     w, ws, found = settle(uses, (u, v), (s,))  # an unsettled camera's early captures
+    swing = None
+    if w is not None:  # still swinging: the swing left in the last capture, by one mode
+        t_s = c.df["stamp_ns"].to_numpy(np.int64) * 1e-9 if "stamp_ns" in c.df else None
+        swing = remove_swing(uses, t_s, u, v) if t_s is not None else None
+        found["centre"]["swing"] = swing.summary() if swing is not None else None
     for k, use_k in enumerate(uses):
         if use_k:
+            still = swing.centres.get(k) if swing is not None else None
             shape[k] = [
-                wmean(u, use_k, w),
-                wmean(v, use_k, w),
+                still[0] if still else wmean(u, use_k, w),
+                still[1] if still else wmean(v, use_k, w),
                 wmean(s, use_k, ws),
                 wmean(s_minor, use_k, ws),
                 0.5 * np.arctan2(wmean(np.sin(ang2), use_k, w), wmean(np.cos(ang2), use_k, w)),

@@ -1,0 +1,160 @@
+"""A touch-up's final centre freed of the camera's swing after the last move (one mode).
+
+When :mod:`pipeline.stages.touchup_settle` finds that the camera had not settled
+at the repeated final captures, weighting them still leaves the swing that is in
+the last one. An arm that stops rings mostly in one mode: the camera's offset
+decays as ``e^(-t/tau) sin(2 pi f t + phi)`` along one direction, and the
+target's image moves with it. At a touch-up's final captures ``k = 0, 1, 2``
+(the last three, equally spaced by ``dt``) the centre ``x_k = (u_k, v_k)`` is
+then
+
+    x_k = c + a r^k sin(phi + k Delta),      r = e^(-dt/tau),  Delta = 2 pi f dt   (S1)
+
+with ``c`` the centre of the still camera (what the touch-up measures), ``a``
+(2,) the swing's amplitude and direction in the image and ``phi`` its phase at
+the first of the three: five unknowns per touch-up for its six numbers. ``r``
+and ``Delta`` are the arm's and shared by every touch-up. Sampled every ``dt``,
+only ``Delta`` modulo ``2 pi`` and up to its sign is seen, so it is searched in
+``(0, pi)``.
+
+Fit. For each ``(r, Delta)`` of a grid (:data:`R_GRID` x :data:`DELTA_GRID`) and
+each touch-up, ``phi`` is searched on :data:`PHI_GRID` (a sign of ``a`` covers
+the other half turn) with ``c, a`` the linear least-squares solution of (S1);
+the summed squared residual over every touch-up picks ``(r, Delta)``, and each
+touch-up's ``c`` at them replaces its weighted mean centre. The size and the
+long-axis angle keep their settle-weighted means (a swing moves the image across
+the view, not its size).
+
+Measured on the LR Mate-like cell with vibration after moves (15 Hz, decaying in
+0.3 s, captures 0.21 s apart: ``r`` 0.50, ``Delta`` 54 deg), eight seeds, shipped
+model against the truth: mean shape RMS 0.0183 mm with the settle weights alone,
+0.0138 mm with (S1) at the fitted ``(r, Delta)``, 0.0120 mm at the truth's; the
+still twin 0.0106 mm (docs/detection.md). ``benchmarks/bench_settle_model.py``
+shows what the fit sees on one seed: its cost is nearly flat in ``(r, Delta)``,
+and on a still camera it finds about 0.003 px of "swing" from noise alone, which
+is why it is used only when the settle test has found the camera swinging.
+
+Used only when (i) the settle test found the centres' scatter depends on the
+capture's place, (ii) at least :data:`MIN_TOUCHUPS` touch-ups end in three or
+more captures, and (iii) their last three are equally spaced (every spacing
+within :data:`SPACING_TOL` of the median). Otherwise nothing changes.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+
+#: decay per capture searched (``r`` of (S1))
+R_GRID = np.linspace(0.2, 0.9, 15)
+#: phase step per capture searched (``Delta`` of (S1), rad)
+DELTA_GRID = np.radians(np.arange(10.0, 171.0, 10.0))
+#: each touch-up's phase at its first final capture, searched (rad)
+PHI_GRID = np.linspace(0.0, np.pi, 90, endpoint=False)
+#: fewer touch-ups with three final captures than this: the shared ``(r, Delta)`` is not fitted
+MIN_TOUCHUPS = 10
+#: the last three captures' spacings must agree with their median to this share
+SPACING_TOL = 0.1
+
+
+@dataclass(frozen=True)
+class Swing:
+    """What :func:`remove_swing` fitted.
+
+    Attributes
+    ----------
+    centres : {touch-up index: (u, v)} the still camera's centres ``c`` (px)
+    r, delta : the shared decay per capture and phase step (rad) of (S1)
+    spacing_s : the captures' spacing ``dt`` (s)
+    swing_last_px : RMS over the touch-ups of the swing (S1) puts into the last capture
+    shift_px : RMS of ``c`` minus the last capture's centre
+    """
+
+    centres: dict[int, tuple[float, float]]
+    r: float
+    delta: float
+    spacing_s: float
+    swing_last_px: float
+    shift_px: float
+
+    def summary(self) -> dict[str, float | int]:
+        """For ``touchups.parquet``'s settle metadata (the report shows it)."""
+        return {
+            "n": len(self.centres),
+            "r": self.r,
+            "delta_deg": float(np.degrees(self.delta)),
+            "spacing_s": self.spacing_s,
+            "swing_last_px": self.swing_last_px,
+            "shift_px": self.shift_px,
+        }
+
+
+def fit_one_mode(
+    X: np.ndarray, r: float, delta: float
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(S1) fitted to every touch-up at one ``(r, Delta)``.
+
+    Parameters
+    ----------
+    X : (n, 3, 2) centres of each touch-up's last three captures, in time order (px)
+    r, delta : decay per capture and phase step (rad)
+
+    Returns
+    -------
+    cost : (n,) each touch-up's least squared residual over the phase grid (px²)
+    c : (n, 2) the still camera's centre
+    swing_last : (n, 2) the fitted swing at the last capture, ``a r^2 sin(phi + 2 Delta)``
+    """
+    k = np.arange(3)
+    G = (r**k)[None, :] * np.sin(PHI_GRID[:, None] + k[None, :] * delta)  # (P, 3)
+    A = np.stack([np.ones_like(G), G], axis=2)  # (P, 3, 2): columns c and a
+    solve = np.linalg.pinv(np.einsum("pki,pkj->pij", A, A))  # a phase with G = 0 is singular
+    beta = np.einsum("pij,pkj,nkc->npic", solve, A, X)  # (n, P, 2, coord)
+    fitted = np.einsum("pki,npic->npkc", A, beta)
+    res = ((X[:, None] - fitted) ** 2).sum(axis=(2, 3))  # (n, P)
+    best = res.argmin(axis=1)
+    n = np.arange(len(X))
+    return res[n, best], beta[n, best, 0, :], beta[n, best, 1, :] * G[best, 2][:, None]
+
+
+def remove_swing(
+    uses: Sequence[Sequence[int]], t_s: np.ndarray, u: np.ndarray, v: np.ndarray
+) -> Swing | None:
+    """The still camera's centre of every touch-up by (S1), or None where not used.
+
+    Parameters
+    ----------
+    uses : per touch-up, its final captures' indices in time order
+    t_s : (N,) capture times (s); u, v : (N,) detected centres (px)
+
+    Returns
+    -------
+    :class:`Swing`, or None: fewer than :data:`MIN_TOUCHUPS` touch-ups with three
+    final captures, or their spacing not equal (module docstring). Whether the
+    camera swings at all is the caller's test (``touchup_settle``).
+    """
+    ks = [k for k, use in enumerate(uses) if len(use) >= 3]
+    if len(ks) < MIN_TOUCHUPS:
+        return None
+    last3 = np.array([list(uses[k])[-3:] for k in ks])
+    gaps = np.diff(t_s[last3], axis=1)
+    dt = float(np.median(gaps))
+    if not dt > 0 or np.any(np.abs(gaps - dt) > SPACING_TOL * dt):
+        return None
+    X = np.stack([u[last3], v[last3]], axis=2)  # (n, 3, 2)
+    if not np.all(np.isfinite(X)):
+        return None
+    cost = np.array([[fit_one_mode(X, r, d)[0].sum() for r in R_GRID] for d in DELTA_GRID])
+    i, j = np.unravel_index(int(np.argmin(cost)), cost.shape)
+    r, delta = float(R_GRID[j]), float(DELTA_GRID[i])
+    _, c, swing = fit_one_mode(X, r, delta)
+    return Swing(
+        centres={k: (float(c[n, 0]), float(c[n, 1])) for n, k in enumerate(ks)},
+        r=r,
+        delta=delta,
+        spacing_s=dt,
+        swing_last_px=float(np.sqrt(np.mean(np.sum(swing**2, axis=1)))),
+        shift_px=float(np.sqrt(np.mean(np.sum((c - X[:, 2]) ** 2, axis=1)))),
+    )
