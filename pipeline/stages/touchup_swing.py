@@ -17,22 +17,28 @@ and ``Delta`` are the arm's and shared by every touch-up. Sampled every ``dt``,
 only ``Delta`` modulo ``2 pi`` and up to its sign is seen, so it is searched in
 ``(0, pi)``.
 
-Fit. For each ``(r, Delta)`` of a grid (:data:`R_GRID` x :data:`DELTA_GRID`) and
-each touch-up, ``phi`` is searched on :data:`PHI_GRID` (a sign of ``a`` covers
-the other half turn) with ``c, a`` the linear least-squares solution of (S1);
-the summed squared residual over every touch-up picks ``(r, Delta)``, and each
-touch-up's ``c`` at them replaces its weighted mean centre. The size and the
-long-axis angle keep their settle-weighted means (a swing moves the image across
-the view, not its size).
+Fit. The shared ``(r, Delta)`` is hard to tell from the least-squares cost of
+(S1): it is nearly flat over them (``benchmarks/bench_settle_model.py``). The
+captures' pooled second moments tell it (:func:`moment_globals`, (S2)): with the
+phase uniform over touch-ups, the mean squared differences of the three pairs of
+captures are three equations for the swing's mean square amplitude, ``r`` and
+``Delta``, given the noise (from the least-squares residual of (S1) at the best
+pair of a grid, :data:`R_GRID` x :data:`DELTA_GRID`, which also starts the
+solve). Then each touch-up's ``phi`` is searched on :data:`PHI_GRID` (a sign of
+``a`` covers the other half turn) with ``c, a`` the linear least-squares
+solution of (S1), and its ``c`` replaces the weighted mean centre. The size and
+the long-axis angle keep their settle-weighted means (a swing moves the image
+across the view, not its size).
 
 Measured on the LR Mate-like cell with vibration after moves (15 Hz, decaying in
-0.3 s, captures 0.21 s apart: ``r`` 0.50, ``Delta`` 54 deg), eight seeds, shipped
-model against the truth: mean shape RMS 0.0183 mm with the settle weights alone,
-0.0138 mm with (S1) at the fitted ``(r, Delta)``, 0.0120 mm at the truth's; the
-still twin 0.0106 mm (docs/detection.md). ``benchmarks/bench_settle_model.py``
-shows what the fit sees on one seed: its cost is nearly flat in ``(r, Delta)``,
-and on a still camera it finds about 0.003 px of "swing" from noise alone, which
-is why it is used only when the settle test has found the camera swinging.
+0.3 s, captures 0.21 s apart: ``r`` 0.50, ``Delta`` 54 deg), seeds 7-14, shipped
+model against the truth (mean shape RMS; still twin 0.0106 mm): settle weights
+alone 0.0183 mm; (S1) at the grid's best pair 0.0138; at the truth's pair 0.0120;
+at (S2)'s 0.0115 (docs/detection.md has the benchmark's figures). On synthetic
+captures (``tests/test_touchup_swing.py``) the centre's error is 0.44-0.56x the
+settle-weighted mean's. A still camera has no swing to find: the fit would only
+add noise (about 0.003 px on these cells), which is why it is used only when the
+settle test has found the camera swinging.
 
 Used only when (i) the settle test found the centres' scatter depends on the
 capture's place, (ii) at least :data:`MIN_TOUCHUPS` touch-ups end in three or
@@ -119,6 +125,43 @@ def fit_one_mode(
     return res[n, best], beta[n, best, 0, :], beta[n, best, 1, :] * G[best, 2][:, None]
 
 
+def moment_globals(
+    X: np.ndarray, sigma2: float, start: tuple[float, float]
+) -> tuple[float, float] | None:
+    """``(r, Delta)`` of (S2) from the captures' pooled differences, or None.
+
+    With the phase uniform over touch-ups, ``E[sin(phi + i D) sin(phi + j D)] =
+    cos((j - i) D) / 2``, so per coordinate
+
+        E (x_i - x_j)^2 = A^2 / 2 (r^2i + r^2j - 2 r^(i+j) cos((j - i) Delta)) + 2 sigma^2   (S2)
+
+    for the pairs ``(0, 1), (0, 2), (1, 2)``: three equations for ``A^2, r,
+    Delta`` given the noise ``sigma^2`` (from the fit's residual). Solved by
+    bounded least squares on the relative misfit from ``start``; None when it does
+    not converge or the amplitude vanishes.
+    """
+    from scipy.optimize import least_squares
+
+    pairs = ((0, 1), (0, 2), (1, 2))
+    obs = np.array([np.mean((X[:, i] - X[:, j]) ** 2) for i, j in pairs])
+
+    def misfit(p: np.ndarray) -> np.ndarray:
+        a2, r, d = p
+        pred = [
+            a2 / 2 * (r ** (2 * i) + r ** (2 * j) - 2 * r ** (i + j) * np.cos((j - i) * d))
+            + 2 * sigma2
+            for i, j in pairs
+        ]
+        return (np.array(pred) - obs) / obs
+
+    x0 = np.array([max(2.0 * obs[1], 1e-12), *start])
+    lo, hi = [0.0, 0.05, 0.01], [np.inf, 0.99, np.pi - 0.01]
+    sol = least_squares(misfit, np.clip(x0, lo, hi), bounds=(lo, hi))
+    if not sol.success or not sol.x[0] > 0:
+        return None
+    return float(sol.x[1]), float(sol.x[2])
+
+
 def remove_swing(
     uses: Sequence[Sequence[int]], t_s: np.ndarray, u: np.ndarray, v: np.ndarray
 ) -> Swing | None:
@@ -149,6 +192,10 @@ def remove_swing(
     cost = np.array([[fit_one_mode(X, r, d)[0].sum() for r in R_GRID] for d in DELTA_GRID])
     i, j = np.unravel_index(int(np.argmin(cost)), cost.shape)
     r, delta = float(R_GRID[j]), float(DELTA_GRID[i])
+    sigma2 = float(cost[i, j]) / (2.0 * len(X))  # 1 residual dof per touch-up, 2 coordinates
+    found = moment_globals(X, sigma2, (r, delta))
+    if found is not None:
+        r, delta = found
     _, c, swing = fit_one_mode(X, r, delta)
     return Swing(
         centres={k: (float(c[n, 0]), float(c[n, 1])) for n, k in enumerate(ks)},
