@@ -3,7 +3,10 @@
 A flange camera still swinging after the last move of a touch-up puts an offset
 into its final captures that the encoders do not see. ``touchup_settle`` weighs
 the captures by their scatter; what is left is the swing still in the last one.
-This benchmark asks whether a model of the swing could take that out too.
+This benchmark asks whether a model of the swing could take that out too, and
+shows why :mod:`pipeline.stages.touchup_swing` (which does, when the settle test
+finds the camera swinging) takes the arm's decay and phase step from the pooled
+second moments of the captures rather than from the least-squares cost.
 
 Model (one mode, the usual picture of an arm ringing after a stop): the centre's
 offset at the ``k``-th final capture (``k = 0, 1, 2``, equally spaced) is
@@ -133,6 +136,16 @@ def main() -> None:
         f"truth {at_truth * 1e4:.3f}; over Delta 30-150 deg and r 0.3-0.7 "
         f"{band.min() * 1e4:.3f}-{band.max() * 1e4:.3f}"
     )
+    from pipeline.stages.touchup_swing import moment_globals
+
+    sigma2 = float(grid[i, j]) / (2.0 * len(X))
+    got = moment_globals(X, sigma2, (float(rs[j]), float(ds[i])))
+    if got is not None:
+        print(
+            f"pooled second moments (S2 of pipeline.stages.touchup_swing, noise "
+            f"{np.sqrt(sigma2):.4f} px from the best cost): r {got[0]:.3f}, Delta "
+            f"{np.degrees(got[1]):.0f} deg (what the touch-up stage uses)"
+        )
     print("\nswing the fit at the truth's (r, Delta) puts into the last capture, RMS (u, v) px:")
     for effect, (Xe, _) in cells.items():
         swing = fit(Xe, r_true, d_true)[1]
