@@ -241,7 +241,8 @@ def test_the_camera_settle_the_touchups_stage_found_is_shown(tmp_path: Path) -> 
         table.replace_schema_metadata({b"vtcal.settle": json.dumps(settle).encode()}), path
     )
     found = settle_rows(RunData(run_dir=tmp_path))[0]["found"]
-    assert "one-mode fit over 36 touch-ups" in found and "0.006 px RMS" in found
+    assert "one-mode fit of the swing over 36 touch-ups" in found and "0.006 px RMS" in found
+    assert "weights 1.00, 0.25, 0.04 (the last first), used for the long axis' angle" in found
     assert "decay 0.50 and phase step 50 deg" in found
     settle["centre"]["swing"] = None
     pq.write_table(

@@ -252,11 +252,13 @@ def settle_rows(data: RunData) -> list[dict[str, str]]:
             )
             sw = part.get("swing")
             if sw:
+                text = text.replace("averaged with weights", "weights")
                 text += (
-                    f"; the centre freed of the swing left in the last capture by a one-mode "
-                    f"fit over {sw['n']} touch-ups (decay {sw['r']:.2f} and phase step "
-                    f"{sw['delta_deg']:.0f} deg per capture, {sw['spacing_s']:.2f} s apart): "
-                    f"{sw['swing_last_px']:.3f} px RMS at the last capture"
+                    f", used for the long axis' angle; the centre itself is a one-mode fit "
+                    f"of the swing over {sw['n']} touch-ups (decay {sw['r']:.2f} and phase "
+                    f"step {sw['delta_deg']:.0f} deg per capture, {sw['spacing_s']:.2f} s "
+                    f"apart): it takes out the {sw['swing_last_px']:.3f} px RMS of swing left "
+                    f"in the last capture"
                 )
             elif key == "centre" and "swing" in part:
                 text += "; one-mode swing fit not used (too few touch-ups or unequal spacing)"
