@@ -18,7 +18,8 @@ with one phase ``phi`` per touch-up shared by ``u`` and ``v`` (five unknowns
 step ``Delta`` shared by every touch-up (the captures are equally spaced, so only
 the step aliased into ``[0, pi]`` can be told). For each ``(r, Delta)`` on a grid
 every touch-up's ``phi`` is searched on a grid and ``c, a`` solved by linear
-least squares; the summed squared residual is the fit's cost.
+least squares (:func:`pipeline.stages.touchup_swing.fit_one_mode`); the summed
+squared residual is the fit's cost.
 
 Run on the standard LR Mate-like cell (36 touch-ups) with the vibration of
 ``bench_optics.py`` and on its still twin (same seed), through ingest and the
@@ -46,9 +47,6 @@ import numpy as np
 REPO = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(REPO / "benchmarks"))
 
-#: phase grid of the per-touch-up search (a sign of ``a`` covers the other half turn)
-PHI = np.linspace(0.0, np.pi, 90, endpoint=False)
-
 
 def final_centres(rec: Path, out: Path) -> tuple[np.ndarray, float]:
     """``(n, 3, 2)`` centres of each touch-up's three final captures (time order) and
@@ -71,17 +69,12 @@ def final_centres(rec: Path, out: Path) -> tuple[np.ndarray, float]:
 
 
 def fit(X: np.ndarray, r: float, delta: float) -> tuple[float, np.ndarray]:
-    """Cost of the one-mode model at ``(r, delta)`` and the swing it puts into the
-    last capture, ``(n, 2)`` px (module docstring)."""
-    k = np.arange(3)
-    G = (r**k)[None, :] * np.sin(PHI[:, None] + k[None, :] * delta)  # (P, 3)
-    A = np.stack([np.ones_like(G), G], 2)  # (P, 3, 2)
-    inv = np.linalg.pinv(np.einsum("pki,pkj->pij", A, A))
-    beta = np.einsum("pij,pkj,nkc->npic", inv, A, X)  # (n, P, 2, coords)
-    res = ((X[:, None] - np.einsum("pki,npic->npkc", A, beta)) ** 2).sum(axis=(2, 3))
-    j = res.argmin(axis=1)
-    n = np.arange(len(X))
-    return float(res[n, j].sum()), beta[n, j, 1, :] * G[j, 2][:, None]
+    """Summed cost of the one-mode model at ``(r, delta)`` and the swing it puts into the
+    last capture, ``(n, 2)`` px (:func:`pipeline.stages.touchup_swing.fit_one_mode`)."""
+    from pipeline.stages.touchup_swing import fit_one_mode
+
+    cost, _, swing = fit_one_mode(X, r, delta)
+    return float(cost.sum()), swing
 
 
 def main() -> None:
