@@ -135,6 +135,12 @@ def one_case(cell: str, effect: str, seed: int, work: str) -> dict[str, Any]:
     flat = (
         f"{ff['prnu_percent']:.2f}%" if ff.get("applied") else f"z{ff.get('z', float('nan')):+.1f}"
     )
+    from pipeline.artefacts import read_meta
+
+    settled = json.loads(read_meta(out / "touchups.parquet").get("settle", "{}") or "{}")
+    centre = settled.get("centre") or {}
+    swing = centre.get("swing")
+    settle = f"r{swing['r']:.2f}" if swing else ("w" if centre.get("weighted") else "-")
     kept = int(inl["inlier"].sum())
     across, along = _touchup_misses(truth, inl, judged["model_summary"])
     return {
@@ -151,6 +157,7 @@ def one_case(cell: str, effect: str, seed: int, work: str) -> dict[str, Any]:
         "response": str(cam.get("response", "?")).split(":")[0],
         "warned": warned,
         "flat": flat,
+        "settle": settle,
         "t_sim": t_sim,
         "t_run": t_run,
         "miss_across_um": across,
@@ -251,7 +258,8 @@ def _print_seed(
     """One seed's table; True when every judged row meets its target."""
     hdr = (
         f"{'cell':<7} {'effect':<13} {'shape':>7} {'abs':>7} {'x lin':>6} {'resid':>7}"
-        f" {'kept':>6} {'s bias px':>9} {'response':<9} {'PRNU':<6} {'warned':<6} {'model':<8}"
+        f" {'kept':>6} {'s bias px':>9} {'response':<9} {'PRNU':<6} {'settle':<6}"
+        f" {'warned':<6} {'model':<8}"
         f" {'sim s':>6}"
         f" {'run s':>6} {'across':>6} {'along':>6}"
     )
@@ -272,7 +280,8 @@ def _print_seed(
             print(
                 f"{c:<7} {e:<13} {r['shape']:7.4f} {r['abs']:7.4f} {ratio:6.2f}"
                 f" {r['residual']:7.4f} {r['kept']:>3d}/{r['touchups']:<2d} {r['bias_px']:+9.4f}"
-                f" {r['response']!s:<9} {r['flat']:<6} {'yes' if r['warned'] else 'no':<6}"
+                f" {r['response']!s:<9} {r['flat']:<6} {r['settle']:<6}"
+                f" {'yes' if r['warned'] else 'no':<6}"
                 f" {r['model']!s:<8}"
                 f" {r['t_sim']:6.1f} {r['t_run']:6.1f} {r['miss_across_um']:6.2f}"
                 f" {r['miss_along_um']:6.1f}{flag}",
@@ -283,7 +292,9 @@ def _print_seed(
         "mm shape/abs RMS of the shipped model vs truth (500 poses); x lin = shape / linear-image"
         " shape; resid = the training residual vtcal reported; s bias = detector long axis minus"
         " the exact projected contour's (still captures); PRNU = the sensor gain pattern ingest"
-        " found and divided out (else its z, flat against edge samples: no pattern); across / along um = RMS miss of the"
+        " found and divided out (else its z, flat against edge samples: no pattern); settle ="
+        " '-' the repeated final captures' plain means, 'w' settle-weighted, 'rX' the centre"
+        " from the one-mode swing fit (decay X per capture); across / along um = RMS miss of the"
         " corrected pins against the truth, per-target means out"
     )
     return ok_all
