@@ -35,15 +35,16 @@ Measured on the LR Mate-like cell with vibration after moves (15 Hz, decaying in
 model against the truth (mean shape RMS; still twin 0.0106 mm): settle weights
 alone 0.0183 mm; (S1) at the grid's best pair 0.0138; at the truth's pair 0.0120;
 at (S2)'s 0.0115 (docs/detection.md has the benchmark's figures). On synthetic
-captures (``tests/test_touchup_swing.py``) the centre's error is 0.44-0.56x the
+captures (``tests/test_touchup_swing.py``) the centre's error is 0.44-0.62x the
 settle-weighted mean's. A still camera has no swing to find: the fit would only
 add noise (about 0.003 px on these cells), which is why it is used only when the
 settle test has found the camera swinging.
 
 Used only when (i) the settle test found the centres' scatter depends on the
-capture's place, (ii) at least :data:`MIN_TOUCHUPS` touch-ups end in three or
-more captures, and (iii) their last three are equally spaced (every spacing
-within :data:`SPACING_TOL` of the median). Otherwise nothing changes.
+capture's place and (ii) at least :data:`MIN_TOUCHUPS` touch-ups end in three or
+more found captures whose last three are equally spaced (each spacing within
+:data:`SPACING_TOL` of the median); a touch-up that is not keeps its weighted
+centre. Otherwise nothing changes.
 """
 
 from __future__ import annotations
@@ -174,9 +175,11 @@ def remove_swing(
 
     Returns
     -------
-    :class:`Swing`, or None: fewer than :data:`MIN_TOUCHUPS` touch-ups with three
-    final captures, or their spacing not equal (module docstring). Whether the
-    camera swings at all is the caller's test (``touchup_settle``).
+    :class:`Swing`, or None: fewer than :data:`MIN_TOUCHUPS` touch-ups whose last
+    three final captures are found and equally spaced (each spacing within
+    :data:`SPACING_TOL` of the median over all of them); the others keep their
+    settle-weighted centres (no entry in ``centres``). Whether the camera swings at
+    all is the caller's test (``touchup_settle``).
     """
     ks = [k for k, use in enumerate(uses) if len(use) >= 3]
     if len(ks) < MIN_TOUCHUPS:
@@ -184,15 +187,16 @@ def remove_swing(
     last3 = np.array([list(uses[k])[-3:] for k in ks])
     gaps = np.diff(t_s[last3], axis=1)
     dt = float(np.median(gaps))
-    if not dt > 0 or np.any(np.abs(gaps - dt) > SPACING_TOL * dt):
-        return None
     X = np.stack([u[last3], v[last3]], axis=2)  # (n, 3, 2)
-    if not np.all(np.isfinite(X)):
+    ok = np.all(np.abs(gaps - dt) <= SPACING_TOL * dt, axis=1) & np.all(np.isfinite(X), axis=(1, 2))
+    if not dt > 0 or int(ok.sum()) < MIN_TOUCHUPS:
         return None
+    ks = [k for k, keep in zip(ks, ok, strict=True) if keep]
+    X = X[ok]
     cost = np.array([[fit_one_mode(X, r, d)[0].sum() for r in R_GRID] for d in DELTA_GRID])
     i, j = np.unravel_index(int(np.argmin(cost)), cost.shape)
     r, delta = float(R_GRID[j]), float(DELTA_GRID[i])
-    sigma2 = float(cost[i, j]) / (2.0 * len(X))  # 1 residual dof per touch-up, 2 coordinates
+    sigma2 = float(cost[i, j]) / len(X)  # 6 numbers - 5 unknowns: 1 residual dof per touch-up
     found = moment_globals(X, sigma2, (r, delta))
     if found is not None:
         r, delta = found
