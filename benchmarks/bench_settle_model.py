@@ -131,7 +131,7 @@ def main() -> None:
     )
     from pipeline.stages.touchup_swing import moment_globals
 
-    sigma2 = float(grid[i, j]) / (2.0 * len(X))
+    sigma2 = float(grid[i, j]) / len(X)  # one residual dof per touch-up
     got = moment_globals(X, sigma2, (float(rs[j]), float(ds[i])))
     if got is not None:
         print(
