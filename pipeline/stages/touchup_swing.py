@@ -34,7 +34,7 @@ Measured on the LR Mate-like cell with vibration after moves (15 Hz, decaying in
 0.3 s, captures 0.21 s apart: ``r`` 0.50, ``Delta`` 54 deg), seeds 7-14, shipped
 model against the truth (mean shape RMS; still twin 0.0106 mm): settle weights
 alone 0.0183 mm; (S1) at the grid's best pair 0.0138; at the truth's pair 0.0120;
-at (S2)'s 0.0115 (docs/detection.md has the benchmark's figures). On synthetic
+at (S2)'s 0.0118 (``bench_optics.py``; docs/detection.md has the figures). On synthetic
 captures (``tests/test_touchup_swing.py``) the centre's error is 0.44-0.62x the
 settle-weighted mean's. A still camera has no swing to find: the fit would only
 add noise (about 0.003 px on these cells), which is why it is used only when the
