@@ -298,8 +298,8 @@ def floors(dataset: str, models: tuple[str, ...], work: Path) -> None:
     print("consistency / distance error (mm), trained on every other placement | fitted on itself")
     for model in models:
         others, itself = {}, {}
+        judge = Judge(df, [])
         for p in held:
-            judge = Judge(df, [])
             q, s = judge.sub(p)
             rest = [x for x in placements(df) if x != p]
             predict, _, _ = vtcal_identify(df, rest, model, work)

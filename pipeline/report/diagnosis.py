@@ -246,13 +246,13 @@ def settle_rows(data: RunData) -> list[dict[str, str]]:
         p_value = float(part.get("p_value", math.nan))
         if part.get("weighted"):
             wt = ", ".join(f"{x:.2f}" for x in part.get("weights", []))
+            sw = part.get("swing")
             text = (
                 f"still swinging: the captures 1, 2, ... before the last differ from it by "
-                f"{sc} px RMS (p = {p_value:.2g}); averaged with weights {wt} (the last first)"
+                f"{sc} px RMS (p = {p_value:.2g}); {'weights' if sw else 'averaged with weights'}"
+                f" {wt} (the last first)"
             )
-            sw = part.get("swing")
             if sw:
-                text = text.replace("averaged with weights", "weights")
                 text += (
                     f", used for the long axis' angle; the centre itself is a one-mode fit "
                     f"of the swing over {sw['n']} touch-ups (decay {sw['r']:.2f} and phase "

@@ -38,8 +38,7 @@ def final_shapes(
     w, ws, found = settle(uses, (u, v), (s,))  # an unsettled camera's early captures
     swing = None
     if w is not None:  # still swinging: the swing left in the last capture, by one mode
-        t_s = c.df["stamp_ns"].to_numpy(np.int64) * 1e-9 if "stamp_ns" in c.df else None
-        swing = remove_swing(uses, t_s, u, v) if t_s is not None else None
+        swing = remove_swing(uses, c.df["stamp_ns"].to_numpy(np.int64) * 1e-9, u, v)
         found["centre"]["swing"] = swing.summary() if swing is not None else None
     for k, use_k in enumerate(uses):
         if use_k:
