@@ -225,3 +225,26 @@ def test_a_significant_shape_is_refitted_and_its_figures_are_the_refits(monkeypa
     assert [t["ellipticity"] for t in fast["targets"]] == [
         t["ellipticity"] for t in slow["targets"]
     ]
+
+
+def test_held_out_touchups_are_judged_with_the_print_shape_the_fit_kept():
+    """A touch-up held out of a fold stops off its target by the print error of its view.
+
+    The k-fold figure must carry the fold fit's print correction for it (as the shipped
+    fit carries it for its own touch-ups), else it reads the print's ``z eps`` as robot
+    error: the held-out RMS then tracks the print (here ~10x the true pin error), not
+    the calibration.
+    """
+    from pipeline.stages.crossval import CrossvalConfig, cross_validate
+
+    e = np.array([1.0e-3, 0.6e-3, 1.4e-3])  # 20, 12 and 28 um on a 10 mm disc
+    urdf, nominal, true, table, _, _ = _printed_case(e, [0.0, 4e-4, -3e-4], noise_pin=5e-6)
+    cfg = IdentifyConfig(model="full")
+    full = identify(table, urdf, "base_link", "flange", cfg)
+    assert full.summary["print_shape"]["fitted"]
+    true_mm = _acc(full, true, table, nominal)["shape_rms_m"] * 1e3
+    cv = cross_validate(
+        table, urdf, "base_link", "flange", cfg, CrossvalConfig(models=["full"], k=4, loto=False)
+    )
+    held_mm = cv.summary["models"]["full"]["kfold_rms_mm"]
+    assert 0.5 * true_mm <= held_mm <= 2.0 * true_mm, (held_mm, true_mm)

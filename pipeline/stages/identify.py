@@ -91,6 +91,7 @@ from pipeline.stages.identify_types import (
     TooFewTouchups,
 )
 from pipeline.stages.parallel_map import parallel_map
+from pipeline.stages.print_shape import ShapeFit
 
 #: the public names of identification, importable from here (the parts live in
 #: identify_types, identify_data, identify_shape, identify_notes, identify_tables, and
@@ -337,6 +338,7 @@ class _Solved:
     sol: Any  # scipy OptimizeResult
     data: FitData  # with the print-shape levers applied when fitted
     shape: dict[str, Any] | None
+    shape_fit: ShapeFit | None  # the fitted print shape, for touch-ups the fit has not seen
     noise_note: str
     sigma_flange: F64 | None
     method: str
@@ -389,12 +391,15 @@ def _solve(s: _Setup, data: FitData, config: IdentifyConfig) -> _Solved:
                 "the fit (feasible generalised least squares)"
             )
     shape: dict[str, Any] | None = None
+    shape_fit: ShapeFit | None = None
     if data.shape_g is not None and config.target_shape != "none":
-        sol, data, shape = fit_print_shape(prob, sol, solve, config, len(kept))
+        sol, data, shape, shape_fit = fit_print_shape(prob, sol, solve, config, len(kept))
     x, pin, tg = prob.split(sol.x)
     r, Jfull = prob.full_eval(x, pin, tg)
     assert Jfull is not None
-    return _Solved(sol, data, shape, noise_note, sigma_flange, method, x, pin, tg, r, Jfull)
+    return _Solved(
+        sol, data, shape, shape_fit, noise_note, sigma_flange, method, x, pin, tg, r, Jfull
+    )
 
 
 def _uncertainty(s: _Setup, f: _Solved, config: IdentifyConfig) -> Uncertainty:
@@ -474,6 +479,7 @@ def _identify_one(name: str, robot: Robot, data: FitData, config: IdentifyConfig
         x=x,
         error_model=model,
         target_xyz=_target_xyz(data, tg),
+        print_shape=f.shape_fit,
     )
 
 
@@ -519,6 +525,7 @@ def _prediction_only(name: str, s: _Setup, f: _Solved, t0: float) -> IdentifyRes
         x=f.x,
         error_model=model,
         target_xyz=_target_xyz(data, f.tg),
+        print_shape=f.shape_fit,
     )
 
 

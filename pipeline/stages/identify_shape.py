@@ -14,6 +14,7 @@ from pipeline.estimation.measurement import Problem
 from pipeline.kinematics.se3 import F64
 from pipeline.stages.identify_data import FitData
 from pipeline.stages.identify_types import IdentifyConfig
+from pipeline.stages.print_shape import ShapeFit
 
 #: joint Gauss-Newton steps of the print-shape test without a refit (:func:`_linear_test`)
 LINEAR_STEPS = 2
@@ -21,7 +22,7 @@ LINEAR_STEPS = 2
 
 def fit_print_shape(
     prob: Problem, sol: Any, solve: Any, config: IdentifyConfig, n_free: int
-) -> tuple[Any, FitData, dict[str, Any]]:
+) -> tuple[Any, FitData, dict[str, Any], ShapeFit | None]:
     """Each target's print size and out-of-roundness, solved jointly with the fit.
 
     :mod:`pipeline.stages.print_shape` has the model (S1)-(S2). Three Gauss-Newton
@@ -46,6 +47,7 @@ def fit_print_shape(
     sol : the solver result to continue with
     data : the data it belongs to (a copy with the corrected ``d``, or ``prob.data``)
     summary : ``fitted``, ``note``, F-test figures, per-target figures
+    shape : the fitted print shape (to correct touch-ups the fit has not seen), or None
     """
     D0 = prob.data
     K = D0.K
@@ -59,6 +61,7 @@ def fit_print_shape(
                 "note": f"print shape not fitted: a target has {int(counts.min())} touch-ups "
                 f"(needs {config.shape_min_touchups})",
             },
+            None,
         )
     assert D0.shape_g is not None and D0.shape_l is not None
     n_all = 3 * K - 1
@@ -75,19 +78,19 @@ def fit_print_shape(
     for i, cols in enumerate(tries):
         forced = config.target_shape == "fit" and i == 0
         out, significant = _linear_test(start, cols, config, n_free)
-        s1, D1 = sol0, D0
+        s1, D1, fitted = sol0, D0, None
         if significant or (forced and "F" in out):
-            s1, D1, out, significant = _attempt(start, cols, solve, config, n_free)
+            s1, D1, out, significant, fitted = _attempt(start, cols, solve, config, n_free)
         tried.append(out)
         if significant or (forced and "F" in out):
             out["fitted"] = True
             out["tried"] = [{k: t.get(k) for k in ("parameters", "F", "p_value")} for t in tried]
-            return s1, D1, out
+            return s1, D1, out, fitted
     prob.data, prob.W = D0, W0
     first = tried[0]
     if "F" not in first:
-        return sol0, D0, first
-    return sol0, D0, _not_significant(first, tried, config.shape_alpha)
+        return sol0, D0, first, None
+    return sol0, D0, _not_significant(first, tried, config.shape_alpha), None
 
 
 def _rss(prob: Problem, D: FitData, z: F64) -> float:
@@ -224,8 +227,9 @@ def _f_test(
 
 def _attempt(
     start: _Start, cols: np.ndarray, solve: Any, config: IdentifyConfig, n_free: int
-) -> tuple[Any, FitData, dict[str, Any], bool]:
-    """Fit the ``theta`` columns ``cols`` from ``sol0`` on ``D0``; (sol, data, summary, significant)."""
+) -> tuple[Any, FitData, dict[str, Any], bool, ShapeFit | None]:
+    """Fit the ``theta`` columns ``cols`` from ``sol0`` on ``D0``; (sol, data, summary,
+    significant, the fitted shape)."""
     from pipeline.stages import print_shape as ps
 
     prob, D0, W0, sol0, rss0 = start
@@ -237,6 +241,7 @@ def _attempt(
             D0,
             {"fitted": False, "note": "print shape not fitted: too few touch-ups"},
             False,
+            None,
         )
     K = D0.K
     prob.data, prob.W = D, W0
@@ -270,7 +275,19 @@ def _attempt(
             for k in ("ellipticity", "ellipticity_std", "orientation_rad", "out_of_round_um"):
                 if k in t:
                     t[k] = float("nan")
-    return s1, D, out, p_value < config.shape_alpha
+    return s1, D, out, p_value < config.shape_alpha, _shape_fit(prob, D, s1.x, theta)
+
+
+def _shape_fit(prob: Problem, D: FitData, z: F64, theta: F64) -> ShapeFit:
+    """The fitted print shape with its plate frames at the fit's kinematics ``z``."""
+    from pipeline.stages import print_shape as ps
+
+    assert D.shape_g is not None and D.shape_l is not None
+    x, pin, _ = prob.split(z)
+    _, R, _ = prob.model.pin_and_jacobian(x, D.q, pin + D.d, jac=False)
+    l_base = np.einsum("nij,nj->ni", R, D.shape_l)
+    _, e1, e2 = ps.plate_frames(l_base, D.tk, D.K, np.einsum("nij,nj->ni", R, D.shape_g))
+    return ShapeFit(theta.copy(), e1, e2, tuple(int(t) for t in D.target_ids))
 
 
 def _not_significant(

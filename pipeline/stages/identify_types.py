@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, NamedTuple
 
 import numpy as np
 import pandas as pd
@@ -13,6 +13,7 @@ from pipeline.kinematics.chain import Chain, load_chain
 from pipeline.kinematics.se3 import F64
 from pipeline.models import make_model
 from pipeline.models.base import ErrorModel
+from pipeline.stages.print_shape import ShapeFit
 
 DEFAULT_MODEL = "full"
 
@@ -144,6 +145,15 @@ class Robot:
         return self._models[name]
 
 
+class PrintRows(NamedTuple):
+    """Rows' print-shape geometry for :meth:`IdentifyResult.predict`: levers ``g`` and
+    long-axis directions ``l`` (N, 3) each, flange frame, and target ids (N,)."""
+
+    g: F64
+    l: F64
+    target_id: np.ndarray
+
+
 @dataclass
 class IdentifyResult:
     """Everything identification produces for one error model.
@@ -164,6 +174,8 @@ class IdentifyResult:
         (``IdentifyConfig.correction_frame``; the identity for ``nominal``)
     target_xyz : ``{target_id: (3,) fitted position, m}``: the positions of ``targets``,
         also where a prediction-only fit makes no targets table
+    print_shape : the fitted print shape (:class:`pipeline.stages.print_shape.ShapeFit`),
+        None when the fit kept perfect circles of one size
     """
 
     model: str
@@ -178,16 +190,29 @@ class IdentifyResult:
     error_model: ErrorModel | None = field(repr=False, default=None)
     correction_map: F64 = field(repr=False, default_factory=lambda: np.eye(3))
     target_xyz: dict[int, F64] = field(repr=False, default_factory=dict)
+    print_shape: ShapeFit | None = field(repr=False, default=None)
 
-    def predict(self, q: F64, d: F64) -> F64:
-        """Pin positions ``T_base_flange(q_i; x) (p_pin + M_eff d_i)`` of the fitted model, (N, 3).
+    def predict(self, q: F64, d: F64, shape: PrintRows | None = None) -> F64:
+        """Pin positions of the fitted model, (N, 3):
 
-        ``d`` as the table has it; ``M_eff`` is :attr:`correction_map`."""
+            p_i = T_base_flange(q_i; x) (p_pin + M_eff d_i + eps_i g_i)
+
+        ``d`` as the table has it; ``M_eff`` is :attr:`correction_map`. The print term
+        ``eps_i g_i`` ((S1)-(S2) of :mod:`pipeline.stages.print_shape`) is added when the
+        fit kept a print shape and ``shape`` gives the rows' levers, long axes and
+        targets: the fit corrected its own touch-ups so, and a touch-up it has not seen
+        (held out) stops off its target by the same print error.
+        """
         pts = self.p_flange_pin[None, :] + np.asarray(d, dtype=float) @ self.correction_map.T
         if self.error_model is not None:
-            p, _, _ = self.error_model.pin_and_jacobian(self.x, q, pts, jac=False)
-            return p
-        from pipeline.kinematics.chain import fk
+            p, R, _ = self.error_model.pin_and_jacobian(self.x, q, pts, jac=False)
+        else:
+            from pipeline.kinematics.chain import fk
 
-        T = fk(self.chain, q)
-        return np.asarray(np.einsum("nij,nj->ni", T[:, :3, :3], pts) + T[:, :3, 3])
+            T = fk(self.chain, q)
+            R = T[:, :3, :3]
+            p = np.einsum("nij,nj->ni", R, pts) + T[:, :3, 3]
+        if self.print_shape is not None and shape is not None:
+            lever = self.print_shape.lever_terms(R, shape.g, shape.l, shape.target_id)
+            p = p + np.einsum("nij,nj->ni", R, lever)
+        return np.asarray(p)

@@ -41,6 +41,8 @@ repeated three times with ``alpha`` recomputed from the current kinematics.
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
 
 from pipeline.kinematics.se3 import F64
@@ -108,8 +110,18 @@ def design(
     -------
     B : (N, 3K - 1) ; ok : (N,) bool
     """
-    N = len(tk)
     _, e1, e2 = plate_frames(l_base, tk, K, view_base)
+    return design_in_frames(l_base, tk, e1, e2)
+
+
+def design_in_frames(l_base: F64, tk: np.ndarray, e1: F64, e2: F64) -> tuple[F64, np.ndarray]:
+    """Design rows ``B`` (N, 3K - 1) of (S2) in given plate frames ``e1, e2`` (K, 3).
+
+    :func:`design` with the frames of :func:`plate_frames` passed in, so that rows the
+    frames were not computed from (touch-ups held out of a fit) are placed in the
+    frames of the fit. Rows whose target has no frame (NaN) get zeros.
+    """
+    N, K = len(tk), len(e1)
     B = np.zeros((N, 3 * K - 1))
     ok = np.all(np.isfinite(l_base), axis=1) & np.all(np.isfinite(e1[tk]), axis=1)
     a = np.arctan2(np.einsum("ni,ni->n", l_base, e2[tk]), np.einsum("ni,ni->n", l_base, e1[tk]))
@@ -151,3 +163,42 @@ def summarise(theta: F64, std: F64, K: int, diameter_m: float | None) -> list[di
             row["out_of_round_um"] = 1e6 * 2.0 * e * diameter_m
         out.append(row)
     return out
+
+
+@dataclass(frozen=True)
+class ShapeFit:
+    """A fitted print shape, enough to correct touch-ups the fit has not seen.
+
+    Attributes
+    ----------
+    theta : (3K - 1,) the parameters of (S2): ``kappa_1 .. kappa_{K-1}``, ``c_t, s_t``
+    e1, e2 : (K, 3) each target's in-plane axes (base frame of the fitted kinematics,
+        :func:`plate_frames` of the fit's rows)
+    target_ids : the touch-up table's target id of each of the K targets
+    """
+
+    theta: F64
+    e1: F64
+    e2: F64
+    target_ids: tuple[int, ...]
+
+    def lever_terms(self, R: F64, g: F64, l_flange: F64, target_id: np.ndarray) -> F64:
+        """Each row's print correction ``eps_i g_i`` (S1), flange frame, (N, 3).
+
+        Parameters
+        ----------
+        R : (N, 3, 3) the flange orientations ``R_base_flange`` of the fitted kinematics
+        g, l_flange : (N, 3) the rows' levers and long-axis directions (flange frame)
+        target_id : (N,) the rows' target ids; a row of a target the fit did not see,
+            or without finite shape columns, gets zero
+        """
+        index = {t: k for k, t in enumerate(self.target_ids)}
+        tk = np.array([index.get(int(t), -1) for t in target_id], dtype=int)
+        seen = (tk >= 0) & np.all(np.isfinite(g), axis=1) & np.all(np.isfinite(l_flange), axis=1)
+        out = np.zeros((len(tk), 3))
+        if not seen.any():
+            return out
+        l_base = np.einsum("nij,nj->ni", R[seen], l_flange[seen])
+        B, _ = design_in_frames(l_base, tk[seen], self.e1, self.e2)
+        out[seen] = g[seen] * (B @ self.theta)[:, None]
+        return out
