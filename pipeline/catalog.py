@@ -161,7 +161,8 @@ STAGES: tuple[Stage, ...] = (
         ("calibrated_urdf", "identify"),
         None,
         ("pipeline.stages.choose:choose_model",),
-        optional=("crossval",),
+        # touchups: the repeated captures' noise; recording: the assumptions (adequacy)
+        optional=("crossval", "touchups", "recording"),
     ),
     Stage(
         "report",

@@ -72,6 +72,8 @@ def touchups(data: dict[str, Any], config: Any, context: Any) -> dict[str, Any]:
     implied = table.attrs.get("implied_target_diameter_m", float("nan"))
     meta = {"implied_target_diameter_m": repr(float(implied))}
     meta["settle"] = json.dumps(table.attrs.get("settle") or {})  # the report shows it
+    # the repeated captures' scatter: the detection noise the fit is tested against
+    meta["capture_noise"] = json.dumps(table.attrs.get("capture_noise") or {})
     return {"touchups": Parquet(table, meta)}
 
 
@@ -136,10 +138,15 @@ def crossval(data: dict[str, Any], config: Any, context: Any) -> dict[str, Any]:
 def choose(data: dict[str, Any], config: Any, context: Any) -> dict[str, Any]:
     """calibrated.urdf and identify.json: the shipped model (:mod:`pipeline.stages.choose`)."""
     from pipeline.stages import choose as stage
+    from pipeline.stages.adequacy import trust
 
     cv = data.get("crossval")
     summary = None if cv is None else json.loads(cv.attrs["vtcal"]["summary"])
     urdf, shipped = stage.choose_model(data["models"], data["model_urdfs"], summary, context.source)
+    tu = data.get("touchups")
+    noise = json.loads(tu.attrs["vtcal"].get("capture_noise") or "{}") if tu is not None else None
+    rec = data.get("recording")
+    shipped["trust"] = trust(shipped, noise, rec if isinstance(rec, dict) else None)
     return {"calibrated_urdf": urdf, "identify": shipped}
 
 

@@ -8,6 +8,11 @@ It is compared with the nominal robot's error on the same touch-ups (the nominal
 kinematics with their best pin and targets, ``solver.initial_rms_mm``). A run is
 *improved* only when the validated error is below ``IMPROVED_BELOW`` times the
 nominal one. Otherwise it says "not improved", and nothing is shown green.
+
+Neither figure sees an error that the fit absorbs. When the model-adequacy test
+or an assumption says one is likely (``identify.json["trust"]``,
+:mod:`pipeline.stages.adequacy`), the line says the figure is a lower bound and a
+tolerance fails.
 """
 
 from __future__ import annotations
@@ -63,8 +68,10 @@ def verdict(
     None without a summary; else a dict: ``model``, ``validated_mm`` and ``validated_how``
     (held-out k-fold, or predicted), ``validated_max_mm``, ``fit_mm`` (training residual),
     ``predicted_mm``, ``nominal_mm``, ``ratio`` (nominal / validated), ``improved`` (bool or
-    None when unknown), ``tolerance_mm``, ``passed`` (None without a tolerance) and
-    ``line`` (one sentence for the CLI).
+    None when unknown), ``tolerance_mm``, ``passed`` (None without a tolerance),
+    ``lower_bound`` (the summary's ``trust`` found a systematic error likely or an
+    assumption the figure hinges on: :mod:`pipeline.stages.adequacy`; a tolerance then
+    fails), ``warnings`` (its console lines) and ``line`` (one sentence for the CLI).
     """
     if not summary:
         return None
@@ -101,9 +108,15 @@ def verdict(
         )
         fit_text = f"; fit residual {fit:.4f} mm (training)" if fit is not None else ""
         line = f"verdict: model {model}: {validated:.4f} mm RMS {how}; {state}{fit_text}"
+    trust = summary.get("trust") or {}
+    lower_bound = bool(trust.get("lower_bound"))
+    if lower_bound:
+        line += f" | {lower_bound_reason(trust)}: the figure is a lower bound"
     passed = None
     if tolerance_mm is not None:
-        passed = bool(validated is not None and validated <= tolerance_mm and improved)
+        passed = bool(
+            validated is not None and validated <= tolerance_mm and improved and not lower_bound
+        )
         why = (
             f"{validated:.4f} mm <= {tolerance_mm:g} mm"
             if passed
@@ -113,7 +126,11 @@ def verdict(
                 else (
                     f"{validated:.4f} mm > {tolerance_mm:g} mm"
                     if validated > tolerance_mm
-                    else "not improved on the nominal robot"
+                    else (
+                        "not improved on the nominal robot"
+                        if not improved
+                        else "the figure is a lower bound"
+                    )
                 )
             )
         )
@@ -130,5 +147,15 @@ def verdict(
         "nominal_mm": nominal,
         "ratio": ratio,
         "improved": improved,
+        "lower_bound": lower_bound,
+        "warnings": list(trust.get("warnings") or []),
         "line": line,
     }
+
+
+def lower_bound_reason(trust: dict[str, Any]) -> str:
+    """Why a run's figure is a lower bound, a few words (:mod:`pipeline.stages.adequacy`)."""
+    if (trust.get("adequacy") or {}).get("systematic"):
+        return "systematic error likely"
+    keys = [str(a.get("key")) for a in trust.get("assumptions") or [] if a.get("lower_bound")]
+    return "assumed " + ", ".join(keys) if keys else "systematic error possible"

@@ -134,6 +134,8 @@ def echo_verdict(
     from pipeline.verdict import verdict
 
     v = verdict(summary, tolerance_mm)
+    for w in v["warnings"] if v is not None else []:  # assumptions, the adequacy test
+        click.echo(f"vtcal: warning: {w}", err=True)
     if v is not None and (v["validated_mm"] is not None or tolerance_mm is not None):
         click.echo(f"{indent}{v['line']}")
     return v

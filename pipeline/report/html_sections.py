@@ -115,6 +115,10 @@ def verdict_section(data: RunData) -> dict[str, Any]:
         "tolerance": tol,
         "passed": v.get("passed"),
         "verdict_line": v.get("line", ""),
+        "lower_bound": bool(v.get("lower_bound")),
+        "trust_warnings": v.get("warnings") or [],
+        "adequacy_note": ((idf.get("trust") or {}).get("adequacy") or {}).get("note", ""),
+        "adequacy_tested": bool(((idf.get("trust") or {}).get("adequacy") or {}).get("tested")),
         "figures": [
             {
                 "label": f.label,

@@ -81,6 +81,7 @@ from pipeline.stages.touchup_jacobian import (
     size_row_scales,
     view_geometry,
 )
+from pipeline.stages.touchup_noise import capture_noise
 from pipeline.stages.touchup_rows import final_shapes, touchup_row
 from pipeline.stages.touchup_segments import final_block, loop_starts, relative_pose, segments
 from pipeline.stages.touchup_targets import group_targets
@@ -404,5 +405,6 @@ def extract_touchups(
     }
     table.attrs["n_jacobian_pairs"] = len(pair_seg)
     table.attrs["settle"] = settled
+    table.attrs["capture_noise"] = capture_noise(uses, c.u, c.v, c.s, J_global, des.s0)
     table.attrs["implied_target_diameter_m"] = diameter_from_jacobian(J_global, des.s0)
     return table

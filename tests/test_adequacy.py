@@ -1,0 +1,111 @@
+"""The model-adequacy test and the assumptions: when the run's figure cannot be trusted.
+
+The fit's residual against what the repeated captures' scatter predicts
+(:mod:`pipeline.stages.adequacy`, (A1); :mod:`pipeline.stages.touchup_noise`,
+(N1)-(N2)); an assumed camera response; and what the verdict then says.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from pipeline.stages.adequacy import RATIO_MAX, adequacy, assumptions, trust
+from pipeline.stages.touchup_noise import capture_noise
+from pipeline.verdict import verdict
+
+
+def _noise(rms_um=10.0):
+    return {"rms_touchup_um": rms_um}
+
+
+def test_capture_noise_maps_the_repeated_captures_through_the_jacobian():
+    rng = np.random.default_rng(4)
+    J = np.array([[2.0e4, 0.0, 1.0e3], [0.0, 2.0e4, -5.0e2], [0.0, 0.0, -4.0e-1]])
+    sd = np.array([0.02, 0.03, 2.0e-6])  # u, v px; 1/s per px
+    uses, u, v, s = [], [], [], []
+    for k in range(400):
+        m = np.array([320.0, 256.0, 1 / 50.0]) + sd * rng.normal(size=(3, 3))
+        uses.append([3 * k, 3 * k + 1, 3 * k + 2])
+        u += list(m[:, 0])
+        v += list(m[:, 1])
+        s += list(1.0 / m[:, 2])
+    got = capture_noise(uses, np.array(u), np.array(v), np.array(s), J, 50.0)
+    Ji = np.linalg.inv(J)
+    want = Ji @ np.diag(sd**2) @ Ji.T
+    assert got["dof"] == 800 and got["n_eff"] == pytest.approx(3.0)
+    assert np.diag(got["cov_flange_m2"]) == pytest.approx(np.diag(want), rel=0.15)
+    assert got["rms_touchup_um"] == pytest.approx(1e6 * math.sqrt(np.trace(want) / 3), rel=0.1)
+    assert got["sd_px"][:2] == pytest.approx(sd[:2], rel=0.1)
+
+
+def test_single_captures_leave_the_noise_unknown_and_the_test_untested():
+    got = capture_noise([[0], [1]], np.ones(2), np.ones(2), np.ones(2), np.eye(3), 50.0)
+    assert math.isnan(got["rms_touchup_um"])
+    a = adequacy({"rms_mm": 0.02, "dof": 30, "n_rows": 18}, got)
+    assert not a["tested"] and not a["systematic"] and "not tested" in a["note"]
+
+
+def test_a_residual_the_noise_explains_is_adequate_and_a_larger_one_is_not():
+    # 3N = 60 residuals, p = 20: the noise predicts 10 um * sqrt(40/60) = 8.2 um
+    s = {"rms_mm": 0.012, "dof": 40, "n_rows": 20}
+    a = adequacy(s, _noise(10.0))
+    assert a["tested"] and not a["systematic"]
+    assert a["predicted_mm"] == pytest.approx(0.010 * math.sqrt(40 / 60))
+    assert a["ratio"] == pytest.approx(0.012 / a["predicted_mm"])
+    b = adequacy({**s, "rms_mm": (RATIO_MAX + 0.1) * a["predicted_mm"]}, _noise(10.0))
+    assert b["systematic"] and "lower bound" in b["note"]
+
+
+def test_an_assumed_response_is_a_lower_bound_and_a_declared_one_is_not():
+    rec = {
+        "camera": {"response": "linear", "response_source": "assumed", "note": "n"},
+        "inferred": {"camera_response": "linear (assumed: the edge model does not fit)"},
+    }
+    made = assumptions(rec)
+    assert [a["key"] for a in made] == ["camera_response"] and made[0]["lower_bound"]
+    assert "assumed linear" in made[0]["text"]
+    assert assumptions({"camera": {"response": "srgb", "response_source": "metadata"}}) == []
+
+
+def _summary(fit=0.02, held=0.03, trust_=None):
+    s = {
+        "best_model": "mdh",
+        "rms_mm": fit,
+        "dof": 40,
+        "n_rows": 20,
+        "solver": {"initial_rms_mm": 1.0},
+        "crossval": {"models": {"mdh": {"kfold_rms_mm": held, "kfold_n": 20}}},
+    }
+    if trust_ is not None:
+        s["trust"] = trust_
+    return s
+
+
+def test_the_verdict_says_lower_bound_and_a_tolerance_fails():
+    s = _summary(fit=0.05)
+    s["trust"] = trust(s, _noise(5.0), None)  # predicts 4.1 um: 12x
+    v = verdict(s, tolerance_mm=0.1)
+    assert v["lower_bound"] and v["passed"] is False
+    assert "systematic error likely: the figure is a lower bound" in v["line"]
+    assert "FAIL (the figure is a lower bound)" in v["line"]
+    assert v["warnings"] and "systematic error likely" in v["warnings"][0]
+    ok = _summary(fit=0.005)
+    ok["trust"] = trust(ok, _noise(5.0), None)
+    w = verdict(ok, tolerance_mm=0.1)
+    assert not w["lower_bound"] and w["passed"] is True and "lower bound" not in w["line"]
+    assert w["warnings"] == []
+
+
+def test_an_assumed_response_is_said_on_the_console_and_fails_a_tolerance(capsys):
+    from pipeline.commands._common import echo_verdict
+
+    rec = {"camera": {"response": "linear", "response_source": "assumed"}, "inferred": {}}
+    s = _summary(fit=0.005)
+    s["trust"] = trust(s, _noise(5.0), rec)
+    v = echo_verdict(s, 0.1)
+    err = capsys.readouterr().err
+    assert "vtcal: warning: camera response assumed linear" in err
+    assert v is not None and v["passed"] is False and "assumed camera_response" in v["line"]
