@@ -355,8 +355,8 @@ def _drift(table: pd.DataFrame, k_sigma: float) -> None:
 
 _CSS = """
 body{font-family:system-ui,sans-serif;margin:1.5em;color:#222}
-table{border-collapse:collapse;margin:0.6em 0 1.6em;font-size:0.86em}
-th,td{border:1px solid #ccc;padding:0.2em 0.5em;text-align:right}
+table{border-collapse:collapse;margin:0.6em 0 1.6em;font-size:0.86em;max-width:100%}
+th,td{border:1px solid #ccc;padding:0.2em 0.5em;text-align:right;overflow-wrap:anywhere}
 th{background:#f0f0f0} td.l,th.l{text-align:left}
 tr.moved td{background:#fde2e2} .ok{color:#176b2c} .bad{color:#a11}
 """
