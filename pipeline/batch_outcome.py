@@ -191,8 +191,10 @@ def run_recording(
     rec = _new_outcome(item, out)
     t0, c0 = time.perf_counter(), time.process_time()
     try:
+        from pipeline.batch_manifest import ensure_recording
         from pipeline.orchestrator import run_pipeline
 
+        ensure_recording(item)  # a manifest's demo recording, simulated first when missing
         result = run_pipeline(item.recording, out, config, until=until, force=force)
     except VtcalError as exc:
         rec.status, rec.error_kind = "error", _error_kind(exc)

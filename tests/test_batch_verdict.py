@@ -83,7 +83,7 @@ def test_the_table_headlines_the_validated_figure(tmp_path: Path) -> None:
     assert header.index("validated mm") < header.index("training mm")
     bad = next(line for line in text.splitlines() if line.lstrip("│ ").startswith("bad"))
     assert "not improved" in bad and "0.9500" in bad and "0.8310" in bad
-    assert "1 ok, 1 not improved" in text
+    assert "1 of 2 recording(s) ok, 1 not improved in" in text
     df = summary_table(outs)
     assert list(df["verdict"]) == ["not improved", "improved"]
     assert df["validated_mm"].tolist() == pytest.approx([0.95, 0.06])

@@ -318,10 +318,10 @@ def print_summary(console: Any, result: BatchResult) -> None:
     judged = "".join(
         f", {states.count(w)} {w}" for w in ("not improved", "FAIL") if states.count(w)
     )
+    failed = f", {len(result.failed)} did not finish" if result.failed else ""
     console.print(
-        f"{result.n_ok} of {len(result.outcomes)} recording(s) finished in "
-        f"{result.seconds:.1f} s ({states.count('ok')} ok{judged}); "
-        f"summary: {result.summary_path}",
+        f"{states.count('ok')} of {len(result.outcomes)} recording(s) ok{judged}{failed} in "
+        f"{result.seconds:.1f} s; summary: {result.summary_path}",
         highlight=False,
     )
     console.print(

@@ -12,6 +12,7 @@ import click
     "compare",
     epilog="""\b
 Examples:
+  vtcal compare runs/sample                          # one run: its error models side by side
   vtcal compare runs/2024-05 runs/2024-11            # writes compare.parquet + compare.html
   vtcal compare runs/* --out audit.parquet --html audit.html --sigma 4
   vtcal compare runs/a runs/b --fail-on-drift        # exit status 1 when a parameter moved
