@@ -83,7 +83,7 @@ def _run_file(name: str, cmds: list[Command], cwd: Path) -> list[str]:
             elif missing_inputs(cmd, cwd):
                 TALLY["user file"] += 1
                 continue
-            elif cmd.background:
+            elif cmd.background or cmd.args[0] == "cell-server":  # a server runs until stopped
                 background.append(_start(cmd, cwd))
                 TALLY["run"] += 1
                 continue
@@ -168,16 +168,21 @@ def test_the_docs_quote_the_sample_as_it_runs(sandbox: Path) -> None:
     assert f"with the shipped model {model}" in export
 
 
-def test_zz_counts(sandbox: Path) -> None:
-    """What the runner did (printed with -s or in CI's log on failure): it ran commands."""
+def summary_line() -> str:
+    """The runner's counts (conftest.py prints it at the end of every session that ran it)."""
     found = sum(len(c) for c in COMMANDS.values())
-    line = (
+    return (
         f"docs as tests: {found} commands in {len(COMMANDS)} docs and --help texts: "
         f"{TALLY['run']} run, {TALLY['long']} long (VTCAL_DOCS_LONG=1), "
         f"{TALLY['user file']} on the reader's files, {TALLY['synopsis']} synopses, "
         f"{TALLY['live cell']} live cell; {TALLY['figures']} quoted lines with figures "
         f"checked in {TALLY['output blocks']} output blocks"
     )
+
+
+def test_zz_counts(sandbox: Path) -> None:
+    """What the runner did: it ran commands and checked figures."""
+    line = summary_line()
     print(line)
     (sandbox / "counts.txt").write_text(line + "\n")
     if TALLY["run"]:  # the whole module ran (not one file alone with -k)
