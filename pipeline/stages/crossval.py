@@ -537,10 +537,8 @@ def _choose(
 ) -> tuple[str | None, str]:
     """Smallest k-fold RMS among completely cross-validated models (ties: fewer parameters).
 
-    ``trained``: the training RMS (mm) of every model the identify stage fitted, also
-    those not cross-validated; the sentence names the model the smallest training RMS
-    would have chosen when it differs from the chosen one by more than the 1 % that
-    counts as a tie (a model it only beats in the fifth digit is no other choice).
+    ``trained``: training RMS (mm) of every fitted model, cross-validated or not; the
+    sentence names the training choice only when it beats the chosen one by over 1 %.
 
     A model whose URDF cannot carry it (``urdf_exact`` false, e.g. ``elastic``) is
     never chosen over one whose URDF can: the chosen model becomes
