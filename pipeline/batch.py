@@ -334,7 +334,9 @@ def run_batch(
     out_dir.mkdir(parents=True, exist_ok=True)
     t0 = time.perf_counter()
     items = [
-        BatchItem(it.name, Path(it.recording).expanduser().absolute(), it.robot, it.notes)
+        BatchItem(
+            it.name, Path(it.recording).expanduser().absolute(), it.robot, it.notes, it.simulate
+        )
         for it in items
     ]
     outcomes: dict[str, RecordingOutcome] = {}

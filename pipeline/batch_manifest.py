@@ -28,12 +28,15 @@ class BatchItem:
     recording : path of the MCAP recording (absolute once resolved)
     robot : robot the manifest says recorded it ('' when not given)
     notes : free text from the manifest
+    simulate : ``(scenario TOML, seed)`` when the manifest says how to make the recording
+        with ``vtcal simulate``: the batch's worker writes it first if it is missing
     """
 
     name: str
     recording: Path
     robot: str = ""
     notes: str = ""
+    simulate: tuple[str, int] | None = None
 
 
 @dataclass(frozen=True)
@@ -90,6 +93,11 @@ def load_manifest(path: str | os.PathLike[str]) -> Manifest:
         name = "cell1"                   # optional run folder name (default: file stem)
         robot = "lrmate"                 # optional
         notes = "after the J2 gearbox swap"   # optional
+        simulate = { scenario = "scenarios/standard.toml", seed = 11 }   # optional: see below
+
+    ``simulate``: a recording that is missing is first simulated (``vtcal simulate
+    --scenario SCENARIO --seed SEED --out PATH``, the scenario's path relative to the
+    manifest), so a demo manifest runs as written on a fresh clone.
 
     Raises
     ------
@@ -112,12 +120,12 @@ def load_manifest(path: str | os.PathLike[str]) -> Manifest:
     base = p.parent.absolute()
     paths: list[Path] = []
     given: list[str | None] = []
-    extra: list[tuple[str, str]] = []
+    extra: list[tuple[str, str, tuple[str, int] | None]] = []
     for i, r in enumerate(recs):
         where = f"{p}: recordings[{i}]"
         if not isinstance(r, dict) or not isinstance(r.get("path"), str) or not r["path"]:
             raise BadInput(f"{where}: needs a 'path' string")
-        unknown = set(r) - {"path", "name", "robot", "notes"}
+        unknown = set(r) - {"path", "name", "robot", "notes", "simulate"}
         if unknown:
             raise BadInput(f"{where}: unknown key(s) {', '.join(sorted(unknown))}")
         for key in ("name", "robot", "notes"):
@@ -128,15 +136,15 @@ def load_manifest(path: str | os.PathLike[str]) -> Manifest:
         rp = Path(r["path"]).expanduser()
         paths.append(rp if rp.is_absolute() else base / rp)
         given.append(r.get("name"))
-        extra.append((r.get("robot", ""), r.get("notes", "")))
+        extra.append((r.get("robot", ""), r.get("notes", ""), _simulate(r, base, where)))
     explicit = [g for g in given if g]
     dup = sorted({g for g in explicit if explicit.count(g) > 1})
     if dup:
         raise BadInput(f"{p}: repeated recording name(s) {', '.join(dup)}")
     names = _unique_names([g or q.stem for g, q in zip(given, paths, strict=True)])
     items = tuple(
-        BatchItem(n, q, robot, notes)
-        for n, q, (robot, notes) in zip(names, paths, extra, strict=True)
+        BatchItem(n, q, robot, notes, sim)
+        for n, q, (robot, notes, sim) in zip(names, paths, extra, strict=True)
     )
     return Manifest(
         path=p,
@@ -144,3 +152,41 @@ def load_manifest(path: str | os.PathLike[str]) -> Manifest:
         description=str(raw.get("description", "")),
         items=items,
     )
+
+
+def _simulate(entry: dict[str, object], base: Path, where: str) -> tuple[str, int] | None:
+    """An entry's ``simulate = { scenario = "...", seed = N }``: (absolute scenario, seed)."""
+    sim = entry.get("simulate")
+    if sim is None:
+        return None
+    if (
+        not isinstance(sim, dict)
+        or set(sim) != {"scenario", "seed"}
+        or not isinstance(sim["scenario"], str)
+        or not isinstance(sim["seed"], int)
+        or isinstance(sim["seed"], bool)
+    ):
+        raise BadInput(
+            f"{where}: 'simulate' must be {{ scenario = \"FILE.toml\", seed = N }}, got {sim!r}"
+        )
+    sp = Path(sim["scenario"]).expanduser()
+    sp = sp if sp.is_absolute() else base / sp
+    if not sp.is_file():
+        raise BadInput(f"{where}: simulate: no such scenario file {sp}")
+    return str(sp), int(sim["seed"])
+
+
+def ensure_recording(item: BatchItem) -> bool:
+    """Simulate ``item``'s recording when it is missing and the manifest says how.
+
+    Returns True when it simulated. The file and its ``.truth.json`` are written as
+    ``vtcal simulate`` writes them (atomically: a killed batch leaves no partial file).
+    """
+    if item.simulate is None or item.recording.exists():
+        return False
+    from pipeline.sim.scenario import load_scenario
+    from pipeline.sim.simulator import write_recording
+
+    scenario, seed = item.simulate
+    write_recording(load_scenario(Path(scenario)), seed, item.recording)
+    return True

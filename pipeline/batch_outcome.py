@@ -61,6 +61,19 @@ class RecordingOutcome:
     figures: dict[str, Any] = field(default_factory=dict)
     headline: list[str] = field(default_factory=list)
     retried: bool = False
+    verdict: str = ""
+
+    @property
+    def state(self) -> str:
+        """What the batch prints in its status column: the run's own verdict once it finished.
+
+        ``ok`` only for a calibration that improved on the nominal robot (and met its
+        tolerance when the recording gave one); else ``not improved`` or ``FAIL``, as
+        ``vtcal run`` would say; ``error`` / ``not_run`` for a recording that did not finish.
+        """
+        if self.status != "ok":
+            return self.status
+        return {"FAIL": "FAIL", "not improved": "not improved"}.get(self.verdict, "ok")
 
 
 def limit_threads() -> None:
@@ -178,8 +191,10 @@ def run_recording(
     rec = _new_outcome(item, out)
     t0, c0 = time.perf_counter(), time.process_time()
     try:
+        from pipeline.batch_manifest import ensure_recording
         from pipeline.orchestrator import run_pipeline
 
+        ensure_recording(item)  # a manifest's demo recording, simulated first when missing
         result = run_pipeline(item.recording, out, config, until=until, force=force)
     except VtcalError as exc:
         rec.status, rec.error_kind = "error", _error_kind(exc)
@@ -237,7 +252,12 @@ def _item_outcome(item: BatchItem, run_dir: Path, **fields: Any) -> RecordingOut
 
 
 def take_result(rec: RecordingOutcome, result: Any) -> None:
-    """Stage statuses and, when identify ran or was cached, the figures of ``identify.json``."""
+    """Stage statuses and, when identify ran or was cached, the figures of ``identify.json``
+    and the run's verdict (:func:`pipeline.verdict.verdict`, the one ``vtcal run`` prints:
+    the validated figure, improved or not, PASS / FAIL against the recording's
+    ``tolerance_mm`` when it has one)."""
+    from pipeline.verdict import verdict
+
     rec.status = "ok"
     rec.stages = [(s.stage, s.status, float(s.seconds)) for s in result.stages]
     if any(s.stage == "identify" for s in result.stages):
@@ -250,6 +270,40 @@ def take_result(rec: RecordingOutcome, result: Any) -> None:
             v = summ.get(k)
             rec.figures[k] = v if isinstance(v, (int, float)) else None
         rec.headline = [str(h) for h in summ.get("headline", [])]
+        v = verdict(summ, run_tolerance(Path(rec.run_dir))) or {}
+        for k in ("validated_mm", "validated_how", "nominal_mm", "tolerance_mm"):
+            rec.figures[k] = v.get(k)
+        rec.figures["verdict_line"] = v.get("line", "")
+        rec.verdict = verdict_word(v)
+        if v.get("passed") is False:
+            rec.exit_code = 3  # what `vtcal run` exits with on FAIL
+
+
+def verdict_word(v: dict[str, Any]) -> str:
+    """``PASS`` / ``FAIL`` with a tolerance, else ``improved`` / ``not improved`` ('' unknown)."""
+    if v.get("passed") is not None:
+        return "PASS" if v["passed"] else "FAIL"
+    if v.get("improved") is None:
+        return ""
+    return "improved" if v["improved"] else "not improved"
+
+
+def run_tolerance(run_dir: Path) -> float | None:
+    """The tolerance a run is judged by: run.json's (``--tolerance-mm``), else the
+    recording's ``tolerance_mm`` metadata key (recording.json), as ``vtcal run`` does."""
+    from pipeline.verdict import tolerance_from_metadata
+
+    for name, key in (("run.json", None), ("recording.json", "metadata")):
+        try:
+            data = json.loads((run_dir / name).read_text())
+        except (OSError, ValueError):
+            continue
+        if not isinstance(data, dict):
+            continue
+        t = tolerance_from_metadata(data if key is None else data.get(key))
+        if t is not None:
+            return t
+    return None
 
 
 def _close_outcome(rec: RecordingOutcome, out: Path, t0: float, c0: float) -> RecordingOutcome:

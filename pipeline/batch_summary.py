@@ -56,6 +56,11 @@ def summary_table(outcomes: Sequence[RecordingOutcome]) -> pd.DataFrame:
                 "n_targets": f.get("n_targets"),
                 "n_identified": f.get("n_identified"),
                 "n_params": f.get("n_params"),
+                "verdict": o.verdict,
+                "validated_mm": f.get("validated_mm"),
+                "validated_how": f.get("validated_how"),
+                "nominal_mm": f.get("nominal_mm"),
+                "tolerance_mm": f.get("tolerance_mm"),
                 "rms_mm": f.get("rms_mm"),
                 "max_mm": f.get("max_mm"),
                 "predicted_shape_rms_mm": f.get("predicted_shape_rms_mm"),
@@ -157,12 +162,14 @@ def compare_lines(res: Any) -> list[str]:
     Stored in ``batch.json`` so that an unchanged batch prints them without
     rebuilding the comparison.
     """
+    from pipeline.compare import heldout_text
+
     lines = ["cross-run comparison (vtcal compare), shipped model:"]
     for r in res.runs.itertuples():
         if not r.shipped:
             continue
         lines.append(
-            f"  {r.run:<20} {r.model:<8} held-out {_fmt(r.heldout_rms_mm, '.4f')} mm  "
+            f"  {r.run:<20} {r.model:<8} held-out {heldout_text(r.heldout_rms_mm)}  "
             f"training {_fmt(r.train_rms_mm, '.4f')} mm  cond {_fmt(r.cond, '.3g')}  "
             f"rejected {r.n_rejected}"
         )

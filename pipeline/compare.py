@@ -355,11 +355,24 @@ def _drift(table: pd.DataFrame, k_sigma: float) -> None:
 
 _CSS = """
 body{font-family:system-ui,sans-serif;margin:1.5em;color:#222}
-table{border-collapse:collapse;margin:0.6em 0 1.6em;font-size:0.86em}
-th,td{border:1px solid #ccc;padding:0.2em 0.5em;text-align:right}
+table{border-collapse:collapse;margin:0.6em 0 1.6em;font-size:0.86em;max-width:100%}
+th,td{border:1px solid #ccc;padding:0.2em 0.5em;text-align:right;overflow-wrap:anywhere}
 th{background:#f0f0f0} td.l,th.l{text-align:left}
 tr.moved td{background:#fde2e2} .ok{color:#176b2c} .bad{color:#a11}
 """
+
+
+#: what every table says for a model without a held-out figure (e.g. elastic, which the
+#: run fits but does not cross-validate unless asked): never ``nan`` here and ``-`` there
+NOT_CROSS_VALIDATED = "not cross-validated"
+
+
+def heldout_text(v: Any) -> str:
+    """A held-out RMS as the console tables print it: ``0.0586 mm``, else
+    :data:`NOT_CROSS_VALIDATED`."""
+    if isinstance(v, (int, float, np.floating)) and np.isfinite(v):
+        return f"{float(v):.4f} mm"
+    return NOT_CROSS_VALIDATED
 
 
 def _cell(v: Any, unit: str = "") -> str:
@@ -415,7 +428,11 @@ def render_html(result: CompareResult) -> str:
     ]
     out.append("".join(f"<th class='l'>{html.escape(h)}</th>" for _, h in heads) + "</tr>")
     for r in result.runs.to_dict("records"):
-        out.append("<tr>" + "".join(f"<td>{_cell(r[c])}</td>" for c, _ in heads) + "</tr>")
+        cells = [
+            NOT_CROSS_VALIDATED if c == "heldout_rms_mm" and not _cell(r[c]) else _cell(r[c])
+            for c, _ in heads
+        ]
+        out.append("<tr>" + "".join(f"<td>{v}</td>" for v in cells) + "</tr>")
     out.append("</table>")
     kin = result.table[result.table["kind"] != "target"]
     for (robot, model), g in kin.groupby(["robot", "model"], sort=False):

@@ -182,7 +182,39 @@ def run_pipeline(
         if hit is not None:
             return hit
 
+    created = not out.exists()
     out.mkdir(parents=True, exist_ok=True)
+    try:
+        return _run_in(out, recording, cfg, names, fp, force, progress)
+    except BaseException:
+        if created:  # a run that wrote nothing leaves no empty run folder behind
+            _remove_if_empty(out)
+        raise
+
+
+def _remove_if_empty(folder: Path) -> None:
+    """Remove ``folder`` (and its empty subfolders) when it holds no file."""
+    import shutil
+
+    try:
+        if not any(p.is_file() for p in folder.rglob("*")):
+            shutil.rmtree(folder)
+    except OSError:
+        pass
+
+
+def _run_in(
+    out: Path,
+    recording: Path,
+    cfg: RunConfig,
+    names: list[str],
+    fp: dict[str, Any],
+    force: bool,
+    progress: Progress | None,
+) -> RunResult:
+    """Steps 2-4 of :func:`run_pipeline` in the run folder ``out`` (made)."""
+    from pipeline import run_ledger
+
     # temporaries a killed run left behind (atomic writes, the .rrd's partial save): never
     # artefacts; a run folder has one run at a time, so they are stale
     for stale in run_ledger.temporaries(out):

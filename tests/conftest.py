@@ -71,3 +71,10 @@ def lrmate_run(tmp_path_factory: pytest.TempPathFactory) -> Path:
     except SystemExit as exc:
         assert not exc.code, exc.code
     return out
+
+
+def pytest_terminal_summary(terminalreporter: pytest.TerminalReporter) -> None:
+    """The docs-as-tests runner's counts, in CI's log (tests/test_docs_commands.py)."""
+    mod = sys.modules.get("test_docs_commands")
+    if mod is not None and getattr(mod, "TALLY", None):
+        terminalreporter.write_line(mod.summary_line())

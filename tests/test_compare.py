@@ -135,3 +135,27 @@ def test_different_nominal_robots_compare_nothing_and_say_so(runs: dict[str, Pat
     same = compare_runs([runs["a1"], runs["a2"]])
     assert same.summary["verdict"].startswith("no parameter moved")
     assert same.summary["n_compared"] > 10
+
+
+def test_a_model_without_a_held_out_figure_says_so_everywhere() -> None:
+    """Issue 35: elastic's missing held-out figure was ``nan`` in compare, ``-`` in batch."""
+    import math
+
+    from pipeline.compare import NOT_CROSS_VALIDATED, heldout_text
+
+    assert heldout_text(math.nan) == NOT_CROSS_VALIDATED == heldout_text(None)
+    assert heldout_text(0.05861) == "0.0586 mm"
+
+
+def test_the_compare_cli_prints_no_nan(runs: dict[str, Path], tmp_path: Path) -> None:
+    from click.testing import CliRunner
+
+    from pipeline.cli import cli
+
+    out = tmp_path / "c.parquet"
+    res = CliRunner().invoke(cli, ["compare", str(runs["a1"]), str(runs["a2"]), "--out", str(out)])
+    assert res.exit_code == 0, res.output
+    assert "nan" not in res.output
+    a2 = next(line for line in res.output.splitlines() if line.startswith("a2"))
+    assert "held-out not cross-validated" in a2
+    assert "nan" not in out.with_suffix(".html").read_text()

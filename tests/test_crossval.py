@@ -129,3 +129,23 @@ def test_fold_assignment_keeps_training_data_for_every_target() -> None:
     assert (
         pd.Series(f[t == 2]).value_counts().max() - pd.Series(f[t == 2]).value_counts().min() <= 1
     )
+
+
+def test_the_choice_names_a_different_training_choice_only_when_there_is_one() -> None:
+    """Issue 35: 'the smallest training RMS (poe, 0.0198 mm) would have chosen differently'
+    while the chosen full showed 0.0198 too and elastic (0.0190, fitted but not
+    cross-validated) was the smallest."""
+    from pipeline.stages.crossval import _choose
+
+    def m(kfold: float, train: float) -> dict:
+        return {"kfold_rms_mm": kfold, "train_rms_mm": train, "kfold_failed_folds": 0,
+                "urdf_exact": True, "n_identified": 18}  # fmt: skip
+
+    models = {"full": m(0.0586, 0.019812), "poe": m(0.0590, 0.019801), "offsets": m(0.7, 0.52)}
+    chosen, text = _choose(models)
+    assert chosen == "full"
+    assert "poe" not in text and "would have chosen the same" in text  # a fifth-digit tie
+    trained = {k: v["train_rms_mm"] for k, v in models.items()} | {"elastic": 0.0190}
+    chosen, text = _choose(models, trained)
+    assert "the smallest training RMS (elastic, 0.0190 mm, not cross-validated)" in text
+    assert "would have chosen differently" in text

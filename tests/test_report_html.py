@@ -160,3 +160,115 @@ def test_thumbnails_stay_within_their_byte_budget(
     html = build_report(demo_run, tmp_path / "r.html").read_text()
     assert "data:image/png" not in html
     assert "left out to keep the file small" in html
+
+
+# ------------------------------------------------------------ layout (issue 35)
+
+
+def _points(svg: str) -> list[tuple[float, float]]:
+    """Every dot (``Mx yh0``) of an SVG."""
+    return [(float(x), float(y)) for x, y in re.findall(r"M([-\d.]+) ([-\d.]+)h0", svg)]
+
+
+def _legend_box(svg: str) -> tuple[float, float, float, float]:
+    m = re.search(
+        r'<rect x="([-\d.]+)" y="([-\d.]+)" width="([\d.]+)" height="([\d.]+)" fill="white"', svg
+    )
+    assert m, "no legend"
+    x, y, w, h = map(float, m.groups())
+    return x, y, x + w, y + h
+
+
+def test_the_per_target_legend_covers_no_data() -> None:
+    """The legend sat over the last target's bar and top point; it sits above the axes now."""
+    from pipeline.report import plots
+
+    rng = np.random.default_rng(0)
+    values = {
+        "nominal": [rng.uniform(0.5, 1.0, 6), rng.uniform(0.5, 1.0, 6), np.r_[1.3, 0.9, 1.0]],
+        "full": [rng.uniform(0, 0.05, 6) for _ in range(3)],
+    }
+    svg = plots.per_target(["0", "1", "2"], values, "residual (mm)")
+    x0, y0, x1, y1 = _legend_box(svg)
+    pts = _points(svg)
+    legend_dots = [(x, y) for x, y in pts if x0 <= x <= x1 and y0 <= y <= y1]
+    data = [p for p in pts if p not in legend_dots]
+    assert len(legend_dots) == 2, legend_dots  # only the keys' own dots
+    assert len(data) == 15 + 18
+    assert min(y for _, y in data) > y1, "a data point under the legend"
+
+
+def test_histogram_bars_do_not_hide_each_other() -> None:
+    """Five models whose residuals fall in the same first bin: each bar is seen."""
+    from pipeline.report import plots
+
+    groups = {"nominal": np.linspace(0.1, 1.2, 18)} | {
+        m: np.full(18, 0.02) for m in ("full", "elastic", "mdh", "poe")
+    }
+    svg = plots.histogram(groups, "residual distance (mm)")
+    x0, y0, x1, y1 = _legend_box(svg)
+    rects = [
+        tuple(map(float, r))
+        for r in re.findall(r'<rect x="([-\d.]+)" y="([-\d.]+)" width="([\d.]+)" '
+                            r'height="([\d.]+)" fill="#', svg)
+    ]  # fmt: skip
+    keys = [r for r in rects if x0 <= r[0] <= x1 and y0 <= r[1] <= y1]
+    bars = [r for r in rects if r not in keys]
+    assert len(keys) == 5 and len(bars) >= 5 + 4
+    assert min(y for _, y, _, _ in bars) > y1, "a bar under the legend"
+    spans = sorted((x, x + w) for x, _, w, _ in bars)
+    for (_, a1), (b0, _) in zip(spans, spans[1:], strict=False):
+        assert b0 >= a1 - 1e-6, "two bars on top of each other"
+
+
+def test_all_empty_target_columns_are_not_shown(lrmate_run: Path) -> None:
+    """The print-shape columns (all '-' when no print shape was fitted) pushed the targets
+    table past the page; they are named under it instead."""
+    import pandas as pd
+
+    tg = pd.read_parquet(lrmate_run / "targets.parquet")
+    empty = [c for c in tg.columns if tg[c].isna().all()]
+    assert empty, "the run has all-empty target columns to hide"
+    html = build_report(lrmate_run, lrmate_run / "layout.html").read_text()
+    section = html[html.index('<section id="targets">') : html.index('<section id="parameters">')]
+    for c in empty:
+        assert f"<th>{c}" not in section, c
+    assert "Not shown, without a value for any target: " + ", ".join(empty) in section
+
+
+def _pages(demo_run: Path, lrmate_run: Path, tmp: Path) -> dict[str, Path]:
+    """report.html of the demo run and of a real identification, validate.html, compare.html."""
+    from pipeline.cli import main
+    from pipeline.compare import compare_runs, render_html
+
+    pages = {
+        "report": build_report(demo_run, tmp / "demo.html"),
+        "report-models": build_report(lrmate_run, tmp / "models.html"),
+    }
+    val = tmp / "val"
+    table = tmp / "other.csv"  # the same touch-ups in another order: not the fitted file
+    rows = (lrmate_run.parent / "table.csv").read_text().splitlines()
+    table.write_text("\n".join([rows[0], *rows[:0:-1]]) + "\n")
+    try:
+        main(["validate", str(lrmate_run / "calibrated.urdf"), str(table),
+              "--urdf", str(lrmate_run.parent / "nominal.urdf"), "--out", str(val)])  # fmt: skip
+    except SystemExit as exc:
+        assert exc.code in (0, 3), exc.code
+    pages["validate"] = val / "validate.html"
+    cmp = tmp / "compare.html"
+    cmp.write_text(render_html(compare_runs([demo_run, lrmate_run])))
+    pages["compare"] = cmp
+    return pages
+
+
+@needs_chromium
+@pytest.mark.parametrize("width", [900, 1400])
+def test_the_pages_fit_the_window(demo_run: Path, lrmate_run: Path, tmp_path: Path, width: int):
+    """No sideways scrolling, nothing cut off, no SVG text over other text at 900 and 1400 px
+    (the targets table was 1354 px wide at 900, cut off at 1400)."""
+    for name, page in _pages(demo_run, lrmate_run, tmp_path).items():
+        res = open_in_chromium(page, tmp_path / f"{name}-{width}", width=width)
+        lay = res["layout"]
+        assert lay["page"] <= lay["viewport"], (name, lay)
+        assert lay["past"] == [] and lay["scrolls"] == [], (name, lay)
+        assert lay["overlaps"] == [], (name, lay)

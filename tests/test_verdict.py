@@ -140,3 +140,57 @@ def test_the_report_shows_the_cli_tolerance_and_keeps_it(sample_run, tmp_path):
     assert "<b>PASS</b>" in build_report(run, tolerance_mm=1.0).read_text()
     res = CliRunner().invoke(cli, [*args, "--tolerance-mm", "1.0"])
     assert res.exit_code == 0 and "<b>PASS</b>" in (run / "report.html").read_text()
+
+
+def _banner(text: str) -> str:
+    i = text.index('<div class="banner bad"><b>FAIL</b>')
+    return text[i : text.index("</div>", i)]
+
+
+def test_the_fail_banner_names_where_its_tolerance_came_from(sample_run, tmp_path):
+    """Issue 35: --tolerance-mm on the command line was called 'the recording's tolerance_mm'."""
+    given = build_report(sample_run, tmp_path / "given.html", tolerance_mm=0.001).read_text()
+    assert "given on the command line" in _banner(given)
+    assert "recording&#39;s" not in _banner(given) and "recording's" not in _banner(given)
+    run = tmp_path / "run"
+    shutil.copytree(sample_run, run)
+    p = run / "recording.json"
+    rec = json.loads(p.read_text())
+    rec.setdefault("metadata", {})["tolerance_mm"] = "0.001"
+    p.write_text(json.dumps(rec))
+    (run / "run.json").write_text(
+        json.dumps({**json.loads((run / "run.json").read_text()), "tolerance_mm": None})
+    )
+    meta = build_report(run).read_text()
+    assert "tolerance_mm metadata key" in _banner(meta)
+
+
+def test_the_report_gives_the_consoles_nominal_figure(sample_run, tmp_path):
+    """Issue 35: the FAIL banner said 'nominal robot's 1.1926 mm' where the console said
+    1.1929 mm; the report now takes identify.json's figure, as the console does."""
+    summary = json.loads((sample_run / "identify.json").read_text())
+    console = verdict(summary, 0.001)["line"]
+    text = build_report(sample_run, tmp_path / "r.html", tolerance_mm=0.001).read_text()
+    assert console.replace("'", "&#39;").replace(">", "&gt;") in _banner(text)
+    nominal = summary["solver"]["initial_rms_mm"]
+    card = text[text.index('<div class="card before">') : text.index('<div class="card after">')]
+    assert f"{nominal:.4f}" in card
+
+
+def test_a_covariance_predicted_figure_is_not_titled_validated(sample_run, tmp_path):
+    """Issue 35: without cross-validation the 'after' card said 'RMS, VALIDATED' above a
+    note saying 'predicted from the parameter covariance (not cross-validated)'."""
+    run = tmp_path / "run"
+    shutil.copytree(sample_run, run)
+    p = run / "identify.json"
+    summary = json.loads(p.read_text())
+    del summary["crossval"]
+    summary["solver"]["initial_rms_mm"] = 0.05  # and not improved
+    p.write_text(json.dumps(summary))
+    text = build_report(run).read_text()
+    card = text[text.index('<div class="card after">') :]
+    title = card[: card.index("</div>")]
+    assert "predicted (not cross-validated)" in title and "validated" not in title.replace(
+        "not cross-validated", ""
+    )
+    assert "not improved" in text

@@ -94,23 +94,29 @@ def progress_bars(enabled: bool = True) -> Iterator[Callable[[str, int, int | No
         TimeElapsedColumn,
     )
 
-    with Progress(
+    bars = Progress(
         TextColumn("[bold]{task.description:<10}"),
         BarColumn(),
         MofNCompleteColumn(),
         TimeElapsedColumn(),
         transient=False,
-    ) as bars:
-        tasks: dict[str, Any] = {}
+    )
+    tasks: dict[str, Any] = {}
 
-        def update(stage: str, done: int, total: int | None) -> None:
-            if stage not in tasks:
-                if stage == "compile":  # the orchestrator's first-run detector compilation
-                    bars.console.print("vtcal: first run: compiling the detector once (~10-20 s)")
-                tasks[stage] = bars.add_task(stage, total=total)
-            bars.update(tasks[stage], completed=done, total=total)
+    def update(stage: str, done: int, total: int | None) -> None:
+        if not tasks:  # started at the first bar: a command failing before any prints nothing
+            bars.start()
+        if stage not in tasks:
+            if stage == "compile":  # the orchestrator's first-run detector compilation
+                bars.console.print("vtcal: first run: compiling the detector once (~10-20 s)")
+            tasks[stage] = bars.add_task(stage, total=total)
+        bars.update(tasks[stage], completed=done, total=total)
 
+    try:
         yield update
+    finally:
+        if tasks:
+            bars.stop()
 
 
 def echo_summary(result: Any, tolerance_mm: float | None = None) -> dict[str, Any] | None:

@@ -177,6 +177,15 @@ def command(
             f"{len(result.failed)} of {len(result.outcomes)} recording(s) failed "
             f"(see {result.summary_path})"
         )
+    failing = [o.name for o in result.outcomes if o.verdict == "FAIL"]
+    if failing:  # as `vtcal run` of each would: exit 3
+        from pipeline.errors import CalibrationFailed
+
+        raise CalibrationFailed(
+            f"verdict FAIL for {len(failing)} of {len(result.outcomes)} recording(s) "
+            f"({', '.join(failing)}): their validated error misses the recording's "
+            f"tolerance_mm or did not improve (see {result.summary_path})"
+        )
 
 
 def _run_with_progress(
@@ -233,14 +242,14 @@ def _run_with_progress(
 
 
 def _line(rec: RecordingOutcome) -> str:
-    """One line per finished recording."""
+    """One line per finished recording: its state and verdict as ``vtcal run`` would say it."""
     if rec.status != "ok":
         return f"  FAIL {rec.name}: {rec.error}"
     ran = sum(st == "ran" for _, st, _ in rec.stages)
     cached = sum(st == "cached" for _, st, _ in rec.stages)
-    rms = rec.figures.get("rms_mm")
-    fig = f", residual RMS {rms:.4f} mm" if isinstance(rms, float) else ""
-    return f"  ok   {rec.name}: {ran} ran, {cached} cached, {rec.seconds:.1f} s{fig}"
+    text = f"  {rec.state:<4} {rec.name}: {ran} ran, {cached} cached, {rec.seconds:.1f} s"
+    line = rec.figures.get("verdict_line")
+    return f"{text}; {line}" if line else text
 
 
 def _fmt(v: Any, spec: str) -> str:
@@ -271,23 +280,26 @@ def print_summary(console: Any, result: BatchResult) -> None:
 
     table = Table(title=f"batch {result.out_dir}", title_justify="left")
     table.add_column("recording", no_wrap=True)
-    for col in ("status", "ran/cached", "s", "MB", "model", "used", "RMS mm", "shape mm", "abs mm"):
-        table.add_column(col, justify="left" if col in ("status", "model") else "right")
+    cols = ("status", "ran/cached", "s", "MB", "model", "used", "validated mm", "how", "nominal mm")
+    for col in (*cols, "training mm"):
+        table.add_column(col, justify="left" if col in ("status", "model", "how") else "right")
     for o in result.outcomes:
         f = o.figures
         ran = sum(st == "ran" for _, st, _ in o.stages)
         cached = sum(st == "cached" for _, st, _ in o.stages)
+        how = str(f.get("validated_how") or "")
         table.add_row(
             o.name,
-            o.status,
+            o.state,
             f"{ran}/{cached}" if o.status == "ok" else "-",
             _fmt(o.seconds, ".1f"),
             _fmt(o.peak_rss_mb, ".0f"),
             f.get("model") or "-",
             _fmt(f.get("n_used"), "d"),
+            _fmt(f.get("validated_mm"), ".4f"),
+            "held-out" if how.startswith("held-out") else ("predicted" if how else "-"),
+            _fmt(f.get("nominal_mm"), ".4f"),
             _fmt(f.get("rms_mm"), ".4f"),
-            _fmt(f.get("predicted_shape_rms_mm"), ".3f"),
-            _fmt(f.get("predicted_absolute_rms_mm"), ".3f"),
         )
     console.print(table)
     for o in result.failed:
@@ -302,8 +314,20 @@ def print_summary(console: Any, result: BatchResult) -> None:
     for line in result.compare_lines:  # kept in batch.json: no pandas when nothing changed
         console.print(line, highlight=False, markup=False)
     console.print(f"comparison: {result.compare_note}", highlight=False, markup=False)
+    states = [o.state for o in result.outcomes]
+    judged = "".join(
+        f", {states.count(w)} {w}" for w in ("not improved", "FAIL") if states.count(w)
+    )
+    failed = f", {len(result.failed)} did not finish" if result.failed else ""
     console.print(
-        f"{result.n_ok} of {len(result.outcomes)} recording(s) ok in {result.seconds:.1f} s; "
-        f"summary: {result.summary_path}",
+        f"{states.count('ok')} of {len(result.outcomes)} recording(s) ok{judged}{failed} in "
+        f"{result.seconds:.1f} s; summary: {result.summary_path}",
         highlight=False,
+    )
+    console.print(
+        "validated mm: the shipped model's held-out (k-fold) RMS, or covariance-predicted "
+        "('how'); 'ok' means improved on the nominal robot (and within tolerance); training mm "
+        "is the fit residual, not an accuracy",
+        highlight=False,
+        markup=False,
     )

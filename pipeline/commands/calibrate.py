@@ -31,6 +31,8 @@ def _xyz(text: str) -> tuple[float, float, float]:
     "calibrate",
     epilog="""\b
 Examples:
+  vtcal calibrate --robot sim:datasets/scenarios/standard.toml:1 --urdf pipeline/robots/lrmate.urdf \\
+      --targets datasets/targets/lrmate_cell.csv --poses 24 --pin 0.047,0.002,0.251 --out cal/
   vtcal calibrate --robot sim:datasets/scenarios/standard.toml:1 --plan plan.parquet --out cal/
   vtcal calibrate --robot tcp://10.0.0.2:30010 --camera opencv:0 --urdf lrmate \\
       --targets cell.csv --poses 24 --pin 0.03,0,0.25 --out cal/

@@ -7,7 +7,15 @@ from pathlib import Path
 import click
 
 
-@click.command("cell-server")
+@click.command(
+    "cell-server",
+    epilog="""\b
+Examples:
+  vtcal cell-server --scenario datasets/scenarios/standard.toml --seed 1 --port 5000 \\
+      --plan-out plan.parquet &
+  vtcal cell-server --scenario datasets/scenarios/ur.toml --port 0     # a free port, printed
+""",
+)
 @click.option("--scenario", "scenario_path", required=True, type=click.Path(dir_okay=False, path_type=Path),
               help="Scenario TOML of the simulated cell.")  # fmt: skip
 @click.option("--seed", type=int, default=0, show_default=True)

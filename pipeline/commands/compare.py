@@ -12,6 +12,7 @@ import click
     "compare",
     epilog="""\b
 Examples:
+  vtcal compare runs/sample                          # one run: its error models side by side
   vtcal compare runs/2024-05 runs/2024-11            # writes compare.parquet + compare.html
   vtcal compare runs/* --out audit.parquet --html audit.html --sigma 4
   vtcal compare runs/a runs/b --fail-on-drift        # exit status 1 when a parameter moved
@@ -38,7 +39,7 @@ def command(
     moved by more than its uncertainty is flagged.
     """
     from pipeline.artefacts import atomic_write_bytes, write_artefact
-    from pipeline.compare import compare_runs, render_html
+    from pipeline.compare import compare_runs, heldout_text, render_html
     from pipeline.errors import BadInput
 
     if not k_sigma > 0:
@@ -50,7 +51,7 @@ def command(
     atomic_write_bytes(page, render_html(res).encode())
     for r in res.runs.itertuples():
         click.echo(
-            f"{r.run:24s} {r.model:8s} held-out {r.heldout_rms_mm:.4f} mm  training "
+            f"{r.run:24s} {r.model:8s} held-out {heldout_text(r.heldout_rms_mm)}  training "
             f"{r.train_rms_mm:.4f} mm  cond {r.cond:.3g}  rejected {r.n_rejected}"
             + ("  (shipped)" if r.shipped else "")
         )

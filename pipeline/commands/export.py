@@ -22,6 +22,7 @@ from pipeline.export import FORMATS
     "export",
     epilog="""\b
 Examples:
+  vtcal export runs/sample --format offsets         # the shipped sample's run (vtcal run --help)
   vtcal export runs/cell1 --format urdf --out cell1_calibrated.urdf
   vtcal export runs/ur5e --format ur-calibration --out my_robot_calibration.yaml
   vtcal export runs/cell1 --format offsets --joint-signs 1,1,-1,1,1,1

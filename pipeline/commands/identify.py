@@ -24,6 +24,7 @@ from pipeline.commands._common import (
     distance_option,
     echo_verdict,
     fail_on_verdict,
+    progress_bars,
     tolerance_option,
 )
 from pipeline.errors import BadInput
@@ -138,7 +139,15 @@ def _table_source(table: Path, urdf_path: Path, df: pd.DataFrame, conf: dict[str
     )
 
 
-@click.command("identify")
+@click.command(
+    "identify",
+    epilog="""\b
+Examples:
+  vtcal identify datasets/real/mukca/panda_2.csv --urdf datasets/real/mukca/nominal_panda.urdf \\
+      --flange-link panda_hand_tcp --distance back_left/hole_0:back_left/hole_1=0.05 --out runs/panda
+  vtcal identify touchups.parquet --urdf robot.urdf --out runs/table --model all --no-report
+""",
+)
 @click.argument("table", type=click.Path(exists=True, dir_okay=False, path_type=Path))
 @click.option(
     "--urdf",
@@ -248,7 +257,16 @@ def command(
         force=True,  # the table is not a run-folder file: nothing to find fresh
     )
     try:
-        run_stages(names, ctx, names)
+        # one bar per stage, its clock running while it works: a large table's fits and
+        # cross-validation take a minute or more, never in silence
+        with progress_bars() as bar:
+            ctx.progress = bar
+            for name in names:
+                if bar is not None:
+                    bar(name, 0, 1)
+                run_stages([name], ctx, names)
+                if bar is not None:
+                    bar(name, 1, 1)
     except BadInput as exc:
         msg = str(exc)
         if msg.startswith("touch-up table"):  # name the file

@@ -50,7 +50,15 @@ def _summary_lines(s: dict[str, Any], out: Path) -> list[str]:
 MAX_PLAN_COND = 1e8
 
 
-@click.command("plan")
+@click.command(
+    "plan",
+    epilog="""\b
+Examples:
+  vtcal plan --urdf lrmate --targets datasets/targets/lrmate_cell.csv --poses 36 \\
+      --pin 0.047,0.002,0.251 --out plan.parquet
+  vtcal plan --urdf ur5e --targets datasets/targets/ur5e_cell.csv --poses 24 --out ur.parquet
+""",
+)
 @click.option("--urdf", required=True, help="Robot: URDF file, or built-in lrmate/ur5e/iiwa7.")
 @click.option(
     "--targets",

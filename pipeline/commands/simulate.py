@@ -11,7 +11,15 @@ import click
 from pipeline.errors import BadInput
 
 
-@click.command("simulate")
+@click.command(
+    "simulate",
+    epilog="""\b
+Examples:
+  vtcal simulate --scenario datasets/scenarios/standard.toml --seed 1 --out rec.mcap
+  vtcal simulate --scenario datasets/scenarios/small.toml --seed 3 --out small.mcap --quiet
+  vtcal simulate --scenario datasets/scenarios/standard.toml --plan plan.parquet --out rec.mcap
+""",
+)
 @click.option(
     "--scenario",
     "scenario_path",
@@ -45,8 +53,13 @@ def command(scenario_path: Path, seed: int, out: Path, plan: Path | None, quiet:
         if not plan.exists():
             raise BadInput(f"{plan}: plan file not found")
         sc = dataclasses.replace(sc, poses=dataclasses.replace(sc.poses, plan=str(plan.resolve())))
+    from pipeline.commands._common import progress_bars
+
     t0 = time.perf_counter()
-    truth = write_recording(sc, seed, out)
+    with progress_bars(enabled=not quiet) as bar:
+        truth = write_recording(
+            sc, seed, out, None if bar is None else (lambda d, n: bar("touch-ups", d, n))
+        )
     if not quiet:
         c = truth["counts"]
         conv = sum(1 for t in truth["touchups"] if t["converged"])

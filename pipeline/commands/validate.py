@@ -91,6 +91,7 @@ def _chain(urdf: Any, base: str, flange: str, path: Path) -> Any:
     "validate",
     epilog="""\b
 Examples:
+  vtcal validate runs/sample/calibrated.urdf datasets/samples/sample_lrmate.mcap  # exit 3: refused, its own recording
   vtcal validate runs/rec1/calibrated.urdf rec2.mcap --out runs/rec2_check --tolerance-mm 0.1
   vtcal validate cal/calibrated.urdf touchups2.csv --urdf nominal.urdf --distance 0:2=0.25
 """,

@@ -94,6 +94,17 @@ class RunData:
         return given if given is not None else tolerance_from_metadata(self.meta)
 
     @property
+    def tolerance_source(self) -> str:
+        """Where :attr:`tolerance_mm` came from, in words ('' without a tolerance)."""
+        from pipeline.verdict import tolerance_from_metadata
+
+        if tolerance_from_metadata(self.run) is not None:
+            return "given on the command line, --tolerance-mm"
+        if tolerance_from_metadata(self.meta) is not None:
+            return "the recording's tolerance_mm metadata key"
+        return ""
+
+    @property
     def joint_names(self) -> list[str]:
         names = (self.recording or {}).get("joint_names")
         if names:

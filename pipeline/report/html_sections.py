@@ -94,7 +94,14 @@ def verdict_section(data: RunData) -> dict[str, Any]:
     from pipeline.verdict import IMPROVED_BELOW, verdict
 
     tol = data.tolerance_mm
-    v = verdict(idf, tol, nominal_mm=before[0] if before else None) or {}
+    # the nominal robot's error is identify.json's, as the console prints it; the report's
+    # own nominal fit only where identify.json has none
+    nominal = (idf.get("solver") or {}).get("initial_rms_mm")
+    if not isinstance(nominal, (int, float)) and before:
+        nominal = before[0]
+    v = verdict(idf, tol, nominal_mm=nominal) or {}
+    if before and isinstance(v.get("nominal_mm"), (int, float)):
+        before = (float(v["nominal_mm"]), before[1])  # one nominal figure on the page
     validated = None
     if v.get("validated_mm") is not None:
         validated = (v["validated_mm"], v.get("validated_max_mm"), v["validated_how"])
@@ -113,6 +120,8 @@ def verdict_section(data: RunData) -> dict[str, Any]:
         "improved": v.get("improved"),
         "improved_below": IMPROVED_BELOW,
         "tolerance": tol,
+        "tolerance_source": data.tolerance_source,
+        "held_out": bool(validated and validated[2].startswith("held-out")),
         "passed": v.get("passed"),
         "verdict_line": v.get("line", ""),
         "lower_bound": bool(v.get("lower_bound")),
@@ -209,7 +218,10 @@ def targets_section(data: RunData) -> dict[str, Any]:
         return {"available": False}
     df = for_model(data, df)
     assert df is not None
-    cols = [str(c) for c in df.columns if c != "model"]
+    # a column with no value in any row (the print-shape fit's when it was not made) is not
+    # shown: five columns of "-" pushed the table past the page; they are named below it
+    empty = [str(c) for c in df.columns if c != "model" and not df[c].notna().any()]
+    cols = [str(c) for c in df.columns if c != "model" and str(c) not in empty]
 
     def in_mm(c: str) -> bool:
         return (c in ("x", "y", "z") or c.startswith(("sigma", "std", "se_"))) and bool(
@@ -230,7 +242,7 @@ def targets_section(data: RunData) -> dict[str, Any]:
             if p is not None:
                 pts["pin at touch-ups"] = p
         svg = plots.scatter_xy(pts, "x (m)", "y (m)", labels)
-    return {"available": True, "headers": headers, "rows": rows, "svg": svg}
+    return {"available": True, "headers": headers, "rows": rows, "svg": svg, "empty": empty}
 
 
 PARAM_COLS = {

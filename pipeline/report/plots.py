@@ -14,7 +14,7 @@ from collections.abc import Mapping, Sequence
 
 import numpy as np
 
-from pipeline.report.svg import Panel, canvas, padded
+from pipeline.report.svg import Panel, canvas, legend_height, padded
 
 #: colours: before / after / rejected / other
 BEFORE = "#b0b7c3"
@@ -47,23 +47,40 @@ def _group_color(name: str, i: int) -> str:
     return COLORS[i % len(COLORS)]
 
 
+def _box_legend_above(width: float, height: float, rows: int) -> tuple[float, float, float, float]:
+    """:func:`_box` with ``rows`` legend rows' height added to the top margin (the legend
+    goes there, :attr:`Panel.legend_above`); the canvas is that much taller."""
+    left, top, w, h = _box(width, height)
+    return (left, top + legend_height(rows), w, h)
+
+
 def histogram(groups: Mapping[str, np.ndarray], xlabel: str, title: str = "") -> str:
-    """Overlaid histograms of one quantity per group (e.g. residual mm, before/after)."""
+    """Histograms of one quantity per group (e.g. residual mm, before/after), side by side.
+
+    Each bin holds one bar per group, next to each other (width: the bin's over the number
+    of groups), so no group's bar hides another's; the legend sits above the axes.
+    """
     vals = {k: _finite([v]) for k, v in groups.items()}
     allv = _finite(list(vals.values()))
     hi = float(np.max(allv)) if allv.size else 1.0
     bins = np.linspace(0.0, hi * 1.05 if hi > 0 else 1.0, 25)
     counts = {k: np.histogram(v, bins=bins)[0] for k, v in vals.items()}
     top = max([int(c.max()) for c in counts.values() if c.size] + [1])
-    W, H = 614.0, 269.0
-    p = Panel(_box(W, H), (0.0, float(bins[-1])), (0.0, top * 1.15))
+    W, H0 = 614.0, 269.0
+    box = _box_legend_above(W, H0, len(counts))
+    H = H0 + box[1] - _box(W, H0)[1]
+    p = Panel(box, (0.0, float(bins[-1])), (0.0, top * 1.15))
+    p.legend_above = True
+    ng = max(len(counts), 1)
+    step = (bins[1] - bins[0]) / ng
     ci = 0
-    for name, c in counts.items():
+    for gi, (name, c) in enumerate(counts.items()):
         color = _group_color(name, ci)
         ci += color != BEFORE
-        x = np.repeat(bins, 2)
-        y = np.concatenate([[0.0], np.repeat(c.astype(float), 2), [0.0]])
-        p.polygon(x, y, color, 0.6)
+        for b, n in enumerate(c):
+            if n:
+                x0 = float(bins[b]) + gi * step
+                p.rect(x0, x0 + step, 0.0, float(n), color)
         p.key(f"{name} (n={len(vals[name])})", color, "box")
     return canvas(W, H, [p.render(xlabel=xlabel, ylabel="touch-ups", title=title)])
 
@@ -71,11 +88,15 @@ def histogram(groups: Mapping[str, np.ndarray], xlabel: str, title: str = "") ->
 def per_target(
     target_ids: Sequence[str], values_mm: Mapping[str, Sequence[np.ndarray]], ylabel: str
 ) -> str:
-    """Per-target strip plot: each touch-up's residual (mm) as a dot, one column per target."""
+    """Per-target strip plot: each touch-up's residual (mm) as a dot, one column per target;
+    the legend sits above the axes, clear of the dots and bars."""
     allv = _finite([v for per in values_mm.values() for v in per])
     top = float(np.max(allv)) if allv.size else 1.0
-    W, H = 614.0, 269.0
-    p = Panel(_box(W, H), (-0.6, len(target_ids) - 0.4), (0.0, top * 1.1 if top > 0 else 1.0))
+    W, H0 = 614.0, 269.0
+    box = _box_legend_above(W, H0, len(values_mm) + 1)  # + its title row
+    H = H0 + box[1] - _box(W, H0)[1]
+    p = Panel(box, (-0.6, len(target_ids) - 0.4), (0.0, top * 1.1 if top > 0 else 1.0))
+    p.legend_above = True
     ng = max(len(values_mm), 1)
     width = 0.7 / ng
     ci = 0

@@ -85,6 +85,9 @@ class Panel:
         self.xlim, self.ylim, self.ylog = xlim, ylim, ylog
         self.parts: list[str] = []
         self.legend: list[tuple[str, str, str]] = []  # (label, colour, kind)
+        #: draw the legend in the margin above the axes (its rows' height, LEGEND_ROW px
+        #: each, reserved there by the caller: :func:`legend_height`), never over the data
+        self.legend_above = False
 
     def X(self, x: np.ndarray | float) -> np.ndarray:
         """Data x to pixels."""
@@ -256,6 +259,8 @@ class Panel:
         rows = ([(title, "", "title")] if title else []) + self.legend
         width = 22 + 6.2 * max(len(n) for n, _, _ in rows)
         x, y = self.left + self.width - width, self.top + 4
+        if self.legend_above:
+            y = self.top - legend_height(len(rows))
         out = [
             f'<rect x="{_f(x - 4)}" y="{_f(y - 2)}" width="{_f(width + 4)}" '
             f'height="{_f(14 * len(rows) + 2)}" fill="white" fill-opacity="0.8"/>'
@@ -276,6 +281,15 @@ class Panel:
             tx = x if kind == "title" else x + 16
             out.append(f'<text x="{_f(tx)}" y="{_f(cy + 3.5)}">{escape(name)}</text>')
         return "".join(out)
+
+
+#: height of one legend row, px
+LEGEND_ROW = 14.0
+
+
+def legend_height(rows: int) -> float:
+    """Pixels a legend of ``rows`` rows takes (its box and a gap below it)."""
+    return LEGEND_ROW * rows + 6.0
 
 
 def canvas(width: float, height: float, body: Sequence[str]) -> str:

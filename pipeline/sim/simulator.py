@@ -80,12 +80,19 @@ from pipeline.sim.truth import index_images, truth_of
 MOVING_CAPTURE_AT = 0.94
 
 
-def simulate(sc: Scenario, seed: int, out: Path) -> dict[str, Any]:
+#: ``progress(done, total)``: touch-up attempts simulated so far, out of the plan's
+Progress = Callable[[int, int], None]
+
+
+def simulate(
+    sc: Scenario, seed: int, out: Path, progress: Progress | None = None
+) -> dict[str, Any]:
     """Run the session of scenario ``sc`` with ``seed``; write ``out`` (MCAP) and return the truth.
 
     The MCAP file is written streaming; the truth dictionary has the layout
     of the conformance sample's truth file (see module doc of
-    :mod:`pipeline.sim`).
+    :mod:`pipeline.sim`). ``progress(done, total)`` is called after each touch-up
+    attempt (it does not change a byte of the output).
     """
     out = Path(out)
     out.parent.mkdir(parents=True, exist_ok=True)
@@ -93,7 +100,7 @@ def simulate(sc: Scenario, seed: int, out: Path) -> dict[str, Any]:
     with tmp.open("wb") as f:
         rec = Recorder(f, chunk_size=sc.timing.chunk_size)
         cell = SimCell.from_scenario(sc, seed, rec)
-        truth = _run(cell)
+        truth = _run(cell, progress)
         rec.finish()
     os.replace(tmp, out)
     if sc.faults.truncate:
@@ -129,7 +136,7 @@ class _Captures:
             self.sess.robot.advance(1.0)
 
 
-def _run(simcell: SimCell) -> dict[str, Any]:
+def _run(simcell: SimCell, progress: Progress | None = None) -> dict[str, Any]:
     """Run every attempt of the plan (faulted extras included); return the truth.
 
     Per attempt: the faults that act before the move (:func:`_faults_before_move`),
@@ -195,6 +202,8 @@ def _run(simcell: SimCell) -> dict[str, Any]:
         if here["capture_while_moving"] and moving:
             fault_here.append(moving)
         _record_touchup(sess, ti, tg, labels[tid], cfg, res, on_capture, img_start, fault_here)
+        if progress is not None:
+            progress(ti + 1, len(attempts))
         # (the knocked target's image indices are filled in below, once all are written)
 
     rob.advance(1.0)
@@ -338,10 +347,12 @@ def _record_touchup(
 
 
 def write_recording(
-    sc: Scenario, seed: int, out: Path, progress: Callable[[str], None] | None = None
+    sc: Scenario, seed: int, out: Path, progress: Progress | None = None
 ) -> dict[str, Any]:
-    """Simulate and write ``out`` plus ``out.truth.json``; return the truth."""
-    truth = simulate(sc, seed, out)
+    """Simulate and write ``out`` plus ``out.truth.json``; return the truth.
+
+    ``progress(done, total)``: touch-up attempts simulated (:func:`simulate`)."""
+    truth = simulate(sc, seed, out, progress)
     tpath = Path(str(out) + ".truth.json")
     tmp = tpath.with_name(tpath.name + ".part")
     tmp.write_text(json.dumps(truth, indent=1))

@@ -331,7 +331,8 @@ def cross_validate(
         summary_models[m] = {**summary_models.get(m, {}), **info}
     out = pd.DataFrame(rows, columns=_HELDOUT_COLUMNS)
     _figures(out, summary_models)
-    chosen, choice = _choose(summary_models)
+    trained = {m: f.get("rms_mm") for m, f in known.items() if isinstance(f, Mapping)}
+    chosen, choice = _choose(summary_models, trained)
     summary = _summary(s.k, config, summary_models, chosen, choice)
     return CrossvalResult(table=out, chosen_model=chosen, summary=_strict(summary))
 
@@ -547,8 +548,13 @@ def _urdf_exact(name: str) -> bool:
         return True
 
 
-def _choose(models: dict[str, dict[str, Any]]) -> tuple[str | None, str]:
+def _choose(
+    models: dict[str, dict[str, Any]], trained: Mapping[str, Any] | None = None
+) -> tuple[str | None, str]:
     """Smallest k-fold RMS among completely cross-validated models (ties: fewer parameters).
+
+    ``trained``: training RMS (mm) of every fitted model, cross-validated or not; the
+    sentence names the training choice only when it beats the chosen one by over 1 %.
 
     A model whose URDF cannot carry it (``urdf_exact`` false, e.g. ``elastic``) is
     never chosen over one whose URDF can: the chosen model becomes
@@ -579,14 +585,19 @@ def _choose(models: dict[str, dict[str, Any]]) -> tuple[str | None, str]:
     )
     if len(models) > 1:
         train = {m: v.get("train_rms_mm", math.nan) for m, v in models.items()}
-        finite = {m: t for m, t in train.items() if np.isfinite(t)}
-        if finite:
+        train.update({m: t for m, t in (trained or {}).items() if isinstance(t, (int, float))})
+        finite = {m: float(t) for m, t in train.items() if np.isfinite(t)}
+        own = finite.get(chosen, math.nan)
+        if finite and np.isfinite(own):
             by_train = min(finite, key=lambda m: finite[m])
-            if by_train != chosen:
+            if finite[by_train] * 1.01 < own:
+                note = "" if by_train in models else ", not cross-validated"
                 text += (
-                    f"; the smallest training RMS ({by_train}, {finite[by_train]:.4f} mm) "
-                    "would have chosen differently"
+                    f"; the smallest training RMS ({by_train}, {finite[by_train]:.4f} mm"
+                    f"{note}) would have chosen differently"
                 )
+            else:
+                text += "; the smallest training RMS would have chosen the same"
     else:
         text += "; only one model was cross-validated"
     if best_any is not None and best_any != chosen and not models[best_any].get("urdf_exact", True):

@@ -123,20 +123,62 @@ class Cdp:
         os.close(self._from_r)
 
 
-def open_in_chromium(html: Path, tmp: Path, screenshot: Path | None = None) -> dict[str, Any]:
-    """Load a file in headless Chromium (1280 x 2000 viewport) and report what happened.
+#: JavaScript returning (as JSON) what does not fit the page's width: the page's own scroll
+#: width against the viewport's, every table / figure / block whose right edge passes the
+#: viewport, every table scrolling sideways inside itself, and the pairs of SVG text
+#: boxes that overlap within one figure
+LAYOUT_PROBE = """(() => {
+  const W = document.documentElement.clientWidth;
+  const out = {viewport: W, page: document.documentElement.scrollWidth, past: [], scrolls: [],
+               overlaps: []};
+  const name = el => el.tagName.toLowerCase() + ' "' + (el.textContent || '').trim().slice(0, 50) + '"';
+  for (const el of document.querySelectorAll('main > *, section > *, table, svg, pre, img, dl')) {
+    const r = el.getBoundingClientRect();
+    if (r.width > 0 && r.right > W + 0.5) out.past.push(name(el) + ' right ' + Math.round(r.right));
+  }
+  for (const el of document.querySelectorAll('table')) {
+    if (el.scrollWidth > el.clientWidth + 1) out.scrolls.push(name(el));
+  }
+  document.querySelectorAll('svg').forEach((svg, k) => {
+    const boxes = [...svg.querySelectorAll('text')].map(t => [t, t.getBoundingClientRect()])
+      .filter(([t, r]) => r.width > 0 && t.textContent.trim());
+    for (let i = 0; i < boxes.length; i++) for (let j = i + 1; j < boxes.length; j++) {
+      const a = boxes[i][1], b = boxes[j][1];
+      const dx = Math.min(a.right, b.right) - Math.max(a.left, b.left);
+      const dy = Math.min(a.bottom, b.bottom) - Math.max(a.top, b.top);
+      if (dx > 1 && dy > 1) out.overlaps.push('svg ' + k + ': "' + boxes[i][0].textContent +
+                                               '" / "' + boxes[j][0].textContent + '"');
+    }
+  });
+  return JSON.stringify(out);
+})()"""
+
+
+def open_in_chromium(
+    html: Path,
+    tmp: Path,
+    screenshot: Path | None = None,
+    *,
+    width: int = 1280,
+    height: int = 2000,
+    full_page: bool = False,
+) -> dict[str, Any]:
+    """Load a file in headless Chromium (``width`` x ``height`` viewport) and report what happened.
 
     Parameters
     ----------
     html : the file to open
     tmp : scratch folder (a fresh browser profile is made in it)
-    screenshot : where to save a PNG of the viewport, optional
+    screenshot : where to save a PNG of the viewport (the whole page with ``full_page``),
+        optional
+    width, height : the viewport, CSS px
 
     Returns
     -------
     dict with ``requests`` (every URL requested), ``leaving`` (those not ``file:``,
     ``data:`` or ``about:``), ``errors`` (console errors, error log entries,
-    exceptions), ``title`` and ``n_svg`` (inline SVG elements in the page).
+    exceptions), ``title``, ``n_svg`` (inline SVG elements in the page) and ``layout``
+    (:data:`LAYOUT_PROBE`'s findings at this width).
     """
     cdp = Cdp(tmp / "profile")
     try:
@@ -147,8 +189,8 @@ def open_in_chromium(html: Path, tmp: Path, screenshot: Path | None = None) -> d
         cdp.call(
             "Emulation.setDeviceMetricsOverride",
             session=sid,
-            width=1280,
-            height=2000,
+            width=width,
+            height=height,
             deviceScaleFactor=1,
             mobile=False,
         )
@@ -159,8 +201,16 @@ def open_in_chromium(html: Path, tmp: Path, screenshot: Path | None = None) -> d
         n_svg = cdp.call(
             "Runtime.evaluate", session=sid, expression="document.querySelectorAll('svg').length"
         )
+        layout = cdp.call("Runtime.evaluate", session=sid, expression=LAYOUT_PROBE)
         if screenshot is not None:
-            shot = cdp.call("Page.captureScreenshot", session=sid, format="png")
+            extra: dict[str, Any] = {}
+            if full_page:
+                size = cdp.call("Page.getLayoutMetrics", session=sid)["cssContentSize"]
+                extra = {
+                    "clip": {"x": 0, "y": 0, "width": width, "height": size["height"], "scale": 1},
+                    "captureBeyondViewport": True,
+                }
+            shot = cdp.call("Page.captureScreenshot", session=sid, format="png", **extra)
             screenshot.write_bytes(base64.b64decode(shot["data"]))
     finally:
         cdp.close()
@@ -190,4 +240,5 @@ def open_in_chromium(html: Path, tmp: Path, screenshot: Path | None = None) -> d
         "errors": errors,
         "title": title["result"].get("value"),
         "n_svg": n_svg["result"].get("value"),
+        "layout": json.loads(layout["result"].get("value") or "{}"),
     }
