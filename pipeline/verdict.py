@@ -114,26 +114,7 @@ def verdict(
         line += f" | {lower_bound_reason(trust)}: the figure is a lower bound"
     passed = None
     if tolerance_mm is not None:
-        passed = bool(
-            validated is not None and validated <= tolerance_mm and improved and not lower_bound
-        )
-        why = (
-            f"{validated:.4f} mm <= {tolerance_mm:g} mm"
-            if passed
-            else (
-                "nothing validated"
-                if validated is None
-                else (
-                    f"{validated:.4f} mm > {tolerance_mm:g} mm"
-                    if validated > tolerance_mm
-                    else (
-                        "not improved on the nominal robot"
-                        if not improved
-                        else "the figure is a lower bound"
-                    )
-                )
-            )
-        )
+        passed, why = _pass_fail(validated, tolerance_mm, improved, lower_bound)
         line += f" | {'PASS' if passed else 'FAIL'} ({why})"
     return {
         "tolerance_mm": tolerance_mm,
@@ -151,6 +132,21 @@ def verdict(
         "warnings": list(trust.get("warnings") or []),
         "line": line,
     }
+
+
+def _pass_fail(
+    validated: float | None, tolerance_mm: float, improved: bool | None, lower_bound: bool
+) -> tuple[bool, str]:
+    """PASS (validated <= tolerance, improved, not a lower bound) or FAIL, and why."""
+    if validated is None:
+        return False, "nothing validated"
+    if validated > tolerance_mm:
+        return False, f"{validated:.4f} mm > {tolerance_mm:g} mm"
+    if not improved:
+        return False, "not improved on the nominal robot"
+    if lower_bound:
+        return False, "the figure is a lower bound"
+    return True, f"{validated:.4f} mm <= {tolerance_mm:g} mm"
 
 
 def lower_bound_reason(trust: dict[str, Any]) -> str:

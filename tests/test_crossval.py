@@ -15,9 +15,9 @@ from pipeline.stages.crossval import (
     CrossvalConfig,
     cross_validate,
     fold_assignment,
-    heldout_predictions,
     usable_rows,
 )
+from pipeline.stages.crossval_predict import heldout_predictions
 from pipeline.stages.identify import IdentifyConfig
 
 URDF = (Path(__file__).resolve().parent.parent / "pipeline/robots/lrmate.urdf").read_text()

@@ -155,3 +155,16 @@ def test_a_disk_blur_and_an_out_of_round_print_leave_the_curve_found(srgb):
     assert "assumed" not in est.note and not est.edge_model_misfit, est.note
     assert est.sigma_grey < 1.0, est.note
     assert est.gamma_fit == pytest.approx(2.3 if srgb else 1.0, abs=0.15), est.note
+
+
+def test_when_the_edge_model_misfits_the_images_votes_choose_the_curve(monkeypatch):
+    """Without the contour's harmonics the print's out-of-roundness leaves ~3 grey of
+    misfit; the curve every image prefers is still chosen, said to rest on the votes
+    (before: "linear (assumed)" on these sRGB images)."""
+    import pipeline.stages.response_estimate as re_
+
+    monkeypatch.setattr(re_, "ROUND_HARMONICS", 0)
+    rng = np.random.default_rng(11)
+    est = estimate_response([_misfit_image(rng, True) for _ in range(12)])
+    assert est.edge_model_misfit and est.response.kind == "srgb", est.note
+    assert est.votes_srgb == 12 and "votes" in est.note

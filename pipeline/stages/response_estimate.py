@@ -279,6 +279,32 @@ VOTE_SHARE = 0.8
 VOTE_MARGIN_PER_IMAGE = 10.0
 
 
+def _voted(chosen: Response, figures: dict[str, Any], why: str) -> ResponseEstimate | None:
+    """The curve chosen by the images' votes when the edge model misfits (else None).
+
+    The edge model is imperfect (a point spread function, a print or a compression
+    it does not hold), but image after image prefers one curve by a margin the
+    misfit does not explain: that curve, said to rest on the votes. ``figures`` are
+    :class:`ResponseEstimate`'s fields but the curve and note; ``why`` the misfit.
+    """
+    n_img, srgb = int(figures["n_images"]), int(figures["votes_srgb"])
+    agree = srgb if chosen.kind == "srgb" else n_img - srgb
+    margin = abs(float(figures["delta_linear"]) - float(figures["delta_srgb"]))
+    if agree < VOTE_SHARE * n_img or margin < VOTE_MARGIN_PER_IMAGE * n_img:
+        return None
+    return ResponseEstimate(
+        chosen,
+        **figures,
+        edge_model_misfit=True,
+        note=(
+            f"{chosen.spec} (estimated by the edge profiles' votes: {agree} of {n_img} "
+            f"images prefer it, by {margin:.0f} noise variances in all; {why}, so the "
+            "margin is counted in the misfit's variance; if the camera's curve is known, "
+            "declare it)"
+        ),
+    )
+
+
 def estimate_from_profiles(
     profiles: Sequence[_Profile], warn_sigma2_per_image: float = 25.0
 ) -> ResponseEstimate:
@@ -333,46 +359,24 @@ def estimate_from_profiles(
     grads = [illumination_gradient(p, Response("gamma", g_best), p.diameter_px) for p in profiles]
     illum = (float(np.median(grads)), float(np.max(grads)))
     n_img = len(profiles)
-    agree = votes_srgb if chosen.kind == "srgb" else n_img - votes_srgb
-    if (
-        misfit
-        and agree >= VOTE_SHARE * n_img
-        and abs(d_lin - d_srgb) >= VOTE_MARGIN_PER_IMAGE * n_img
-    ):
-        # the edge model is imperfect (a point spread function that is not Gaussian, a
-        # print out of round, JPEG), but image after image prefers one curve by a
-        # margin the misfit does not explain: that curve, said to rest on the votes
-        return ResponseEstimate(
-            chosen,
-            gamma_fit=g_best,
-            delta_linear=float(d_lin),
-            delta_srgb=float(d_srgb),
-            sigma_grey=255.0 * sigma_fit,
-            n_images=n_img,
-            n_pixels=n_pix,
-            illumination_gradient=illum[0],
-            illumination_gradient_max=illum[1],
-            votes_srgb=votes_srgb,
-            edge_model_misfit=True,
-            note=(
-                f"{chosen.spec} (estimated by the edge profiles' votes: {agree} of {n_img} "
-                f"images prefer it, by {abs(d_lin - d_srgb):.0f} noise variances in all; "
-                f"{unreliable}, so the margin is counted in the misfit's variance; if the "
-                "camera's curve is known, declare it)"
-            ),
-        )
+    figures: dict[str, Any] = {
+        "gamma_fit": g_best,
+        "delta_linear": float(d_lin),
+        "delta_srgb": float(d_srgb),
+        "sigma_grey": 255.0 * sigma_fit,
+        "n_images": n_img,
+        "n_pixels": n_pix,
+        "illumination_gradient": illum[0],
+        "illumination_gradient_max": illum[1],
+        "votes_srgb": votes_srgb,
+    }
+    voted = _voted(chosen, figures, unreliable) if misfit else None
+    if voted is not None:
+        return voted
     if unreliable:
         return ResponseEstimate(
             Response("linear"),
-            gamma_fit=g_best,
-            delta_linear=float(d_lin),
-            delta_srgb=float(d_srgb),
-            sigma_grey=255.0 * sigma_fit,
-            n_images=len(profiles),
-            n_pixels=n_pix,
-            illumination_gradient=illum[0],
-            illumination_gradient_max=illum[1],
-            votes_srgb=votes_srgb,
+            **figures,
             edge_model_misfit=misfit,
             note=(
                 f"linear (assumed: {unreliable}"
@@ -396,19 +400,7 @@ def estimate_from_profiles(
             f"{d_chosen:.0f} noise variances better): if the camera's curve is known, "
             "declare it (--set camera_response=gamma:G)"
         )
-    return ResponseEstimate(
-        chosen,
-        gamma_fit=g_best,
-        delta_linear=float(d_lin),
-        delta_srgb=float(d_srgb),
-        sigma_grey=float(math.sqrt(sigma2) * 255.0),
-        n_images=len(profiles),
-        n_pixels=n_pix,
-        illumination_gradient=illum[0],
-        illumination_gradient_max=illum[1],
-        votes_srgb=votes_srgb,
-        note=note,
-    )
+    return ResponseEstimate(chosen, **figures, note=note)
 
 
 def estimate_response(
