@@ -81,10 +81,9 @@ def provenance_lines(summary: dict[str, Any], source: Source, version: str) -> l
     v = verdict(summary) or {}
     model = str(summary.get("best_model") or summary.get("model") or "unknown")
     cv = ((summary.get("crossval") or {}).get("models") or {}).get(model) or {}
-    held = cv.get("kfold_rms_mm")
     validated = (
-        f"{_mm(held)} RMS {v.get('validated_how', 'held-out')}"
-        if held is not None
+        f"{_mm(v['validated_mm'])} RMS {v.get('validated_how', 'held-out')}"
+        if cv.get("kfold_rms_mm") is not None and v.get("validated_mm") is not None
         else "not cross-validated"
     )
     how = "chosen by held-out error" if summary.get("crossval") else "as asked"

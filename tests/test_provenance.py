@@ -23,6 +23,7 @@ from pipeline.provenance import (
     recorded_utc,
     stamp_urdf,
 )
+from pipeline.verdict import verdict
 
 
 def test_provenance_block_in_calibrated_urdf(lrmate_run: Path) -> None:
@@ -33,7 +34,10 @@ def test_provenance_block_in_calibrated_urdf(lrmate_run: Path) -> None:
     model = summary["best_model"]
     assert prov["shipped model"].startswith(model)
     held = summary["crossval"]["models"][model]["kfold_rms_mm"]
-    assert prov["validated accuracy"].startswith(f"{held:.4f} mm RMS held-out")
+    v = verdict(summary)
+    assert v is not None
+    assert prov["validated accuracy"].startswith(f"{v['validated_mm']:.4f} mm RMS held-out")
+    assert f"{held:.4f} mm each" in prov["validated accuracy"]
     assert f"{summary['predicted_shape_rms_mm']:.4f} mm RMS shape" in prov["predicted accuracy"]
     assert prov["length scale"].startswith("identified from 1 known distance")
     assert file_hash(lrmate_run.parent / "table.csv") in prov["source"]

@@ -168,3 +168,22 @@ def test_when_the_edge_model_misfits_the_images_votes_choose_the_curve(monkeypat
     est = estimate_response([_misfit_image(rng, True) for _ in range(12)])
     assert est.edge_model_misfit and est.response.kind == "srgb", est.note
     assert est.votes_srgb == 12 and "votes" in est.note
+
+
+def test_images_without_a_clean_target_are_held_back_until_some_show_one():
+    """The first 24 captures all of a spoiled target (lamp, plate edge): the estimate
+    waits for more rather than assuming linear from nothing (an sRGB render's run did,
+    and called the guess "estimated")."""
+    from pipeline.stages.ingest_stream import resolve_response
+
+    blank = np.full((160, 200), 200, np.uint8)
+    rows: list[dict] = [{} for _ in range(24)]
+    probing = [(k, blank.copy()) for k in range(24)]
+    cfg = DetectConfig(polarity="dark_on_light")
+    assert resolve_response(probing, rows, cfg, final=False) is None
+    assert len(probing) == 24 and rows[0] == {}  # nothing done, nothing lost
+    got = resolve_response(probing, rows, cfg, final=True)
+    assert got is not None and got[1].assumed and got[1].response.is_linear
+    rng = np.random.default_rng(2)
+    est = estimate_response([_misfit_image(rng, True) for _ in range(4)])
+    assert not est.assumed and est.response.kind == "srgb", est.note

@@ -71,7 +71,7 @@ def test_the_report_headline_is_validated(sample_run):
     text = build_report(sample_run).read_text()
     summary = json.loads((sample_run / "identify.json").read_text())
     kfold = summary["crossval"]["models"][summary["best_model"]]["kfold_rms_mm"]
-    assert "RMS, validated" in text and f"{kfold:.3f}" in text
+    assert "RMS, validated" in text and f"{kfold:.4f} mm each" in text
     assert "fit residual (training, not an accuracy)" in text
     assert "improvement" in text and "not improved" not in text
 

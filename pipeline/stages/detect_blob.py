@@ -121,6 +121,7 @@ def pick_blob(
         cand.append((area, cx * k + k // 2, cy * k + k // 2, (x0c, y0c, wc, hc), c))
     if not cand:
         return None
+    compact = [_solidity(c[4]) >= MIN_SOLIDITY for c in cand]
     # a handful of candidates: plain floats (NumPy calls on 1-element arrays cost more)
     areas = [c[0] for c in cand]
     use_exp = expected is not None and all(math.isfinite(float(e)) for e in expected)
@@ -136,12 +137,16 @@ def pick_blob(
         ]
         order = sorted(range(len(cand)), key=score.__getitem__)
     else:
-        order = sorted(range(len(cand)), key=lambda i: -areas[i])
+        # the largest round blob: a target is a filled ellipse, the dark crescent a
+        # lamp's beam edge leaves at a plate's far side is not (it was taken for the
+        # target when larger: every capture of a target near it lost)
+        order = sorted(range(len(cand)), key=lambda i: (not compact[i], -areas[i]))
     best = order[0]
     ambiguity = 0.0
     ambiguous = False
-    if len(cand) > 1:
-        second = order[1]
+    rivals = [i for i in order[1:] if compact[i] or not compact[best]]
+    if rivals:
+        second = rivals[0]
         ambiguity = float(min(areas[second], areas[best]) / max(areas[best], areas[second]))
         if use_exp:
             ambiguous = bool(score[second] < score[best] + 0.5 and ambiguity > ambiguity_ratio)
@@ -156,6 +161,19 @@ def pick_blob(
         ambiguity=ambiguity,
         ambiguous=ambiguous,
     )
+
+
+#: a blob whose area is below this share of its convex hull's is not taken for the target
+#: while a rounder one of target size is there (an ellipse: 1; a half-moon: ~0.6)
+MIN_SOLIDITY = 0.8
+
+
+def _solidity(contour: np.ndarray) -> float:
+    """Area of a coarse contour over that of its convex hull (each + half its boundary)."""
+    hull = cv2.convexHull(contour)
+    a = cv2.contourArea(contour) + 0.5 * len(contour) + 1.0
+    h = cv2.contourArea(hull) + 0.5 * cv2.arcLength(hull, True) + 1.0
+    return float(a / h)
 
 
 def blob_window(

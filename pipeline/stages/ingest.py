@@ -187,7 +187,9 @@ def ingest_recording(
     for msg in iter_recording(layout, state):
         take_message(path, layout.path, msg, state, config, s, progress, n_total)
     if s.probing is not None:
-        s.dcfg, s.response_est, s.expected = resolve_response(s.probing, s.rows, s.dcfg, s.crops)
+        got = resolve_response(s.probing, s.rows, s.dcfg, s.crops, final=True)
+        assert got is not None
+        s.dcfg, s.response_est, s.expected = got
     flat = correct_flat_field(s.crops, s.rows, s.dcfg, (s.height, s.width))
     s.crops = CropStore()  # the crops are done with: free them before the tables
     if progress is not None:
@@ -420,7 +422,7 @@ def _infer_metadata(
         metadata["camera_response"] = response_est.response.spec
         inferred["camera_response"] = response_est.note
         camera = {**response_est.to_dict(), "response_source": "estimated"}
-        if response_est.note.startswith("linear (assumed"):
+        if response_est.assumed:
             camera["response_source"] = "assumed"
     elif resp_fixed is not None:
         camera = {"response": resp_fixed.spec, "response_source": resp_source}

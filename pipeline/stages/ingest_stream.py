@@ -40,6 +40,9 @@ from pipeline.stages.row_buffer import RowBuffer
 
 #: images held back at the start of a recording to estimate the camera response from
 RESPONSE_PROBE_IMAGES = 24
+#: ... and, while those show too few clean targets to estimate from (a lamp or a plate
+#: edge spoiling the first target's captures), up to this many in steps of the above
+RESPONSE_PROBE_MAX = 96
 #: of those, how many clean target detections the estimate uses
 RESPONSE_FIT_IMAGES = 12
 
@@ -158,9 +161,15 @@ def _take_image(
                 s.expected = (det["u"], det["v"], det["s"])
                 s.crops.add(k, grey, det)
     s.rows.append(det)
-    if s.probing is not None and len(s.probing) >= RESPONSE_PROBE_IMAGES:
-        s.dcfg, s.response_est, s.expected = resolve_response(s.probing, s.rows, s.dcfg, s.crops)
-        s.probing = None
+    n_held = len(s.probing) if s.probing is not None else 0
+    if n_held >= RESPONSE_PROBE_IMAGES and n_held % RESPONSE_PROBE_IMAGES == 0:
+        assert s.probing is not None
+        got = resolve_response(
+            s.probing, s.rows, s.dcfg, s.crops, final=n_held >= RESPONSE_PROBE_MAX
+        )
+        if got is not None:
+            s.dcfg, s.response_est, s.expected = got
+            s.probing = None
     s.img_log.append(int(msg.log_time))
     s.img_stamp.append(int(enc.stamp_ns) if enc.stamp_ns > 0 else int(msg.log_time))
     if progress is not None and (k % 16 == 0):
@@ -197,14 +206,19 @@ def resolve_response(
     rows: list[dict[str, Any]],
     dcfg: DetectConfig,
     crops: CropStore | None = None,
-) -> tuple[DetectConfig, ResponseEstimate, tuple[float, float, float] | None]:
+    final: bool = True,
+) -> tuple[DetectConfig, ResponseEstimate, tuple[float, float, float] | None] | None:
     """Estimate the camera response from the held-back images, then detect them with it.
 
     ``rows[k]`` of every held-back image ``k`` is filled in place, in order, each
     capture's detection steering the next one's (``expected``) as in the stream;
-    clean ones are kept in ``crops`` as the stream keeps its own.
+    clean ones are kept in ``crops`` as the stream keeps its own. Unless ``final``,
+    None (nothing done: hold more images back) when fewer than half of
+    :data:`RESPONSE_FIT_IMAGES` of them showed a clean target edge.
     """
     est = estimate_response((g for _, g in probing), dcfg, max_images=RESPONSE_FIT_IMAGES)
+    if not final and est.n_images < RESPONSE_FIT_IMAGES // 2:
+        return None
     cfg = DetectConfig(**{**dcfg.to_dict(), "response": est.response.spec})
     expected: tuple[float, float, float] | None = None
     for k, grey in probing:

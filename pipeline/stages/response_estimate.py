@@ -89,6 +89,12 @@ class ResponseEstimate:
     edge_model_misfit: bool = False
     note: str = ""
 
+    @property
+    def assumed(self) -> bool:
+        """The curve was not read from the edges (none to read, too sharp, or no curve the
+        images agree on): linear assumed, a guess the run's accuracy hinges on."""
+        return self.n_images == 0 or self.note.startswith("linear (assumed")
+
     def to_dict(self) -> dict[str, Any]:
         return {
             "response": self.response.spec,
