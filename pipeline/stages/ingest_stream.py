@@ -31,6 +31,7 @@ from pipeline.io_mcap import (
     image_to_gray,
 )
 from pipeline.io_recording import TOUCHUP_TOPIC, touchup_from_message
+from pipeline.kinematics.urdf import urdf_text
 from pipeline.stages.detect import RESULT_KEYS, DetectConfig, detect_target, empty_result
 from pipeline.stages.flat_field import CropStore
 from pipeline.stages.ingest_joints import JointGroups, strip_prefix
@@ -115,7 +116,7 @@ def take_message(
     elif topic == config.description_topic and s.urdf is None:
         if sname not in STRING_TYPES:
             raise BadInput(f"{path}: topic {topic}: type {sname!r} is not std_msgs/String")
-        s.urdf = decode_string(msg.data)
+        s.urdf = urdf_text(decode_string(msg.data))
     elif topic == TOUCHUP_TOPIC and not s.stream_touchup and sname in STRING_TYPES:
         s.stream_touchup = touchup_from_message(layout_path, msg.data)
 

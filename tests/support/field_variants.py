@@ -1,0 +1,150 @@
+"""Field-recording variants (issue 34): a small simulated recording rewritten as recorders differ.
+
+:func:`simulated` writes a small LR Mate recording with the simulator (its
+truth beside it); :func:`rewrite` copies a recording message by message,
+letting a function change each decoded ROS 2 message (URDF text, image
+encoding, ...) and the ``touchup`` metadata, and re-encodes it with
+``mcap_ros2`` as a recorder would (same chunking and compression as the
+simulator). :func:`written_files_parse` checks that every URDF, JSON and
+Parquet file in a run folder parses.
+"""
+
+from __future__ import annotations
+
+import json
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from mcap.reader import make_reader
+from mcap.writer import CompressionType
+from mcap_ros2.decoder import DecoderFactory
+from mcap_ros2.writer import Writer as RosWriter
+
+SMALL_TOML = """
+name = "field_small"
+[robot]
+name = "lrmate"
+[camera]
+width = 160
+height = 128
+f_px = 300.0
+subsamples = 4
+[targets]
+count = 3
+[poses]
+per_target = 3
+"""
+
+#: ``edit(topic, message dict) -> message dict`` (the dict as mcap_ros2 decodes it)
+Edit = Callable[[str, dict[str, Any]], dict[str, Any]]
+
+
+def simulated(folder: Path, seed: int = 3, toml: str = SMALL_TOML) -> tuple[Path, dict[str, Any]]:
+    """A simulated recording ``folder/sim.mcap`` and its truth (cached in the folder)."""
+    from pipeline.sim.scenario import load_scenario
+    from pipeline.sim.simulator import simulate
+
+    out = folder / f"sim_{seed}.mcap"
+    truth_p = folder / f"sim_{seed}.truth.json"
+    if not out.exists():
+        scen = folder / "field_small.toml"
+        scen.write_text(toml)
+        truth = simulate(load_scenario(scen), seed=seed, out=out)
+        truth_p.write_text(json.dumps(truth, default=_plain))
+    return out, json.loads(truth_p.read_text())
+
+
+def _plain(o: Any) -> Any:
+    if isinstance(o, np.ndarray):
+        return o.tolist()
+    if isinstance(o, np.generic):
+        return o.item()
+    raise TypeError(type(o).__name__)
+
+
+def _as_dict(msg: Any) -> Any:
+    """An mcap_ros2 decoded message as plain dicts / lists / bytes."""
+    if hasattr(msg, "__slots__"):
+        return {k: _as_dict(getattr(msg, k)) for k in msg.__slots__}
+    if isinstance(msg, list):
+        return [_as_dict(x) for x in msg]
+    return msg
+
+
+def rewrite(
+    src: Path,
+    dst: Path,
+    edit: Edit | None = None,
+    metadata: Callable[[dict[str, str]], dict[str, str]] | None = None,
+    raw: Callable[[str, dict[str, Any]], bytes | None] | None = None,
+) -> Path:
+    """Copy a ROS 2 recording, editing messages and the ``touchup`` metadata.
+
+    ``edit`` receives each decoded message; ``raw`` (after it) may return the
+    message bytes itself, for variants the ROS 2 writer cannot produce (XCDR2).
+    """
+    dec = DecoderFactory()
+    with open(src, "rb") as f:
+        r = make_reader(f)
+        summ = r.get_summary()
+        assert summ is not None
+        msgs = []
+        for sc, ch, m in r.iter_messages(log_time_order=True):
+            msgs.append((sc, ch, m))
+        md = {x.name: dict(x.metadata) for x in r.iter_metadata()}
+    with open(dst, "wb") as f:
+        w = RosWriter(f, chunk_size=65536, compression=CompressionType.ZSTD)
+        schemas: dict[int, Any] = {}
+        for sc, ch, m in msgs:
+            if sc.id not in schemas:
+                schemas[sc.id] = w.register_msgdef(sc.name, sc.data.decode())
+            decoder = dec.decoder_for(ch.message_encoding, sc)
+            assert decoder is not None
+            obj = _as_dict(decoder(m.data))
+            if edit is not None:
+                obj = edit(ch.topic, obj)
+            data = raw(ch.topic, obj) if raw is not None else None
+            if data is None:
+                w.write_message(
+                    ch.topic, schemas[sc.id], obj, log_time=m.log_time, publish_time=m.publish_time
+                )
+                continue
+            if ch.topic not in w._channel_ids:
+                w._channel_ids[ch.topic] = w._writer.register_channel(
+                    topic=ch.topic, message_encoding="cdr", schema_id=schemas[sc.id].id
+                )
+            w._writer.add_message(
+                channel_id=w._channel_ids[ch.topic],
+                log_time=m.log_time,
+                publish_time=m.publish_time,
+                data=data,
+            )
+        for name, kv in md.items():
+            if name == "touchup" and metadata is not None:
+                kv = metadata(kv)
+            w._writer.add_metadata(name, kv)
+        w.finish()
+    return dst
+
+
+def written_files_parse(folder: Path) -> list[str]:
+    """Parse every URDF, JSON and Parquet file under ``folder``; return their names."""
+    import xml.etree.ElementTree as ET
+
+    import pyarrow.parquet as pq
+
+    seen = []
+    for p in sorted(folder.rglob("*")):
+        if p.suffix == ".urdf":
+            root = ET.fromstring(p.read_bytes())
+            assert root.tag == "robot", p
+        elif p.suffix == ".json":
+            json.loads(p.read_text())
+        elif p.suffix == ".parquet":
+            pq.read_table(p)
+        else:
+            continue
+        seen.append(p.name)
+    return seen
