@@ -54,3 +54,53 @@ def test_urdf_with_byte_order_mark_is_read_and_written_well_formed(sim, tmp_path
     assert "calibrated.urdf" in written and "recording.json" in written
     urdf = json.loads((out / "recording.json").read_text())["urdf"]
     assert not urdf.startswith("\ufeff")
+
+
+# --------------------------------------------------------------- 2: a gripper, no flange_link
+
+GRIPPER = """
+  <link name="hand"/><link name="finger_left"/><link name="finger_right"/>
+  <joint name="hand_joint" type="fixed">
+    <parent link="flange"/><child link="hand"/><origin xyz="0 0 0.06" rpy="0 0 0"/>
+  </joint>
+  <joint name="finger_left_joint" type="prismatic">
+    <parent link="hand"/><child link="finger_left"/><origin xyz="0 0.01 0.05" rpy="0 0 0"/>
+    <axis xyz="0 1 0"/><limit lower="0" upper="0.04" effort="20" velocity="0.2"/>
+  </joint>
+  <joint name="finger_right_joint" type="prismatic">
+    <parent link="hand"/><child link="finger_right"/><origin xyz="0 -0.01 0.05" rpy="0 0 0"/>
+    <axis xyz="0 -1 0"/><limit lower="0" upper="0.04" effort="20" velocity="0.2"/>
+    <mimic joint="finger_left_joint"/>
+  </joint>
+</robot>"""
+
+
+def test_gripper_fingers_that_never_move_are_not_the_flange(sim, tmp_path, capsys):
+    rec, truth = sim
+
+    def gripper(topic: str, msg: dict) -> dict:
+        if topic == "/robot_description":
+            msg["data"] = msg["data"].replace("</robot>", GRIPPER)
+        elif topic == "/joint_states":  # the gripper's state on the arm's topic, held open
+            msg["name"] = [*msg["name"], "finger_left_joint", "finger_right_joint"]
+            msg["position"] = [*msg["position"], 0.02, 0.02]
+            if msg["velocity"]:
+                msg["velocity"] = [*msg["velocity"], 0.0, 0.0]
+            if msg["effort"]:
+                msg["effort"] = [*msg["effort"], 0.0, 0.0]
+        return msg
+
+    def no_links(md: dict[str, str]) -> dict[str, str]:
+        return {k: v for k, v in md.items() if k not in ("flange_link", "base_link")}
+
+    variant = rewrite(rec, tmp_path / "gripper.mcap", gripper, no_links)
+    out = tmp_path / "run"
+    code, err = _run(variant, out, capsys)
+    assert code == 0, err
+    written_files_parse(out)
+    info = json.loads((out / "recording.json").read_text())
+    assert info["flange_link"] == truth["flange_link"] == "flange"
+    why = info["inferred"]["flange_link"]
+    assert "joint_6" in why and "finger_left_joint" in why and "never move" in why, why
+    assert any("flange" in ln and "never move" in ln for ln in err), err
+    assert '<parent link="flange" />' in (out / "calibrated.urdf").read_text()

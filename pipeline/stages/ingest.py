@@ -96,12 +96,26 @@ def _choose_image_topic(
     return imgs[0] if imgs else None
 
 
-def infer_links(robot: RobotDescription, joint_names: list[str]) -> tuple[str, str]:
-    """Base and flange link of a URDF: the root link, and the child of the last arm joint.
+#: a joint whose positions span less than this (rad or m) never moves in the recording
+STILL_SPAN = 1e-4
 
-    The last arm joint is the actuated joint of ``joint_names`` deepest in the
-    tree; the flange is its child link, or the child of a fixed joint named
-    like a flange/tool0 hanging from it.
+
+def infer_links(
+    robot: RobotDescription, joint_names: list[str], span: dict[str, float] | None = None
+) -> tuple[str, str, str]:
+    """Base and flange link of a URDF: the root link, and the last link the arm's joints move.
+
+    The arm's joints are the actuated joints of ``joint_names`` that move in
+    the recording (``span[name] > STILL_SPAN``; all of them when ``span`` is
+    None). The last one is the deepest in the tree; the flange is its child
+    link, or the child of a fixed joint named like a flange/tool0 hanging from
+    it. A joint that never moves (a gripper's fingers, one of them a mimic
+    joint) is not the arm's: a link after it is not the flange.
+
+    Returns
+    -------
+    base, flange : link names
+    why : how the flange was chosen (for ``recording.json``'s ``inferred``)
     """
     children = {j.child for j in robot.joints.values()}
     roots = [ln for ln in robot.links if ln not in children]
@@ -116,15 +130,24 @@ def infer_links(robot: RobotDescription, joint_names: list[str]) -> tuple[str, s
         depth[link] = d
         return d
 
-    arm = [robot.joints[n] for n in joint_names if n in robot.joints]
+    named = [robot.joints[n] for n in joint_names if n in robot.joints]
+    arm = named if span is None else [j for j in named if span.get(j.name, 0.0) > STILL_SPAN]
+    still = [j.name for j in named if j not in arm]
+    arm = arm or named
     if not arm:
-        return base, robot.links[-1]
+        return base, robot.links[-1], f"{robot.links[-1]} (last link of the URDF)"
     last = max(arm, key=lambda j: _depth(j.child))
     tip = last.child
+    why = f"child link of {last.name}, the last arm joint"
+    if still:
+        why += (
+            f"; {still} never move in the recording (a gripper's or another device's), "
+            "so no link after them is the flange"
+        )
     for j in robot.joints.values():
         if j.parent == tip and j.type == "fixed" and j.child.lower() in ("flange", "tool0"):
-            return base, j.child
-    return base, tip
+            return base, j.child, f"{j.child} (fixed to the {why})"
+    return base, tip, f"{tip} ({why})"
 
 
 def ingest_recording(
@@ -359,13 +382,18 @@ def _chain(
         )
     # metadata: overrides win; inferred keys filled and reported
     metadata.update({k: str(v) for k, v in config.overrides.items() if v is not None})
-    base_i, flange_i = infer_links(robot, j_names)
+    spans = {
+        n: float(np.ptp(v)) if v.size else 0.0 for n, v in other_joints(s.j_groups, []).items()
+    }
+    base_i, flange_i, why = infer_links(robot, j_names, spans)
     if "base_link" not in metadata:
         metadata["base_link"] = base_i
         inferred["base_link"] = f"{base_i} (root link of the URDF)"
     if "flange_link" not in metadata:
         metadata["flange_link"] = flange_i
-        inferred["flange_link"] = f"{flange_i} (child link of the last arm joint)"
+        inferred["flange_link"] = why
+        if "never move" in why:
+            warnings.append(f"{path}: no flange_link in the touchup metadata: flange {why}")
     for ln in (metadata["base_link"], metadata["flange_link"]):
         if ln not in robot.links:
             raise BadInput(f"{path}: link {ln!r} (touchup metadata/override) is not in the URDF")
