@@ -382,6 +382,36 @@ def image_to_gray(img: EncodedImage) -> np.ndarray:
     return out
 
 
+#: the sample depths a 16-bit image may carry (a 12-bit sensor's data in ``mono16``)
+SENSOR_BITS = (10, 12, 14, 16)
+
+
+def significant_bits(grey: np.ndarray) -> int:
+    """Bits a ``uint16`` image uses: the smallest of :data:`SENSOR_BITS` that holds its maximum.
+
+    A camera driver publishes a 10-, 12- or 14-bit sensor's samples in
+    ``mono16`` unscaled, so the data stop at ``2^b - 1``; the depth is read
+    from the data, since the message does not say it.
+    """
+    top = int(grey.max()) if grey.size else 0
+    return next(b for b in SENSOR_BITS if top < (1 << b))
+
+
+def to_full_range(grey: np.ndarray, bits: int) -> np.ndarray:
+    """``bits``-deep samples in a ``uint16`` image stretched to the full 16-bit range.
+
+    ``I' = round(I (2^16 - 1) / (2^b - 1))`` (clipped at ``2^16 - 1``), so the
+    top code of the sensor becomes the top code of the type: the response
+    curve (``g^-1(I / 65535)``) and the clip level then mean what they mean
+    for a 16-bit sensor. ``bits`` 16 returns the image as it is.
+    """
+    if bits >= 16:
+        return grey
+    top = (1 << bits) - 1
+    wide = (grey.astype(np.uint32) * 65535 + top // 2) // top
+    return np.minimum(wide, 65535).astype(np.uint16)
+
+
 def colour_to_grey(px: np.ndarray) -> np.ndarray:
     """Grey of a colour image: the mean of its three colour channels, rounded (uint8).
 

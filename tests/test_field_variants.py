@@ -12,8 +12,16 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
+import numpy as np
 import pytest
-from support.field_variants import rewrite, simulated, written_files_parse
+from support.field_variants import (
+    SMALL_TOML,
+    png_grey,
+    raw_image,
+    rewrite,
+    simulated,
+    written_files_parse,
+)
 from test_robustness_data import run_cli
 
 
@@ -104,3 +112,45 @@ def test_gripper_fingers_that_never_move_are_not_the_flange(sim, tmp_path, capsy
     assert "joint_6" in why and "finger_left_joint" in why and "never move" in why, why
     assert any("flange" in ln and "never move" in ln for ln in err), err
     assert '<parent link="flange" />' in (out / "calibrated.urdf").read_text()
+
+
+# --------------------------------------------------------------- 3: 12-bit data in mono16
+
+SRGB_TOML = SMALL_TOML.replace("per_target = 3", "per_target = 6") + '[optics]\nresponse = "srgb"\n'
+
+
+def _grey_edit(convert):
+    def edit(topic: str, msg: dict):
+        if topic != "/camera/image_raw/compressed":
+            return msg
+        px, enc = convert(png_grey(msg))
+        return raw_image(msg, px, enc)
+
+    return edit
+
+
+def test_mono16_holding_12_bit_data_is_as_accurate_as_mono8(tmp_path, capsys):
+    """An sRGB camera's 12-bit samples in mono16: same shape error as the 8-bit images."""
+    from pipeline.evaluate import judge_run
+
+    rec, truth = simulated(tmp_path, seed=1, toml=SRGB_TOML)
+    shape = {}
+    for name, conv in {
+        "mono8": lambda g: (g, "mono8"),
+        "mono16_12": lambda g: (
+            np.rint(g.astype(float) * (4095 / 255)).astype(np.uint16),
+            "mono16",
+        ),
+    }.items():
+        variant = rewrite(rec, tmp_path / f"{name}.mcap", _grey_edit(conv))
+        out = tmp_path / name
+        code, err = _run(variant, out, capsys, "--model", "full", "--until", "crossval")
+        assert code == 0, err
+        written_files_parse(out)
+        shape[name] = judge_run(out, truth, 300, 1)["after"]["shape_rms_m"]
+    assert shape["mono16_12"] <= 1.1 * shape["mono8"], shape
+    info = json.loads((tmp_path / "mono16_12" / "recording.json").read_text())
+    assert info["inferred"]["bit_depth"].startswith("12 "), info["inferred"]
+    assert "bit_depth" not in json.loads((tmp_path / "mono8" / "recording.json").read_text())[
+        "inferred"
+    ]

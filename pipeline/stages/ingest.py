@@ -438,6 +438,8 @@ def _infer_metadata(
     Each inferred key is noted in ``inferred``. Returns the ``camera`` record of
     :class:`RecordingInfo`.
     """
+    if s.bits_note:
+        inferred["bit_depth"] = s.bits_note
     if "polarity" not in metadata:
         pols = [r for r in s.rows if r["found"]]
         metadata["polarity"] = polarity or "dark_on_light"

@@ -29,6 +29,8 @@ from pipeline.io_mcap import (
     decode_joint_state,
     decode_string,
     image_to_gray,
+    significant_bits,
+    to_full_range,
 )
 from pipeline.io_recording import TOUCHUP_TOPIC, touchup_from_message
 from pipeline.kinematics.urdf import urdf_text
@@ -67,6 +69,9 @@ class Streamed:
     n_joint_msgs : joint-state messages read
     crops : crops of the clean detections, for the sensor's gain pattern
         (:mod:`pipeline.stages.flat_field`)
+    bits, bits_note : the sample depth of 16-bit images (0: none seen), inferred from
+        the first one's largest value (:func:`pipeline.io_mcap.significant_bits`), and
+        how it was inferred
     """
 
     image_topic: str | None
@@ -85,6 +90,8 @@ class Streamed:
     seen_image_topics: set[str] = field(default_factory=set)
     n_joint_msgs: int = 0
     crops: CropStore = field(default_factory=CropStore)
+    bits: int = 0
+    bits_note: str = ""
 
 
 def take_message(
@@ -147,6 +154,8 @@ def _take_image(
         det = {kk: v for kk, v in zip(RESULT_KEYS, _nan_row(), strict=True)}
         det["reason"] = f"decode_failed: {exc}"[:120]
         grey = None
+    if grey is not None and grey.dtype == np.uint16:
+        grey = _full_range(grey, k, s)
     if grey is not None:
         s.height, s.width = grey.shape
         if s.probing is not None:
@@ -166,6 +175,24 @@ def _take_image(
     s.img_stamp.append(int(enc.stamp_ns) if enc.stamp_ns > 0 else int(msg.log_time))
     if progress is not None and (k % 16 == 0):
         progress(k + 1, n_total)
+
+
+def _full_range(grey: np.ndarray, k: int, s: Streamed) -> np.ndarray:
+    """A 16-bit image stretched to the full range of the depth its data use.
+
+    The depth is inferred once, from the first 16-bit image; an image whose
+    values exceed it raises it (noted) for the rest of the recording.
+    """
+    bits = significant_bits(grey)
+    if bits > s.bits:
+        top = int(grey.max())
+        if s.bits == 0:
+            s.bits_note = f"{bits} (16-bit images whose first one's largest value is {top}"
+            s.bits_note += ")" if bits == 16 else ": scaled to the 16-bit range)"
+        else:
+            s.bits_note += f"; raised to {bits} at image {k} (largest value {top})"
+        s.bits = bits
+    return to_full_range(grey, s.bits)
 
 
 def _take_joint_state(

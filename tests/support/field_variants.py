@@ -22,6 +22,8 @@ from mcap.writer import CompressionType
 from mcap_ros2.decoder import DecoderFactory
 from mcap_ros2.writer import Writer as RosWriter
 
+from pipeline.sim.recorder import msgdef as recorder_msgdef
+
 SMALL_TOML = """
 name = "field_small"
 [robot]
@@ -37,8 +39,9 @@ count = 3
 per_target = 3
 """
 
-#: ``edit(topic, message dict) -> message dict`` (the dict as mcap_ros2 decodes it)
-Edit = Callable[[str, dict[str, Any]], dict[str, Any]]
+#: ``edit(topic, message dict) -> message dict`` (the dict as mcap_ros2 decodes it), or
+#: ``(topic, datatype, message dict)`` to write it on another topic as another type
+Edit = Callable[[str, dict[str, Any]], Any]
 
 
 def simulated(folder: Path, seed: int = 3, toml: str = SMALL_TOML) -> tuple[Path, dict[str, Any]]:
@@ -96,27 +99,31 @@ def rewrite(
         md = {x.name: dict(x.metadata) for x in r.iter_metadata()}
     with open(dst, "wb") as f:
         w = RosWriter(f, chunk_size=65536, compression=CompressionType.ZSTD)
-        schemas: dict[int, Any] = {}
+        schemas: dict[str, Any] = {}
         for sc, ch, m in msgs:
-            if sc.id not in schemas:
-                schemas[sc.id] = w.register_msgdef(sc.name, sc.data.decode())
             decoder = dec.decoder_for(ch.message_encoding, sc)
             assert decoder is not None
             obj = _as_dict(decoder(m.data))
+            topic, dtype = ch.topic, sc.name
             if edit is not None:
                 obj = edit(ch.topic, obj)
-            data = raw(ch.topic, obj) if raw is not None else None
+                if isinstance(obj, tuple):
+                    topic, dtype, obj = obj
+            if dtype not in schemas:
+                text = sc.data.decode() if dtype == sc.name else recorder_msgdef(dtype)
+                schemas[dtype] = w.register_msgdef(dtype, text)
+            data = raw(topic, obj) if raw is not None else None
             if data is None:
                 w.write_message(
-                    ch.topic, schemas[sc.id], obj, log_time=m.log_time, publish_time=m.publish_time
+                    topic, schemas[dtype], obj, log_time=m.log_time, publish_time=m.publish_time
                 )
                 continue
-            if ch.topic not in w._channel_ids:
-                w._channel_ids[ch.topic] = w._writer.register_channel(
-                    topic=ch.topic, message_encoding="cdr", schema_id=schemas[sc.id].id
+            if topic not in w._channel_ids:
+                w._channel_ids[topic] = w._writer.register_channel(
+                    topic=topic, message_encoding="cdr", schema_id=schemas[dtype].id
                 )
             w._writer.add_message(
-                channel_id=w._channel_ids[ch.topic],
+                channel_id=w._channel_ids[topic],
                 log_time=m.log_time,
                 publish_time=m.publish_time,
                 data=data,
@@ -127,6 +134,31 @@ def rewrite(
             w._writer.add_metadata(name, kv)
         w.finish()
     return dst
+
+
+def raw_image(msg: dict[str, Any], grey: np.ndarray, encoding: str) -> tuple[str, str, dict]:
+    """A ``sensor_msgs/Image`` on ``/camera/image_raw`` of a grey image, as a camera driver
+    writes it (``mono8``: uint8; ``mono16``: uint16 little-endian)."""
+    px = np.ascontiguousarray(grey)
+    out = {
+        "header": msg["header"],
+        "height": int(px.shape[0]),
+        "width": int(px.shape[1]),
+        "encoding": encoding,
+        "is_bigendian": 0,
+        "step": int(px.shape[1] * px.itemsize),
+        "data": px.astype("<u2" if px.itemsize == 2 else np.uint8).tobytes(),
+    }
+    return "/camera/image_raw", "sensor_msgs/msg/Image", out
+
+
+def png_grey(msg: dict[str, Any]) -> np.ndarray:
+    """The grey pixels of a simulated ``CompressedImage`` (PNG) message."""
+    import cv2
+
+    img = cv2.imdecode(np.frombuffer(bytes(msg["data"]), np.uint8), cv2.IMREAD_UNCHANGED)
+    assert img is not None and img.ndim == 2
+    return img
 
 
 def written_files_parse(folder: Path) -> list[str]:
