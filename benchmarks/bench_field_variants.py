@@ -91,7 +91,9 @@ def main() -> None:
             j = judge_run(out, truth, 500, seed)
             table[name].append(j["after"]["shape_rms_m"] * 1e3)
     ref = np.array(table["mono8"])
-    print(f"response {args.response}, seeds {args.seeds}: shape RMS (mm) per seed, mean ratio to mono8")
+    print(
+        f"response {args.response}, seeds {args.seeds}: shape RMS (mm) per seed, mean ratio to mono8"
+    )
     for name, vals in table.items():
         v = np.array(vals)
         cells = " ".join(f"{x:.4f}" for x in v)

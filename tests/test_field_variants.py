@@ -10,9 +10,11 @@ and Parquet file a run writes must parse; a refusal must leave one
 from __future__ import annotations
 
 import json
+import xml.etree.ElementTree as ET
 from pathlib import Path
 
 import numpy as np
+import pyarrow.parquet as pq
 import pytest
 from support.field_variants import (
     SMALL_TOML,
@@ -21,6 +23,7 @@ from support.field_variants import (
     rewrite,
     simulated,
     written_files_parse,
+    xcdr2,
 )
 from test_robustness_data import run_cli
 
@@ -151,6 +154,59 @@ def test_mono16_holding_12_bit_data_is_as_accurate_as_mono8(tmp_path, capsys):
     assert shape["mono16_12"] <= 1.1 * shape["mono8"], shape
     info = json.loads((tmp_path / "mono16_12" / "recording.json").read_text())
     assert info["inferred"]["bit_depth"].startswith("12 "), info["inferred"]
-    assert "bit_depth" not in json.loads((tmp_path / "mono8" / "recording.json").read_text())[
-        "inferred"
-    ]
+    assert (
+        "bit_depth"
+        not in json.loads((tmp_path / "mono8" / "recording.json").read_text())["inferred"]
+    )
+
+
+# --------------------------------------------------------------- 4: XCDR2, NaN joint positions
+
+
+def test_xcdr2_messages_read_as_their_cdr_twin(sim, tmp_path, capsys):
+    """Every message in plain XCDR2 (8-byte values aligned to 4): the same calibration."""
+    rec, _ = sim
+
+    def frame(topic: str, msg: dict) -> dict:  # a driver that stamps its frame: 4 bytes
+        if topic == "/joint_states":  # more before the positions, not a multiple of 8
+            msg["header"]["frame_id"] = "base"
+        return msg
+
+    outs = {}
+    for name, raw in {"cdr": None, "xcdr2": lambda t, m: xcdr2(t, m)}.items():
+        variant = rewrite(rec, tmp_path / f"{name}.mcap", frame, raw=raw)
+        outs[name] = tmp_path / name
+        code, err = _run(variant, outs[name], capsys)
+        assert code == 0, err
+        written_files_parse(outs[name])
+    a, b = (ET.tostring(ET.fromstring((outs[k] / "calibrated.urdf").read_bytes())) for k in outs)
+    assert a == b  # comments (the provenance: file names and hashes) left out
+    for f in ("touchups.parquet", "parameters.parquet"):
+        ta, tb = (pq.read_table(outs[k] / f) for k in outs)
+        assert ta.equals(tb), f
+
+
+@pytest.mark.parametrize("kind", ["delimited_xcdr2", "nan_joint"])
+def test_unreadable_messages_are_one_line(sim, tmp_path, capsys, kind):
+    rec, _ = sim
+    if kind == "delimited_xcdr2":
+        variant = rewrite(rec, tmp_path / "d.mcap", raw=lambda t, m: xcdr2(t, m, delimited=True))
+        needles = ["D_CDR2_LE (0x0009)", "CDR2_LE"]
+    else:
+        n = [0]
+
+        def nan(topic: str, msg: dict) -> dict:
+            if topic == "/joint_states":
+                n[0] += 1
+                if n[0] == 8:
+                    msg["position"] = [
+                        np.nan if k == 1 else x for k, x in enumerate(msg["position"])
+                    ]
+            return msg
+
+        variant = rewrite(rec, tmp_path / "nan.mcap", nan)
+        needles = ["/joint_states message 7: non-finite position joint_2=nan"]
+    out = tmp_path / "run"
+    code, err = _run(variant, out, capsys)
+    _one_error(code, err, 2, str(variant), *needles)
+    assert not out.exists() or not any(out.iterdir()), sorted(out.iterdir())

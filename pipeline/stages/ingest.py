@@ -25,6 +25,7 @@ together.
 
 from __future__ import annotations
 
+import math
 import os
 from typing import Any
 
@@ -382,9 +383,7 @@ def _chain(
         )
     # metadata: overrides win; inferred keys filled and reported
     metadata.update({k: str(v) for k, v in config.overrides.items() if v is not None})
-    spans = {
-        n: float(np.ptp(v)) if v.size else 0.0 for n, v in other_joints(s.j_groups, []).items()
-    }
+    spans = {n: _span(v) for n, v in other_joints(s.j_groups, []).items()}
     base_i, flange_i, why = infer_links(robot, j_names, spans)
     if "base_link" not in metadata:
         metadata["base_link"] = base_i
@@ -423,6 +422,14 @@ def _chain(
         over="the recording",
     )
     return chain_names, J_t, Q, implausible
+
+
+def _span(values: np.ndarray) -> float:
+    """How far a joint moves over the recording (inf when a value is not finite: the
+    joint stays in the arm, and its bad value is reported with the chain's)."""
+    if not values.size or not np.all(np.isfinite(values)):
+        return math.inf
+    return float(values.max() - values.min())
 
 
 def _infer_metadata(

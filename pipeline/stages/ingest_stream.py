@@ -123,7 +123,10 @@ def take_message(
     elif topic == config.description_topic and s.urdf is None:
         if sname not in STRING_TYPES:
             raise BadInput(f"{path}: topic {topic}: type {sname!r} is not std_msgs/String")
-        s.urdf = urdf_text(decode_string(msg.data))
+        try:
+            s.urdf = urdf_text(decode_string(msg.data))
+        except ValueError as exc:
+            raise BadInput(f"{path}: {topic}: undecodable: {exc}") from exc
     elif topic == TOUCHUP_TOPIC and not s.stream_touchup and sname in STRING_TYPES:
         s.stream_touchup = touchup_from_message(layout_path, msg.data)
 

@@ -12,6 +12,7 @@ Parquet file in a run folder parses.
 from __future__ import annotations
 
 import json
+import struct
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
@@ -180,3 +181,75 @@ def written_files_parse(folder: Path) -> list[str]:
             continue
         seen.append(p.name)
     return seen
+
+
+class _Xcdr2:
+    """A little-endian XCDR2 writer (8-byte values aligned to 4, as XCDR2 does)."""
+
+    def __init__(self) -> None:
+        self.b = bytearray()
+
+    def align(self, n: int) -> None:
+        self.b += b"\0" * (-len(self.b) % min(n, 4))
+
+    def u32(self, v: int) -> None:
+        self.align(4)
+        self.b += struct.pack("<I", v)
+
+    def i32(self, v: int) -> None:
+        self.align(4)
+        self.b += struct.pack("<i", v)
+
+    def string(self, s: str) -> None:
+        raw = s.encode() + b"\0"
+        self.u32(len(raw))
+        self.b += raw
+
+    def header(self, h: dict[str, Any]) -> None:
+        self.i32(h["stamp"]["sec"])
+        self.u32(h["stamp"]["nanosec"])
+        self.string(h["frame_id"])
+
+    def f64s(self, xs: list[float]) -> None:
+        self.u32(len(xs))
+        if xs:
+            self.align(8)
+            self.b += struct.pack(f"<{len(xs)}d", *xs)
+
+    def octets(self, data: bytes) -> None:
+        self.u32(len(data))
+        self.b += bytes(data)
+
+
+def xcdr2(topic: str, msg: dict[str, Any], delimited: bool = False) -> bytes:
+    """A ROS 2 message (String, JointState, Image, CompressedImage) in XCDR2, little-endian.
+
+    ``delimited``: the ``D_CDR2_LE`` encapsulation of an appendable type (a
+    DHEADER, the body's length, before the body); else ``CDR2_LE`` (final types).
+    """
+    w = _Xcdr2()
+    if "data" in msg and isinstance(msg["data"], str):
+        w.string(msg["data"])
+    elif "position" in msg:
+        w.header(msg["header"])
+        w.u32(len(msg["name"]))
+        for n in msg["name"]:
+            w.string(n)
+        for k in ("position", "velocity", "effort"):
+            w.f64s([float(x) for x in msg[k]])
+    elif "format" in msg:
+        w.header(msg["header"])
+        w.string(msg["format"])
+        w.octets(msg["data"])
+    else:
+        w.header(msg["header"])
+        w.u32(msg["height"])
+        w.u32(msg["width"])
+        w.string(msg["encoding"])
+        w.b += bytes([msg["is_bigendian"]])
+        w.u32(msg["step"])
+        w.octets(msg["data"])
+    body = bytes(w.b)
+    if delimited:
+        return b"\x00\x09\x00\x00" + struct.pack("<I", len(body)) + body
+    return b"\x00\x07\x00\x00" + body
