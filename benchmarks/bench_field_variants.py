@@ -5,7 +5,9 @@ poses), rewrite it message by message as another recorder would
 (``tests/support/field_variants.py``), run the pipeline on each variant
 (``--model full``; the camera's response ``--response``, default sRGB) and judge the shipped ``calibrated.urdf`` against the
 simulator's truth over 500 poses (``pipeline.evaluate.judge_run``). Printed:
-each variant's shape RMS and its ratio to the same images in ``mono8``.
+each variant's shape RMS and its ratio to the same images in ``mono8``
+(PNG as simulated, and the same scene upscaled 16x to 2560x2048 PNG, are
+there too).
 
     python benchmarks/bench_field_variants.py              # seeds 1-4, sRGB camera
     python benchmarks/bench_field_variants.py --seeds 1 2
@@ -24,7 +26,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "tests"))  # the test kit
 
-from support.field_variants import png_grey, raw_image, rewrite  # noqa: E402
+from support.field_variants import png_grey, raw_image, rewrite, upscaled  # noqa: E402
 
 from pipeline.evaluate import judge_run  # noqa: E402
 from pipeline.orchestrator import RunConfig, run_pipeline  # noqa: E402
@@ -68,6 +70,8 @@ VARIANTS: dict[str, Any] = {
     "mono8": _images(lambda g: (g, "mono8")),
     "mono16 (16-bit)": _images(lambda g: (g.astype(np.uint16) * 257, "mono16")),
     "mono16 (12-bit data)": _images(lambda g: (to_12bit(g), "mono16")),
+    "png (as simulated)": None,
+    "png 5 MP (x16 upscaled)": 16,
 }
 
 
@@ -75,16 +79,23 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--seeds", type=int, nargs="+", default=[1, 2, 3, 4])
     ap.add_argument("--response", default="srgb", help="the simulated camera's response curve")
+    ap.add_argument("--variants", nargs="+", default=None, help="names (prefixes) to run")
     args = ap.parse_args()
     work = Path(tempfile.mkdtemp(prefix="bench_field_"))
     scen = work / "s.toml"
     scen.write_text(TOML.replace("{response}", args.response))
-    table: dict[str, list[float]] = {k: [] for k in VARIANTS}
+    chosen = {
+        k: v
+        for k, v in VARIANTS.items()
+        if k == "mono8" or not args.variants or any(k.startswith(p) for p in args.variants)
+    }
+    table: dict[str, list[float]] = {k: [] for k in chosen}
     for seed in args.seeds:
         rec = work / f"sim_{seed}.mcap"
         truth = simulate(load_scenario(scen), seed=seed, out=rec)
-        for name, edit in VARIANTS.items():
-            var = rewrite(rec, work / f"{seed}_{len(table[name])}_{name[:6]}.mcap", edit)
+        for name, edit in chosen.items():
+            dst = work / f"{seed}_{len(table[name])}_{name[:6]}.mcap"
+            var = upscaled(rec, dst, edit) if isinstance(edit, int) else rewrite(rec, dst, edit)
             out = work / f"run_{seed}_{name.replace(' ', '_')}"
             cfg = RunConfig(report=False, stage_options={"identify": {"model": "full"}})
             run_pipeline(var, out, cfg, until="crossval")

@@ -39,12 +39,13 @@ from typing import Any
 
 from pipeline import __version__
 from pipeline.catalog import STAGE_NAMES, run_paths
-from pipeline.errors import BadInput, CalibrationFailed
+from pipeline.errors import BadInput, CalibrationFailed, VtcalError
 from pipeline.fileio import atomic_write_bytes, config_hash
 from pipeline.jsonio import json_bytes, jsonable, write_json
 from pipeline.known_distances import metadata_distances
 from pipeline.recording_layout import locate
 from pipeline.runner import Context, Progress, StageRecord, hashes, is_fresh, plan, run_stages
+from pipeline.withdraw import snapshot, withdraw
 
 #: the stage names, in run order (``--until`` takes one)
 STAGES = STAGE_NAMES
@@ -182,6 +183,7 @@ def run_pipeline(
         if hit is not None:
             return hit
 
+    before = snapshot(out)
     out.mkdir(parents=True, exist_ok=True)
     # temporaries a killed run left behind (atomic writes, the .rrd's partial save): never
     # artefacts; a run folder has one run at a time, so they are stale
@@ -207,12 +209,28 @@ def run_pipeline(
             ctx.after_stage.setdefault("touchups", []).append(ctx.warm_report.prefetch)
     try:
         key = _run_plan(ctx, cfg, names, recording, fp)
+    except VtcalError as exc:  # a refusal: nothing partial stays (pipeline.withdraw)
+        warned = _ingest_warnings(out)
+        withdraw(out, before)
+        if warned:  # still one line: a truncated recording is often why a later stage failed
+            raise type(exc)(f"{exc} (ingest warned: {'; '.join(warned)})") from exc
+        raise
     finally:
         if ctx.warm_report is not None:
             ctx.warm_report.close()
     # run.json's tolerance is the one the report judged with: none without a report
     tolerance = cfg.tolerance_mm if "report" in names else None
     return _finish(out, P, ctx.records, key, fingerprint=fp, tolerance_mm=tolerance)
+
+
+def _ingest_warnings(out: Path) -> list[str]:
+    """The warnings in ``out/recording.json`` (none when absent or unreadable)."""
+    try:
+        data = json.loads((out / "recording.json").read_text())
+    except (OSError, ValueError):
+        return []
+    warned = data.get("warnings") if isinstance(data, dict) else None
+    return [str(w) for w in warned] if isinstance(warned, list) else []
 
 
 def _run_plan(

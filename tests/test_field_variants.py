@@ -22,6 +22,7 @@ from support.field_variants import (
     raw_image,
     rewrite,
     simulated,
+    upscaled,
     written_files_parse,
     xcdr2,
 )
@@ -210,3 +211,54 @@ def test_unreadable_messages_are_one_line(sim, tmp_path, capsys, kind):
     code, err = _run(variant, out, capsys)
     _one_error(code, err, 2, str(variant), *needles)
     assert not out.exists() or not any(out.iterdir()), sorted(out.iterdir())
+
+
+# --------------------------------------------------------------- 5: 5-megapixel images
+
+
+def test_five_megapixel_images_are_read_binned(sim, tmp_path, capsys):
+    """2560x2048 images of the same scene: detected on 8x8 block means, same calibration."""
+    rec, truth = sim
+    from pipeline.evaluate import judge_run
+
+    shape = {}
+    for f in (1, 16):
+        variant = upscaled(rec, tmp_path / f"x{f}.mcap", f)
+        out = tmp_path / f"x{f}"
+        code, err = _run(variant, out, capsys, "--until", "crossval")
+        assert code == 0, err
+        written_files_parse(out)
+        shape[f] = judge_run(out, truth, 300, 1)["after"]["shape_rms_m"]
+    assert shape[16] <= 1.1 * shape[1], shape
+    info = json.loads((tmp_path / "x16" / "recording.json").read_text())
+    assert info["image_width"] == 2560 and info["inferred"]["binning"].startswith("8 ("), info
+
+
+def test_a_refusal_after_ingest_leaves_nothing_in_out(sim, tmp_path, capsys):
+    """Images with no target (a lens cap): refused at the touch-up stage, after ingest
+    wrote its artefacts; they are withdrawn, and what the folder held before stays."""
+    rec, _ = sim
+
+    def capped(topic: str, msg: dict) -> dict:
+        if topic == "/camera/image_raw/compressed":
+            g = png_grey(msg)
+            msg["data"] = raw_png(np.full_like(g, 23))
+        return msg
+
+    variant = rewrite(rec, tmp_path / "capped.mcap", capped)
+    fresh = tmp_path / "fresh"
+    code, err = _run(variant, fresh, capsys)
+    _one_error(code, err, 2, str(variant), "no two still captures")
+    assert not fresh.exists(), sorted(fresh.rglob("*"))
+    kept = tmp_path / "kept"
+    kept.mkdir()
+    (kept / "notes.txt").write_text("the cell's notes")
+    code, err = _run(variant, kept, capsys)
+    _one_error(code, err, 2, str(variant))
+    assert sorted(p.name for p in kept.rglob("*")) == ["notes.txt"]
+
+
+def raw_png(g: np.ndarray) -> bytes:
+    import cv2
+
+    return cv2.imencode(".png", g)[1].tobytes()

@@ -43,6 +43,7 @@ from pipeline.io_mcap import (
 from pipeline.io_recording import iter_recording, summarize
 from pipeline.kinematics.urdf import RobotDescription, chain_joints, parse_urdf
 from pipeline.recording_layout import locate
+from pipeline.stages.binning import unbin
 from pipeline.stages.detect import DetectConfig
 from pipeline.stages.flat_field import CropStore, correct_flat_field
 from pipeline.stages.ingest_joints import (
@@ -447,6 +448,8 @@ def _infer_metadata(
     """
     if s.bits_note:
         inferred["bit_depth"] = s.bits_note
+    if s.bin_note:
+        inferred["binning"] = s.bin_note
     if "polarity" not in metadata:
         pols = [r for r in s.rows if r["found"]]
         metadata["polarity"] = polarity or "dark_on_light"
@@ -487,7 +490,7 @@ def _tables(
     order_img = np.argsort(img_log_a, kind="stable")
     stamps = np.asarray(s.img_stamp, dtype=np.int64)[order_img]
     frames = frame_table(stamps, img_log_a[order_img], J_t, Q, chain_names, config)
-    det_df = pd.DataFrame([rows[i] for i in order_img])
+    det_df = pd.DataFrame([unbin(rows[i], s.bin) for i in order_img])
     det_df.insert(0, "frame_index", np.arange(len(rows), dtype=np.int64))
     det_df["reason"] = det_df["reason"].astype(str)
     n_gap = int(frames["joint_gap"].sum())

@@ -34,6 +34,7 @@ from pipeline.io_mcap import (
 )
 from pipeline.io_recording import TOUCHUP_TOPIC, touchup_from_message
 from pipeline.kinematics.urdf import urdf_text
+from pipeline.stages.binning import bin_image, choose_binning
 from pipeline.stages.detect import RESULT_KEYS, DetectConfig, detect_target, empty_result
 from pipeline.stages.flat_field import CropStore
 from pipeline.stages.ingest_joints import JointGroups, strip_prefix
@@ -72,6 +73,8 @@ class Streamed:
     bits, bits_note : the sample depth of 16-bit images (0: none seen), inferred from
         the first one's largest value (:func:`pipeline.io_mcap.significant_bits`), and
         how it was inferred
+    bin, bin_note : the binning factor images are detected at (0: no image yet; detections
+        in ``rows`` are in binned pixels until :func:`pipeline.stages.binning.unbin`) and why
     """
 
     image_topic: str | None
@@ -92,6 +95,8 @@ class Streamed:
     crops: CropStore = field(default_factory=CropStore)
     bits: int = 0
     bits_note: str = ""
+    bin: int = 0
+    bin_note: str = ""
 
 
 def take_message(
@@ -161,6 +166,9 @@ def _take_image(
         grey = _full_range(grey, k, s)
     if grey is not None:
         s.height, s.width = grey.shape
+        if s.bin == 0:  # decided once, on the first image (pipeline.stages.binning)
+            s.bin, s.bin_note = choose_binning(grey, s.dcfg)
+        grey = bin_image(grey, s.bin)
         if s.probing is not None:
             # the response is not known yet: keep the image until it is estimated
             s.probing.append((k, np.array(grey, copy=True)))

@@ -162,6 +162,29 @@ def png_grey(msg: dict[str, Any]) -> np.ndarray:
     return img
 
 
+def upscaled(rec: Path, dst: Path, f: int) -> Path:
+    """The same scene at ``f`` times the resolution (a driver upscaling, or an
+    over-resolving lens): images resized, the pixel keys of the metadata scaled."""
+    import cv2
+
+    def up(topic: str, msg: dict) -> dict:
+        if topic == "/camera/image_raw/compressed":
+            g = png_grey(msg)
+            big = cv2.resize(g, (g.shape[1] * f, g.shape[0] * f), interpolation=cv2.INTER_CUBIC)
+            msg["data"] = cv2.imencode(".png", big)[1].tobytes()
+        return msg
+
+    def md(m: dict[str, str]) -> dict[str, str]:
+        m = dict(m)
+        for k in ("designated_u", "designated_v"):
+            m[k] = repr((float(m[k]) + 0.5) * f - 0.5)
+        for k in ("designated_size_px", "threshold_px", "threshold_size_px"):
+            m[k] = repr(float(m[k]) * f)
+        return m
+
+    return rewrite(rec, dst, up, md)
+
+
 def written_files_parse(folder: Path) -> list[str]:
     """Parse every URDF, JSON and Parquet file under ``folder``; return their names."""
     import xml.etree.ElementTree as ET
