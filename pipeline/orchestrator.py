@@ -105,7 +105,10 @@ def _build(cls: Any, options: Mapping[str, Any], **base: Any) -> Any:
     fields = {f.name: f for f in dataclasses.fields(cls)}
     unknown = set(options) - set(fields)
     if unknown:
-        raise BadInput(f"unknown option(s) for {cls.__name__}: {', '.join(sorted(unknown))}")
+        raise BadInput(
+            f"unknown option(s) for {cls.__name__}: {', '.join(sorted(unknown))} "
+            f"(its options: {', '.join(sorted(fields))})"
+        )
     given = {
         k: [x.strip() for x in v.split(",") if x.strip()]
         if isinstance(v, str) and str(fields[k].type) in ("list[str]", str(list[str]))
@@ -283,7 +286,8 @@ def stage_configs(cfg: RunConfig, info: Any, touchups: Path) -> dict[str, Any]:
 
     Identify fits every model (cross-validation picks the one the run ships),
     with the recording's known distances (not strict: a truncated recording may
-    not reach every target) and its printed and image-implied target sizes.
+    not reach every target; strict when given on the command line) and its printed
+    and image-implied target sizes.
     """
     from pipeline.stages import crossval, identify, outliers, touchup
 
@@ -297,7 +301,9 @@ def stage_configs(cfg: RunConfig, info: Any, touchups: Path) -> dict[str, Any]:
             opts.get("identify", {}),
             model="all",
             distances=metadata_distances(info.metadata),
-            strict_distances=False,
+            # the recording's own distances may name a target a truncated run never
+            # reached (dropped, noted); one typed on the command line must name a target
+            strict_distances="known_distances" in cfg.overrides,
             target_diameter_m=_diameter(info.metadata.get("target_diameter_m")),
             implied_target_diameter_m=_implied_diameter(touchups),
         ),

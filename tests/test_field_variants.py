@@ -262,3 +262,34 @@ def raw_png(g: np.ndarray) -> bytes:
     import cv2
 
     return cv2.imencode(".png", g)[1].tobytes()
+
+
+# --------------------------------------------------------------- 6: unknown keys and labels
+
+
+@pytest.mark.parametrize(
+    "extra,needles",
+    [
+        (
+            ["--distance", "0:9=0.5"],
+            ["known distance 0:9=0.5: no target '9'", "(targets: ['0', '1', '2'])"],
+        ),
+        (
+            ["--set", "polarty=light_on_dark"],
+            ["'polarty' is not a touchup metadata key (did you mean 'polarity'?)", "'polarity'"],
+        ),
+        (["--set", "idnetify.model=full"], ["no stage 'idnetify'", "'identify'"]),
+        (
+            ["--set", "identify.modle=full"],
+            ["unknown option(s) for IdentifyConfig: modle", "model"],
+        ),
+    ],
+)
+def test_unknown_keys_and_labels_are_refused_with_the_valid_ones(
+    sim, tmp_path, capsys, extra, needles
+):
+    rec, _ = sim
+    out = tmp_path / "run"
+    code, err = _run(rec, out, capsys, *extra)
+    _one_error(code, err, 2, *needles)
+    assert not out.exists(), sorted(out.rglob("*"))
