@@ -293,3 +293,62 @@ def test_unknown_keys_and_labels_are_refused_with_the_valid_ones(
     code, err = _run(rec, out, capsys, *extra)
     _one_error(code, err, 2, *needles)
     assert not out.exists(), sorted(out.rglob("*"))
+
+
+# --------------------------------------------------------------- 8: calibrate's --urdf and reruns
+
+REPO = Path(__file__).resolve().parent.parent
+SIM_CELL = f"sim:{REPO / 'datasets' / 'scenarios' / 'small.toml'}:1"
+
+
+def _cell_plan(path: Path, n: int) -> Path:
+    import pandas as pd
+
+    from pipeline.measure.sim_link import sim_cell, write_plan
+
+    cell, _ = sim_cell(SIM_CELL)
+    write_plan(cell, str(path))
+    pd.read_parquet(path).iloc[:n].to_parquet(path)
+    return path
+
+
+def test_measure_and_calibrate_take_a_builtin_robot_name(tmp_path, capsys):
+    plan = _cell_plan(tmp_path / "plan.parquet", 2)
+    rec = tmp_path / "rec.mcap"
+    argv = ["measure", "--robot", SIM_CELL, "--plan", str(plan), "--urdf", "lrmate"]
+    code, err = run_cli([*argv, "--out", str(rec), "-q"], capsys)
+    assert code == 0, err
+    from pipeline.robots import builtin_urdf
+
+    def urdf_of(topic: str, msg: dict) -> dict:
+        if topic == "/robot_description":
+            assert msg["data"] == builtin_urdf("lrmate")
+        return msg
+
+    rewrite(rec, tmp_path / "check.mcap", urdf_of)
+    code, err = run_cli([*argv[:-1], "nosuchrobot", "--out", str(tmp_path / "r2.mcap")], capsys)
+    _one_error(code, err, 2, "'nosuchrobot': neither built in (lrmate, ur5e, iiwa7)")
+
+
+def test_calibrate_refuses_to_reuse_another_plan_or_recording(tmp_path, capsys):
+    out = tmp_path / "cal"
+    out.mkdir()
+    targets = tmp_path / "targets.csv"
+    targets.write_text("target_id,x,y,z,nx,ny,nz\n0,0.5,0,0,0,0,1\n")
+    old = _cell_plan(out / "plan.parquet", 2)
+    (out / "plan.request.json").write_text(json.dumps({"poses": 24}))
+    before = old.read_bytes()
+    argv = ["calibrate", "--robot", SIM_CELL, "--urdf", "lrmate", "--out", str(out), "-q"]
+    code, err = run_cli([*argv, "--targets", str(targets), "--poses", "12"], capsys)
+    _one_error(code, err, 2, str(out), "made with --poses 24", "asks --poses 12")
+    assert old.read_bytes() == before
+    # a finished recording of one plan, calibrate asked to follow another
+    code, err = run_cli(
+        ["measure", "--robot", SIM_CELL, "--plan", str(old), "--out", str(out / "recording.mcap")],
+        capsys,
+    )
+    assert code == 0, err
+    other = _cell_plan(tmp_path / "other.parquet", 3)
+    code, err = run_cli([*argv, "--plan", str(other)], capsys)
+    _one_error(code, err, 2, "recording.mcap: was measured with another plan")
+    assert not (out / "run").exists()

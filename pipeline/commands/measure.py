@@ -38,7 +38,8 @@ def measure_options(fn: Callable[..., Any]) -> Callable[..., Any]:
             "urdf_path",
             type=click.Path(dir_okay=False, path_type=Path),
             default=None,
-            help="Nominal URDF (default: the one the cell serves, URDF?).",
+            help="Nominal URDF file, or built-in lrmate/ur5e/iiwa7 (default: the one the cell "
+            "serves, URDF?).",
         ),
         set_option,
         click.option("--speed", type=click.FloatRange(0.01, 1.0), default=0.5, show_default=True,
@@ -157,10 +158,10 @@ def run_measure(
 
 def _urdf_of(urdf_path: Path | None, served: str | None, robot: str) -> str:
     """The nominal URDF: the file given, else the one the cell serves (BadInput if neither)."""
-    if urdf_path is not None:
-        if not urdf_path.is_file():
-            raise BadInput(f"{urdf_path}: URDF file not found")
-        return urdf_path.read_text()
+    if urdf_path is not None:  # a file, or a built-in robot's name (as vtcal plan takes)
+        from pipeline.robots import load_urdf
+
+        return load_urdf(str(urdf_path))
     if served is not None:
         return served
     raise BadInput(f"{robot}: the cell serves no URDF (URDF?); give --urdf")
