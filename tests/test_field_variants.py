@@ -352,3 +352,65 @@ def test_calibrate_refuses_to_reuse_another_plan_or_recording(tmp_path, capsys):
     code, err = run_cli([*argv, "--plan", str(other)], capsys)
     _one_error(code, err, 2, "recording.mcap: was measured with another plan")
     assert not (out / "run").exists()
+
+
+# --------------------------------------------------------------- 7: validate's guardrails
+
+
+def test_validate_against_a_flipped_nominal_urdf_is_implausible(tmp_path, capsys):
+    """The nominal URDF with joint_2's axis flipped: its 'before' is ~100 mm off, which made
+    any calibration look thousands of times better; validate refuses it as identify does."""
+    from pipeline.evaluate import perturbed_chain, random_deviations, synthetic_touchups
+    from pipeline.kinematics import load_chain
+    from pipeline.robots import builtin_urdf
+
+    nominal = builtin_urdf("lrmate")
+    chain = load_chain(nominal, "base_link", "flange")
+    true = perturbed_chain(chain, random_deviations(chain, np.random.default_rng(7)))
+    tables = {}
+    for name, seed in (("a", 1), ("b", 2)):
+        tab, _ = synthetic_touchups(
+            true, np.array([0.01, -0.02, 0.2]), 4, 10, np.random.default_rng(seed),
+            noise_pin_m=2e-5, q_centre=[0.0, 0.3, -0.3, 0.0, -0.8, 0.0], spread_rad=0.9,
+            centre_spread_rad=0.9,
+        )  # fmt: skip
+        tables[name] = tmp_path / f"{name}.csv"
+        tab.to_csv(tables[name], index=False)
+    (tmp_path / "nominal.urdf").write_text(nominal)
+    i = nominal.index('<joint name="joint_2"')
+    j = nominal.index("<axis", i)
+    k = nominal.index("/>", j)
+    flipped = nominal[:j] + '<axis xyz="0 -1 0"' + nominal[k:]
+    assert flipped != nominal and '<axis xyz="0 1 0"' in nominal[i:k]
+    (tmp_path / "flipped.urdf").write_text(flipped)
+    code, err = run_cli(
+        ["identify", str(tables["a"]), "--urdf", str(tmp_path / "nominal.urdf"), "--out",
+         str(tmp_path / "cal"), "--flange-link", "flange", "--model", "full", "--no-crossval",
+         "--no-report"],
+        capsys,
+    )  # fmt: skip
+    assert code == 0, err
+    argv = ["validate", str(tmp_path / "cal" / "calibrated.urdf"), str(tables["b"])]
+    code, err = run_cli([*argv, "--urdf", str(tmp_path / "nominal.urdf")], capsys)
+    assert code == 0, err  # the right nominal robot: plausible, improved
+    out = tmp_path / "check"
+    code, err = run_cli(
+        [*argv, "--urdf", str(tmp_path / "flipped.urdf"), "--out", str(out)], capsys
+    )
+    _one_error(code, err, 3, "implausible input: the nominal robot fits these touch-ups to")
+    assert "improved" not in err[0] and not (out / "validate.json").exists()
+    code, err = run_cli(
+        [
+            *argv,
+            "--urdf",
+            str(tmp_path / "flipped.urdf"),
+            "--out",
+            str(out),
+            "--accept-implausible",
+        ],
+        capsys,
+    )
+    assert (
+        "the nominal robot fits"
+        in json.loads((out / "validate.json").read_text())["implausible"][0]
+    )
