@@ -414,3 +414,42 @@ def test_validate_against_a_flipped_nominal_urdf_is_implausible(tmp_path, capsys
         "the nominal robot fits"
         in json.loads((out / "validate.json").read_text())["implausible"][0]
     )
+
+
+# --------------------------------------------------------------- 9: found means trustworthy
+
+
+def test_a_found_detection_on_the_real_dot_photos_is_where_a_dot_is():
+    """Real photos (datasets/real/dots): each whole photo (the board at the border, clipped
+    surroundings), crops centred on a dot and crops that cut it at their left edge. Flagged fits put centres up
+    to 364 px from any dot; none of them may be ``found``."""
+    import importlib.util
+
+    from pipeline.stages.detect import detect_target
+
+    spec = importlib.util.spec_from_file_location(
+        "bench_real_images", REPO / "benchmarks" / "bench_real_images.py"
+    )
+    assert spec is not None and spec.loader is not None
+    B = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(B)
+    n_flagged = n_found = 0
+    for _, g in B.photos()[:6]:
+        c, s = B.opencv_blobs(g)
+        crops = [(g, 0, 0, None)]
+        for j in range(0, 100, 7):
+            u, v = c[j]
+            h = int(2.5 * s[j])
+            for cut in (2.5, 0.0, 0.3):  # centred; the dot's centre at, or 0.3 s inside, the edge
+                u0, v0 = int(u - cut * s[j]), max(int(v) - h, 0)
+                crop = g[v0 : int(v) + h, u0 : int(u) + h]
+                crops.append((crop, u0, v0, (u - u0, v - v0, s[j])))
+        for img, u0, v0, expected in crops:
+            r = detect_target(img, B.VTCAL_CONFIG, expected)
+            n_flagged += bool(r["reason"]) and np.isfinite(r["u"])
+            if r["found"]:
+                n_found += 1
+                assert r["quality_ok"] and not r["reason"], r
+                miss = np.hypot(c[:, 0] - (r["u"] + u0), c[:, 1] - (r["v"] + v0)).min()
+                assert miss < 1.0, (miss, r)
+    assert n_flagged > 20 and n_found > 20, (n_flagged, n_found)
