@@ -453,3 +453,46 @@ def test_a_found_detection_on_the_real_dot_photos_is_where_a_dot_is():
                 miss = np.hypot(c[:, 0] - (r["u"] + u0), c[:, 1] - (r["v"] + v0)).min()
                 assert miss < 1.0, (miss, r)
     assert n_flagged > 20 and n_found > 20, (n_flagged, n_found)
+
+
+# --------------------------------------------------------------- 10: target_order names
+
+
+def test_known_distances_by_the_names_of_target_order(sim, tmp_path, capsys):
+    """The cell names its targets (``target_order``, first-touch order) and its bar by them:
+    the same calibration as with first-touch labels; a name not in the list is refused."""
+    rec, truth = sim
+    first = truth["metadata"]["known_distances"]  # "0:2=0.589035" (first-touch labels)
+    a, rest = first.split(":")
+    b, metres = rest.split("=")
+    outs = {}
+    for name, order, names in [
+        ("labels", None, None),
+        ("words", "bar_left,plate,bar_right", ("bar_left", "plate", "bar_right")),
+        ("ids", "7,3,5", ("7", "3", "5")),  # the cell's own ids, visited in another order
+    ]:
+
+        def md(m: dict[str, str], order=order, names=names) -> dict[str, str]:
+            m = dict(m)
+            if order is not None:
+                m["target_order"] = order
+                m["known_distances"] = f"{names[int(a)]}:{names[int(b)]}={metres}"
+            return m
+
+        variant = rewrite(rec, tmp_path / f"{name}.mcap", metadata=md)
+        outs[name] = tmp_path / name
+        code, err = _run(variant, outs[name], capsys, "--until", "identify")
+        assert code == 0, err
+        written_files_parse(outs[name])
+    ref = pq.read_table(outs["labels"] / "parameters.parquet")
+    for name in ("words", "ids"):
+        assert pq.read_table(outs[name] / "parameters.parquet").equals(ref), name
+    code, err = _run(
+        tmp_path / "words.mcap", tmp_path / "bad", capsys, "--distance", "bar_left:bar_rihgt=0.5"
+    )
+    _one_error(
+        code, err, 2, "no target 'bar_rihgt' in target_order ['bar_left', 'plate', 'bar_right']"
+    )
+    # a name without target_order: not a target of the run (was an internal error)
+    code, err = _run(rec, tmp_path / "bad2", capsys, "--distance", "a:b=0.5")
+    _one_error(code, err, 2, "known distance a:b=0.5: no target 'a'", "(targets: ['0', '1', '2'])")
