@@ -44,6 +44,7 @@ f_px = 300.0
 subsamples = 4
 [targets]
 count = 3
+polarity = "{polarity}"
 [poses]
 per_target = 6
 [optics]
@@ -72,7 +73,23 @@ VARIANTS: dict[str, Any] = {
     "mono16 (12-bit data)": _images(lambda g: (to_12bit(g), "mono16")),
     "png (as simulated)": None,
     "png 5 MP (x16 upscaled)": 16,
-}
+    "no designated/threshold": ("meta", lambda m: {
+        k: v for k, v in m.items() if not k.startswith(("designated", "threshold"))
+    }),
+    "only the link names": ("meta", lambda m: {
+        k: v for k, v in m.items() if k in ("base_link", "flange_link")
+    }),
+    "no touchup record": ("meta", None),
+}  # fmt: skip
+
+
+def _variant(rec: Path, dst: Path, how: Any) -> Path:
+    if isinstance(how, int):
+        return upscaled(rec, dst, how)
+    if isinstance(how, tuple):
+        keep = how[1]
+        return rewrite(rec, dst, metadata=keep if keep else lambda m: {}, drop_empty=True)
+    return rewrite(rec, dst, how)
 
 
 def main() -> None:
@@ -80,10 +97,11 @@ def main() -> None:
     ap.add_argument("--seeds", type=int, nargs="+", default=[1, 2, 3, 4])
     ap.add_argument("--response", default="srgb", help="the simulated camera's response curve")
     ap.add_argument("--variants", nargs="+", default=None, help="names (prefixes) to run")
+    ap.add_argument("--polarity", default="dark_on_light", help="the targets' polarity")
     args = ap.parse_args()
     work = Path(tempfile.mkdtemp(prefix="bench_field_"))
     scen = work / "s.toml"
-    scen.write_text(TOML.replace("{response}", args.response))
+    scen.write_text(TOML.replace("{response}", args.response).replace("{polarity}", args.polarity))
     chosen = {
         k: v
         for k, v in VARIANTS.items()
@@ -95,7 +113,7 @@ def main() -> None:
         truth = simulate(load_scenario(scen), seed=seed, out=rec)
         for name, edit in chosen.items():
             dst = work / f"{seed}_{len(table[name])}_{name[:6]}.mcap"
-            var = upscaled(rec, dst, edit) if isinstance(edit, int) else rewrite(rec, dst, edit)
+            var = _variant(rec, dst, edit)
             out = work / f"run_{seed}_{name.replace(' ', '_')}"
             cfg = RunConfig(report=False, stage_options={"identify": {"model": "full"}})
             run_pipeline(var, out, cfg, until="crossval")
@@ -103,7 +121,7 @@ def main() -> None:
             table[name].append(j["after"]["shape_rms_m"] * 1e3)
     ref = np.array(table["mono8"])
     print(
-        f"response {args.response}, seeds {args.seeds}: shape RMS (mm) per seed, mean ratio to mono8"
+        f"response {args.response}, {args.polarity}, seeds {args.seeds}: shape RMS (mm) per seed, mean ratio to mono8"
     )
     for name, vals in table.items():
         v = np.array(vals)

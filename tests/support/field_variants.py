@@ -83,6 +83,7 @@ def rewrite(
     edit: Edit | None = None,
     metadata: Callable[[dict[str, str]], dict[str, str]] | None = None,
     raw: Callable[[str, dict[str, Any]], bytes | None] | None = None,
+    drop_empty: bool = False,
 ) -> Path:
     """Copy a ROS 2 recording, editing messages and the ``touchup`` metadata.
 
@@ -132,7 +133,8 @@ def rewrite(
         for name, kv in md.items():
             if name == "touchup" and metadata is not None:
                 kv = metadata(kv)
-            w._writer.add_metadata(name, kv)
+            if kv or not drop_empty:  # drop_empty: an emptied record is left out
+                w._writer.add_metadata(name, kv)
         w.finish()
     return dst
 
