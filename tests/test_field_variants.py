@@ -16,6 +16,7 @@ from pathlib import Path
 import numpy as np
 import pyarrow.parquet as pq
 import pytest
+from mcap.writer import CompressionType, IndexType
 from support.field_variants import (
     SMALL_TOML,
     png_grey,
@@ -496,3 +497,103 @@ def test_known_distances_by_the_names_of_target_order(sim, tmp_path, capsys):
     # a name without target_order: not a target of the run (was an internal error)
     code, err = _run(rec, tmp_path / "bad2", capsys, "--distance", "a:b=0.5")
     _one_error(code, err, 2, "known distance a:b=0.5: no target 'a'", "(targets: ['0', '1', '2'])")
+
+
+# --------------------------------------------------------------- containers and encodings
+
+
+def _image_msg(msg: dict, grey: np.ndarray, encoding: str) -> tuple[str, str, dict]:
+    """``sensor_msgs/Image`` of one grey image in ``encoding`` as a driver writes it."""
+    big = encoding.endswith("_be")
+    enc = encoding.removesuffix("_be")
+    g16 = grey.astype(np.uint16) * 257
+    px = {
+        "mono8": grey,
+        "8UC1": grey,
+        "mono16": g16,
+        "16UC1": g16,
+        "rgb8": np.dstack([grey] * 3),
+        "bgr8": np.dstack([grey] * 3),
+        "rgba8": np.dstack([grey] * 3 + [np.full_like(grey, 255)]),
+        "bgra8": np.dstack([grey] * 3 + [np.full_like(grey, 255)]),
+    }[enc]
+    data = px.astype(">u2" if big else px.dtype.newbyteorder("<")).tobytes()
+    out = {
+        "header": msg["header"],
+        "height": int(grey.shape[0]),
+        "width": int(grey.shape[1]),
+        "encoding": enc,
+        "is_bigendian": int(big),
+        "step": len(data) // grey.shape[0],
+        "data": data,
+    }
+    return "/camera/image_raw", "sensor_msgs/msg/Image", out
+
+
+def _encoded(encoding: str):
+    import cv2
+
+    def edit(topic: str, msg: dict):
+        if topic != "/camera/image_raw/compressed":
+            return msg
+        grey = png_grey(msg)
+        if encoding == "jpeg":
+            msg["format"] = "jpeg"
+            msg["data"] = cv2.imencode(".jpg", grey, [cv2.IMWRITE_JPEG_QUALITY, 98])[1].tobytes()
+            return msg
+        return _image_msg(msg, grey, encoding)
+
+    return edit
+
+
+CONTAINERS = {
+    "unchunked": {"use_chunking": False},
+    "chunks_none_1k": {"compression": CompressionType.NONE, "chunk_size": 1024},
+    "chunks_lz4": {"compression": CompressionType.LZ4},
+    "chunks_zstd_4m": {"compression": CompressionType.ZSTD, "chunk_size": 1 << 22},
+    "no_index_no_summary": {
+        "index_types": IndexType.NONE,
+        "use_statistics": False,
+        "use_summary_offsets": False,
+        "repeat_channels": False,
+        "repeat_schemas": False,
+    },
+    "no_crcs": {"enable_crcs": False},
+    "data_crcs": {"enable_data_crcs": True},
+}
+ENCODINGS = ["mono8", "8UC1", "mono16", "mono16_be", "16UC1", "rgb8", "bgr8", "rgba8", "bgra8"]
+
+
+@pytest.fixture(scope="module")
+def reference(sim, tmp_path_factory) -> float:
+    from pipeline.evaluate import judge_run
+    from pipeline.orchestrator import RunConfig, run_pipeline
+
+    rec, truth = sim
+    out = tmp_path_factory.mktemp("ref") / "run"
+    run_pipeline(rec, out, RunConfig(report=False), until="crossval")
+    return judge_run(out, truth, 300, 1)["after"]["shape_rms_m"]
+
+
+@pytest.mark.parametrize(
+    "name,how",
+    [*(("container", c) for c in CONTAINERS), *(("encoding", e) for e in [*ENCODINGS, "jpeg"])],
+)
+def test_every_container_option_and_encoding_reads_as_the_reference(
+    sim, reference, tmp_path, capsys, name, how
+):
+    """MCAP written in each container option the spec allows, images in each encoding the
+    spec's types allow: exit 0 within 1.1x of the reference's shape error, every file parses."""
+    from pipeline.evaluate import judge_run
+
+    rec, truth = sim
+    dst = tmp_path / "v.mcap"
+    if name == "container":
+        variant = rewrite(rec, dst, writer=CONTAINERS[how])
+    else:
+        variant = rewrite(rec, dst, _encoded(how))
+    out = tmp_path / "run"
+    code, err = _run(variant, out, capsys, "--until", "crossval")
+    assert code == 0 and not err, err  # every one of these is read, without a warning
+    written_files_parse(out)
+    assert judge_run(out, truth, 300, 1)["after"]["shape_rms_m"] <= 1.1 * reference

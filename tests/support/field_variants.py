@@ -84,11 +84,14 @@ def rewrite(
     metadata: Callable[[dict[str, str]], dict[str, str]] | None = None,
     raw: Callable[[str, dict[str, Any]], bytes | None] | None = None,
     drop_empty: bool = False,
+    writer: dict[str, Any] | None = None,
 ) -> Path:
     """Copy a ROS 2 recording, editing messages and the ``touchup`` metadata.
 
     ``edit`` receives each decoded message; ``raw`` (after it) may return the
     message bytes itself, for variants the ROS 2 writer cannot produce (XCDR2).
+    ``writer``: options of :class:`mcap.writer.Writer` (chunking, compression,
+    indexes, summary, CRCs) instead of 64 KiB zstd chunks.
     """
     dec = DecoderFactory()
     with open(src, "rb") as f:
@@ -100,7 +103,16 @@ def rewrite(
             msgs.append((sc, ch, m))
         md = {x.name: dict(x.metadata) for x in r.iter_metadata()}
     with open(dst, "wb") as f:
-        w = RosWriter(f, chunk_size=65536, compression=CompressionType.ZSTD)
+        if writer is None:
+            w = RosWriter(f, chunk_size=65536, compression=CompressionType.ZSTD)
+        else:  # the same ROS 2 encoder over an MCAP writer of these options
+            import io
+
+            from mcap.writer import Writer as McapWriter
+
+            w = RosWriter(io.BytesIO())
+            w._writer = McapWriter(f, **writer)
+            w._writer.start(profile="ros2", library="vtcal-tests")
         schemas: dict[str, Any] = {}
         for sc, ch, m in msgs:
             decoder = dec.decoder_for(ch.message_encoding, sc)
