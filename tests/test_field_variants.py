@@ -597,3 +597,20 @@ def test_every_container_option_and_encoding_reads_as_the_reference(
     assert code == 0 and not err, err  # every one of these is read, without a warning
     written_files_parse(out)
     assert judge_run(out, truth, 300, 1)["after"]["shape_rms_m"] <= 1.1 * reference
+
+
+# --------------------------------------------------------------- inferred polarity
+
+
+def test_light_targets_without_a_touchup_record_are_said_light_on_dark(tmp_path, capsys):
+    """Automatic detection reads each image's polarity; recording.json says the majority
+    (it said dark_on_light, the default, whatever the targets were)."""
+    toml = SMALL_TOML.replace("count = 3", 'count = 3\npolarity = "light_on_dark"')
+    rec, _ = simulated(tmp_path, seed=1, toml=toml)
+    variant = rewrite(rec, tmp_path / "bare.mcap", metadata=lambda m: {}, drop_empty=True)
+    out = tmp_path / "run"
+    code, err = _run(variant, out, capsys, "--until", "touchups")
+    assert code == 0, err
+    info = json.loads((out / "recording.json").read_text())
+    assert info["metadata"]["polarity"] == "light_on_dark"
+    assert info["inferred"]["polarity"].startswith("light_on_dark (automatic per image: "), info

@@ -225,6 +225,17 @@ def _auto_polarity(bg: float, lo: float, hi: float) -> str:
     return "dark_on_light" if (bg - lo) >= (hi - bg) else "light_on_dark"
 
 
+def image_polarity(image: np.ndarray, config: DetectConfig | None = None) -> str:
+    """The polarity automatic detection takes for this grey image (the plate level, the
+    median of the coarse image, nearer its bright or its dark extreme)."""
+    cfg = config or DetectConfig()
+    img = np.asarray(image)
+    if img.dtype not in (np.uint8, np.uint16, np.float32):
+        img = img.astype(np.float32)
+    _, bg, lo, hi = coarse_image(img, max(int(cfg.downsample), 1), cfg.compiled)
+    return _auto_polarity(float(bg), float(lo), float(hi))
+
+
 def detect_target(
     image: np.ndarray,
     config: DetectConfig | None = None,

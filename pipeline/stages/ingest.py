@@ -451,9 +451,13 @@ def _infer_metadata(
     if s.bin_note:
         inferred["binning"] = s.bin_note
     if "polarity" not in metadata:
-        pols = [r for r in s.rows if r["found"]]
-        metadata["polarity"] = polarity or "dark_on_light"
-        inferred["polarity"] = f"{metadata['polarity']} (automatic, from {len(pols)} images)"
+        votes = s.polarity_votes
+        n = sum(votes.values())
+        best = max(sorted(votes), key=lambda p: votes[p]) if votes else "dark_on_light"
+        metadata["polarity"] = polarity or best
+        inferred["polarity"] = (
+            f"{metadata['polarity']} (automatic per image: {votes.get(best, 0)} of {n} images)"
+        )
     camera: dict[str, Any] = {}
     response_est = s.response_est
     if response_est is not None:
