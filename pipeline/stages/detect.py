@@ -55,6 +55,7 @@ from typing import Any
 import numpy as np
 
 from pipeline.stages.detect_blob import Blob, blob_window, coarse_image, pick_blob
+from pipeline.stages.detect_blob import auto_polarity as _auto_polarity
 from pipeline.stages.detect_edges import (
     contour_completeness,
     crossings,
@@ -219,21 +220,6 @@ def nonlinear_response(spec: str) -> Response | None:
     """The response of a spec string; None when linear or ``auto`` (nothing to undo)."""
     r = parse_response(spec)
     return None if r is None or r.is_linear else r
-
-
-def _auto_polarity(bg: float, lo: float, hi: float) -> str:
-    return "dark_on_light" if (bg - lo) >= (hi - bg) else "light_on_dark"
-
-
-def image_polarity(image: np.ndarray, config: DetectConfig | None = None) -> str:
-    """The polarity automatic detection takes for this grey image (the plate level, the
-    median of the coarse image, nearer its bright or its dark extreme)."""
-    cfg = config or DetectConfig()
-    img = np.asarray(image)
-    if img.dtype not in (np.uint8, np.uint16, np.float32):
-        img = img.astype(np.float32)
-    _, bg, lo, hi = coarse_image(img, max(int(cfg.downsample), 1), cfg.compiled)
-    return _auto_polarity(float(bg), float(lo), float(hi))
 
 
 def detect_target(

@@ -35,13 +35,8 @@ from pipeline.io_mcap import (
 from pipeline.io_recording import TOUCHUP_TOPIC, touchup_from_message
 from pipeline.kinematics.urdf import urdf_text
 from pipeline.stages.binning import bin_image, choose_binning
-from pipeline.stages.detect import (
-    RESULT_KEYS,
-    DetectConfig,
-    detect_target,
-    empty_result,
-    image_polarity,
-)
+from pipeline.stages.detect import RESULT_KEYS, DetectConfig, detect_target, empty_result
+from pipeline.stages.detect_blob import image_polarity
 from pipeline.stages.flat_field import CropStore
 from pipeline.stages.ingest_joints import JointGroups, strip_prefix
 from pipeline.stages.ingest_types import IngestConfig, Progress
@@ -82,7 +77,7 @@ class Streamed:
     bin, bin_note : the binning factor images are detected at (0: no image yet; detections
         in ``rows`` are in binned pixels until :func:`pipeline.stages.binning.unbin`) and why
     polarity_votes : without a declared polarity, how many images automatic detection read
-        as each polarity (:func:`pipeline.stages.detect.image_polarity`)
+        as each polarity (:func:`pipeline.stages.detect_blob.image_polarity`)
     """
 
     image_topic: str | None
@@ -179,7 +174,7 @@ def _take_image(
             s.bin, s.bin_note = choose_binning(grey, s.dcfg)
         grey = bin_image(grey, s.bin)
         if s.dcfg.polarity is None:  # automatic per image: the recording's, by majority
-            pol = image_polarity(grey, s.dcfg)
+            pol = image_polarity(grey, s.dcfg.downsample, s.dcfg.compiled)
             s.polarity_votes[pol] = s.polarity_votes.get(pol, 0) + 1
         if s.probing is not None:
             # the response is not known yet: keep the image until it is estimated
