@@ -614,3 +614,44 @@ def test_light_targets_without_a_touchup_record_are_said_light_on_dark(tmp_path,
     info = json.loads((out / "recording.json").read_text())
     assert info["metadata"]["polarity"] == "light_on_dark"
     assert info["inferred"]["polarity"].startswith("light_on_dark (automatic per image: "), info
+
+
+def test_target_ids_survive_a_plan_that_visits_them_out_of_order(tmp_path, capsys):
+    """The plan visits targets 2, 0, 1; measure writes target_order 2,0,1, and a bar named by
+    the targets file's ids (0:2) is the same pair as first-touch labels 1:0 would be."""
+    import pandas as pd
+
+    from pipeline.measure.sim_link import sim_cell
+
+    cell, _ = sim_cell(SIM_CELL)
+    centre = {t.id: t.centre for t in cell.sess.cell.targets}
+    d02 = float(np.linalg.norm(centre[0] - centre[2]))
+    plan = _cell_plan(tmp_path / "plan.parquet", 6)
+    df = pd.read_parquet(plan)
+    df = pd.concat([df[df.target_id == 2], df[df.target_id != 2]]).reset_index(drop=True)
+    df.to_parquet(plan)
+    rec = tmp_path / "rec.mcap"
+    code, err = run_cli(
+        ["measure", "--robot", SIM_CELL, "--plan", str(plan), "--out", str(rec), "-q",
+         "--set", f"known_distances=0:2={d02!r}"],
+        capsys,
+    )  # fmt: skip
+    assert code == 0, err
+    seen = {}
+
+    def by_labels(m: dict[str, str]) -> dict[str, str]:
+        seen.update(m)
+        return {**{k: v for k, v in m.items() if k != "target_order"},
+                "known_distances": f"1:0={d02!r}"}  # fmt: skip
+
+    twin = rewrite(rec, tmp_path / "labels.mcap", metadata=by_labels)
+    assert seen["target_order"] == "2,0,1" and seen["known_distances"] == f"0:2={d02!r}"
+    outs = {}
+    for name, r in (("names", rec), ("labels", twin)):
+        outs[name] = tmp_path / name
+        code, err = _run(r, outs[name], capsys, "--until", "identify", "--model", "offsets")
+        assert code in (0,), err
+    a, b = (pq.read_table(outs[k] / "parameters.parquet") for k in ("names", "labels"))
+    assert a.equals(b)
+    summary = json.loads((outs["names"] / "identify.json").read_text())
+    assert summary.get("distances_dropped", []) == [], summary.get("distances_dropped")
