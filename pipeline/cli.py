@@ -114,6 +114,12 @@ def _interrupted(standalone: bool) -> None:
     sys.exit(130)
 
 
+def one_line(text: str) -> str:
+    """The message on one line: every run of blanks that holds a line break becomes one space
+    (a message quoting a value that prints over several lines stays one stderr line)."""
+    return " ".join(text.split()) if "\n" in text or "\r" in text else text
+
+
 def main(argv: list[str] | None = None) -> Any:
     """Entry point: run the CLI, mapping vtcal errors to one line and an exit code."""
     standalone = argv is None
@@ -129,7 +135,7 @@ def main(argv: list[str] | None = None) -> Any:
         exc.show()
         sys.exit(exc.exit_code)
     except VtcalError as exc:
-        click.echo(f"vtcal: error: {exc}", err=True)
+        click.echo(f"vtcal: error: {one_line(str(exc))}", err=True)
         sys.exit(exc.exit_code)
     except KeyboardInterrupt:
         _interrupted(standalone)
@@ -143,7 +149,7 @@ def main(argv: list[str] | None = None) -> Any:
             where = where.tb_next
         loc = f" ({where.tb_frame.f_code.co_filename}:{where.tb_lineno})" if where else ""
         click.echo(
-            f"vtcal: internal error: {type(exc).__name__}: {exc}{loc}; "
+            f"vtcal: internal error: {type(exc).__name__}: {one_line(str(exc))}{loc}; "
             "set VTCAL_DEBUG=1 for the traceback and please report it",
             err=True,
         )

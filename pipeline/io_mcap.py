@@ -164,17 +164,48 @@ def iter_messages(path: str | os.PathLike[str], state: StreamState) -> Iterator[
 # --------------------------------------------------------------------------- CDR
 
 
-class _Cdr:
-    """Minimal little/big-endian CDR cursor over one message (offsets after the 4-byte header)."""
+#: CDR encapsulation identifiers (first two bytes, big-endian) -> name; the plain ones
+#: vtcal reads: classic CDR and XCDR2 of final types (PLAIN_CDR2), either byte order
+ENCAPSULATIONS = {
+    0x0000: "CDR_BE",
+    0x0001: "CDR_LE",
+    0x0002: "PL_CDR_BE",
+    0x0003: "PL_CDR_LE",
+    0x0006: "CDR2_BE",
+    0x0007: "CDR2_LE",
+    0x0008: "D_CDR2_BE",
+    0x0009: "D_CDR2_LE",
+    0x000A: "PL_CDR2_BE",
+    0x000B: "PL_CDR2_LE",
+}
+_PLAIN = {0x0000: 8, 0x0001: 8, 0x0006: 4, 0x0007: 4}  # id -> largest alignment
 
-    __slots__ = ("buf", "pos", "e")
+
+class _Cdr:
+    """Minimal little/big-endian CDR cursor over one message (offsets after the 4-byte header).
+
+    Reads classic CDR (XCDR1: 8-byte values aligned to 8) and plain XCDR2
+    (``CDR2_LE/BE``, what a DDS writing XCDR2 sends for ROS 2's final types:
+    8-byte values aligned to 4). Delimited and parameter-list encapsulations
+    (appendable/mutable types) raise ``ValueError`` naming the encapsulation.
+    """
+
+    __slots__ = ("buf", "pos", "e", "max_align")
 
     def __init__(self, buf: bytes) -> None:
         if len(buf) < 4:
             raise ValueError("message shorter than the CDR header")
         self.buf = buf
         self.pos = 4
+        rep = (buf[0] << 8) | buf[1]
+        if rep not in _PLAIN:
+            name = ENCAPSULATIONS.get(rep, "unknown")
+            raise ValueError(
+                f"CDR encapsulation {name} (0x{rep:04x}) is not read: vtcal reads CDR_LE/BE "
+                "and XCDR2 CDR2_LE/BE (ROS 2 messages of final types)"
+            )
         self.e = "<" if buf[1] & 1 else ">"
+        self.max_align = _PLAIN[rep]
 
     def align(self, n: int) -> None:
         r = (self.pos - 4) % n
@@ -210,7 +241,7 @@ class _Cdr:
     def f64s(self) -> np.ndarray:
         n = self.u32()
         if n:
-            self.align(8)
+            self.align(min(8, self.max_align))
         a = np.frombuffer(self.buf, dtype=self.e + "f8", count=n, offset=self.pos)
         self.pos += 8 * n
         return a.astype(np.float64)
@@ -380,6 +411,36 @@ def image_to_gray(img: EncodedImage) -> np.ndarray:
     if out.ndim == 3:
         out = colour_to_grey(out)
     return out
+
+
+#: the sample depths a 16-bit image may carry (a 12-bit sensor's data in ``mono16``)
+SENSOR_BITS = (10, 12, 14, 16)
+
+
+def significant_bits(grey: np.ndarray) -> int:
+    """Bits a ``uint16`` image uses: the smallest of :data:`SENSOR_BITS` that holds its maximum.
+
+    A camera driver publishes a 10-, 12- or 14-bit sensor's samples in
+    ``mono16`` unscaled, so the data stop at ``2^b - 1``; the depth is read
+    from the data, since the message does not say it.
+    """
+    top = int(grey.max()) if grey.size else 0
+    return next(b for b in SENSOR_BITS if top < (1 << b))
+
+
+def to_full_range(grey: np.ndarray, bits: int) -> np.ndarray:
+    """``bits``-deep samples in a ``uint16`` image stretched to the full 16-bit range.
+
+    ``I' = round(I (2^16 - 1) / (2^b - 1))`` (clipped at ``2^16 - 1``), so the
+    top code of the sensor becomes the top code of the type: the response
+    curve (``g^-1(I / 65535)``) and the clip level then mean what they mean
+    for a 16-bit sensor. ``bits`` 16 returns the image as it is.
+    """
+    if bits >= 16:
+        return grey
+    top = (1 << bits) - 1
+    wide = (grey.astype(np.uint32) * 65535 + top // 2) // top
+    return np.minimum(wide, 65535).astype(np.uint16)
 
 
 def colour_to_grey(px: np.ndarray) -> np.ndarray:

@@ -110,7 +110,10 @@ def touchup_from_message(path: Path, data: bytes) -> dict[str, str]:
 
     Raises BadInput naming the recording, the topic and the text.
     """
-    text = decode_string(data)
+    try:
+        text = decode_string(data)
+    except ValueError as exc:
+        raise BadInput(f"{path}: {TOUCHUP_TOPIC}: undecodable: {exc}") from exc
     try:
         return parse_touchup_json(text)
     except ValueError as exc:

@@ -1,11 +1,16 @@
 """Known distances between targets: the ``known_distances`` metadata and ``--distance``.
 
 The form is ``A:B=METRES`` items joined by ``;`` (``../shared/spec/recording.md``);
-labels are the targets' first-touch order 0, 1, 2, ...
+labels are the targets' first-touch order 0, 1, 2, ..., or, when the metadata
+has ``target_order`` (the cell's own names of the targets in first-touch order,
+joined by ``,``), those names: a cell can name its bar before the plan that
+fixes the visiting order exists. Names are translated to the first-touch
+labels here (:func:`metadata_distances`), so the stages see one kind of label.
 """
 
 from __future__ import annotations
 
+import re
 from typing import Any
 
 from pipeline.errors import BadInput
@@ -41,7 +46,44 @@ def parse_distances(text: str) -> list[tuple[int | str, int | str, float]]:
     return out
 
 
+#: a target name of ``target_order``: letters, digits, ``_``, ``-``
+NAME = re.compile(r"^[A-Za-z0-9_-]+$")
+
+
+def target_order(text: str) -> list[str]:
+    """The names of a ``target_order`` value (first-touch order); BadInput when malformed."""
+    names = [n.strip() for n in text.split(",")]
+    bad = [n for n in names if not NAME.match(n)]
+    if bad or not names:
+        raise BadInput(
+            f"target_order {text!r}: names are letters, digits, '_' and '-', joined by ','"
+        )
+    dup = sorted({n for n in names if names.count(n) > 1})
+    if dup:
+        raise BadInput(f"target_order {text!r}: name(s) {dup} appear more than once")
+    return names
+
+
 def metadata_distances(metadata: Any) -> list[tuple[int | str, int | str, float]]:
     """The known distances of a recording's ``touchup`` metadata (``known_distances``,
-    :func:`parse_distances`); [] without metadata or the key."""
-    return parse_distances(str((metadata or {}).get("known_distances", "") or ""))
+    :func:`parse_distances`); [] without metadata or the key.
+
+    With ``target_order`` the labels are its names, translated to first-touch
+    labels (the name's position); a label that is not a name is refused, listing them.
+    """
+    meta = metadata or {}
+    out = parse_distances(str(meta.get("known_distances", "") or ""))
+    order = meta.get("target_order")
+    if not order or not out:
+        return out
+    names = target_order(str(order))
+    index = {n: k for k, n in enumerate(names)}
+
+    def label(x: int | str, a: int | str, b: int | str, m: float) -> int:
+        if str(x) not in index:
+            raise BadInput(
+                f"known distance {a}:{b}={m:g}: no target {str(x)!r} in target_order {names}"
+            )
+        return index[str(x)]
+
+    return [(label(a, a, b, m), label(b, a, b, m), m) for a, b, m in out]

@@ -39,12 +39,13 @@ from typing import Any
 
 from pipeline import __version__
 from pipeline.catalog import STAGE_NAMES, run_paths
-from pipeline.errors import BadInput, CalibrationFailed
+from pipeline.errors import BadInput, CalibrationFailed, VtcalError
 from pipeline.fileio import atomic_write_bytes, config_hash
 from pipeline.jsonio import json_bytes, jsonable, write_json
 from pipeline.known_distances import metadata_distances
 from pipeline.recording_layout import locate
 from pipeline.runner import Context, Progress, StageRecord, hashes, is_fresh, plan, run_stages
+from pipeline.withdraw import snapshot, withdraw
 
 #: the stage names, in run order (``--until`` takes one)
 STAGES = STAGE_NAMES
@@ -104,7 +105,10 @@ def _build(cls: Any, options: Mapping[str, Any], **base: Any) -> Any:
     fields = {f.name: f for f in dataclasses.fields(cls)}
     unknown = set(options) - set(fields)
     if unknown:
-        raise BadInput(f"unknown option(s) for {cls.__name__}: {', '.join(sorted(unknown))}")
+        raise BadInput(
+            f"unknown option(s) for {cls.__name__}: {', '.join(sorted(unknown))} "
+            f"(its options: {', '.join(sorted(fields))})"
+        )
     given = {
         k: [x.strip() for x in v.split(",") if x.strip()]
         if isinstance(v, str) and str(fields[k].type) in ("list[str]", str(list[str]))
@@ -183,9 +187,10 @@ def run_pipeline(
             return hit
 
     created = not out.exists()
+    before = snapshot(out)
     out.mkdir(parents=True, exist_ok=True)
     try:
-        return _run_in(out, recording, cfg, names, fp, force, progress)
+        return _run_in(out, recording, cfg, names, fp, force, progress, before)
     except BaseException:
         if created:  # a run that wrote nothing leaves no empty run folder behind
             _remove_if_empty(out)
@@ -211,8 +216,10 @@ def _run_in(
     fp: dict[str, Any],
     force: bool,
     progress: Progress | None,
+    before: Any,
 ) -> RunResult:
-    """Steps 2-4 of :func:`run_pipeline` in the run folder ``out`` (made)."""
+    """Steps 2-4 of :func:`run_pipeline` in the run folder ``out`` (made); ``before`` its
+    files when the run started (:func:`pipeline.withdraw.snapshot`)."""
     from pipeline import run_ledger
 
     # temporaries a killed run left behind (atomic writes, the .rrd's partial save): never
@@ -239,12 +246,28 @@ def _run_in(
             ctx.after_stage.setdefault("touchups", []).append(ctx.warm_report.prefetch)
     try:
         key = _run_plan(ctx, cfg, names, recording, fp)
+    except VtcalError as exc:  # a refusal: nothing partial stays (pipeline.withdraw)
+        warned = _ingest_warnings(out)
+        withdraw(out, before)
+        if warned:  # still one line: a truncated recording is often why a later stage failed
+            raise type(exc)(f"{exc} (ingest warned: {'; '.join(warned)})") from exc
+        raise
     finally:
         if ctx.warm_report is not None:
             ctx.warm_report.close()
     # run.json's tolerance is the one the report judged with: none without a report
     tolerance = cfg.tolerance_mm if "report" in names else None
     return _finish(out, P, ctx.records, key, fingerprint=fp, tolerance_mm=tolerance)
+
+
+def _ingest_warnings(out: Path) -> list[str]:
+    """The warnings in ``out/recording.json`` (none when absent or unreadable)."""
+    try:
+        data = json.loads((out / "recording.json").read_text())
+    except (OSError, ValueError):
+        return []
+    warned = data.get("warnings") if isinstance(data, dict) else None
+    return [str(w) for w in warned] if isinstance(warned, list) else []
 
 
 def _run_plan(
@@ -297,7 +320,8 @@ def stage_configs(cfg: RunConfig, info: Any, touchups: Path) -> dict[str, Any]:
 
     Identify fits every model (cross-validation picks the one the run ships),
     with the recording's known distances (not strict: a truncated recording may
-    not reach every target) and its printed and image-implied target sizes.
+    not reach every target; strict when given on the command line) and its printed
+    and image-implied target sizes.
     """
     from pipeline.stages import crossval, identify, outliers, touchup
 
@@ -311,7 +335,9 @@ def stage_configs(cfg: RunConfig, info: Any, touchups: Path) -> dict[str, Any]:
             opts.get("identify", {}),
             model="all",
             distances=metadata_distances(info.metadata),
-            strict_distances=False,
+            # the recording's own distances may name a target a truncated run never
+            # reached (dropped, noted); one typed on the command line must name a target
+            strict_distances="known_distances" in cfg.overrides,
             target_diameter_m=_diameter(info.metadata.get("target_diameter_m")),
             implied_target_diameter_m=_implied_diameter(touchups),
         ),

@@ -297,7 +297,7 @@ def validate(
     nominal + refitted pin), ``headline`` (label of the robot judged), ``verdict``
     (``validated_mm``, ``nominal_mm``, ``ratio``, ``improved``, ``distance_error_mm``,
     ``tolerance_mm``, ``passed``, ``why``, ``line``), ``n_touchups``, ``n_unusable``,
-    ``targets``.
+    ``targets``, ``implausible`` (:func:`implausible`: the guardrail lines).
 
     The corrections are judged with the calibrated robot in its own flange frame,
     ``d_i -> M_eff d_i`` (:mod:`pipeline.estimation.correction_frame`, as identification
@@ -322,6 +322,7 @@ def validate(
     head = robots[0]
     v = _verdict(head, before, tolerance_mm, len(data.q), data.K)
     return {
+        "implausible": implausible(nominal, data, distances),
         "robots": robots,
         "headline": head["label"],
         "verdict": v,
@@ -329,6 +330,35 @@ def validate(
         "n_unusable": int(data.n_unusable),
         "targets": list(data.labels),
     }
+
+
+def implausible(
+    nominal: Chain, data: Touchups, distances: list[tuple[str, str, float]]
+) -> list[str]:
+    """The guardrails of identification (:mod:`pipeline.stages.plausibility`) on these touch-ups.
+
+    Wherever a robot is judged, the same inputs are implausible: joint values
+    outside the nominal URDF's limits, a nominal fit (pin and targets solved at
+    nominal kinematics) worse than ``NOMINAL_RMS_MAX``, a known distance the
+    nominal robot contradicts. On such touch-ups a "before" figure of 138 mm
+    makes any calibration look thousands of times better; the verdict would
+    mean nothing.
+
+    Returns
+    -------
+    list of str : one line per implausible input (empty when plausible)
+    """
+    from pipeline.stages import plausibility as pl
+
+    lines = pl.joint_values(data.q, nominal)
+    _, targets, rho = pl.nominal_targets(
+        nominal, data.q, data.d, data.tk, data.K, np.ones(len(data.q))
+    )
+    lines += pl.nominal_fit(rho)
+    idx = {lab: k for k, lab in enumerate(data.labels)}
+    known = [(idx[a], idx[b], m) for a, b, m in distances if a in idx and b in idx]
+    lines += pl.known_distances(targets, rho, known, list(data.labels))
+    return lines
 
 
 def _verdict(

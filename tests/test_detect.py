@@ -85,8 +85,9 @@ def test_border_no_target_and_occluder():
     T = pose(0.0, -0.047, 0.17, 0.0, 0.0, 0.0)  # centre a few px below the top edge
     img = render_target_image(CAM, T, 0.01)
     r = detect_target(img, DetectConfig(polarity="dark_on_light"))
-    assert r["found"] and r["border_contact"] and not r["quality_ok"]
-    assert r["completeness"] < 0.9
+    # flagged: not found (found means trustworthy), its figures and reason kept
+    assert not r["found"] and r["border_contact"] and not r["quality_ok"]
+    assert r["completeness"] < 0.9 and r["reason"] == "incomplete" and np.isfinite(r["u"])
     blank = np.full((512, 640), 180, np.uint8)
     assert detect_target(blank, DetectConfig(polarity="dark_on_light"))["reason"] == "low_contrast"
     # a soft grey occluder in front of the target: no target found

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import contextlib
+import difflib
 from collections.abc import Callable, Iterator
 from typing import Any
 
@@ -18,7 +19,32 @@ def _parse_set(
         if not sep or not key:
             raise click.BadParameter(f"{item!r}: expected KEY=VALUE")
         out[key.strip()] = val.strip()
+    for key in out:
+        _check_set_key(key)
     return out
+
+
+def _check_set_key(key: str) -> None:
+    """Refuse a ``--set`` key vtcal does not use, listing the ones it does (a typo is not
+    silently ignored)."""
+    from pipeline.stages.ingest_types import METADATA_KEYS, OTHER_METADATA_KEYS
+
+    stage, dot, opt = key.partition(".")
+    if dot:
+        if stage not in STAGE_OPTION_PREFIXES or not opt:
+            raise click.BadParameter(
+                f"{key!r}: no stage {stage!r}; STAGE.OPTION takes a stage of "
+                f"{list(STAGE_OPTION_PREFIXES)}"
+            )
+        return  # the option name is checked against the stage's own options when it runs
+    keys = [*METADATA_KEYS, *OTHER_METADATA_KEYS]
+    if key not in keys:
+        near = difflib.get_close_matches(key, keys, n=1)
+        hint = f" (did you mean {near[0]!r}?)" if near else ""
+        raise click.BadParameter(
+            f"{key!r} is not a touchup metadata key{hint}: the keys are {sorted(keys)}, "
+            f"or STAGE.OPTION with a stage of {list(STAGE_OPTION_PREFIXES)}"
+        )
 
 
 def set_option(fn: Callable[..., Any]) -> Callable[..., Any]:

@@ -1,6 +1,8 @@
 """``vtcal calibrate``: plan -> measure -> run for a cell, with the adapters of ``vtcal measure``.
 
-Writes into ``--out``: ``plan.parquet`` (unless ``--plan`` is given),
+Writes into ``--out``: ``plan.parquet`` and what it was planned from,
+``plan.request.json`` (unless ``--plan`` is given; a rerun asking for another
+plan, or with ``--plan`` another than the finished recording followed, is refused),
 ``recording.mcap`` (resumable, as ``vtcal measure``'s), the run folder
 ``run/`` and ``measure.json`` (how many touch-ups converged, how long
 measuring took). Run again after an interruption, it resumes the measurement
@@ -9,6 +11,7 @@ measuring took). Run again after an interruption, it resumes the measurement
 
 from __future__ import annotations
 
+import hashlib
 import json
 from pathlib import Path
 
@@ -17,6 +20,40 @@ import click
 from pipeline.commands.measure import measure_options, run_measure
 from pipeline.errors import BadInput
 from pipeline.measure.summary import summarize, summary_line
+from pipeline.robots import load_urdf
+
+#: what the plan in ``--out`` was planned from (hashes of the URDF and the targets file,
+#: poses, pin, seed): a rerun asking for another plan is refused, not silently served
+#: the old plan and recording
+PLAN_REQUEST = "plan.request.json"
+
+
+def _sha256(data: bytes) -> str:
+    return hashlib.sha256(data).hexdigest()
+
+
+def _same_plan_request(out: Path, request: dict[str, object], poses: int) -> None:
+    """Refuse when ``out`` holds a plan made from another request (BadInput naming both)."""
+    old_path = out / PLAN_REQUEST
+    if not (out / "plan.parquet").exists():
+        return
+    try:
+        old = json.loads(old_path.read_text())
+    except (OSError, ValueError):
+        old = None
+    if old == request:
+        return
+    what = (
+        f"--poses {old.get('poses')}"
+        if isinstance(old, dict) and old.get("poses") != poses
+        else "other --urdf/--targets/--pin/--plan-seed"
+        if isinstance(old, dict)
+        else f"an unknown request (no readable {PLAN_REQUEST})"
+    )
+    raise BadInput(
+        f"{out}: holds a plan (and maybe a recording) made with {what}; this run asks "
+        f"--poses {poses}: use another --out, or move plan.parquet and recording.mcap away"
+    )
 
 
 def _xyz(text: str) -> tuple[float, float, float]:
@@ -87,10 +124,20 @@ def command(
     from pipeline.commands import run as run_cmd
     from pipeline.measure.record import read_progress
 
-    out.mkdir(parents=True, exist_ok=True)
     if plan_path is None:
         if targets_path is None or poses is None or urdf_path is None:
             raise BadInput("vtcal calibrate: give --plan, or --urdf, --targets and --poses to plan")
+        if not targets_path.is_file():
+            raise BadInput(f"{targets_path}: targets file not found")
+        request = {
+            "urdf": _sha256(load_urdf(str(urdf_path)).encode()),
+            "targets": _sha256(targets_path.read_bytes()),
+            "poses": poses,
+            "pin": list(_xyz(pin)),
+            "plan_seed": plan_seed,
+        }
+        _same_plan_request(out, request, poses)
+        out.mkdir(parents=True, exist_ok=True)
         plan_path = out / "plan.parquet"
         if not plan_path.exists():
             ctx.invoke(
@@ -103,8 +150,18 @@ def command(
                 seed=plan_seed,
                 quiet=quiet,
             )
+            (out / PLAN_REQUEST).write_text(json.dumps(request, indent=1) + "\n")
+    out.mkdir(parents=True, exist_ok=True)
     rec = out / "recording.mcap"
     done = read_progress(rec)
+    if done is not None and done.finished and plan_path.is_file():
+        plan_sha = _sha256(plan_path.read_bytes())
+        if done.plan_sha256 != plan_sha:  # a finished recording of another plan: not reused
+            raise BadInput(
+                f"{rec}: was measured with another plan (sha256 {done.plan_sha256[:12]}...) "
+                f"than {plan_path} ({plan_sha[:12]}...): use another --out, or move the "
+                "recording away to measure this plan"
+            )
     if done is not None and done.finished:  # measured before: go on with the run
         s = summarize(done.touchups, done.n_plan, done.sessions, rec)
     else:

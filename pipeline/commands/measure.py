@@ -38,7 +38,8 @@ def measure_options(fn: Callable[..., Any]) -> Callable[..., Any]:
             "urdf_path",
             type=click.Path(dir_okay=False, path_type=Path),
             default=None,
-            help="Nominal URDF (default: the one the cell serves, URDF?).",
+            help="Nominal URDF file, or built-in lrmate/ur5e/iiwa7 (default: the one the cell "
+            "serves, URDF?).",
         ),
         set_option,
         click.option("--speed", type=click.FloatRange(0.01, 1.0), default=0.5, show_default=True,
@@ -134,7 +135,8 @@ def run_measure(
         urdf = _urdf_of(urdf_path, link.urdf, robot)
         plan = read_plan(plan_path, link.robot.joint_names)
         check_limits(plan, urdf, float(np.radians(limit_margin_deg)))
-        meta = {**link.metadata, **overrides}
+        # the cell's known distances restated by target ids; --set ones are by ids already
+        meta = {**with_target_order(dict(link.metadata), plan.target_ids), **overrides}
         # hold still HOLD_S after each capture: ingest judges stillness from the joint
         # states within +-60 ms of the stamp, so the next move must not start inside it
         cfg = LoopConfig(
@@ -155,12 +157,38 @@ def run_measure(
         link.close()
 
 
+def with_target_order(meta: dict[str, str], target_ids: list[int]) -> dict[str, str]:
+    """The metadata with ``target_order``: the plan's target ids in first-visit order.
+
+    The recorder knows the order, so the cell can name its targets (and its bar, in
+    ``known_distances``) by the ids of its targets file. Known distances the cell
+    states in first-touch labels (0, 1, ... in visiting order: the simulated cell's,
+    right when the plan measured is the cell's own) are restated by those names.
+    """
+    if "target_order" in meta:
+        return meta
+    order = [str(t) for t in dict.fromkeys(target_ids)]
+    out = {**meta, "target_order": ",".join(order)}
+    text = meta.get("known_distances")
+    if text:
+        from pipeline.known_distances import parse_distances
+
+        items = parse_distances(text)
+        if all(isinstance(x, int) and 0 <= x < len(order) for a, b, _ in items for x in (a, b)):
+            out["known_distances"] = ";".join(
+                f"{order[int(a)]}:{order[int(b)]}={m!r}" for a, b, m in items
+            )
+        else:  # not first-touch labels: leave the metadata as the cell gave it
+            del out["target_order"]
+    return out
+
+
 def _urdf_of(urdf_path: Path | None, served: str | None, robot: str) -> str:
     """The nominal URDF: the file given, else the one the cell serves (BadInput if neither)."""
-    if urdf_path is not None:
-        if not urdf_path.is_file():
-            raise BadInput(f"{urdf_path}: URDF file not found")
-        return urdf_path.read_text()
+    if urdf_path is not None:  # a file, or a built-in robot's name (as vtcal plan takes)
+        from pipeline.robots import load_urdf
+
+        return load_urdf(str(urdf_path))
     if served is not None:
         return served
     raise BadInput(f"{robot}: the cell serves no URDF (URDF?); give --urdf")

@@ -17,7 +17,6 @@ from pipeline.commands._common import (
     split_stage_options,
     tolerance_option,
 )
-from pipeline.errors import VtcalError
 from pipeline.orchestrator import STAGES, RunConfig, run_pipeline
 from pipeline.verdict import tolerance_from_metadata
 
@@ -117,16 +116,10 @@ def command(
         report=not no_report,
         tolerance_mm=tolerance_mm,
     )
-    try:
-        with progress_bars(enabled=not quiet) as progress:
-            result = run_pipeline(recording, out, cfg, until=until, force=force, progress=progress)
-    except VtcalError as exc:
-        # still one line: ingest's warnings (a truncated recording is often why a later
-        # stage failed) go into the error line rather than before it
-        warnings = _recording_json(out).get("warnings") or []
-        if not warnings:
-            raise
-        raise type(exc)(f"{exc} (ingest warned: {'; '.join(map(str, warnings))})") from exc
+    # a refusal leaves nothing in --out and carries ingest's warnings in its one line
+    # (pipeline.orchestrator.run_pipeline)
+    with progress_bars(enabled=not quiet) as progress:
+        result = run_pipeline(recording, out, cfg, until=until, force=force, progress=progress)
     rec = _recording_json(out)
     if tolerance_mm is None:
         tolerance_mm = tolerance_from_metadata(rec.get("metadata"))

@@ -18,7 +18,7 @@ from typing import TYPE_CHECKING, Any
 import click
 
 from pipeline.commands._common import distance_option, progress_bars
-from pipeline.errors import BadInput
+from pipeline.errors import BadInput, CalibrationFailed
 
 if TYPE_CHECKING:
     from pipeline.kinematics.se3 import F64
@@ -132,6 +132,13 @@ Examples:
     help="Link the pin is fixed to (default: the parent of the calibrated URDF's "
     "virtual_pin_joint).",
 )
+@click.option(
+    "--accept-implausible",
+    is_flag=True,
+    help="Judge even where the touch-ups contradict the nominal robot (joint values outside "
+    "the URDF's limits, a nominal fit worse than 25 mm, a known distance it contradicts); "
+    "the lines are kept in validate.json as 'implausible'.",
+)
 @click.option("--quiet", "-q", is_flag=True, help="No progress bars.")
 def command(
     calibrated: Path,
@@ -142,6 +149,7 @@ def command(
     distance: tuple[str, ...],
     base_link: str | None,
     flange_link: str | None,
+    accept_implausible: bool,
     quiet: bool,
 ) -> None:
     """Judge CALIBRATED.urdf on INPUT, touch-ups it was NOT fitted on.
@@ -194,6 +202,12 @@ def command(
         if tolerance_mm is None:
             tolerance_mm = tolerance_from_metadata(inp.metadata)
         result = validate(cal_chain, cal_pin, nom_chain, data, kept, tolerance_mm)
+        if result["implausible"] and not accept_implausible:  # identify's guardrails
+            raise CalibrationFailed(
+                f"{inp.source}: implausible input: "
+                + "; ".join(result["implausible"])
+                + " (rerun with --accept-implausible if it is right)"
+            )
         result.update(
             calibrated=str(calibrated),
             input=inp.source,

@@ -17,6 +17,21 @@ from pipeline.kinematics.se3 import F64, transform_from_xyz_rpy
 
 SUPPORTED_TYPES = ("revolute", "continuous", "prismatic", "fixed")
 
+#: the byte-order mark a Windows editor puts before a UTF-8 text file, decoded
+BOM = "\ufeff"
+
+
+def urdf_text(xml: str) -> str:
+    """URDF text without a leading byte-order mark and blank lines.
+
+    A URDF saved with a UTF-8 BOM and published as a ``std_msgs/String``
+    keeps the mark as the first character of the text. ElementTree parses
+    it, but any text written back around the root element would carry it
+    into the middle of the file (after a new XML declaration), where it
+    makes the XML malformed; so it is dropped where a URDF is read.
+    """
+    return xml.lstrip(" \t\r\n" + BOM)
+
 
 @dataclass(frozen=True)
 class Joint:
@@ -80,7 +95,7 @@ def parse_urdf(xml: str) -> RobotDescription:
         If the XML does not parse or a joint is malformed.
     """
     try:
-        root = ET.fromstring(xml)
+        root = ET.fromstring(urdf_text(xml))
     except ET.ParseError as exc:
         raise BadInput(f"URDF does not parse: {exc}") from exc
     if root.tag != "robot":

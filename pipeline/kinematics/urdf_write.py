@@ -25,6 +25,7 @@ from numpy.typing import ArrayLike
 
 from pipeline.errors import BadInput
 from pipeline.kinematics.se3 import F64, rpy_from_matrix
+from pipeline.kinematics.urdf import urdf_text
 
 PIN_JOINT = "virtual_pin_joint"
 
@@ -97,6 +98,7 @@ def write_calibrated_urdf(
         If the XML does not parse, a named joint or the flange link is missing,
         or ``pin_link`` names an existing link not created by a previous write.
     """
+    urdf_xml = urdf_text(urdf_xml)
     parser = ET.XMLParser(target=ET.TreeBuilder(insert_comments=True))
     try:
         root = ET.fromstring(urdf_xml, parser=parser)

@@ -55,6 +55,7 @@ from typing import Any
 import numpy as np
 
 from pipeline.stages.detect_blob import Blob, blob_window, coarse_image, pick_blob
+from pipeline.stages.detect_blob import auto_polarity as _auto_polarity
 from pipeline.stages.detect_edges import (
     contour_completeness,
     crossings,
@@ -116,9 +117,13 @@ class DetectConfig:
         Least ``|g_out - g_in| / max(g_out, g_in)``; lower is "no target".
     max_edge_sigma_px : float
         Edges wider than this (motion blur, out-of-focus occluder) mark the
-        detection as blurred (``found`` stays True, ``quality_ok`` False).
+        detection as blurred.
     min_completeness : float
         Below this share of contour the detection is flagged incomplete.
+    max_residual_px : float
+        A contour fit whose RMS residual exceeds this is flagged ``poor_fit`` (an
+        ellipse through a blob that is not one target: on the real dot photos
+        residuals of 1.3-7.9 px came with centres 2-12 px off).
     curvature_correction : bool
         Apply the blur-curvature correction of step 4.
     ambiguity_ratio : float
@@ -150,6 +155,7 @@ class DetectConfig:
     min_contrast_frac: float = 0.25
     max_edge_sigma_px: float = 2.0
     min_completeness: float = 0.9
+    max_residual_px: float = 1.0
     curvature_correction: bool = True
     ambiguity_ratio: float = 0.5
     compiled: bool = True
@@ -216,10 +222,6 @@ def nonlinear_response(spec: str) -> Response | None:
     return None if r is None or r.is_linear else r
 
 
-def _auto_polarity(bg: float, lo: float, hi: float) -> str:
-    return "dark_on_light" if (bg - lo) >= (hi - bg) else "light_on_dark"
-
-
 def detect_target(
     image: np.ndarray,
     config: DetectConfig | None = None,
@@ -250,7 +252,9 @@ def detect_target(
     (rad from +u towards +v), ``s_inv = 1/s``, and the quality figures.
     ``reason`` is "" for a clean detection, else a short tag (``no_blob``,
     ``low_contrast``, ``fit_failed``, ``incomplete``, ``border``, ``ambiguous``,
-    ``blurred``).
+    ``blurred``, ``poor_fit``). ``found`` is True only for a trustworthy detection
+    (then ``quality_ok`` too); a flagged fit keeps its figures and its tag with
+    ``found`` False.
     """
     cfg = config or DetectConfig()
     out = _detect(image, cfg, expected, gain)
@@ -564,8 +568,13 @@ def _result(
         reason, quality = (reason or "blurred"), False
     if ambiguous:
         reason, quality = (reason or "ambiguous"), False
+    if not res_rms <= cfg.max_residual_px:
+        reason, quality = (reason or "poor_fit"), False
     return {
-        "found": True,
+        # found means trustworthy: a flagged fit keeps its figures and its reason, but is
+        # not found, so nothing downstream has to know a flag to stay safe (on the real
+        # dot photos, flagged fits put centres up to 364 px off)
+        "found": quality,
         "u": float(u),
         "v": float(v),
         "s": float(s),

@@ -202,3 +202,19 @@ def blob_window(
     if not core_b.any() or int(outer.sum()) < 6:
         return None
     return img_roi, core_b, outer, u0, v0, u1, v1
+
+
+def auto_polarity(bg: float, lo: float, hi: float) -> str:
+    """The polarity of a coarse image: dark targets when its plate level (median) is nearer
+    its bright extreme than its dark one."""
+    return "dark_on_light" if (bg - lo) >= (hi - bg) else "light_on_dark"
+
+
+def image_polarity(image: np.ndarray, downsample: int = 4, compiled: bool = True) -> str:
+    """The polarity automatic detection takes for this grey image (uint8 / uint16 / float32),
+    from its ``downsample``-times coarse image (:func:`coarse_image`)."""
+    img = np.asarray(image)
+    if img.dtype not in (np.uint8, np.uint16, np.float32):
+        img = img.astype(np.float32)
+    _, bg, lo, hi = coarse_image(img, max(int(downsample), 1), compiled)
+    return auto_polarity(float(bg), float(lo), float(hi))

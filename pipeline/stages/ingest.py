@@ -25,6 +25,7 @@ together.
 
 from __future__ import annotations
 
+import math
 import os
 from typing import Any
 
@@ -42,6 +43,7 @@ from pipeline.io_mcap import (
 from pipeline.io_recording import iter_recording, summarize
 from pipeline.kinematics.urdf import RobotDescription, chain_joints, parse_urdf
 from pipeline.recording_layout import locate
+from pipeline.stages.binning import unbin
 from pipeline.stages.detect import DetectConfig
 from pipeline.stages.flat_field import CropStore, correct_flat_field
 from pipeline.stages.ingest_joints import (
@@ -96,12 +98,26 @@ def _choose_image_topic(
     return imgs[0] if imgs else None
 
 
-def infer_links(robot: RobotDescription, joint_names: list[str]) -> tuple[str, str]:
-    """Base and flange link of a URDF: the root link, and the child of the last arm joint.
+#: a joint whose positions span less than this (rad or m) never moves in the recording
+STILL_SPAN = 1e-4
 
-    The last arm joint is the actuated joint of ``joint_names`` deepest in the
-    tree; the flange is its child link, or the child of a fixed joint named
-    like a flange/tool0 hanging from it.
+
+def infer_links(
+    robot: RobotDescription, joint_names: list[str], span: dict[str, float] | None = None
+) -> tuple[str, str, str]:
+    """Base and flange link of a URDF: the root link, and the last link the arm's joints move.
+
+    The arm's joints are the actuated joints of ``joint_names`` that move in
+    the recording (``span[name] > STILL_SPAN``; all of them when ``span`` is
+    None). The last one is the deepest in the tree; the flange is its child
+    link, or the child of a fixed joint named like a flange/tool0 hanging from
+    it. A joint that never moves (a gripper's fingers, one of them a mimic
+    joint) is not the arm's: a link after it is not the flange.
+
+    Returns
+    -------
+    base, flange : link names
+    why : how the flange was chosen (for ``recording.json``'s ``inferred``)
     """
     children = {j.child for j in robot.joints.values()}
     roots = [ln for ln in robot.links if ln not in children]
@@ -116,15 +132,24 @@ def infer_links(robot: RobotDescription, joint_names: list[str]) -> tuple[str, s
         depth[link] = d
         return d
 
-    arm = [robot.joints[n] for n in joint_names if n in robot.joints]
+    named = [robot.joints[n] for n in joint_names if n in robot.joints]
+    arm = named if span is None else [j for j in named if span.get(j.name, 0.0) > STILL_SPAN]
+    still = [j.name for j in named if j not in arm]
+    arm = arm or named
     if not arm:
-        return base, robot.links[-1]
+        return base, robot.links[-1], f"{robot.links[-1]} (last link of the URDF)"
     last = max(arm, key=lambda j: _depth(j.child))
     tip = last.child
+    why = f"child link of {last.name}, the last arm joint"
+    if still:
+        why += (
+            f"; {still} never move in the recording (a gripper's or another device's), "
+            "so no link after them is the flange"
+        )
     for j in robot.joints.values():
         if j.parent == tip and j.type == "fixed" and j.child.lower() in ("flange", "tool0"):
-            return base, j.child
-    return base, tip
+            return base, j.child, f"{j.child} (fixed to the {why})"
+    return base, tip, f"{tip} ({why})"
 
 
 def ingest_recording(
@@ -361,13 +386,16 @@ def _chain(
         )
     # metadata: overrides win; inferred keys filled and reported
     metadata.update({k: str(v) for k, v in config.overrides.items() if v is not None})
-    base_i, flange_i = infer_links(robot, j_names)
+    spans = {n: _span(v) for n, v in other_joints(s.j_groups, []).items()}
+    base_i, flange_i, why = infer_links(robot, j_names, spans)
     if "base_link" not in metadata:
         metadata["base_link"] = base_i
         inferred["base_link"] = f"{base_i} (root link of the URDF)"
     if "flange_link" not in metadata:
         metadata["flange_link"] = flange_i
-        inferred["flange_link"] = f"{flange_i} (child link of the last arm joint)"
+        inferred["flange_link"] = why
+        if "never move" in why:
+            warnings.append(f"{path}: no flange_link in the touchup metadata: flange {why}")
     for ln in (metadata["base_link"], metadata["flange_link"]):
         if ln not in robot.links:
             raise BadInput(f"{path}: link {ln!r} (touchup metadata/override) is not in the URDF")
@@ -399,6 +427,14 @@ def _chain(
     return chain_names, J_t, Q, implausible
 
 
+def _span(values: np.ndarray) -> float:
+    """How far a joint moves over the recording (inf when a value is not finite: the
+    joint stays in the arm, and its bad value is reported with the chain's)."""
+    if not values.size or not np.all(np.isfinite(values)):
+        return math.inf
+    return float(values.max() - values.min())
+
+
 def _infer_metadata(
     metadata: dict[str, str],
     inferred: dict[str, str],
@@ -412,10 +448,18 @@ def _infer_metadata(
     Each inferred key is noted in ``inferred``. Returns the ``camera`` record of
     :class:`RecordingInfo`.
     """
+    if s.bits_note:
+        inferred["bit_depth"] = s.bits_note
+    if s.bin_note:
+        inferred["binning"] = s.bin_note
     if "polarity" not in metadata:
-        pols = [r for r in s.rows if r["found"]]
-        metadata["polarity"] = polarity or "dark_on_light"
-        inferred["polarity"] = f"{metadata['polarity']} (automatic, from {len(pols)} images)"
+        votes = s.polarity_votes
+        n = sum(votes.values())
+        best = max(sorted(votes), key=lambda p: votes[p]) if votes else "dark_on_light"
+        metadata["polarity"] = polarity or best
+        inferred["polarity"] = (
+            f"{metadata['polarity']} (automatic per image: {votes.get(best, 0)} of {n} images)"
+        )
     camera: dict[str, Any] = {}
     response_est = s.response_est
     if response_est is not None:
@@ -452,7 +496,7 @@ def _tables(
     order_img = np.argsort(img_log_a, kind="stable")
     stamps = np.asarray(s.img_stamp, dtype=np.int64)[order_img]
     frames = frame_table(stamps, img_log_a[order_img], J_t, Q, chain_names, config)
-    det_df = pd.DataFrame([rows[i] for i in order_img])
+    det_df = pd.DataFrame([unbin(rows[i], s.bin) for i in order_img])
     det_df.insert(0, "frame_index", np.arange(len(rows), dtype=np.int64))
     det_df["reason"] = det_df["reason"].astype(str)
     n_gap = int(frames["joint_gap"].sum())

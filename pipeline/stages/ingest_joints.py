@@ -121,9 +121,15 @@ def chain_joint_states(
         q = np.asarray(ps)[:, cols]
         bad = np.flatnonzero(~np.all(np.isfinite(q), axis=1))
         if bad.size:
+            row = q[bad[0]]
+            what = ", ".join(
+                f"{n}={float(x)}"
+                for n, x in zip(chain_names, row, strict=True)
+                if not np.isfinite(x)
+            )
             raise BadInput(
                 f"{path}: {config.joint_topic} message {ks[bad[0]]}: non-finite position "
-                f"{q[bad[0]]}"
+                f"{what} ({bad.size} of {len(q)} messages with this name list)"
             )
         idx.append(np.asarray(ks))
         stamps.append(np.asarray(ts, dtype=np.int64))

@@ -29,9 +29,14 @@ from pipeline.io_mcap import (
     decode_joint_state,
     decode_string,
     image_to_gray,
+    significant_bits,
+    to_full_range,
 )
 from pipeline.io_recording import TOUCHUP_TOPIC, touchup_from_message
+from pipeline.kinematics.urdf import urdf_text
+from pipeline.stages.binning import bin_image, choose_binning
 from pipeline.stages.detect import RESULT_KEYS, DetectConfig, detect_target, empty_result
+from pipeline.stages.detect_blob import image_polarity
 from pipeline.stages.flat_field import CropStore
 from pipeline.stages.ingest_joints import JointGroups, strip_prefix
 from pipeline.stages.ingest_types import IngestConfig, Progress
@@ -69,6 +74,13 @@ class Streamed:
     n_joint_msgs : joint-state messages read
     crops : crops of the clean detections, for the sensor's gain pattern
         (:mod:`pipeline.stages.flat_field`)
+    bits, bits_note : the sample depth of 16-bit images (0: none seen), inferred from
+        the first one's largest value (:func:`pipeline.io_mcap.significant_bits`), and
+        how it was inferred
+    bin, bin_note : the binning factor images are detected at (0: no image yet; detections
+        in ``rows`` are in binned pixels until :func:`pipeline.stages.binning.unbin`) and why
+    polarity_votes : without a declared polarity, how many images automatic detection read
+        as each polarity (:func:`pipeline.stages.detect_blob.image_polarity`)
     """
 
     image_topic: str | None
@@ -87,6 +99,11 @@ class Streamed:
     seen_image_topics: set[str] = field(default_factory=set)
     n_joint_msgs: int = 0
     crops: CropStore = field(default_factory=CropStore)
+    bits: int = 0
+    bits_note: str = ""
+    bin: int = 0
+    bin_note: str = ""
+    polarity_votes: dict[str, int] = field(default_factory=dict)
 
 
 def take_message(
@@ -118,7 +135,10 @@ def take_message(
     elif topic == config.description_topic and s.urdf is None:
         if sname not in STRING_TYPES:
             raise BadInput(f"{path}: topic {topic}: type {sname!r} is not std_msgs/String")
-        s.urdf = decode_string(msg.data)
+        try:
+            s.urdf = urdf_text(decode_string(msg.data))
+        except ValueError as exc:
+            raise BadInput(f"{path}: {topic}: undecodable: {exc}") from exc
     elif topic == TOUCHUP_TOPIC and not s.stream_touchup and sname in STRING_TYPES:
         s.stream_touchup = touchup_from_message(layout_path, msg.data)
 
@@ -149,8 +169,16 @@ def _take_image(
         det = {kk: v for kk, v in zip(RESULT_KEYS, _nan_row(), strict=True)}
         det["reason"] = f"decode_failed: {exc}"[:120]
         grey = None
+    if grey is not None and grey.dtype == np.uint16:
+        grey = _full_range(grey, k, s)
     if grey is not None:
         s.height, s.width = grey.shape
+        if s.bin == 0:  # decided once, on the first image (pipeline.stages.binning)
+            s.bin, s.bin_note = choose_binning(grey, s.dcfg)
+        grey = bin_image(grey, s.bin)
+        if s.dcfg.polarity is None:  # automatic per image: the recording's, by majority
+            pol = image_polarity(grey, s.dcfg.downsample, s.dcfg.compiled)
+            s.polarity_votes[pol] = s.polarity_votes.get(pol, 0) + 1
         if s.probing is not None:
             # the response is not known yet: keep the image until it is estimated
             s.probing.append((k, np.array(grey, copy=True)))
@@ -174,6 +202,24 @@ def _take_image(
     s.img_stamp.append(int(enc.stamp_ns) if enc.stamp_ns > 0 else int(msg.log_time))
     if progress is not None and (k % 16 == 0):
         progress(k + 1, n_total)
+
+
+def _full_range(grey: np.ndarray, k: int, s: Streamed) -> np.ndarray:
+    """A 16-bit image stretched to the full range of the depth its data use.
+
+    The depth is inferred once, from the first 16-bit image; an image whose
+    values exceed it raises it (noted) for the rest of the recording.
+    """
+    bits = significant_bits(grey)
+    if bits > s.bits:
+        top = int(grey.max())
+        if s.bits == 0:
+            s.bits_note = f"{bits} (16-bit images whose first one's largest value is {top}"
+            s.bits_note += ")" if bits == 16 else ": scaled to the 16-bit range)"
+        else:
+            s.bits_note += f"; raised to {bits} at image {k} (largest value {top})"
+        s.bits = bits
+    return to_full_range(grey, s.bits)
 
 
 def _take_joint_state(

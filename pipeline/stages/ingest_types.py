@@ -29,6 +29,10 @@ METADATA_KEYS = (
     "camera_response",
 )
 
+#: further ``touchup`` keys of the spec that vtcal reads (the verdict's tolerance, the
+#: robot's stable name, the cell's target names)
+OTHER_METADATA_KEYS = ("tolerance_mm", "robot_id", "target_order")
+
 
 @dataclass
 class IngestConfig:

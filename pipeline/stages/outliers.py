@@ -307,8 +307,8 @@ def _fit(out: pd.DataFrame, info: Any, model: str, config: OutlierConfig) -> _Fi
     from pipeline.stages.identify import IdentifyConfig, IdentifyResult, identify
 
     dist = metadata_distances(getattr(info, "metadata", None))
-    labels = set(out["target_id"].astype(int).tolist())
-    dist = [d for d in dist if int(d[0]) in labels and int(d[1]) in labels]
+    labels = {str(v) for v in out["target_id"].tolist()}  # a label may be a name
+    dist = [d for d in dist if str(d[0]) in labels and str(d[1]) in labels]
     # no guardrails: they are the identify stage's to judge (and --accept-implausible's);
     # here an accepted implausible input made every statistical test skip
     icfg = IdentifyConfig(
