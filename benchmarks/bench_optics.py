@@ -143,6 +143,11 @@ def one_case(cell: str, effect: str, seed: int, work: str) -> dict[str, Any]:
     settle = f"r{swing['r']:.2f}" if swing else ("w" if centre.get("weighted") else "-")
     kept = int(inl["inlier"].sum())
     across, along = _touchup_misses(truth, inl, judged["model_summary"])
+    from pipeline.verdict import verdict
+
+    ident = json.loads((out / "identify.json").read_text())
+    v = verdict(ident) or {}
+    adequacy = (ident.get("trust") or {}).get("adequacy") or {}
     return {
         "cell": cell,
         "effect": effect,
@@ -162,6 +167,12 @@ def one_case(cell: str, effect: str, seed: int, work: str) -> dict[str, Any]:
         "t_run": t_run,
         "miss_across_um": across,
         "miss_along_um": along,
+        # what the run claimed: the verdict's figure, whether it called it a lower bound,
+        # and the model-adequacy ratio (pipeline.stages.adequacy)
+        "claim": float(v.get("validated_mm") or float("nan")),
+        "lower_bound": bool(v.get("lower_bound")),
+        "console_warnings": len(v.get("warnings") or []),
+        "adequacy": float(adequacy.get("ratio") or float("nan")),
     }
 
 
@@ -262,6 +273,7 @@ def _print_seed(
         f" {'warned':<6} {'model':<8}"
         f" {'sim s':>6}"
         f" {'run s':>6} {'across':>6} {'along':>6}"
+        f" {'claim':>7} {'x true':>6} {'adeq':>5} {'lower':<5}"
     )
     print(hdr)
     ok_all = True
@@ -284,7 +296,9 @@ def _print_seed(
                 f" {'yes' if r['warned'] else 'no':<6}"
                 f" {r['model']!s:<8}"
                 f" {r['t_sim']:6.1f} {r['t_run']:6.1f} {r['miss_across_um']:6.2f}"
-                f" {r['miss_along_um']:6.1f}{flag}",
+                f" {r['miss_along_um']:6.1f}"
+                f" {r['claim']:7.4f} {r['claim'] / r['shape']:6.2f} {r['adequacy']:5.2f}"
+                f" {'yes' if r['lower_bound'] else 'no':<5}{flag}{_claim_flag(r)}",
                 flush=True,
             )
         print(f"{c:<7} nominal robot {lin['nominal']:7.3f} mm shape RMS")
@@ -295,9 +309,22 @@ def _print_seed(
         " found and divided out (else its z, flat against edge samples: no pattern); settle ="
         " '-' the repeated final captures' plain means, 'w' settle-weighted, 'rX' the centre"
         " from the one-mode swing fit (decay X per capture); across / along um = RMS miss of the"
-        " corrected pins against the truth, per-target means out"
+        " corrected pins against the truth, per-target means out; claim = the verdict's"
+        " figure (pipeline.verdict V2), x true = claim / true shape (goal 0.5-2x, or the run"
+        " said the figure is a lower bound: lower), adeq = the fit's residual over what the"
+        " repeated captures' noise predicts (pipeline.stages.adequacy A1; > 3: lower bound)"
     )
+    n = sum(1 for c in cells for e in effects)
+    met = sum(1 for c in cells for e in effects if not _claim_flag(res[(c, e)]))
+    print(f"verdict within 0.5-2x of the truth or a lower bound said: {met} of {n} rows")
     return ok_all
+
+
+def _claim_flag(r: dict[str, Any]) -> str:
+    """' claim off' when the verdict's figure is outside 0.5-2x of the true shape error and
+    the run did not call it a lower bound."""
+    x = r["claim"] / r["shape"]
+    return "" if r["lower_bound"] or 0.5 <= x <= 2.0 else " claim off"
 
 
 def _print_means(
