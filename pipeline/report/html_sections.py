@@ -128,6 +128,8 @@ def verdict_section(data: RunData) -> dict[str, Any]:
         "trust_warnings": v.get("warnings") or [],
         "adequacy_note": ((idf.get("trust") or {}).get("adequacy") or {}).get("note", ""),
         "adequacy_tested": bool(((idf.get("trust") or {}).get("adequacy") or {}).get("tested")),
+        "region_note": (idf.get("region") or {}).get("note", ""),
+        "region_warn": bool((idf.get("region") or {}).get("extrapolation_warning")),
         "figures": [
             {
                 "label": f.label,

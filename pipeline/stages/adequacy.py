@@ -149,6 +149,9 @@ def trust(
     warnings = [a["text"] for a in made]
     if test["systematic"]:
         warnings.append(str(test["note"]))
+    region = summary.get("region") or {}
+    if region.get("extrapolation_warning"):  # pipeline.estimation.region (G1)
+        warnings.append(str(region.get("note", "")))
     return {
         "adequacy": test,
         "assumptions": made,

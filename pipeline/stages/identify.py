@@ -62,6 +62,7 @@ from pipeline.errors import BadInput, CalibrationFailed
 from pipeline.estimation.design import design_jacobian
 from pipeline.estimation.identifiability import exact_touchups, select_columns, structure
 from pipeline.estimation.measurement import Problem, initial_pin_targets, partial_loss
+from pipeline.estimation.region import predicted_over, widened_poses
 from pipeline.estimation.uncertainty import covariance, predicted_errors, residual_variance
 from pipeline.estimation.whitening import flange_whitening
 from pipeline.evaluate import workspace_poses
@@ -420,11 +421,12 @@ def _uncertainty(s: _Setup, f: _Solved, config: IdentifyConfig) -> Uncertainty:
     obs = indices_from_singular_values(np.linalg.svd(Ared, compute_uv=False), prob.m)
 
     rng = np.random.default_rng(config.seed)
-    q_ws = workspace_poses(data.q, config.n_workspace, rng)
-    pw, Rw, Jw = model.pin_and_jacobian(f.x, q_ws, f.pin, jac=True)
-    assert Jw is not None
-    Jwe = np.concatenate([Jw[:, :, kept], Rw], axis=2)
-    pred = {kind: predicted_errors(Jwe, cov_e, pw, kind) for kind in ("shape", "absolute", "raw")}
+    at = (model, f.x, f.pin, kept, cov_e)
+    pred = predicted_over(*at, workspace_poses(data.q, config.n_workspace, rng))
+    # (G1) of pipeline.estimation.region: just outside the covered joint ranges
+    nom = model.nominal
+    q_out = widened_poses(data.q, nom.lower, nom.upper, config.n_workspace, rng)
+    pred["beyond"] = predicted_over(*at, q_out, ("shape",))["shape"]
     return Uncertainty(std_z, corr, sigma2, int(dof), obs, pred)
 
 

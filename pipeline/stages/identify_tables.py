@@ -16,6 +16,7 @@ from typing import Any
 import numpy as np
 import pandas as pd
 
+from pipeline.estimation.region import region_summary
 from pipeline.kinematics.se3 import F64
 from pipeline.stages.identify_data import FitData
 from pipeline.stages.identify_notes import conditioning_note
@@ -230,6 +231,13 @@ def fit_summary(f: FitFigures, u: Uncertainty) -> dict[str, Any]:
         f.not_excited, int(f.n_structural), float(obs["cond"])
     )
     summary["not_excited"] = f.not_excited
+    if dof > 0:
+        summary["region"] = region_summary(
+            model.nominal.joint_names,
+            data.q,
+            summary["predicted_shape_rms_mm"],
+            summary["predicted_beyond_rms_mm"],
+        )
     summary["headline"] = [
         f"identify [{name}]: {N} touch-ups, {K} targets, {len(kept)}/{P} parameters identified; "
         f"residual RMS {rms * 1e3:.4f} mm, covariance-predicted pin error RMS "
@@ -286,7 +294,9 @@ def _distance_rows(f: FitFigures) -> list[dict[str, Any]]:
 
 
 def _predicted_fields(u: Uncertainty) -> dict[str, Any]:
-    """RMS and max (mm) of each kind of :attr:`Uncertainty.pred`, NaN without redundancy."""
+    """RMS and max (mm) of each kind of :attr:`Uncertainty.pred`, NaN without redundancy
+    (``beyond``: the shape error just outside the covered joint ranges, :mod:`pipeline.
+    estimation.region`)."""
     return {
         **{
             f"predicted_{kind}_{stat}_mm": (float(fn(e) * 1e3) if u.dof > 0 else float("nan"))
