@@ -33,9 +33,11 @@ The camera
     is U(0.5, 1.5) px; else a pinhole (``perspective``). Mitsuba's film has its
     principal point at the image centre and no distortion, so the render is
     resampled (``cv2.remap``, bilinear) onto the simulator's camera model
-    (principal point, ``k1``, ``k2``): the whole frame at 1 sample grid, and the
-    target's box rendered on a 2x finer grid (each output pixel the mean of its
-    2 x 2 resampled sub-pixels).
+    (principal point, ``k1``, ``k2``): the whole frame rendered at half the
+    resolution (4 samples per pixel; it carries the plate's light and rim, not the
+    target), and the target's box (its image plus 6 px) on a 2x finer grid at 16
+    samples per pixel, each output pixel the mean of its 2 x 2 resampled sub-pixels
+    (Monte Carlo noise there 0.5 grey RMS against the sensor's 1.5, linear grey).
 
 The sensor (after the renderer; each effect a switch of :class:`PbrEffects`)
     ``E = gain L`` (fraction of the full well; the gain puts the white print at
@@ -120,6 +122,7 @@ class PbrEffects:
 class PbrSettings:
     """Sampling and sensor constants."""
 
+    frame_scale: float = 0.5
     spp_frame: int = 4
     spp_box: int = 16
     box_scale: int = 2
@@ -195,7 +198,7 @@ class PbrSource:
             self.world[tid] = self._draw_target(rng)
         self.prnu = rng.normal(0.0, self.cfg.prnu_sigma, (camera.height, camera.width))
         self._scenes: dict[int, tuple[Any, float]] = {}
-        self._maps = _frame_maps(camera, 1)
+        self._maps = _frame_maps(camera, self.cfg.frame_scale)
 
     # ------------------------------------------------------------------ world
     def _draw_target(self, rng: np.random.Generator) -> dict[str, Any]:
@@ -340,7 +343,8 @@ class PbrSource:
         cam = self.cam
         W, H = cam.width, cam.height
         to_world = mi.ScalarTransform4f(invert_transform(T_camera_target) @ CV_TO_MI)
-        frame = _render(mi, scene, self._sensor(mi, to_world, 1, None, self.cfg.spp_frame), seed)
+        fs, spp = self.cfg.frame_scale, self.cfg.spp_frame
+        frame = _render(mi, scene, self._sensor(mi, to_world, fs, None, spp), seed)
         img = cv2.remap(frame, *self._maps, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
         box = self._box(T_camera_target)
         if box is not None:
@@ -361,10 +365,10 @@ class PbrSource:
         return out
 
     def _sensor(
-        self, mi: Any, to_world: Any, scale: int, crop: tuple[int, int, int, int] | None, spp: int
+        self, mi: Any, to_world: Any, scale: float, crop: tuple[int, int, int, int] | None, spp: int
     ) -> Any:
         cam = self.cam
-        W, H = scale * cam.width, scale * cam.height
+        W, H = int(round(scale * cam.width)), int(round(scale * cam.height))
         film: dict[str, Any] = {
             "type": "hdrfilm",
             "width": W,
@@ -506,13 +510,13 @@ def _aim_for_gradient(pos: F64, grad: float, radius: float, azimuth: float) -> F
     return out
 
 
-def _frame_maps(cam: CameraModel, scale: int) -> tuple[np.ndarray, np.ndarray]:
+def _frame_maps(cam: CameraModel, scale: float) -> tuple[np.ndarray, np.ndarray]:
     """``cv2.remap`` maps from output pixels to Mitsuba film pixels (pixel-centre coordinates)."""
     v, u = np.mgrid[0 : cam.height, 0 : cam.width].astype(float)
     return _to_film(cam, scale, u, v)
 
 
-def _to_film(cam: CameraModel, scale: int, u: F64, v: F64) -> tuple[np.ndarray, np.ndarray]:
+def _to_film(cam: CameraModel, scale: float, u: F64, v: F64) -> tuple[np.ndarray, np.ndarray]:
     """Output pixel ``(u, v)`` -> the undistorted, centred film of ``scale`` x the resolution.
 
     ``x = undistort((u - cx) / fx, (v - cy) / fy)``, film ``u_f = s fx x + (s W - 1) / 2``.
