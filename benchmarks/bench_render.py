@@ -99,15 +99,19 @@ def evaluate(rec: Path, seed: int, work: Path) -> dict[str, Any]:
     """``vtcal run`` on ``rec`` (to cross-validation), judged against its truth."""
     from pipeline.evaluate import judge_run
     from pipeline.orchestrator import RunConfig, run_pipeline
+    from pipeline.verdict import verdict
 
     truth = json.loads(Path(str(rec) + ".truth.json").read_text())
     out = work / rec.stem
     t0 = time.perf_counter()
-    run_pipeline(rec, out, RunConfig(report=False), until="crossval")
+    res = run_pipeline(rec, out, RunConfig(report=False), until="crossval")
     t_run = time.perf_counter() - t0
     judged = judge_run(out, truth, 500, seed)
-    cam = json.loads((out / "recording.json").read_text()).get("camera", {})
-    val = _held_out(out)
+    recj = json.loads((out / "recording.json").read_text())
+    cam = recj.get("camera", {})
+    v = verdict(res.summary) or {}
+    val = float(v.get("validated_mm") or float("nan"))
+    warnings = list(recj.get("warnings") or [])  # what `vtcal run` echoes as warnings
     src = truth.get("image_source") or {}
     n = max(int(src.get("captures", len(truth["images"]))), 1)
     return {
@@ -118,29 +122,93 @@ def evaluate(rec: Path, seed: int, work: Path) -> dict[str, Any]:
         "model": judged["best"],
         "response": f"{cam.get('response', '?')}/{cam.get('response_source', '?')}",
         "note": str(cam.get("note", "")),
+        "warnings": len(warnings),
         "t_run": t_run,
         "render_s": float(src["render_s"]) / n if "render_s" in src else float("nan"),
         "captures": n,
     }
 
 
-def _held_out(out: Path) -> float:
-    """The held-out RMS (mm) vtcal printed for the shipped model (validation.json)."""
-    p = out / "validation.json"
-    if not p.exists():
-        return float("nan")
-    v = json.loads(p.read_text())
-    for k in ("heldout_rms_mm", "held_out_rms_mm", "rms_mm"):
-        if k in v:
-            return float(v[k])
-    best = v.get("best") or v.get("shipped")
-    models = v.get("models") or {}
-    if isinstance(best, str) and best in models:
-        m = models[best]
-        for k in ("heldout_rms_mm", "held_out_rms_mm", "rms_mm"):
-            if k in m:
-                return float(m[k])
-    return float("nan")
+def measure(robot: str, seed: int) -> None:
+    """Print the renderer's own figures on the cell of ``robot`` / ``seed``: Monte Carlo noise
+    in the target's box against the sensor's (spp), seconds per capture, the lamp's
+    irradiance change over the target's diameter and the sheen at three view angles."""
+    from dataclasses import replace
+
+    import numpy as np
+
+    from pipeline.kinematics.se3 import transform_from
+    from pipeline.sim.cell import R_CAMERA_UNTILTED
+    from pipeline.sim.recorder import NullRecorder
+    from pipeline.sim.render_pbr import PbrEffects, PbrSettings, PbrSource
+    from pipeline.sim.scenario import scenario_from_dict
+    from pipeline.sim.session import Session
+
+    sc = scenario_from_dict(scenario(robot), where=robot, base_dir=str(REPO))
+    sess = Session(sc, seed, NullRecorder())
+    cam, z0 = sess.cell.camera, float(sess.cell.p_vt_camera[2])
+    tg = [(t.id, t.T_base_target()) for t in sess.cell.targets]
+    D, Rp, pol = sc.targets.diameter_m, sc.targets.plate_radius_m, sc.targets.polarity
+
+    def pose(deg: float) -> Any:
+        a = np.radians(deg)
+        Ry = np.array([[np.cos(a), 0, np.sin(a)], [0, 1, 0], [-np.sin(a), 0, np.cos(a)]])
+        return transform_from(R_CAMERA_UNTILTED @ Ry, sess.cell.p_vt_camera)
+
+    T = pose(20.0)
+    print(f"{robot} seed {seed}: Monte Carlo noise in the target's box (linear grey, 0..255)")
+    for spp in (4, 9, 16):
+        src = PbrSource(cam, tg, D, Rp, pol, z0, seed, PbrEffects(), PbrSettings(spp_box=spp))
+        src.radiance(0, T, 0)
+        t0 = time.perf_counter()
+        a, b = src.radiance(0, T, 11), src.radiance(0, T, 12)
+        dt = 0.5 * (time.perf_counter() - t0)
+        box = src._box(T)
+        assert box is not None
+        u0, u1, v0, v1 = box
+        d = (a - b)[v0:v1, u0:u1] * 255.0 / np.sqrt(2.0)
+        E = a[v0:v1, u0:u1]
+        cfg = src.cfg
+        sens = 255.0 * np.sqrt(
+            np.clip(E, 0, None) / cfg.full_well_e + (cfg.read_noise_e / cfg.full_well_e) ** 2
+        )
+        print(
+            f"  box spp {spp:>2} (x{cfg.box_scale} grid): renderer {d.std():.2f} grey RMS"
+            f" (max {np.abs(d).max():.1f}) against shot + read {np.sqrt((sens**2).mean()):.2f};"
+            f" {dt:.2f} s per capture"
+        )
+    base = PbrEffects(defocus=False, out_of_round=False, ink_spread=False)
+    on = PbrSource(cam, tg, D, Rp, pol, z0, seed, base)
+    off = PbrSource(cam, tg, D, Rp, pol, z0, seed, replace(base, sheen=False))
+    print(
+        f"  defocus: radius {on.defocus_px_at_standoff:.2f} px at the stand-off {z0 * 1e3:.1f} mm,"
+        f" focus {on.focus_m * 1e3:.1f} mm, aperture radius {on.aperture_m * 1e3:.2f} mm"
+    )
+    for tid, _ in tg:
+        grad = on.world[tid]["light_gradient"]
+        az = on.world[tid]["lamp_azimuth_rad"]
+        sheen = []
+        for deg in (-30.0, 0.0, 30.0):
+            Tv = pose(deg)
+            e1, e0 = on.radiance(tid, Tv, 1), off.radiance(tid, Tv, 1)
+            uc, vc = (int(round(x)) for x in cam.project(Tv[:3, 3]))
+            sl = np.s_[vc - 40 : vc + 40, uc - 40 : uc + 40]
+            sheen.append(float(np.median((e1 - e0)[sl])) * 255.0 / 160.0)
+        pts = []
+        Tv = pose(0.0)
+        blank = PbrSource(cam, tg, D, Rp, pol, z0, seed, replace(base, sheen=False))
+        blank.print_radius = lambda tid, phi: np.zeros_like(phi)  # type: ignore[method-assign]
+        eb = blank.radiance(tid, Tv, 1)
+        for sgn in (-1.0, 1.0):
+            q = Tv @ np.array([sgn * 0.5 * D * np.cos(az), sgn * 0.5 * D * np.sin(az), 0.0, 1.0])
+            u, v = cam.project(q[:3])
+            pts.append(eb[int(round(v)), int(round(u))])
+        uc, vc = (int(round(x)) for x in cam.project(Tv[:3, 3]))
+        print(
+            f"  target {tid}: lamp irradiance change over the diameter {abs(pts[1] - pts[0]) / eb[vc, uc]:.3f}"
+            f" (drawn {grad:.3f}); sheen at -30 / 0 / +30 deg view {sheen[0]:.3f} / {sheen[1]:.3f}"
+            f" / {sheen[2]:.3f} of the white print"
+        )
 
 
 def main() -> None:
@@ -150,7 +218,14 @@ def main() -> None:
     ap.add_argument("--seeds", type=int, nargs="+", default=JUDGING_SEEDS)
     ap.add_argument("--cache", type=Path, default=Path("/work/renders"))
     ap.add_argument("--render-only", action="store_true", help="render the recordings, no runs")
+    ap.add_argument(
+        "--measure", action="store_true", help="the renderer's noise, cost, light and sheen only"
+    )
     args = ap.parse_args()
+    if args.measure:
+        for r in args.robots:
+            measure(r, args.seeds[0])
+        return
     role = "judge" if set(args.seeds) <= set(JUDGING_SEEDS) else "dev"
     print(f"seeds {args.seeds} ({role}: judging seeds are {JUDGING_SEEDS}); cache {args.cache}")
     jobs = [(r, e, s) for s in args.seeds for r in args.robots for e in args.effects]
@@ -161,7 +236,7 @@ def main() -> None:
         return
     hdr = (
         f"{'seed':>4} {'robot':<7} {'effects':<8} {'shape':>7} {'abs':>7} {'held-out':>8}"
-        f" {'response':<18} {'model':<8} {'run s':>6} {'render s/cap':>12}"
+        f" {'response':<18} {'warn':>4} {'model':<8} {'run s':>6} {'render s/cap':>12}"
     )
     print(hdr)
     with tempfile.TemporaryDirectory() as tmp:
@@ -169,13 +244,14 @@ def main() -> None:
             r = evaluate(recs[j], j[2], Path(tmp))
             print(
                 f"{j[2]:>4} {j[0]:<7} {j[1]:<8} {r['shape']:7.4f} {r['abs']:7.4f}"
-                f" {r['held_out']:8.4f} {r['response']:<18} {r['model']!s:<8}"
+                f" {r['held_out']:8.4f} {r['response']:<18} {r['warnings']:>4d} {r['model']!s:<8}"
                 f" {r['t_run']:6.1f} {r['render_s']:12.2f}",
                 flush=True,
             )
     print(
         "mm: shape / abs = RMS of the shipped model against the truth (500 poses, as bench_optics);"
-        " held-out = vtcal's cross-validated figure; response = recording.json's response/source;"
+        " held-out = the validated figure vtcal's verdict printed (pipeline.verdict); warn = the"
+        " run's warnings; response = recording.json's response/source;"
         " render s/cap = seconds per capture (Mitsuba for linear/all/oor, the team's simulator"
         " for sim-all, whole-recording wall time / captures)"
     )

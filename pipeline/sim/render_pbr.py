@@ -19,11 +19,16 @@ The scene (target plate frame ``z = 0``, normal ``+z``; fixed in the world)
     beam's edge (Mitsuba's linear fall-off between ``beam_width`` 8 deg and
     ``cutoff_angle`` 28 deg) with an irradiance change of ``g`` over the target's
     diameter (drawn U(0.10, 0.20) per target); else a ``directional`` lamp
-    (even irradiance). *Background*: a diffuse plane 50 mm behind the plate.
-    *Print*: boundary ``r(phi) = R + s + sum_{k=2..5} A_k cos(k phi + p_k)``
-    (out of round: peak-to-valley of ``r - R - s`` drawn U(10, 20) um; ink
-    spread: growth ``s`` 8 um of the dark ink and an edge
-    ``Phi((r - r(phi)) / sigma)``, ``sigma`` 10 um; off: ``s = 0``, ``sigma`` one texel).
+    (even irradiance). *Background*: an evenly glowing wall 50 mm behind the
+    plate (0.85 x the white print's radiance at the target centre behind light
+    plates, 1.5 x the dark plate's behind dark ones, as the simulator's scenes have).
+    *Print*: boundary ``r(phi) = R + sum_{k=2..5} A_k cos(k phi + p_k)`` (out of
+    round: peak-to-valley of ``r - R`` drawn U(10, 20) um per target), reflectance
+    ``Phi((r(phi) - r) / sigma)`` between ink and paper. Ink spread: ``sigma`` 10 um
+    (else half a texel); the artwork is taken to compensate the ink's mean growth,
+    so the printed diameter is the declared one (a growth common to every print
+    cannot be told from the pin, ``docs/simulator.md``; it would put an error of
+    growth / radius x stand-off into the truth that no method can remove).
 
 The camera
     Thin lens (``thinlens``) at the capture pose, aperture radius ``A`` and focus
@@ -217,7 +222,6 @@ class PbrSource:
                 [int(k), float(a), float(p)] for k, a, p in zip(ks, amp, ph, strict=True)
             ],
             "out_of_round_ptv_m": ptv,
-            "ink_spread_m": 8e-6,
             "ink_sigma_m": 10e-6,
             "light_gradient": grad,
             "lamp_azimuth_rad": azimuth,
@@ -228,8 +232,6 @@ class PbrSource:
         """Printed boundary radius ``r(phi)`` (m) of target ``tid`` as rendered."""
         wt = self.world[tid]
         r = np.full_like(np.asarray(phi, dtype=float), 0.5 * self.D)
-        if self.eff.ink_spread:
-            r = r + (1 if self.polarity == "dark_on_light" else -1) * wt["ink_spread_m"]
         if self.eff.out_of_round:
             for k, a, p in wt["harmonics"]:
                 r = r + a * np.cos(k * phi + p)
@@ -429,10 +431,10 @@ class PbrSource:
         if eff.srgb:
             V = srgb(V)
         img = np.clip(np.rint(255.0 * V), 0, 255).astype(np.uint8)
-        grey = img
-        if eff.jpeg:
-            ok, buf = cv2.imencode(".jpg", img, [cv2.IMWRITE_JPEG_QUALITY, cfg.jpeg_quality])
-            grey = cv2.imdecode(buf, cv2.IMREAD_UNCHANGED)
+        if not eff.jpeg:
+            return img, img
+        ok, buf = cv2.imencode(".jpg", img, [cv2.IMWRITE_JPEG_QUALITY, cfg.jpeg_quality])
+        grey = np.asarray(cv2.imdecode(buf, cv2.IMREAD_UNCHANGED), dtype=np.uint8)
         return img, grey
 
     def capture(self, tid: int, Ts: F64) -> tuple[np.ndarray, np.ndarray]:
