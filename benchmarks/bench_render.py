@@ -251,9 +251,15 @@ def main() -> None:
         f" {'response':<18} {'warn':>4} {'model':<8} {'run s':>6} {'render s/cap':>12}"
     )
     print(hdr)
+    from pipeline.errors import BadInput
+
     with tempfile.TemporaryDirectory() as tmp:
         for j in jobs:
-            r = evaluate(recs[j], j[2], Path(tmp))
+            try:
+                r = evaluate(recs[j], j[2], Path(tmp))
+            except BadInput as e:  # vtcal refused the recording: the row says so
+                print(f"{j[2]:>4} {j[0]:<7} {j[1]:<8} vtcal: error: {e}", flush=True)
+                continue
             print(
                 f"{j[2]:>4} {j[0]:<7} {j[1]:<8} {r['shape']:7.4f} {r['abs']:7.4f}"
                 f" {r['held_out']:8.4f} {r['response']:<18} {r['warnings']:>4d} {r['model']!s:<8}"
