@@ -168,6 +168,18 @@ def measure(robot: str, seed: int) -> None:
         return transform_from(R_CAMERA_UNTILTED @ Ry, sess.cell.p_vt_camera)
 
     T = pose(20.0)
+    from pipeline.sim.target_geometry import projected_ellipse
+    from pipeline.stages.detect import DetectConfig, detect_target
+
+    quiet = replace(PbrEffects.linear(), shot_noise=False, read_noise=False, prnu=False)
+    img, _ = PbrSource(cam, tg, D, Rp, pol, z0, seed, quiet).capture(0, T[None])
+    det = detect_target(img, DetectConfig(polarity=pol))
+    ell = projected_ellipse(cam, T, D)
+    print(
+        f"{robot} seed {seed}: noise-free linear render, plate tilted 20 deg: vtcal's detector"
+        f" minus the projected circle du {det['u'] - ell[0]:+.4f} dv {det['v'] - ell[1]:+.4f}"
+        f" ds {det['s'] - ell[2]:+.4f} px"
+    )
     print(f"{robot} seed {seed}: Monte Carlo noise in the target's box (linear grey, 0..255)")
     for spp in (4, 9, 16):
         src = PbrSource(cam, tg, D, Rp, pol, z0, seed, PbrEffects(), PbrSettings(spp_box=spp))
