@@ -9,6 +9,7 @@ through :mod:`pipeline.sim.cell_adapter`.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
@@ -143,6 +144,12 @@ class CaptureOptions:
     occluders: tuple[Occluder, ...] = ()
 
 
+#: An alternative image source: ``(target, Ts (K, 4, 4) T_camera_target over the exposure,
+#: options) -> (image, grey)`` as :meth:`Session.capture` returns them (e.g.
+#: :class:`pipeline.sim.render_pbr.PbrSource`); None: the simulator's own renderer.
+ImageSource = Callable[[Target, F64, CaptureOptions], tuple[np.ndarray, np.ndarray]]
+
+
 class Session:
     """One simulated calibration session (the controller + the world + the recorder)."""
 
@@ -182,6 +189,8 @@ class Session:
             "/camera/image_raw/compressed" if self.compressed else "/camera/image_raw"
         )
         self.robot: JointStream | None = None
+        #: forms each capture instead of :meth:`_form_image` when set
+        self.image_source: ImageSource | None = None
         self.last_renders = 1
         self.safe_bytes = 0
 
@@ -233,7 +242,8 @@ class Session:
         opts = opts or CaptureOptions()
         t_start = rob.t
         exp_ns, moving, Ts = self._exposure(tg, t_start)
-        img, grey = self._form_image(tg, Ts, opts)
+        form = self.image_source or self._form_image
+        img, grey = form(tg, Ts, opts)
         rec = self._image_record(tg, opts, t_start, exp_ns, moving, Ts)
         self.last_renders = len(Ts)
         self.images.append(rec)

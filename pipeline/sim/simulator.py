@@ -72,12 +72,14 @@ from pipeline.sim.cell import Target
 from pipeline.sim.cell_adapter import SimCamera, SimCell
 from pipeline.sim.recorder import Recorder
 from pipeline.sim.scenario import Scenario
-from pipeline.sim.session import CaptureOptions, Session
+from pipeline.sim.session import CaptureOptions, ImageSource, Session
 from pipeline.sim.truth import index_images, truth_of
 
 #: share of the large move after which the capture-while-moving fault's capture starts
 #: (at most; :meth:`pipeline.sim.session.Session.large_move` picks a blurring one)
 MOVING_CAPTURE_AT = 0.94
+#: builds a session's alternative image source (:attr:`pipeline.sim.session.Session.image_source`)
+SourceFactory = Callable[[Session], ImageSource]
 
 
 #: ``progress(done, total)``: touch-up attempts simulated so far, out of the plan's
@@ -85,14 +87,21 @@ Progress = Callable[[int, int], None]
 
 
 def simulate(
-    sc: Scenario, seed: int, out: Path, progress: Progress | None = None
+    sc: Scenario,
+    seed: int,
+    out: Path,
+    progress: Progress | None = None,
+    image_source: SourceFactory | None = None,
 ) -> dict[str, Any]:
     """Run the session of scenario ``sc`` with ``seed``; write ``out`` (MCAP) and return the truth.
 
     The MCAP file is written streaming; the truth dictionary has the layout
     of the conformance sample's truth file (see module doc of
     :mod:`pipeline.sim`). ``progress(done, total)`` is called after each touch-up
-    attempt (it does not change a byte of the output).
+    attempt (it does not change a byte of the output). ``image_source`` builds, from
+    the session, what forms each capture instead of the simulator's renderer (e.g.
+    :func:`pipeline.sim.render_pbr.pbr_source`); its ``truth()``, if it has one,
+    goes into the truth as ``image_source``.
     """
     out = Path(out)
     out.parent.mkdir(parents=True, exist_ok=True)
@@ -100,8 +109,13 @@ def simulate(
     with tmp.open("wb") as f:
         rec = Recorder(f, chunk_size=sc.timing.chunk_size)
         cell = SimCell.from_scenario(sc, seed, rec)
+        if image_source is not None:
+            cell.sess.image_source = image_source(cell.sess)
         truth = _run(cell, progress)
         rec.finish()
+    src_truth = getattr(cell.sess.image_source, "truth", None)
+    if src_truth is not None:
+        truth["image_source"] = src_truth()
     os.replace(tmp, out)
     if sc.faults.truncate:
         truth["truncated"] = faults.truncate_file(
@@ -347,12 +361,17 @@ def _record_touchup(
 
 
 def write_recording(
-    sc: Scenario, seed: int, out: Path, progress: Progress | None = None
+    sc: Scenario,
+    seed: int,
+    out: Path,
+    progress: Progress | None = None,
+    image_source: SourceFactory | None = None,
 ) -> dict[str, Any]:
     """Simulate and write ``out`` plus ``out.truth.json``; return the truth.
 
-    ``progress(done, total)``: touch-up attempts simulated (:func:`simulate`)."""
-    truth = simulate(sc, seed, out, progress)
+    ``progress(done, total)``: touch-up attempts simulated; ``image_source``: what
+    forms the captures (:func:`simulate`)."""
+    truth = simulate(sc, seed, out, progress, image_source)
     tpath = Path(str(out) + ".truth.json")
     tmp = tpath.with_name(tpath.name + ".part")
     tmp.write_text(json.dumps(truth, indent=1))
