@@ -148,6 +148,19 @@ def controller_detector(camera: SimCamera, goal: Goal, method: str) -> Detector:
     return detect
 
 
+def camera_response_of(kind: str, gamma: float) -> str | None:
+    """The spec's ``camera_response`` (``recording.md``) of a scenario's ``[optics] response``.
+
+    ``linear`` and ``srgb`` as they are, ``gamma`` as ``gamma:G``; None for ``curve``
+    (an unnamed monotone curve).
+    """
+    if kind in ("linear", "srgb"):
+        return kind
+    if kind == "gamma":
+        return f"gamma:{gamma:g}"
+    return None
+
+
 @dataclass
 class SimCell:
     """A simulated cell ready to be measured: protocol objects, the nominal URDF, the plan.
@@ -181,6 +194,21 @@ class SimCell:
     @property
     def nominal_urdf(self) -> str:
         return self.sess.cell.nominal_urdf
+
+    @property
+    def served_metadata(self) -> dict[str, str]:
+        """The ``touchup`` keys the cell serves to a client (``META?``; the ``sim:`` link).
+
+        The recorded :attr:`metadata` plus what the cell knows of itself that its own
+        recordings leave to be estimated: ``camera_response``, the encoding its camera
+        applies (``linear``, ``srgb``, ``gamma:G``; none for a ``curve``, which the
+        spec's key cannot name).
+        """
+        out = dict(self.metadata)
+        response = camera_response_of(self.sess.sc.optics.response, self.sess.sc.optics.gamma)
+        if response is not None:
+            out["camera_response"] = response
+        return out
 
     @classmethod
     def from_scenario(cls, sc: Scenario, seed: int, rec: Recorder | None = None) -> SimCell:
