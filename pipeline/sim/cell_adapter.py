@@ -32,6 +32,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Any
 
+import cv2
 import numpy as np
 
 from pipeline.kinematics.se3 import F64
@@ -120,9 +121,14 @@ class SimCamera:
         return min(self.sess.cell.targets, key=off_axis)
 
     def capture(self) -> Frame:
+        """The image as the camera delivers it: a JPEG camera's (``[optics] jpeg_quality``)
+        decoded from its JPEG bytes, as a client of a JPEG stream sees it."""
         tg = self.target if self.target is not None else self.target_in_view()
         img, grey, stamp_ns = self.sess.capture(tg, self.options)
         self._grey = (stamp_ns, grey)
+        if self.sess.sc.optics.jpeg_quality > 0:
+            _, data = self.sess.optics.encode(img)
+            img = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_UNCHANGED)
         return Frame(img, stamp_ns, "bgr8" if img.ndim == 3 else "mono8")
 
     def grey_of(self, frame: Frame) -> np.ndarray:
