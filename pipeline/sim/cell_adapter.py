@@ -128,7 +128,7 @@ class SimCamera:
         self._grey = (stamp_ns, grey)
         if self.sess.sc.optics.jpeg_quality > 0:
             _, data = self.sess.optics.encode(img)
-            img = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_UNCHANGED)
+            img = np.asarray(cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_UNCHANGED))
         return Frame(img, stamp_ns, "bgr8" if img.ndim == 3 else "mono8")
 
     def grey_of(self, frame: Frame) -> np.ndarray:
