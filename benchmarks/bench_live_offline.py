@@ -190,35 +190,36 @@ def show(res: dict[str, Any], before: dict[str, Any] | None) -> None:
                 f"{rr['es_mean']:+7.3f}/{rr['es_rms']:6.3f} "
                 f"{rr.get('es_loop', float('nan')):+8.3f}  {rr['response']}"
             )
-    print("means over seeds (shape / abs mm; ratio to offline):")
+    print("means over seeds (shape / abs mm); ratio: live / offline over the seeds both have")
     for cell in sorted({k.split("|")[0] for k in both}):
-        off = _mean(both, cell, "offline", None)
         for row in ROWS:
             for tag, src in (("", res), (" today", before or {})):
-                m = _mean(src, cell, row, None)
-                if m is None or (row == "offline" and tag):
+                m = _rows(src, cell, row)
+                if not m or (row == "offline" and tag):
                     continue
-                ratio = (
-                    f"  {m[0] / off[0]:.2f}x / {m[1] / off[1]:.2f}x"
-                    if off is not None and row != "offline"
-                    else ""
+                line = (
+                    f"  {cell:7s} {row + tag:23s} {np.mean([r['shape'] for r in m.values()]):.4f}"
+                    f" / {np.mean([r['abs'] for r in m.values()]):.4f} (seeds {','.join(m)})"
                 )
-                print(f"  {cell:7s} {row + tag:23s} {m[0]:.4f} / {m[1]:.4f} ({m[2]} seeds){ratio}")
+                off = _rows(both, cell, "offline")
+                common = [sd for sd in m if sd in off]
+                if row != "offline" and common:
+                    ratio = [
+                        np.mean([m[sd][k] for sd in common])
+                        / np.mean([off[sd][k] for sd in common])
+                        for k in ("shape", "abs")
+                    ]
+                    line += f"  {ratio[0]:.2f}x / {ratio[1]:.2f}x (seeds {','.join(common)})"
+                print(line)
 
 
-def _mean(res: dict[str, Any], cell: str, row: str, _: Any) -> tuple[float, float, int] | None:
-    rr = [
-        v
-        for k, v in res.items()
-        if k.split("|")[0] == cell and k.split("|")[1] == row and "error" not in v
-    ]
-    if not rr:
-        return None
-    return (
-        float(np.mean([r["shape"] for r in rr])),
-        float(np.mean([r["abs"] for r in rr])),
-        len(rr),
-    )
+def _rows(res: dict[str, Any], cell: str, row: str) -> dict[str, dict[str, Any]]:
+    """seed -> figures of (cell, row), runs that failed left out."""
+    return {
+        k.split("|")[2]: v
+        for k, v in sorted(res.items())
+        if k.split("|")[:2] == [cell, row] and "error" not in v
+    }
 
 
 def main() -> None:
