@@ -49,7 +49,7 @@ def _plan(tmp: Path, n: int | None = None) -> Path:
 def _serve(wrap: Any = None) -> CellServer:
     cell, tap = sim_cell(SIM)
     robot, camera = (cell.robot, cell.camera) if wrap is None else wrap(cell.robot, cell.camera)
-    return serve_in_thread(Cell(robot, camera, tap.since, cell.nominal_urdf, dict(cell.metadata)))
+    return serve_in_thread(Cell(robot, camera, tap.since, cell.nominal_urdf, cell.served_metadata))
 
 
 def _images(path: Path) -> tuple[bool, int, int]:

@@ -80,3 +80,26 @@ def test_loop_with_vtcal_detector_puts_the_pin_on_the_target(cell: SimCell) -> N
     miss = sess.true_pin(res.joints.positions) - sess.cell.targets[tid].centre
     # half a pixel of size is about 1 % of the stand-off: the depth miss stays within it
     assert np.linalg.norm(miss) < 0.01 * float(sess.cell.p_vt_camera[2])
+
+
+def test_a_jpeg_cameras_frames_are_what_its_recording_carries(tmp_path: Path) -> None:
+    """A live client of a JPEG camera sees the decoded JPEG, not the pixels before it."""
+    import tomllib
+
+    from pipeline.measure.detector import frame_to_grey
+    from pipeline.sim.recorder import Recorder
+    from pipeline.sim.scenario import scenario_from_dict
+    from pipeline.stages.ingest import load_image
+
+    raw = tomllib.loads((SCEN / "small.toml").read_text())
+    raw["optics"] = {"jpeg_quality": 90}
+    sc = scenario_from_dict(raw, where="small-jpeg", base_dir=str(SCEN))
+    path = tmp_path / "jpeg.mcap"
+    with path.open("wb") as f:
+        rec = Recorder(f)
+        cell = SimCell.from_scenario(sc, 11, rec)
+        cell.robot.move_joints(cell.plan[0][1], 0.5)
+        frame = cell.camera.capture()
+        rec.finish()
+    recorded = load_image(path, "/camera/image_raw/compressed", 0)
+    assert np.array_equal(frame_to_grey(frame), recorded)

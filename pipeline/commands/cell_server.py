@@ -24,7 +24,17 @@ Examples:
               help="TCP port (0: a free one, printed).")  # fmt: skip
 @click.option("--plan-out", type=click.Path(dir_okay=False, path_type=Path), default=None,
               help="Also write the scenario's measuring poses as a plan for vtcal measure.")  # fmt: skip
-def command(scenario_path: Path, seed: int, host: str, port: int, plan_out: Path | None) -> None:
+@click.option("--withhold", multiple=True, metavar="KEY",
+              help="Leave this touchup metadata key out of META? (a cell that does not know "
+                   "it, e.g. camera_response); repeatable.")  # fmt: skip
+def command(
+    scenario_path: Path,
+    seed: int,
+    host: str,
+    port: int,
+    plan_out: Path | None,
+    withhold: tuple[str, ...],
+) -> None:
     """Serve the simulated cell of SCENARIO and SEED on HOST:PORT until interrupted."""
     from pipeline.measure.sim_link import sim_cell, write_plan
     from pipeline.measure.tcp_server import Cell, CellServer
@@ -32,8 +42,9 @@ def command(scenario_path: Path, seed: int, host: str, port: int, plan_out: Path
     cell, tap = sim_cell(f"sim:{scenario_path}:{seed}")
     if plan_out is not None:
         write_plan(cell, str(plan_out))
+    meta = {k: v for k, v in cell.served_metadata.items() if k not in withhold}
     server = CellServer(
-        Cell(cell.robot, cell.camera, tap.since, cell.nominal_urdf, dict(cell.metadata)), host, port
+        Cell(cell.robot, cell.camera, tap.since, cell.nominal_urdf, meta), host, port
     )
     click.echo(
         f"vtcal cell-server: tcp://{host}:{server.port} ({scenario_path}, seed {seed})", err=True

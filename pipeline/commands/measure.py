@@ -16,6 +16,7 @@ from pipeline.measure.summary import as_metadata, summarize, summary_line
 
 if TYPE_CHECKING:
     from pipeline.measure.cell_link import CellLink
+    from pipeline.measure.detector import LiveDetector
     from pipeline.measure.loop import LoopConfig
     from pipeline.measure.plan_file import Plan
     from pipeline.measure.session import SessionOptions
@@ -209,7 +210,6 @@ def _measure_into(
     The designated blob comes from ``meta`` (the image size from one capture when it
     does not say); a fault leaves the recording so far, resumable (CellFault).
     """
-    from pipeline.measure.detector import vtcal_detector
     from pipeline.measure.protocols import MeasureFault
     from pipeline.measure.record import open_recording
     from pipeline.measure.session import goal_from_metadata, run_session
@@ -221,7 +221,7 @@ def _measure_into(
     goal = goal_from_metadata(meta, size)
     meta.setdefault("designated_u", f"{goal.u0:g}")
     meta.setdefault("designated_v", f"{goal.v0:g}")
-    detect = vtcal_detector(goal.polarity, size_px=goal.s0)
+    detect = _detector(meta, goal.polarity, goal.s0, quiet)
     link.drain_joints()  # samples from before the recording starts
     t0 = link.robot.read_joints().stamp_ns
     rec = open_recording(out, urdf, meta, plan.sha256, len(plan), t0)
@@ -244,8 +244,42 @@ def _measure_into(
         rec.abandon()
         raise
     done = summarize(rec.progress.touchups, len(plan), rec.progress.sessions, out)
+    done["camera_response"] = detect.response
+    done["camera_response_source"] = detect.source
     rec.finish(as_metadata(done))
     return done
+
+
+def _detector(meta: dict[str, str], polarity: str, s0: float, quiet: bool) -> LiveDetector:
+    """The loop's detector, linearising with the ``camera_response`` of ``meta`` (the cell's
+    ``META?`` merged with ``--set``); without one it estimates the response from its first
+    clean captures and says so on stderr.
+
+    Raises
+    ------
+    BadInput
+        A ``camera_response`` that is not a response curve.
+    """
+    from pipeline.measure.detector import vtcal_detector
+
+    text = meta.get("camera_response", "auto")
+    try:
+        detect = vtcal_detector(
+            polarity,
+            size_px=s0,
+            response=text,
+            say=lambda m: click.echo(f"vtcal measure: {m}", err=True),
+        )
+    except ValueError as exc:
+        raise BadInput(f"touchup metadata: camera_response={text!r}: {exc}") from None
+    if not quiet:
+        click.echo(
+            f"vtcal measure: camera response {detect.response} (declared: camera_response)"
+            if detect.source == "declared"
+            else "vtcal measure: camera response not declared: estimating it from the first "
+            "clean captures"
+        )
+    return detect
 
 
 @click.command(

@@ -2,21 +2,25 @@
 
 The frame is reduced to grey exactly as ingest reduces a recorded image
 (:func:`pipeline.io_mcap.image_to_gray`: BT.601 weights for colour), then
-:func:`pipeline.stages.detect.detect_target` fits the target's ellipse. The
-loop thus drives the target to the designated values as the pipeline will
-later measure them.
+:func:`pipeline.stages.detect.detect_target` fits the target's ellipse on grey
+levels linearised by the camera response, declared or estimated as ingest
+does (:class:`LiveDetector`). The loop thus drives the target to the
+designated values as the pipeline will later measure them.
 """
 
 from __future__ import annotations
 
 import dataclasses
+from collections.abc import Callable
 
 import numpy as np
 
 from pipeline.io_mcap import EncodedImage, image_to_gray
-from pipeline.measure.loop import Detection, Detector
+from pipeline.measure.loop import Detection
 from pipeline.measure.protocols import Frame
 from pipeline.stages.detect import DetectConfig, detect_target
+from pipeline.stages.response import parse_response
+from pipeline.stages.response_estimate import ResponseEstimate, estimate_response
 
 
 def frame_to_grey(frame: Frame) -> np.ndarray:
@@ -36,10 +40,101 @@ def frame_to_grey(frame: Frame) -> np.ndarray:
     return image_to_gray(enc)
 
 
+#: clean captures (target found) the live loop estimates an undeclared response from: the
+#: seven probing captures of the first touch-up, so its loop proper already uses the estimate
+ESTIMATE_IMAGES = 7
+
+
+class LiveDetector:
+    """vtcal's detector for the live loop, on grey levels linearised as ingest linearises them.
+
+    The camera response (:mod:`pipeline.stages.response`) is applied by
+    :func:`pipeline.stages.detect.detect_target` itself (``DetectConfig.response``,
+    the code path of offline detection). A declared response is used from the
+    first capture. An undeclared one (``auto``) is estimated by the offline
+    estimator (:func:`pipeline.stages.response_estimate.estimate_response`) from
+    the first :data:`ESTIMATE_IMAGES` captures in which the target was found,
+    detected meanwhile on raw grey (linear); ``say`` is told the outcome in one
+    line. Called as a :data:`~pipeline.measure.loop.Detector`.
+
+    Attributes
+    ----------
+    config : DetectConfig
+        The settings the next capture is detected with (its ``response`` a curve
+        once known, ``linear`` while an estimate is pending).
+    source : str
+        ``declared``, ``estimated`` or ``pending`` (estimate not made yet).
+    estimate : ResponseEstimate or None
+        The estimate, when one was made.
+    """
+
+    def __init__(
+        self,
+        polarity: str,
+        config: DetectConfig | None = None,
+        size_px: float | None = None,
+        response: str | None = None,
+        say: Callable[[str], None] | None = None,
+        estimate_images: int = ESTIMATE_IMAGES,
+    ) -> None:
+        cfg = dataclasses.replace(config or DetectConfig(), polarity=polarity)
+        text = cfg.response if response is None else response
+        fixed = parse_response(text)  # ValueError on a bad spec: the caller words it
+        self.source = "declared" if fixed is not None else "pending"
+        self.config = dataclasses.replace(
+            cfg, response=fixed.spec if fixed is not None else "linear"
+        )
+        self.estimate: ResponseEstimate | None = None
+        self._say = say
+        self._n = max(int(estimate_images), 1)
+        self._held: list[np.ndarray] = []
+        self._last_size = size_px
+
+    @property
+    def response(self) -> str:
+        """The response spec the detector linearises with now."""
+        return self.config.response
+
+    def __call__(self, frame: Frame, expected_uv: tuple[float, float] | None) -> Detection:
+        grey = frame_to_grey(frame)
+        s = self._last_size
+        expected = None if expected_uv is None or s is None else (*expected_uv, s)
+        r = detect_target(grey, self.config, expected)
+        if not r["found"]:
+            return None
+        if self.source == "pending":
+            self._held.append(grey)
+            if len(self._held) >= self._n:
+                self._estimate()
+                r = detect_target(grey, self.config, expected)
+                if not r["found"]:
+                    return None
+        self._last_size = float(r["s"])
+        return (float(r["u"]), float(r["v"]), float(r["s"]))
+
+    def _estimate(self) -> None:
+        """Estimate the response from the held captures (the offline estimator, as it is)."""
+        est = estimate_response(self._held, self.config, max_images=len(self._held))
+        self._held.clear()
+        self.estimate = est
+        self.source = "estimated"
+        self.config = dataclasses.replace(self.config, response=est.response.spec)
+        if self._say is not None:
+            self._say(
+                f"camera response not declared (camera_response): estimated from the first "
+                f"{est.n_images} captures as {est.response.spec}: {est.note}; "
+                "give --set camera_response=... if it is known"
+            )
+
+
 def vtcal_detector(
-    polarity: str, config: DetectConfig | None = None, size_px: float | None = None
-) -> Detector:
-    """A :data:`Detector` running vtcal's detector with ``polarity``.
+    polarity: str,
+    config: DetectConfig | None = None,
+    size_px: float | None = None,
+    response: str | None = None,
+    say: Callable[[str], None] | None = None,
+) -> LiveDetector:
+    """A :data:`Detector` running vtcal's detector with ``polarity`` (:class:`LiveDetector`).
 
     Parameters
     ----------
@@ -51,6 +146,12 @@ def vtcal_detector(
         Expected long axis before the first detection (the designated ``s0``);
         afterwards the last detection's. With the loop's expected centre it picks
         the target among competing blobs.
+    response : str, optional
+        The camera response (``linear``, ``srgb``, ``gamma:G``, ``table:...``, or
+        ``auto``: estimated from the first clean captures); default: ``config``'s
+        (``auto`` unless set).
+    say : callable, optional
+        Told in one line what an estimate found.
 
     Returns
     -------
@@ -58,19 +159,4 @@ def vtcal_detector(
     found. A detection cut by the border is returned as found; the loop's
     geometric border rule gives up on it.
     """
-    cfg = dataclasses.replace(config or DetectConfig(), polarity=polarity)
-    if cfg.response == "auto":
-        cfg = dataclasses.replace(cfg, response="linear")
-    last_size = [size_px]
-
-    def detect(frame: Frame, expected_uv: tuple[float, float] | None) -> Detection:
-        grey = frame_to_grey(frame)
-        s = last_size[0]
-        expected = None if expected_uv is None or s is None else (*expected_uv, s)
-        r = detect_target(grey, cfg, expected)
-        if not r["found"]:
-            return None
-        last_size[0] = float(r["s"])
-        return (float(r["u"]), float(r["v"]), float(r["s"]))
-
-    return detect
+    return LiveDetector(polarity, config, size_px, response, say)

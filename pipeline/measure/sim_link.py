@@ -82,7 +82,7 @@ def connect_sim(spec: str) -> CellLink:
         cell.camera,
         tap.drain,
         cell.nominal_urdf,
-        dict(cell.metadata),
+        cell.served_metadata,
         f"simulated cell {spec} in process (joint states: the robot's own, simulated clock)",
     )
 

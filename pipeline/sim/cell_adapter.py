@@ -32,6 +32,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Any
 
+import cv2
 import numpy as np
 
 from pipeline.kinematics.se3 import F64
@@ -120,9 +121,14 @@ class SimCamera:
         return min(self.sess.cell.targets, key=off_axis)
 
     def capture(self) -> Frame:
+        """The image as the camera delivers it: a JPEG camera's (``[optics] jpeg_quality``)
+        decoded from its JPEG bytes, as a client of a JPEG stream sees it."""
         tg = self.target if self.target is not None else self.target_in_view()
         img, grey, stamp_ns = self.sess.capture(tg, self.options)
         self._grey = (stamp_ns, grey)
+        if self.sess.sc.optics.jpeg_quality > 0:
+            _, data = self.sess.optics.encode(img)
+            img = np.asarray(cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_UNCHANGED))
         return Frame(img, stamp_ns, "bgr8" if img.ndim == 3 else "mono8")
 
     def grey_of(self, frame: Frame) -> np.ndarray:
@@ -146,6 +152,19 @@ def controller_detector(camera: SimCamera, goal: Goal, method: str) -> Detector:
         )
 
     return detect
+
+
+def camera_response_of(kind: str, gamma: float) -> str | None:
+    """The spec's ``camera_response`` (``recording.md``) of a scenario's ``[optics] response``.
+
+    ``linear`` and ``srgb`` as they are, ``gamma`` as ``gamma:G``; None for ``curve``
+    (an unnamed monotone curve).
+    """
+    if kind in ("linear", "srgb"):
+        return kind
+    if kind == "gamma":
+        return f"gamma:{gamma:g}"
+    return None
 
 
 @dataclass
@@ -181,6 +200,21 @@ class SimCell:
     @property
     def nominal_urdf(self) -> str:
         return self.sess.cell.nominal_urdf
+
+    @property
+    def served_metadata(self) -> dict[str, str]:
+        """The ``touchup`` keys the cell serves to a client (``META?``; the ``sim:`` link).
+
+        The recorded :attr:`metadata` plus what the cell knows of itself that its own
+        recordings leave to be estimated: ``camera_response``, the encoding its camera
+        applies (``linear``, ``srgb``, ``gamma:G``; none for a ``curve``, which the
+        spec's key cannot name).
+        """
+        out = dict(self.metadata)
+        response = camera_response_of(self.sess.sc.optics.response, self.sess.sc.optics.gamma)
+        if response is not None:
+            out["camera_response"] = response
+        return out
 
     @classmethod
     def from_scenario(cls, sc: Scenario, seed: int, rec: Recorder | None = None) -> SimCell:
