@@ -109,3 +109,54 @@ def test_an_assumed_response_is_said_on_the_console(capsys):
     err = capsys.readouterr().err
     assert "vtcal: warning: camera response assumed linear" in err
     assert v is not None and v["warnings"] and not v["lower_bound"]
+
+
+@pytest.fixture(scope="module")
+def all_effects_cell(tmp_path_factory: pytest.TempPathFactory):
+    """The standard LR Mate-like cell, 24 touch-ups, with every optical effect of the
+    simulator at once (sRGB, defocus, uneven light, sensor noise, Bayer, JPEG, prints,
+    vibration: bench_optics' "all"), recorded once."""
+    import sys
+    import tomllib
+    from pathlib import Path
+
+    from pipeline.sim.scenario import scenario_from_dict
+    from pipeline.sim.simulator import write_recording
+
+    root = Path(__file__).resolve().parents[1]
+    sys.path.insert(0, str(root / "benchmarks"))
+    import bench_optics
+
+    raw = tomllib.loads((root / "datasets" / "scenarios" / "standard.toml").read_text())
+    raw["poses"]["per_target"] = 8
+    raw["optics"] = dict(bench_optics.EFFECTS["all"])
+    raw.setdefault("touchup", {})["controller"] = "binary"
+    rec = tmp_path_factory.mktemp("adequacy") / "all.mcap"
+    write_recording(scenario_from_dict(raw, where="all", base_dir=str(root)), 7, rec)
+    return rec
+
+
+def _run(rec, out, overrides):
+    import json
+
+    from pipeline.orchestrator import RunConfig, run_pipeline
+
+    run_pipeline(rec, out, RunConfig(report=False, overrides=overrides), until="choose")
+    return json.loads((out / "identify.json").read_text())
+
+
+def test_a_wrong_camera_curve_is_found_by_the_adequacy_test(all_effects_cell, tmp_path):
+    """sRGB images read as linear, with defocus and uneven light that change the size
+    bias from pose to pose: 1.0 mm off the truth (seed 7) where the run's figure said
+    0.2 mm. The fit's residual is 3.5x what the repeated captures' noise predicts: the
+    verdict says the figure is a lower bound and a tolerance fails. The same images with
+    the curve estimated (sRGB) stay quiet (ratio 0.8)."""
+    wrong = _run(all_effects_cell, tmp_path / "linear", {"camera_response": "linear"})
+    v = verdict(wrong, tolerance_mm=1.0)
+    assert wrong["trust"]["adequacy"]["ratio"] > RATIO_MAX, wrong["trust"]
+    assert v is not None and v["lower_bound"] and v["passed"] is False
+    assert "systematic error likely: the figure is a lower bound" in v["line"]
+    right = _run(all_effects_cell, tmp_path / "auto", {})
+    assert right["trust"]["adequacy"]["tested"]
+    assert right["trust"]["adequacy"]["ratio"] < 1.5, right["trust"]
+    assert not (verdict(right) or {}).get("lower_bound")
