@@ -53,7 +53,7 @@ import pandas as pd
 
 from pipeline.errors import BadInput, CalibrationFailed
 from pipeline.kinematics.se3 import F64
-from pipeline.stages.crossval_predict import held_rows, predict_pins
+from pipeline.stages.crossval_predict import held_rows, joints_and_corrections, predict_pins
 from pipeline.stages.crossval_refit import RefitTable, refit, refit_config, refit_table
 from pipeline.stages.identify import IdentifyConfig
 from pipeline.stages.identify_types import Robot
@@ -227,11 +227,7 @@ def _split(t: RefitTable, names: list[str], config: CrossvalConfig) -> _Split:
     """Usable rows, ``k`` (at most the largest target's usable touch-ups) and the folds."""
     df = t.df
     use = usable_rows(df, names)
-    q_all = df[names].to_numpy(dtype=float)
-    d_all = np.zeros((len(df), 3))
-    for j, c in enumerate(("dx_flange", "dy_flange", "dz_flange")):
-        if c in df.columns:
-            d_all[:, j] = np.nan_to_num(df[c].to_numpy(dtype=float))
+    q_all, d_all = joints_and_corrections(df, names)
     tid = df["target_id"].to_numpy()
     tu = df["touchup_id"].to_numpy(dtype=np.int64)
     _, cnt = np.unique(tid[use].astype(str), return_counts=True)

@@ -19,6 +19,16 @@ from pipeline.stages.identify_data import PreparedTable
 from pipeline.stages.identify_types import IdentifyConfig, IdentifyResult, PrintRows, Robot
 
 
+def joints_and_corrections(df: pd.DataFrame, names: list[str]) -> tuple[F64, F64]:
+    """Every row's joint vector (M, n) and residual correction (M, 3) m, 0 where missing."""
+    q_all = df[names].to_numpy(dtype=float)
+    d_all = np.zeros((len(df), 3))
+    for j, c in enumerate(("dx_flange", "dy_flange", "dz_flange")):
+        if c in df.columns:
+            d_all[:, j] = np.nan_to_num(df[c].to_numpy(dtype=float))
+    return q_all, d_all
+
+
 def predict_pins(res: IdentifyResult, q: F64, d: F64, shape: PrintRows | None = None) -> F64:
     """Pin positions of the fitted model, ``T(q_i) (pin + d_i + eps_i g_i)`` -> (N, 3).
 
@@ -95,12 +105,7 @@ def held_rows(
 ) -> list[dict[str, Any]]:
     """The rows of :func:`heldout_predictions`' table, one dict each (its columns)."""
     table = rt.df
-    names = list(rt.robot.chain.joint_names)
-    q_all = table[names].to_numpy(dtype=float)
-    d_all = np.zeros((len(table), 3))
-    for j, c in enumerate(("dx_flange", "dy_flange", "dz_flange")):
-        if c in table.columns:
-            d_all[:, j] = np.nan_to_num(table[c].to_numpy(dtype=float))
+    q_all, d_all = joints_and_corrections(table, list(rt.robot.chain.joint_names))
     tid = table["target_id"].to_numpy()
     out: list[dict[str, Any]] = []
     nan3 = (math.nan, math.nan, math.nan)
