@@ -189,4 +189,4 @@ def lower_bound_reason(trust: dict[str, Any]) -> str:
     if (trust.get("adequacy") or {}).get("systematic"):
         return "systematic error likely"
     keys = [str(a.get("key")) for a in trust.get("assumptions") or [] if a.get("lower_bound")]
-    return "assumed " + ", ".join(keys) if keys else "systematic error possible"
+    return "doubtful " + ", ".join(keys) if keys else "systematic error possible"

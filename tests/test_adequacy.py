@@ -160,3 +160,27 @@ def test_a_wrong_camera_curve_is_found_by_the_adequacy_test(all_effects_cell, tm
     assert right["trust"]["adequacy"]["tested"]
     assert right["trust"]["adequacy"]["ratio"] < 1.5, right["trust"]
     assert not (verdict(right) or {}).get("lower_bound")
+
+
+def test_a_curve_neither_linear_nor_srgb_and_a_clipped_edge_make_a_lower_bound():
+    """bench_optics seed 11: a vendor curve read as sRGB was 0.29 mm off where the run said
+    0.02 mm, a clipped plate 1.0 mm off where it said 0.08; no residual shows either."""
+    rec = {
+        "camera": {
+            "response": "srgb",
+            "response_source": "estimated",
+            "gamma_fit": 3.2,
+            "note": "srgb (...); neither linear nor sRGB fits the edges well (...)",
+            "saturated_fraction": 0.25,
+        }
+    }
+    made = assumptions(rec)
+    assert [a["key"] for a in made] == ["camera_response", "saturation"]
+    assert all(a["lower_bound"] for a in made)
+    s = _summary(fit=0.005)
+    s["trust"] = trust(s, _noise(5.0), rec)
+    v = verdict(s, tolerance_mm=0.1)
+    assert v is not None and v["lower_bound"] and v["passed"] is False
+    assert "doubtful camera_response, saturation: the figure is a lower bound" in v["line"]
+    fine = {"camera": {"response": "srgb", "response_source": "estimated", "note": "srgb (x)"}}
+    assert assumptions(fine) == []

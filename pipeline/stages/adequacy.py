@@ -36,6 +36,10 @@ import math
 from collections.abc import Mapping
 from typing import Any
 
+#: share of clipped edge pixels above which the figure is a lower bound (bench_optics'
+#: "saturated" cell: 25 %, 1.0 mm off where the run said 0.08 mm)
+SATURATED_LOWER_BOUND = 0.05
+
 #: the fit's residual RMS above this multiple of what detection noise predicts (A1):
 #: "systematic error likely"
 RATIO_MAX = 3.0
@@ -100,9 +104,10 @@ def assumptions(recording: Mapping[str, Any] | None) -> list[dict[str, Any]]:
     Returns
     -------
     list of ``{"key", "text", "lower_bound"}``: ``lower_bound`` when the assumption
-    alone makes the run's figure a lower bound of its error (none of today's: an
-    assumed response is said on the console, and where a wrong curve's bias varies
-    from pose to pose the adequacy test finds it).
+    alone makes the run's figure a lower bound of its error: a curve the edges say is
+    neither linear nor sRGB, a clipped edge. An assumed response (edges too sharp to
+    read it) is said on the console only; where a wrong curve's bias varies from pose
+    to pose the adequacy test finds it.
     """
     rec = recording or {}
     cam = rec.get("camera") or {}
@@ -119,6 +124,29 @@ def assumptions(recording: Mapping[str, Any] | None) -> list[dict[str, Any]]:
                 # sharp edges, where it cannot be read, are also where it matters least;
                 # the adequacy test catches a wrong curve whose bias varies with the pose
                 "lower_bound": False,
+            }
+        )
+    note = str(cam.get("note", ""))
+    if cam.get("response_source") == "estimated" and "neither linear nor sRGB" in note:
+        out.append(
+            {
+                "key": "camera_response",
+                "text": f"the camera's curve is neither linear nor sRGB (best power law gamma "
+                f"{float(cam.get('gamma_fit', float('nan'))):.2f}); {cam.get('response')} was "
+                "used: a wrong curve biases every long axis alike, which no residual shows; "
+                "declare it (camera_response)",
+                "lower_bound": True,
+            }
+        )
+    sat = float(cam.get("saturated_fraction") or 0.0)
+    if sat > SATURATED_LOWER_BOUND:
+        out.append(
+            {
+                "key": "saturation",
+                "text": f"{100 * sat:.0f} % of the pixels at the target's edge are clipped: the "
+                "long axes rest on a censored fit of the edge, less exact the more is clipped "
+                "(lower the exposure)",
+                "lower_bound": True,
             }
         )
     for key in ("designated_u", "designated_v"):
