@@ -22,6 +22,7 @@ from typing import Any
 
 import numpy as np
 
+from pipeline.estimation.uncertainty import predicted_errors
 from pipeline.kinematics.se3 import F64
 
 #: predicted error just outside the covered ranges above this multiple of inside: said
@@ -65,8 +66,6 @@ def predicted_over(
     ``cov_e`` the covariance of the identified kinematic columns ``kept`` and the pin;
     :func:`pipeline.estimation.uncertainty.predicted_errors` does the propagation.
     """
-    from pipeline.estimation.uncertainty import predicted_errors
-
     p, R, J = model.pin_and_jacobian(x, q, pin, jac=True)
     assert J is not None
     Je = np.concatenate([J[:, :, kept], R], axis=2)

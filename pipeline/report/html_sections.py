@@ -100,6 +100,8 @@ def verdict_section(data: RunData) -> dict[str, Any]:
     if not isinstance(nominal, (int, float)) and before:
         nominal = before[0]
     v = verdict(idf, tol, nominal_mm=nominal) or {}
+    adequacy = (idf.get("trust") or {}).get("adequacy") or {}  # pipeline.stages.adequacy
+    region = idf.get("region") or {}  # pipeline.estimation.region
     if before and isinstance(v.get("nominal_mm"), (int, float)):
         before = (float(v["nominal_mm"]), before[1])  # one nominal figure on the page
     validated = None
@@ -126,10 +128,10 @@ def verdict_section(data: RunData) -> dict[str, Any]:
         "verdict_line": v.get("line", ""),
         "lower_bound": bool(v.get("lower_bound")),
         "trust_warnings": v.get("warnings") or [],
-        "adequacy_note": ((idf.get("trust") or {}).get("adequacy") or {}).get("note", ""),
-        "adequacy_tested": bool(((idf.get("trust") or {}).get("adequacy") or {}).get("tested")),
-        "region_note": (idf.get("region") or {}).get("note", ""),
-        "region_warn": bool((idf.get("region") or {}).get("extrapolation_warning")),
+        "adequacy_note": adequacy.get("note", ""),
+        "adequacy_tested": bool(adequacy.get("tested")),
+        "region_note": region.get("note", ""),
+        "region_warn": bool(region.get("extrapolation_warning")),
         "figures": [
             {
                 "label": f.label,

@@ -15,8 +15,8 @@ repeated captures' scatter (:mod:`pipeline.stages.touchup_noise`, (N1)-(N2))::
 ratio ``rho = rms_fit / rms_pred`` is near 1 when the touch-ups hold nothing
 but detection noise (measured: 0.88-1.57 on every ``benchmarks/bench_optics.py``
 cell of seed 11, each optical effect alone and all together on both robots;
-3.3-3.6 on the all-effects cell read with a wrong curve) and grows with every error that is fixed at one pose
-and varies between poses. Robot repeatability and joint-encoder noise, which the
+3.3-4.1 on cells whose sRGB images were read as linear) and grows with every
+error that is fixed at one pose and varies between poses. Robot repeatability and joint-encoder noise, which the
 captures at one pose cannot see, also raise it, which is why the bar is
 ``RATIO_MAX = 3``: 9 times the variance detection explains, a chi-square
 excess far beyond chance at the tens of degrees of freedom of a calibration
