@@ -5,6 +5,7 @@ from __future__ import annotations
 import os
 import sys
 from pathlib import Path
+from typing import Any
 
 import pytest
 
@@ -73,8 +74,34 @@ def lrmate_run(tmp_path_factory: pytest.TempPathFactory) -> Path:
     return out
 
 
-def pytest_terminal_summary(terminalreporter: pytest.TerminalReporter) -> None:
-    """The docs-as-tests runner's counts, in CI's log (tests/test_docs_commands.py)."""
+def _docs_summary() -> str | None:
     mod = sys.modules.get("test_docs_commands")
     if mod is not None and getattr(mod, "TALLY", None):
-        terminalreporter.write_line(mod.summary_line())
+        return str(mod.summary_line())
+    return None
+
+
+_FROM_WORKERS: list[str] = []
+
+
+def pytest_sessionfinish(session: pytest.Session) -> None:
+    """A pytest-xdist worker hands the docs runner's counts to the controller."""
+    out = getattr(session.config, "workeroutput", None)
+    line = _docs_summary()
+    if out is not None and line:
+        out["docs_summary"] = line
+
+
+@pytest.hookimpl(optionalhook=True)
+def pytest_testnodedown(node: Any, error: Any) -> None:
+    """The controller keeps what each worker counted (pytest-xdist's hook)."""
+    line = getattr(node, "workeroutput", {}).get("docs_summary")
+    if line:
+        _FROM_WORKERS.append(line)
+
+
+def pytest_terminal_summary(terminalreporter: pytest.TerminalReporter) -> None:
+    """The docs-as-tests runner's counts, in CI's log (tests/test_docs_commands.py)."""
+    for line in [_docs_summary(), *_FROM_WORKERS]:
+        if line:
+            terminalreporter.write_line(line)
