@@ -1,6 +1,6 @@
 """The identification Jacobian of planned touch-ups on the nominal robot (pose planning).
 
-Eq. (1)'s Jacobian (:class:`pipeline.estimation.measurement.Problem`) at nominal
+Eq. (1)'s Jacobian (:class:`pipeline.measurement.pin.Problem`) at nominal
 kinematics for poses not measured yet, its structurally identifiable columns
 (:func:`pipeline.estimation.identifiability.structure`) scaled to metres: what
 :mod:`pipeline.plan.design` rates candidate poses with.
@@ -12,9 +12,9 @@ import numpy as np
 import pandas as pd
 
 from pipeline.estimation.identifiability import structure
-from pipeline.estimation.measurement import Problem
 from pipeline.kinematics.chain import load_chain
 from pipeline.kinematics.se3 import F64
+from pipeline.measurement.pin import Problem
 from pipeline.models import make_model
 from pipeline.stages.identify_data import prepare_data
 from pipeline.stages.identify_types import DEFAULT_MODEL, IdentifyConfig

@@ -17,12 +17,13 @@ import numpy as np
 import scipy.linalg
 
 from pipeline.errors import CalibrationFailed
-from pipeline.estimation.measurement import Problem
 from pipeline.kinematics.chain import load_chain
 from pipeline.kinematics.se3 import F64
+from pipeline.measurement.data import FitData
+from pipeline.measurement.pin import Problem
 from pipeline.models import make_model
 from pipeline.models.observability import project_out
-from pipeline.stages.identify_data import FitData, prepare_data
+from pipeline.stages.identify_data import prepare_data
 from pipeline.stages.identify_types import IdentifyConfig
 
 
