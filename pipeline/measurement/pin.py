@@ -5,7 +5,7 @@
 with ``x`` the error model's parameters, ``d_i`` the touch-up's residual correction
 (flange frame, :func:`pipeline.measurement.image.residual_correction`) and
 ``k(i)`` the target it touched. Linearised, touch-up ``i`` gives three rows over
-the parameters laid out as :class:`Layout` declares, ``[kinematic | pin | targets]``:
+the parameters laid out as :class:`ParamLayout` declares, ``[kinematic | pin | targets]``:
 
     A_i = B_i [ dp_i/dx  |  R_i  |  -E_k(i) ]                                   (R)
 
@@ -33,7 +33,6 @@ from dataclasses import dataclass
 from typing import Protocol
 
 import numpy as np
-import pandas as pd
 from numpy.typing import ArrayLike
 
 from pipeline.kinematics.chain import Chain, fk
@@ -43,7 +42,7 @@ from pipeline.models.base import ErrorModel
 
 
 @dataclass(frozen=True)
-class Layout:
+class ParamLayout:
     """The columns of eq. (1)'s Jacobian: ``[kinematic (n_kin) | pin (3) | targets (3K)]``.
 
     Attributes
@@ -94,7 +93,7 @@ class DistanceWeight(Protocol):
 
 
 def rows(
-    layout: Layout,
+    layout: ParamLayout,
     kin: F64,
     pin: F64,
     tk: ArrayLike,
@@ -130,7 +129,7 @@ def rows(
 
 
 def whitened_rows(
-    layout: Layout, B: F64, Jx: F64, R: F64, tk: ArrayLike, *, einsum: bool = False
+    layout: ParamLayout, B: F64, Jx: F64, R: F64, tk: ArrayLike, *, einsum: bool = False
 ) -> F64:
     """Rows (R) with the row weighting ``B_i`` (N, 3, 3) applied: ``(N, 3, layout.n)``.
 
@@ -148,7 +147,7 @@ def whitened_rows(
 
 
 def distance_row(
-    layout: Layout, t_a: F64, t_b: F64, a: int, b: int, metres: float, weight: float
+    layout: ParamLayout, t_a: F64, t_b: F64, a: int, b: int, metres: float, weight: float
 ) -> tuple[F64, float]:
     """The known-distance row of (1) and its residual, ``w_D (|t_a - t_b| - D)``.
 
@@ -195,7 +194,7 @@ def solve_pin_targets(
     residuals : (N, 3) ``R_i p + p0_i - c_k(i)``, base frame (m)
     """
     N = len(R)
-    layout = Layout(0, K)
+    layout = ParamLayout(0, K)
     A = rows(layout, np.zeros((N, 3, 0)), R, tk).reshape(3 * N, layout.n)
     b = -np.asarray(p0, dtype=float).ravel()
     w = np.ones(3 * N) if sw is None else np.repeat(np.asarray(sw, dtype=float), 3)
@@ -254,7 +253,7 @@ class Problem:
         self.model = model
         self.data = data
         self.P = model.n_params
-        self.layout = Layout(self.P, data.K)
+        self.layout = ParamLayout(self.P, data.K)
         self.wd = float(config.distance_weight)
         self.N = len(data.q)
         self.gauge = gauge  # (P,) row of the scale-gauge constraint gauge @ x = 0, or None
@@ -339,10 +338,3 @@ class Problem:
             J = self.full_eval(*self.split(z))[1]
             assert J is not None
         return J[:, self.columns()]
-
-
-def target_positions(targets: pd.DataFrame) -> dict[int, F64]:
-    """``{target_id: (3,) fitted position}`` from a targets table."""
-    ids = targets["target_id"].to_numpy(dtype=np.int64)
-    xyz = targets[["x", "y", "z"]].to_numpy(dtype=float)
-    return {int(t): xyz[i] for i, t in enumerate(ids)}

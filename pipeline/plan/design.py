@@ -46,7 +46,7 @@ from numpy.typing import ArrayLike
 
 from pipeline.kinematics.chain import Chain
 from pipeline.kinematics.se3 import F64
-from pipeline.measurement.pin import Layout, rows
+from pipeline.measurement.pin import ParamLayout, rows
 from pipeline.models import make_model
 from pipeline.models.base import ErrorModel
 from pipeline.models.observability import observability
@@ -91,9 +91,9 @@ class Design:
         return int(self.Ax.shape[2])
 
     @property
-    def layout(self) -> Layout:
+    def layout(self) -> ParamLayout:
         """Columns of a full row ``A_i``: ``[kinematic (r) | pin | targets]``."""
-        return Layout(self.r, self.K)
+        return ParamLayout(self.r, self.K)
 
     @property
     def p(self) -> int:

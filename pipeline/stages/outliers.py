@@ -85,7 +85,7 @@ from pipeline.estimation.correction_frame import PAIR_COLUMNS
 from pipeline.estimation.distributions import f_sf
 from pipeline.estimation.whitening import robust_flange_whitening
 from pipeline.kinematics.se3 import F64
-from pipeline.measurement.pin import Layout, distance_row, target_positions, whitened_rows
+from pipeline.measurement.pin import ParamLayout, distance_row, whitened_rows
 from pipeline.stages.print_shape import SHAPE_COLUMNS
 
 INLIER_COLUMNS = (
@@ -325,7 +325,9 @@ def _fit(out: pd.DataFrame, info: Any, model: str, config: OutlierConfig) -> _Fi
     par = res.parameters
     kin = par[par["kind"] == "kinematic"].reset_index(drop=True)
     kept = np.flatnonzero(kin["identifiable"].to_numpy(dtype=bool))
-    tg = target_positions(res.targets)
+    ids = res.targets["target_id"].to_numpy(dtype=np.int64)
+    xyz = res.targets[["x", "y", "z"]].to_numpy(dtype=float)
+    tg = {int(t): xyz[i] for i, t in enumerate(ids)}  # fitted target positions
     tcol = {t: i for i, t in enumerate(sorted(tg))}
     rows = np.flatnonzero(res.residuals["used"].to_numpy(dtype=bool))
     q = out.iloc[rows][list(chain.joint_names)].to_numpy(dtype=float)
@@ -336,7 +338,7 @@ def _fit(out: pd.DataFrame, info: Any, model: str, config: OutlierConfig) -> _Fi
     p, R, Jx = em.pin_and_jacobian(res.x, q, res.p_flange_pin + d, jac=True)
     assert Jx is not None
     N, nk = len(rows), len(kept)
-    lay = Layout(nk, len(tg))  # [identified kinematic | pin | targets in sorted order]
+    lay = ParamLayout(nk, len(tg))  # [identified kinematic | pin | targets in sorted order]
     t_at = np.array([tg[int(t)] for t in tid])
     W = robust_flange_whitening(R, p - t_at, sw**2, lay.n, bool(res.summary.get("flange_sigma_mm")))
     B = np.einsum("ab,ncb->nac", W, R) * sw[:, None, None]  # sqrt(w) W R^T
@@ -433,7 +435,7 @@ def _prediction_test(f: _Fit, out: pd.DataFrame, i: int, info: Any) -> tuple[flo
     p, R, Jx = em.pin_and_jacobian(f.x, q, f.pin + np.nan_to_num(d) @ f.M.T, jac=True)
     assert Jx is not None
     Bi = np.sqrt(w) * f.W @ R[0].T
-    lay = Layout(len(f.kept), len(f.targets))
+    lay = ParamLayout(len(f.kept), len(f.targets))
     Ji = whitened_rows(lay, Bi[None], Jx[:, :, f.kept], R, [f.tcol[tid]])[0]
     G = Ji @ f.Vs
     V = np.eye(3) + G @ G.T
