@@ -8,7 +8,6 @@ builds the estimation on it:
 - :mod:`~pipeline.estimation.whitening`: flange-frame whitening of the residuals
 - :mod:`~pipeline.estimation.identifiability`: pivoted-QR column selection
 - :mod:`~pipeline.estimation.uncertainty`: covariance and predicted pin error
-- :mod:`~pipeline.estimation.design`: the planning Jacobian
 - :mod:`~pipeline.estimation.correction_frame`, :mod:`~pipeline.estimation.region`,
   :mod:`~pipeline.estimation.distributions`
 

@@ -59,8 +59,7 @@ import pandas as pd
 from scipy.optimize import least_squares
 
 from pipeline.errors import BadInput, CalibrationFailed
-from pipeline.estimation.design import design_jacobian
-from pipeline.estimation.identifiability import exact_touchups, select_columns, structure
+from pipeline.estimation.identifiability import select_columns
 from pipeline.estimation.loss import partial_loss
 from pipeline.estimation.region import predicted_over, widened_poses
 from pipeline.estimation.uncertainty import covariance, predicted_errors, residual_variance
@@ -76,6 +75,7 @@ from pipeline.stages.identify_data import implausible_rows, prepare_data, refuse
 from pipeline.stages.identify_frame import correction_frame
 from pipeline.stages.identify_notes import COND_WARN, conditioning_note
 from pipeline.stages.identify_shape import fit_print_shape
+from pipeline.stages.identify_structure import design_jacobian, exact_touchups, structure
 from pipeline.stages.identify_tables import (
     FitFigures,
     Uncertainty,
@@ -258,7 +258,7 @@ def _share_exact_touchups(robot: Robot) -> None:
     """Make the robot's exact synthetic touch-ups here, before the fits fork.
 
     Every model's structural identifiability (:func:`structure`) rates it on the same
-    exact touch-ups (:func:`pipeline.estimation.identifiability.exact_touchups`, cached
+    exact touch-ups (:func:`pipeline.stages.identify_structure.exact_touchups`, cached
     per process); made once in this process, the forked workers (and a later stage's)
     find them made instead of each solving their inverse kinematics again. When they
     cannot be made, each model's fit says so.
