@@ -37,14 +37,22 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from pipeline import __version__
 from pipeline.catalog import STAGE_NAMES, run_paths
 from pipeline.errors import BadInput, CalibrationFailed, VtcalError
-from pipeline.fileio import atomic_write_bytes, config_hash
+from pipeline.fileio import config_hash
 from pipeline.jsonio import json_bytes, jsonable, write_json
 from pipeline.known_distances import metadata_distances
 from pipeline.recording_layout import locate
-from pipeline.runner import Context, Progress, StageRecord, hashes, is_fresh, plan, run_stages
+from pipeline.runner import (
+    Context,
+    Progress,
+    StageRecord,
+    hashes,
+    is_fresh,
+    plan,
+    run_stages,
+    write_run,
+)
 from pipeline.withdraw import snapshot, withdraw
 
 #: the stage names, in run order (``--until`` takes one)
@@ -175,7 +183,7 @@ def run_pipeline(
     from pipeline import run_ledger
 
     cfg = config or RunConfig()
-    names = plan(until, report=cfg.report)
+    names = plan(until, leave_out=() if cfg.report else ("report",))
     recording = Path(recording)
     out = Path(out)
     locate(recording)  # a missing file, a directory that is not a bag: BadInput now
@@ -376,17 +384,12 @@ def _finish(
     summary: dict[str, Any] = {}
     if P["identify"].exists():
         summary = json.loads(P["identify"].read_text())
-    run: dict[str, Any] = {
-        "version": __version__,
-        "stages": records,
-        "report_inputs": report_inputs,
-        "tolerance_mm": tolerance_mm,
-    }
+    ledger: dict[str, Any] = {}
     if fingerprint is not None:
-        run[run_ledger.KEY] = run_ledger.entry(
+        ledger[run_ledger.KEY] = run_ledger.entry(
             out, fingerprint, [name for r in records for name in r.outputs]
         )
-    write_json(P["run"], run)
+    write_run(out, records, report_inputs=report_inputs, tolerance_mm=tolerance_mm, **ledger)
     return RunResult(out, records, summary)
 
 
@@ -410,16 +413,14 @@ def _from_ledger(out: Path, fp: dict[str, Any]) -> RunResult | None:
         summary: dict[str, Any] = {}
         if P["identify"].exists():
             summary = json.loads(P["identify"].read_text())
-        now = {
-            "version": __version__,
-            "stages": records,
-            "report_inputs": run.get("report_inputs"),
-            "tolerance_mm": run.get("tolerance_mm"),
-            run_ledger.KEY: run[run_ledger.KEY],
-        }
-        blob = json_bytes(now)
-        if P["run"].read_bytes() != blob:
-            atomic_write_bytes(P["run"], blob)
+        write_run(
+            out,
+            records,
+            changed_only=True,
+            report_inputs=run.get("report_inputs"),
+            tolerance_mm=run.get("tolerance_mm"),
+            **{run_ledger.KEY: run[run_ledger.KEY]},
+        )
     except (OSError, ValueError, TypeError, AttributeError):
         return None  # an odd run.json: let the per-stage checks decide
     return RunResult(out, records, summary)

@@ -95,3 +95,29 @@ def test_a_rerun_identify_keeps_the_held_out_choice(sample_run: Path, tmp_path: 
     assert after["best_model"] == cv["chosen_model"]
     assert after["crossval"] == cv
     assert (out / "calibrated.urdf").read_text() == urdf
+
+
+def test_the_runner_keys_no_stage_or_file_by_name() -> None:
+    """How a stage is keyed, planned and written is declared (``Stage.cache``, ``source``,
+    ``follows``, ``Artefact.per_model``), never looked up by a stage's or file's name
+    (issue 37): the runner's loop names none, but its own ``run`` ledger, the source's
+    cache label ``recording`` and the index's ``models`` field (``write_fits``, the
+    library's identify-and-choose, aside)."""
+    import ast
+
+    import pipeline.runner as runner
+
+    names = set(STAGE_NAMES) | set(BY_KEY)
+    tree = ast.parse(Path(runner.__file__).read_text())
+    skip = {
+        id(n)
+        for f in tree.body
+        if isinstance(f, ast.FunctionDef) and f.name == "write_fits"
+        for n in ast.walk(f)
+    }
+    named = {
+        (n.lineno, n.value)
+        for n in ast.walk(tree)
+        if isinstance(n, ast.Constant) and n.value in names and id(n) not in skip
+    }
+    assert {v for _, v in named} <= {"run", "recording", "models"}, sorted(named)

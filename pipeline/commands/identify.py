@@ -245,7 +245,8 @@ def command(
     }
     from pipeline.runner import Context, plan, run_stages
 
-    names = plan(None, crossval=not no_crossval, report=not no_report)
+    off = (("crossval", no_crossval), ("report", no_report))
+    names = plan(None, leave_out=tuple(n for n, leave in off if leave))
     names = names[names.index("identify") :]
     ctx = Context(
         out_dir,
