@@ -164,6 +164,8 @@ STAGES: tuple[Stage, ...] = (
         ("parameters", "residuals", "targets", "model_urdfs", "models"),
         "pipeline.stages.identify:IdentifyConfig",
         ("pipeline.stages.identify:identify",),
+        # touchups: the target diameter its image Jacobian implies (the guardrails check it)
+        optional=("touchups",),
     ),
     Stage(
         "crossval",

@@ -135,17 +135,6 @@ def _diameter(text: str | None) -> float | None:
     return d if math.isfinite(d) and d > 0 else None
 
 
-def _implied_diameter(touchups: Path) -> float | None:
-    """The image-implied target diameter the touch-up stage recorded (None if absent)."""
-    from pipeline.artefacts import read_meta
-
-    try:
-        value = float(read_meta(touchups).get("implied_target_diameter_m", "nan"))
-    except (OSError, ValueError):
-        return None
-    return value if math.isfinite(value) else None
-
-
 def run_pipeline(
     recording: Path,
     out: Path,
@@ -298,7 +287,7 @@ def _run_plan(
                 + "; ".join(info.implausible)
                 + " (rerun with --accept-implausible if it is right)"
             )
-        ctx.configs.update(stage_configs(cfg, info, P["touchups"]))
+        ctx.configs.update(stage_configs(cfg, info))
         ctx.robot = (info.urdf, info.base_link, info.flange_link)
         if "choose" in rest:
             ctx.source = _recording_source(recording, P["frames"], fp)
@@ -323,13 +312,14 @@ def ingest_configs(cfg: RunConfig) -> dict[str, Any]:
     }
 
 
-def stage_configs(cfg: RunConfig, info: Any, touchups: Path) -> dict[str, Any]:
+def stage_configs(cfg: RunConfig, info: Any) -> dict[str, Any]:
     """The options of the stages after ingest, from ``cfg`` and the recording's metadata.
 
     Identify fits every model (cross-validation picks the one the run ships),
     with the recording's known distances (not strict: a truncated recording may
     not reach every target; strict when given on the command line) and its printed
-    and image-implied target sizes.
+    target size (the image-implied one identify reads from the touch-ups it declares,
+    :func:`pipeline.nodes.identify`).
     """
     from pipeline.stages import crossval, identify, outliers, touchup
 
@@ -337,8 +327,7 @@ def stage_configs(cfg: RunConfig, info: Any, touchups: Path) -> dict[str, Any]:
     return {
         "touchups": _build(touchup.TouchupConfig, opts.get("touchups", {})),
         "outliers": _build(outliers.OutlierConfig, opts.get("outliers", {})),
-        # built when identify starts: the implied size is what the touch-ups stage found
-        "identify": lambda: _build(
+        "identify": _build(
             identify.IdentifyConfig,
             opts.get("identify", {}),
             model="all",
@@ -347,7 +336,6 @@ def stage_configs(cfg: RunConfig, info: Any, touchups: Path) -> dict[str, Any]:
             # reached (dropped, noted); one typed on the command line must name a target
             strict_distances="known_distances" in cfg.overrides,
             target_diameter_m=_diameter(info.metadata.get("target_diameter_m")),
-            implied_target_diameter_m=_implied_diameter(touchups),
         ),
         "crossval": _build(crossval.CrossvalConfig, opts.get("crossval", {})),
     }

@@ -121,3 +121,16 @@ def test_the_runner_keys_no_stage_or_file_by_name() -> None:
         if isinstance(n, ast.Constant) and n.value in names and id(n) not in skip
     }
     assert {v for _, v in named} <= {"run", "recording", "models"}, sorted(named)
+
+
+def test_identify_declares_the_touchups_it_reads_the_implied_diameter_from(
+    sample_run: Path,
+) -> None:
+    """The image-implied target diameter reaches identify as a declared input (its key
+    holds the touch-ups' hash), not through a config built from the disk (issue 37)."""
+    from pipeline.artefacts import read_meta
+    from pipeline.catalog import STAGE
+
+    assert "touchups" in STAGE["identify"].optional
+    inputs = json.loads(read_meta(sample_run / RUN_FILES["parameters"])["inputs"])
+    assert set(inputs) == {"inliers", "touchups"}
