@@ -55,7 +55,7 @@ class Artefact:
 
 
 #: every file of a run folder, in the order the stages write them
-ARTEFACTS: tuple[Artefact, ...] = (
+ARTEFACTS: list[Artefact] = [
     Artefact("frames", "frames.parquet", "ingest", "frames"),
     Artefact("detections", "detections.parquet", "ingest", "detections"),
     Artefact("recording", "recording.json", "ingest"),
@@ -72,7 +72,7 @@ ARTEFACTS: tuple[Artefact, ...] = (
     Artefact("report", "report.html", "report"),
     Artefact("rrd", "run.rrd", "report"),
     Artefact("run", "run.json", "runner"),
-)
+]
 
 #: artefact key -> file name inside a run folder (``../shared/spec/outputs.md``);
 #: the per-model URDFs (``Artefact.per_model``) are named by the models fitted
@@ -116,6 +116,9 @@ class Stage:
         recording's content hash
     follows : a stage after which this one always runs when that one is planned
         (``--until`` stopping between them still ships its result)
+    sub_configs : further option groups ``(name, "module:Class")`` of a stage whose
+        options are several dataclasses (ingest: ``detect``); its config is then
+        ``{name: options, group: options, ...}``
     """
 
     name: str
@@ -128,10 +131,17 @@ class Stage:
     cache: str = "outputs"
     source: bool = False
     follows: str | None = None
+    sub_configs: tuple[tuple[str, str], ...] = ()
+
+    @property
+    def option_groups(self) -> tuple[str, ...]:
+        """The names ``--set GROUP.OPTION=VALUE`` reaches this stage's options by."""
+        own = (self.name,) if self.config else ()
+        return own + tuple(g for g, _ in self.sub_configs)
 
 
 #: the pipeline, in run order
-STAGES: tuple[Stage, ...] = (
+STAGES: list[Stage] = [
     Stage(
         "ingest",
         "pipeline.nodes:ingest",
@@ -140,6 +150,7 @@ STAGES: tuple[Stage, ...] = (
         "pipeline.stages.ingest:IngestConfig",
         ("pipeline.stages.ingest:ingest_recording",),
         source=True,
+        sub_configs=(("detect", "pipeline.stages.detect:DetectConfig"),),
     ),
     Stage(
         "touchups",
@@ -210,13 +221,45 @@ STAGES: tuple[Stage, ...] = (
         ),
         cache="ledger",
     ),
-)
+]
 
 #: stage name -> its declaration
 STAGE = {s.name: s for s in STAGES}
 
 #: the stage names, in run order
-STAGE_NAMES = tuple(s.name for s in STAGES)
+STAGE_NAMES = [s.name for s in STAGES]
+
+
+def register(stage: Stage, *artefacts: Artefact) -> None:
+    """Add a stage at the end of the pipeline, with the files it writes (in place: every
+    reader of the tables above sees it). What a new stage needs besides is its function
+    (``Stage.fn``) and, for a Parquet file, its schema (``schemas/NAME.json``):
+    ``tests/test_catalog.py`` registers a throw-away one."""
+    if stage.name in STAGE or any(
+        a.key in BY_KEY or a.file in RUN_FILES.values() for a in artefacts
+    ):
+        raise ValueError(f"stage {stage.name!r} or one of its files is declared already")
+    ARTEFACTS.extend(artefacts)
+    BY_KEY.update({a.key: a for a in artefacts})
+    RUN_FILES.update({a.key: a.file for a in artefacts if "{" not in a.file})
+    STAGES.append(stage)
+    STAGE[stage.name] = stage
+    STAGE_NAMES.append(stage.name)
+
+
+def unregister(name: str) -> None:
+    """Remove a stage :func:`register` added, and the files it writes."""
+    stage = STAGE.pop(name)
+    STAGES.remove(stage)
+    STAGE_NAMES.remove(name)
+    for key in stage.outputs:
+        ARTEFACTS.remove(BY_KEY.pop(key))
+        RUN_FILES.pop(key, None)
+
+
+def option_groups() -> list[str]:
+    """Every name ``--set GROUP.OPTION=VALUE`` takes (:attr:`Stage.option_groups`)."""
+    return [g for s in STAGES for g in s.option_groups]
 
 
 def writer(key: str) -> str:

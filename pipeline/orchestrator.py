@@ -29,7 +29,6 @@ identify in every run that fits)::
 
 from __future__ import annotations
 
-import dataclasses
 import json
 import math
 from collections.abc import Mapping
@@ -37,6 +36,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from pipeline import catalog
 from pipeline.catalog import STAGE_NAMES, run_paths
 from pipeline.errors import BadInput, CalibrationFailed, VtcalError
 from pipeline.fileio import config_hash
@@ -47,6 +47,7 @@ from pipeline.runner import (
     Context,
     Progress,
     StageRecord,
+    build_configs,
     hashes,
     is_fresh,
     plan,
@@ -102,28 +103,6 @@ class RunConfig:
     stage_options: dict[str, dict[str, Any]] = field(default_factory=dict)
     report: bool = True
     tolerance_mm: float | None = None
-
-
-def _build(cls: Any, options: Mapping[str, Any], **base: Any) -> Any:
-    """Instantiate a stage config dataclass from defaults, ``base`` and user ``options``.
-
-    A ``list[str]`` option given as text (``--set crossval.models=full,elastic``) is
-    split at its commas.
-    """
-    fields = {f.name: f for f in dataclasses.fields(cls)}
-    unknown = set(options) - set(fields)
-    if unknown:
-        raise BadInput(
-            f"unknown option(s) for {cls.__name__}: {', '.join(sorted(unknown))} "
-            f"(its options: {', '.join(sorted(fields))})"
-        )
-    given = {
-        k: [x.strip() for x in v.split(",") if x.strip()]
-        if isinstance(v, str) and str(fields[k].type) in ("list[str]", str(list[str]))
-        else v
-        for k, v in options.items()
-    }
-    return cls(**{**{k: v for k, v in base.items() if k in fields}, **given})
 
 
 def _diameter(text: str | None) -> float | None:
@@ -295,21 +274,16 @@ def _run_plan(
 
 
 def ingest_configs(cfg: RunConfig) -> dict[str, Any]:
-    """The ingest stage's options: ``{"ingest": IngestConfig, "detect": DetectConfig}``."""
-    from pipeline.stages import detect, ingest
-
-    opts = cfg.stage_options
-    return {
-        "ingest": _build(
-            ingest.IngestConfig,
-            opts.get("ingest", {}),
-            image_topic=cfg.image_topic,
-            joint_topic=cfg.joint_topic,
-            description_topic=cfg.description_topic,
-            overrides=dict(cfg.overrides),
-        ),
-        "detect": _build(detect.DetectConfig, opts.get("detect", {})),
+    """The ingest stage's options: ``{"ingest": IngestConfig, "detect": DetectConfig}``
+    (:func:`pipeline.runner.build_configs`, with the topics and metadata overrides)."""
+    topics = {
+        "image_topic": cfg.image_topic,
+        "joint_topic": cfg.joint_topic,
+        "description_topic": cfg.description_topic,
+        "overrides": dict(cfg.overrides),
     }
+    ingest = [s.name for s in catalog.STAGES if s.source]
+    return dict(build_configs(ingest, cfg.stage_options, {n: topics for n in ingest})[ingest[0]])
 
 
 def stage_configs(cfg: RunConfig, info: Any) -> dict[str, Any]:
@@ -321,24 +295,18 @@ def stage_configs(cfg: RunConfig, info: Any) -> dict[str, Any]:
     target size (the image-implied one identify reads from the touch-ups it declares,
     :func:`pipeline.nodes.identify`).
     """
-    from pipeline.stages import crossval, identify, outliers, touchup
-
-    opts = cfg.stage_options
-    return {
-        "touchups": _build(touchup.TouchupConfig, opts.get("touchups", {})),
-        "outliers": _build(outliers.OutlierConfig, opts.get("outliers", {})),
-        "identify": _build(
-            identify.IdentifyConfig,
-            opts.get("identify", {}),
-            model="all",
-            distances=metadata_distances(info.metadata),
+    fixed = {
+        "identify": {
+            "model": "all",
+            "distances": metadata_distances(info.metadata),
             # the recording's own distances may name a target a truncated run never
             # reached (dropped, noted); one typed on the command line must name a target
-            strict_distances="known_distances" in cfg.overrides,
-            target_diameter_m=_diameter(info.metadata.get("target_diameter_m")),
-        ),
-        "crossval": _build(crossval.CrossvalConfig, opts.get("crossval", {})),
+            "strict_distances": "known_distances" in cfg.overrides,
+            "target_diameter_m": _diameter(info.metadata.get("target_diameter_m")),
+        }
     }
+    later = [s.name for s in catalog.STAGES if not s.source]
+    return build_configs(later, cfg.stage_options, fixed)
 
 
 def _recording_source(recording: Path, frames: Path, fp: Mapping[str, Any]) -> Any:

@@ -29,6 +29,7 @@ ingest) is keyed by the recording's hash; a file per fitted model
 
 from __future__ import annotations
 
+import dataclasses
 import importlib
 import json
 import time
@@ -66,9 +67,7 @@ class Context:
     Attributes
     ----------
     out : the run folder
-    configs : ``{stage: options}`` of every stage of the plan; a function in
-        their place is called when the stage starts (options that depend on an
-        earlier stage's output)
+    configs : ``{stage: options}`` of every stage of the plan (:func:`build_configs`)
     recording : the recording (ingest reads it), None when starting later
     recording_hash : its content hash (ingest's cache key)
     robot : ``(URDF text, base link, flange link)`` the fits use
@@ -304,14 +303,65 @@ def input_hashes(stage: Stage, context: Context, names: list[str]) -> dict[str, 
     return hashes({k: P[k] for k in keys if BY_KEY[k].keyed})
 
 
-def stage_config(name: str, context: Context) -> Any:
-    """The options of stage ``name`` (built now when given as a function)."""
-    import dataclasses
+def build_options(cls: Any, options: Mapping[str, Any], **base: Any) -> Any:
+    """Instantiate a stage config dataclass from defaults, ``base`` and user ``options``.
 
-    conf = context.configs.get(name)
-    if callable(conf) and not dataclasses.is_dataclass(conf):
-        conf = context.configs[name] = conf()
-    return conf
+    A ``list[str]`` option given as text (``--set crossval.models=full,elastic``) is
+    split at its commas.
+    """
+    fields = {f.name: f for f in dataclasses.fields(cls)}
+    unknown = set(options) - set(fields)
+    if unknown:
+        raise BadInput(
+            f"unknown option(s) for {cls.__name__}: {', '.join(sorted(unknown))} "
+            f"(its options: {', '.join(sorted(fields))})"
+        )
+    given = {
+        k: [x.strip() for x in v.split(",") if x.strip()]
+        if isinstance(v, str) and str(fields[k].type) in ("list[str]", str(list[str]))
+        else v
+        for k, v in options.items()
+    }
+    return cls(**{**{k: v for k, v in base.items() if k in fields}, **given})
+
+
+def _resolve(entry: str) -> Any:
+    mod, attr = entry.split(":")
+    return getattr(importlib.import_module(mod), attr)
+
+
+def build_configs(
+    names: list[str],
+    options: Mapping[str, Mapping[str, Any]],
+    fixed: Mapping[str, Mapping[str, Any]] | None = None,
+) -> dict[str, Any]:
+    """The options of stages ``names``, built in this one place from what the catalog
+    declares (``Stage.config``, ``Stage.sub_configs``).
+
+    Each option group's dataclass is built from its defaults, the run's ``fixed``
+    values (``{group: {field: value}}``: what the caller knows, e.g. the recording's
+    known distances) and the user's ``options`` (``--set GROUP.OPTION=VALUE``), by
+    :func:`build_options`. A stage without a config is left out; one with sub-configs
+    gets ``{group: options, ...}`` (ingest: ``ingest``, ``detect``).
+    """
+    fixed = fixed or {}
+    out: dict[str, Any] = {}
+    for name in names:
+        stage = STAGE[name]
+        if stage.config is None:
+            continue
+        groups = [(name, stage.config), *stage.sub_configs]
+        built = {
+            g: build_options(_resolve(cls), options.get(g, {}), **fixed.get(g, {}))
+            for g, cls in groups
+        }
+        out[name] = built if stage.sub_configs else built[name]
+    return out
+
+
+def stage_config(name: str, context: Context) -> Any:
+    """The options of stage ``name`` (:func:`build_configs`), None for a stage without."""
+    return context.configs.get(name)
 
 
 def _call(stage: Stage, context: Context, names: list[str]) -> dict[str, Any]:

@@ -211,8 +211,6 @@ def command(
     virtual_pin), identify.json, crossval.parquet, report.html and run.rrd.
     """
     from pipeline.known_distances import parse_distances
-    from pipeline.stages.crossval import CrossvalConfig
-    from pipeline.stages.identify import IdentifyConfig
 
     df = read_table(table)
     try:
@@ -231,26 +229,20 @@ def command(
             flange_link = f
             click.echo(f"flange link: {f} (inferred: end of the serial chain)")
     distances = [d for item in distance for d in parse_distances(item)]
-    cfg = IdentifyConfig(
-        model=model,
-        distances=distances,
-        robust_loss=robust_loss,
-        accept_implausible=accept_implausible,
-    )
     conf = {
         "model": model,
         "distances": distances,
         "robust_loss": robust_loss,
         "accept_implausible": accept_implausible,
     }
-    from pipeline.runner import Context, plan, run_stages
+    from pipeline.runner import Context, build_configs, plan, run_stages
 
     off = (("crossval", no_crossval), ("report", no_report))
     names = plan(None, leave_out=tuple(n for n, leave in off if leave))
     names = names[names.index("identify") :]
     ctx = Context(
         out_dir,
-        configs={"identify": cfg, "crossval": CrossvalConfig()},
+        configs=build_configs(names, {}, {"identify": conf}),
         robot=(urdf, base_link, flange_link),
         source=_table_source(table, urdf_path, df, conf),
         tolerance_mm=tolerance_mm,
