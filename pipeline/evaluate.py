@@ -23,6 +23,7 @@ import numpy as np
 import pandas as pd
 from numpy.typing import ArrayLike
 
+from pipeline.catalog import RUN_FILES
 from pipeline.kinematics.chain import Chain, fk
 from pipeline.kinematics.se3 import F64
 
@@ -316,12 +317,14 @@ def judge_run(out: Any, truth: dict[str, Any], n_poses: int, seed: int) -> dict[
     from pipeline.kinematics import load_chain
 
     folder = Path(out)
-    summary = json.loads((folder / "identify.json").read_text())
+    summary = json.loads((folder / RUN_FILES["identify"]).read_text())
     base, flange = truth["base_link"], truth["flange_link"]
-    calibrated = load_chain((folder / "calibrated.urdf").read_text(), base, "virtual_pin")
+    calibrated = load_chain(
+        (folder / RUN_FILES["calibrated_urdf"]).read_text(), base, "virtual_pin"
+    )
     true_chain = load_chain(truth["true_urdf"], base, flange)
     nominal = load_chain(truth["nominal_urdf"], base, flange)
-    inl = read_artefact(folder / "inliers.parquet", "inliers")
+    inl = read_artefact(folder / RUN_FILES["inliers"], "inliers")
     q = workspace_poses(inl[truth["joint_names"]].to_numpy(), n_poses, np.random.default_rng(seed))
     p_true = np.array(truth["p_vt_flange"])
     best = summary["best_model"]

@@ -37,7 +37,7 @@ from pathlib import Path
 from typing import Any
 
 from pipeline import catalog
-from pipeline.catalog import STAGE_NAMES, run_paths
+from pipeline.catalog import RUN_FILES, STAGE_NAMES, run_paths
 from pipeline.errors import BadInput, CalibrationFailed, VtcalError
 from pipeline.fileio import config_hash
 from pipeline.jsonio import json_bytes, jsonable, write_json
@@ -239,7 +239,7 @@ def _run_in(
 def _ingest_warnings(out: Path) -> list[str]:
     """The warnings in ``out/recording.json`` (none when absent or unreadable)."""
     try:
-        data = json.loads((out / "recording.json").read_text())
+        data = json.loads((out / RUN_FILES["recording"]).read_text())
     except (OSError, ValueError):
         return []
     warned = data.get("warnings") if isinstance(data, dict) else None

@@ -134,3 +134,44 @@ def test_identify_declares_the_touchups_it_reads_the_implied_diameter_from(
     assert "touchups" in STAGE["identify"].optional
     inputs = json.loads(read_meta(sample_run / RUN_FILES["parameters"])["inputs"])
     assert set(inputs) == {"inliers", "touchups"}
+
+
+def hand_typed_files(text: str, files: set[str]) -> list[tuple[int, str]]:
+    """``(line, name)`` of each string (docstrings aside) in ``text`` that is a run-folder
+    file name, or a path ending in one."""
+    import ast
+
+    tree = ast.parse(text)
+    docs = {
+        id(n.body[0].value)
+        for n in ast.walk(tree)
+        if isinstance(n, ast.Module | ast.FunctionDef | ast.AsyncFunctionDef | ast.ClassDef)
+        and n.body
+        and isinstance(n.body[0], ast.Expr)
+        and isinstance(n.body[0].value, ast.Constant)
+    }
+    return [
+        (n.lineno, n.value)
+        for n in ast.walk(tree)
+        if isinstance(n, ast.Constant)
+        and isinstance(n.value, str)
+        and id(n) not in docs
+        and any(n.value == f or n.value.endswith("/" + f) for f in files)
+    ]
+
+
+def test_run_folder_file_names_come_only_from_the_catalog() -> None:
+    """No module types a run-folder file name by hand (``RUN_FILES[key]`` instead), so a
+    renamed file is renamed once (issue 37). Prose and docstrings may name them."""
+    root = Path(__file__).resolve().parent.parent / "pipeline"
+    files = set(RUN_FILES.values())
+    typed = {
+        f"{p.relative_to(root)}:{line} {name}"
+        for p in root.rglob("*.py")
+        if p.name != "catalog.py"
+        for line, name in hand_typed_files(p.read_text(), files)
+    }
+    assert typed == set()
+    # the check can fail
+    sample = 'def f(out):\n    """Reads identify.json."""\n    return out / "identify.json"\n'
+    assert hand_typed_files(sample, files) == [(3, "identify.json")]

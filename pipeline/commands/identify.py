@@ -19,6 +19,7 @@ from typing import Any
 import click
 import pandas as pd
 
+from pipeline.catalog import RUN_FILES
 from pipeline.commands._common import (
     accept_implausible_option,
     distance_option,
@@ -268,7 +269,7 @@ def command(
             raise BadInput(f"{urdf_path}: {msg}") from exc
         raise
     written = [name for r in ctx.records for name in r.outputs]
-    summary = json.loads((out_dir / "identify.json").read_text())
+    summary = json.loads((out_dir / RUN_FILES["identify"]).read_text())
     for line in summary.get("headline", []):
         click.echo(line)
     v = echo_verdict(summary, tolerance_mm)
