@@ -34,16 +34,16 @@ from typing import Any
 
 import numpy as np
 
+from pipeline.cell_adapters import connect
 from pipeline.commands.measure import HOLD_S, run_measure
 from pipeline.evaluate import judge_run
-from pipeline.measure.adapters import connect
 from pipeline.measure.detector import vtcal_detector
 from pipeline.measure.plan_file import read_plan
 from pipeline.measure.record import open_recording
 from pipeline.measure.session import SessionOptions, goal_from_metadata, run_session
-from pipeline.measure.sim_link import sim_cell, write_plan
 from pipeline.measure.summary import summarize
 from pipeline.orchestrator import RunConfig, run_pipeline
+from pipeline.sim.link import sim_cell, write_plan
 
 REPO = Path(__file__).resolve().parent.parent
 

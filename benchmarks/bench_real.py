@@ -64,9 +64,9 @@ import numpy as np
 import pandas as pd
 from click.testing import CliRunner
 
-from pipeline.evaluate import fit_pin_and_targets
 from pipeline.kinematics import load_chain
 from pipeline.kinematics.chain import Chain, fk
+from pipeline.measurement.pin import fit_pin_and_targets
 
 REPO = Path(__file__).resolve().parent.parent
 DATA = REPO / "datasets" / "real" / "mukca"

@@ -149,9 +149,9 @@ def measure(robot: str, seed: int) -> None:
 
     import numpy as np
 
+    from pipeline.io_mcap_write import NullRecorder
     from pipeline.kinematics.se3 import transform_from
     from pipeline.sim.cell import R_CAMERA_UNTILTED
-    from pipeline.sim.recorder import NullRecorder
     from pipeline.sim.render_pbr import PbrEffects, PbrSettings, PbrSource
     from pipeline.sim.scenario import scenario_from_dict
     from pipeline.sim.session import Session

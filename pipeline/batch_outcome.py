@@ -17,6 +17,7 @@ from typing import TYPE_CHECKING, Any
 
 from pipeline.batch_executor import THREAD_ENV
 from pipeline.batch_manifest import BatchItem
+from pipeline.catalog import RUN_FILES
 from pipeline.errors import BadInput, CalibrationFailed, VtcalError
 
 if TYPE_CHECKING:
@@ -155,7 +156,7 @@ def _error_kind(exc: VtcalError) -> str:
 def _robot_from_urdf(run_dir: Path) -> str:
     """The ``<robot name=...>`` of the URDF the recording carried (from recording.json)."""
     try:
-        urdf = json.loads((run_dir / "recording.json").read_text()).get("urdf", "")
+        urdf = json.loads((run_dir / RUN_FILES["recording"]).read_text()).get("urdf", "")
     except (OSError, ValueError):
         return ""
     m = re.search(r"<robot\b[^>]*\bname\s*=\s*[\"']([^\"']*)[\"']", urdf or "")
@@ -293,7 +294,7 @@ def run_tolerance(run_dir: Path) -> float | None:
     recording's ``tolerance_mm`` metadata key (recording.json), as ``vtcal run`` does."""
     from pipeline.verdict import tolerance_from_metadata
 
-    for name, key in (("run.json", None), ("recording.json", "metadata")):
+    for name, key in ((RUN_FILES["run"], None), (RUN_FILES["recording"], "metadata")):
         try:
             data = json.loads((run_dir / name).read_text())
         except (OSError, ValueError):

@@ -14,6 +14,7 @@ from typing import TYPE_CHECKING, Any
 
 from pipeline.batch_manifest import BatchItem
 from pipeline.batch_outcome import RecordingOutcome
+from pipeline.catalog import RUN_FILES
 
 if TYPE_CHECKING:
     from pipeline.orchestrator import RunConfig
@@ -46,7 +47,7 @@ def batch_fingerprint(
     runs = []
     for it in items:
         try:
-            led = json.loads((out_dir / it.name / "run.json").read_text()).get(run_ledger.KEY)
+            led = json.loads((out_dir / it.name / RUN_FILES["run"]).read_text()).get(run_ledger.KEY)
         except (OSError, ValueError, AttributeError):
             return None
         if not isinstance(led, dict):

@@ -37,6 +37,8 @@ class Artefact:
         for a side file whose results its writer's Parquet outputs (read too)
         already key, and which holds wall-clock timings: keying on it would
         make a reader's Parquet bytes differ from run to run
+    index : for a file per fitted model (``file`` holds ``{model}``): the JSON
+        artefact whose ``"models"`` list names the models, so the files
     """
 
     key: str
@@ -44,10 +46,16 @@ class Artefact:
     writer: str
     schema: str | None = None
     keyed: bool = True
+    index: str | None = None
+
+    @property
+    def per_model(self) -> bool:
+        """One file per fitted model (``file`` is a pattern, :attr:`index` names them)."""
+        return "{model}" in self.file
 
 
 #: every file of a run folder, in the order the stages write them
-ARTEFACTS: tuple[Artefact, ...] = (
+ARTEFACTS: list[Artefact] = [
     Artefact("frames", "frames.parquet", "ingest", "frames"),
     Artefact("detections", "detections.parquet", "ingest", "detections"),
     Artefact("recording", "recording.json", "ingest"),
@@ -57,20 +65,17 @@ ARTEFACTS: tuple[Artefact, ...] = (
     Artefact("residuals", "residuals.parquet", "identify", "residuals"),
     Artefact("targets", "targets.parquet", "identify", "targets"),
     Artefact("models", "models.json", "identify", keyed=False),
-    Artefact("model_urdfs", "calibrated_{model}.urdf", "identify"),
+    Artefact("model_urdfs", "calibrated_{model}.urdf", "identify", index="models"),
     Artefact("crossval", "crossval.parquet", "crossval", "crossval"),
     Artefact("calibrated_urdf", "calibrated.urdf", "choose"),
     Artefact("identify", "identify.json", "choose"),
     Artefact("report", "report.html", "report"),
     Artefact("rrd", "run.rrd", "report"),
     Artefact("run", "run.json", "runner"),
-)
-
-#: the one file pattern: a calibrated URDF per fitted error model (``{model}`` = its name)
-MODEL_URDF = "calibrated_{model}.urdf"
+]
 
 #: artefact key -> file name inside a run folder (``../shared/spec/outputs.md``);
-#: the per-model URDFs (:data:`MODEL_URDF`) are named by the models fitted
+#: the per-model URDFs (``Artefact.per_model``) are named by the models fitted
 RUN_FILES = {a.key: a.file for a in ARTEFACTS if "{" not in a.file}
 
 #: artefact key -> its declaration
@@ -96,11 +101,24 @@ class Stage:
         with ``data`` the artefacts of ``inputs`` (tables and dicts) and the
         result holding one value per key of ``outputs``
     inputs : artefact keys it reads (each written by an earlier stage)
-    outputs : artefact keys it writes (it is their only writer)
+    outputs : artefact keys it writes (it is their only writer), in the order they are
+        written after its Parquet ones: the last present means the stage finished
     config : ``module:Class`` of its options dataclass, or None
     code : further ``module:function`` entry points whose code decides its result
         (the stage code key, :mod:`pipeline.code_key`)
     optional : inputs it reads only when their stage is part of the run
+    cache : how the runner keys it. ``"outputs"``: fresh when its Parquet outputs record
+        the same input hashes and config (:func:`pipeline.runner.is_fresh`);
+        ``"always"``: cheap, computed every run, a file rewritten only when its bytes
+        change; ``"ledger"``: keyed in ``run.json`` (its files are written by their own
+        writers, and it shows the stage table, so it runs last)
+    source : it reads the recording itself (not an artefact): its cache key is the
+        recording's content hash
+    follows : a stage after which this one always runs when that one is planned
+        (``--until`` stopping between them still ships its result)
+    sub_configs : further option groups ``(name, "module:Class")`` of a stage whose
+        options are several dataclasses (ingest: ``detect``); its config is then
+        ``{name: options, group: options, ...}``
     """
 
     name: str
@@ -110,10 +128,20 @@ class Stage:
     config: str | None
     code: tuple[str, ...] = ()
     optional: tuple[str, ...] = ()
+    cache: str = "outputs"
+    source: bool = False
+    follows: str | None = None
+    sub_configs: tuple[tuple[str, str], ...] = ()
+
+    @property
+    def option_groups(self) -> tuple[str, ...]:
+        """The names ``--set GROUP.OPTION=VALUE`` reaches this stage's options by."""
+        own = (self.name,) if self.config else ()
+        return own + tuple(g for g, _ in self.sub_configs)
 
 
 #: the pipeline, in run order
-STAGES: tuple[Stage, ...] = (
+STAGES: list[Stage] = [
     Stage(
         "ingest",
         "pipeline.nodes:ingest",
@@ -121,6 +149,8 @@ STAGES: tuple[Stage, ...] = (
         ("frames", "detections", "recording"),
         "pipeline.stages.ingest:IngestConfig",
         ("pipeline.stages.ingest:ingest_recording",),
+        source=True,
+        sub_configs=(("detect", "pipeline.stages.detect:DetectConfig"),),
     ),
     Stage(
         "touchups",
@@ -145,6 +175,8 @@ STAGES: tuple[Stage, ...] = (
         ("parameters", "residuals", "targets", "model_urdfs", "models"),
         "pipeline.stages.identify:IdentifyConfig",
         ("pipeline.stages.identify:identify",),
+        # touchups: the target diameter its image Jacobian implies (the guardrails check it)
+        optional=("touchups",),
     ),
     Stage(
         "crossval",
@@ -163,6 +195,8 @@ STAGES: tuple[Stage, ...] = (
         ("pipeline.stages.choose:choose_model",),
         # touchups: the repeated captures' noise; recording: the assumptions (adequacy)
         optional=("crossval", "touchups", "recording"),
+        cache="always",
+        follows="identify",
     ),
     Stage(
         "report",
@@ -185,14 +219,47 @@ STAGES: tuple[Stage, ...] = (
             "pipeline.report.rrd:build_rrd",
             "pipeline.report.outputs:build_outputs",
         ),
+        cache="ledger",
     ),
-)
+]
 
 #: stage name -> its declaration
 STAGE = {s.name: s for s in STAGES}
 
 #: the stage names, in run order
-STAGE_NAMES = tuple(s.name for s in STAGES)
+STAGE_NAMES = [s.name for s in STAGES]
+
+
+def register(stage: Stage, *artefacts: Artefact) -> None:
+    """Add a stage at the end of the pipeline, with the files it writes (in place: every
+    reader of the tables above sees it). What a new stage needs besides is its function
+    (``Stage.fn``) and, for a Parquet file, its schema (``schemas/NAME.json``):
+    ``tests/test_catalog.py`` registers a throw-away one."""
+    if stage.name in STAGE or any(
+        a.key in BY_KEY or a.file in RUN_FILES.values() for a in artefacts
+    ):
+        raise ValueError(f"stage {stage.name!r} or one of its files is declared already")
+    ARTEFACTS.extend(artefacts)
+    BY_KEY.update({a.key: a for a in artefacts})
+    RUN_FILES.update({a.key: a.file for a in artefacts if "{" not in a.file})
+    STAGES.append(stage)
+    STAGE[stage.name] = stage
+    STAGE_NAMES.append(stage.name)
+
+
+def unregister(name: str) -> None:
+    """Remove a stage :func:`register` added, and the files it writes."""
+    stage = STAGE.pop(name)
+    STAGES.remove(stage)
+    STAGE_NAMES.remove(name)
+    for key in stage.outputs:
+        ARTEFACTS.remove(BY_KEY.pop(key))
+        RUN_FILES.pop(key, None)
+
+
+def option_groups() -> list[str]:
+    """Every name ``--set GROUP.OPTION=VALUE`` takes (:attr:`Stage.option_groups`)."""
+    return [g for s in STAGES for g in s.option_groups]
 
 
 def writer(key: str) -> str:
@@ -203,8 +270,3 @@ def writer(key: str) -> str:
 def run_paths(out: Path) -> dict[str, Path]:
     """The files a run folder holds, as paths under ``out``."""
     return {k: out / v for k, v in RUN_FILES.items()}
-
-
-def model_urdf(out: Path, model: str) -> Path:
-    """The path of error model ``model``'s calibrated URDF in run folder ``out``."""
-    return out / MODEL_URDF.format(model=model)

@@ -42,7 +42,7 @@ import types
 from functools import cache
 from pathlib import Path
 
-from pipeline import resources
+from pipeline import catalog, resources
 from pipeline.catalog import STAGES
 from pipeline.fileio import atomic_write_bytes, hash_named_files
 from pipeline.resources import user_cache_dir
@@ -52,9 +52,6 @@ SCHEMA_DIR = resources.SCHEMA_DIR
 
 #: stage -> ``module:function`` entry points that compute it (``catalog.STAGES``)
 ENTRY_POINTS: dict[str, tuple[str, ...]] = {s.name: s.code for s in STAGES}
-
-#: stage -> its function in :mod:`pipeline.nodes` (code object hashed, not its closure)
-STAGE_FUNCTIONS: dict[str, str] = {s.name: s.fn for s in STAGES}
 
 #: packages whose ``__init__`` imports every module of the package at run time
 DYNAMIC_PACKAGES = ("pipeline.models",)
@@ -244,7 +241,7 @@ def stage_code_digest(stage: str) -> str:
 
     Parameters
     ----------
-    stage : a key of :data:`ENTRY_POINTS`
+    stage : a stage of :data:`pipeline.catalog.STAGE` (read at the call: a registered one too)
 
     Returns
     -------
@@ -253,10 +250,11 @@ def stage_code_digest(stage: str) -> str:
     """
     h = hashlib.sha256()
     modules: set[str] = set()
-    mod, attr = STAGE_FUNCTIONS[stage].split(":")
+    declared = catalog.STAGE[stage]  # read now: a registered stage is keyed too
+    mod, attr = declared.fn.split(":")
     node = getattr(importlib.import_module(mod), attr)
-    h.update(STAGE_FUNCTIONS[stage].encode() + b"\0" + _code_bytes(node.__code__))
-    for entry in ENTRY_POINTS[stage]:
+    h.update(declared.fn.encode() + b"\0" + _code_bytes(node.__code__))
+    for entry in declared.code:
         mod, attr = entry.split(":")
         modules.update(module_closure(mod))
         fn = getattr(importlib.import_module(mod), attr)

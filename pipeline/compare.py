@@ -37,6 +37,7 @@ from typing import Any
 import numpy as np
 import pandas as pd
 
+from pipeline.catalog import RUN_FILES
 from pipeline.errors import BadInput
 
 #: columns of the compare table, in order (see ``schemas/compare.json``)
@@ -104,11 +105,11 @@ def _read_run(run: Path) -> dict[str, Any]:
     """The pieces of one run folder ``compare_runs`` needs."""
     if not run.is_dir():
         raise BadInput(f"{run}: not a run folder (no such directory)")
-    ij = run / "identify.json"
-    pp = run / "parameters.parquet"
+    ij = run / RUN_FILES["identify"]
+    pp = run / RUN_FILES["parameters"]
     if not ij.exists() or not pp.exists():
         raise BadInput(
-            f"{run}: not an identified run folder (needs identify.json and parameters.parquet; "
+            f"{run}: not an identified run folder (needs {ij.name} and {pp.name}; "
             "run `vtcal run` or `vtcal identify` first)"
         )
     try:
@@ -119,22 +120,22 @@ def _read_run(run: Path) -> dict[str, Any]:
 
     params = read_artefact(pp, "parameters")
     urdf = ""
-    rec = run / "recording.json"
+    rec = run / RUN_FILES["recording"]
     if rec.exists():
         try:
             urdf = str(json.loads(rec.read_text()).get("urdf", ""))
         except json.JSONDecodeError as exc:
             raise BadInput(f"{rec}: not valid JSON ({exc.msg})") from exc
     if not urdf:
-        cal = run / "calibrated.urdf"
+        cal = run / RUN_FILES["calibrated_urdf"]
         urdf = cal.read_text() if cal.exists() else ""
         # a calibrated URDF differs from the nominal one: hash its joint names only
         nominal_key = " ".join(re.findall(r"<joint[^>]*name=\"([^\"]+)\"", urdf))
     else:
         nominal_key = urdf
     inliers = None
-    if (run / "inliers.parquet").exists():
-        inliers = read_artefact(run / "inliers.parquet", "inliers")
+    if (run / RUN_FILES["inliers"]).exists():
+        inliers = read_artefact(run / RUN_FILES["inliers"], "inliers")
     return {
         "summary": summary,
         "params": params,

@@ -23,6 +23,7 @@ import numpy as np
 import pandas as pd
 from numpy.typing import ArrayLike
 
+from pipeline.catalog import RUN_FILES
 from pipeline.kinematics.chain import Chain, fk
 from pipeline.kinematics.se3 import F64
 
@@ -296,52 +297,6 @@ def synthetic_touchups(
     return df, targets
 
 
-def fit_pin_and_targets(
-    chain: Chain,
-    q: ArrayLike,
-    d: ArrayLike,
-    tk: ArrayLike,
-    K: int,
-    sw: ArrayLike | None = None,
-) -> tuple[F64, F64, F64]:
-    """The pin and the target centres that best explain touch-ups at FIXED kinematics.
-
-    Linear least squares of (paper eq. 1 with the kinematics held)::
-
-        R_i (p + d_i) + t_i = c_{k(i)}   =>   [R_i, -E_k] [p; c] = -(t_i + R_i d_i)
-
-    ``(R_i, t_i) = T_base_flange(q_i)`` of ``chain``, rows weighted by ``sw``.
-
-    Parameters
-    ----------
-    chain : the kinematics (e.g. the nominal robot)
-    q : (N, n) joint vectors ; d : (N, 3) residual corrections, flange frame (m)
-    tk : (N,) target index 0..K-1 of each row ; K : number of targets
-    sw : (N,) row weights (square roots), default 1
-
-    Returns
-    -------
-    pin : (3,) flange frame ; targets : (K, 3) base frame ;
-    residuals : (N, 3) ``R_i (p + d_i) + t_i - c_{k(i)}``, base frame (m)
-    """
-    qq = np.asarray(q, dtype=float)
-    dd = np.asarray(d, dtype=float)
-    idx = np.asarray(tk, dtype=np.int64)
-    T = fk(chain, qq)
-    R, t = T[:, :3, :3], T[:, :3, 3]
-    N = len(qq)
-    A = np.zeros((3 * N, 3 + 3 * K))
-    A[:, :3] = R.reshape(3 * N, 3)
-    rows = np.arange(3 * N).reshape(N, 3)
-    for c in range(3):
-        A[rows[:, c], 3 + 3 * idx + c] = -1.0
-    b = -(t + np.einsum("nij,nj->ni", R, dd)).ravel()
-    w = np.ones(3 * N) if sw is None else np.repeat(np.asarray(sw, dtype=float), 3)
-    sol = np.linalg.lstsq(A * w[:, None], b * w, rcond=None)[0]
-    r = (A @ sol - b).reshape(N, 3)
-    return np.asarray(sol[:3]), np.asarray(sol[3:]).reshape(K, 3), r
-
-
 def judge_run(out: Any, truth: dict[str, Any], n_poses: int, seed: int) -> dict[str, Any]:
     """A finished run folder judged against its simulation truth (``../shared/spec/outputs.md``).
 
@@ -362,12 +317,14 @@ def judge_run(out: Any, truth: dict[str, Any], n_poses: int, seed: int) -> dict[
     from pipeline.kinematics import load_chain
 
     folder = Path(out)
-    summary = json.loads((folder / "identify.json").read_text())
+    summary = json.loads((folder / RUN_FILES["identify"]).read_text())
     base, flange = truth["base_link"], truth["flange_link"]
-    calibrated = load_chain((folder / "calibrated.urdf").read_text(), base, "virtual_pin")
+    calibrated = load_chain(
+        (folder / RUN_FILES["calibrated_urdf"]).read_text(), base, "virtual_pin"
+    )
     true_chain = load_chain(truth["true_urdf"], base, flange)
     nominal = load_chain(truth["nominal_urdf"], base, flange)
-    inl = read_artefact(folder / "inliers.parquet", "inliers")
+    inl = read_artefact(folder / RUN_FILES["inliers"], "inliers")
     q = workspace_poses(inl[truth["joint_names"]].to_numpy(), n_poses, np.random.default_rng(seed))
     p_true = np.array(truth["p_vt_flange"])
     best = summary["best_model"]

@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import math
 from typing import Any
 
 from pipeline.catalog import Parquet
@@ -85,12 +86,28 @@ def outliers(data: dict[str, Any], config: Any, context: Any) -> dict[str, Any]:
 
 
 def identify(data: dict[str, Any], config: Any, context: Any) -> dict[str, Any]:
-    """Every asked-for error model fitted: the three tables, models.json, one URDF per model."""
+    """Every asked-for error model fitted: the three tables, models.json, one URDF per model.
+
+    With the touch-ups stage in the run, the target diameter its image Jacobian implies
+    (their ``implied_target_diameter_m`` metadata) is checked by the guardrails.
+    """
     from pipeline.stages import identify as stage
 
     urdf, base_link, flange_link = context.robot
+    if "touchups" in data:
+        implied = _finite(data["touchups"].attrs["vtcal"].get("implied_target_diameter_m"))
+        config = dataclasses.replace(config, implied_target_diameter_m=implied)
     results = stage.identify(data["inliers"], urdf, base_link, flange_link, config)
     return stage.fit_outputs(results)
+
+
+def _finite(text: str | None) -> float | None:
+    """A metadata number, None when absent, not a number or not finite."""
+    try:
+        value = float(text) if text else float("nan")
+    except ValueError:
+        return None
+    return value if math.isfinite(value) else None
 
 
 def integer_target_ids(table: Any, config: Any) -> tuple[Any, Any]:

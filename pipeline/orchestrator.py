@@ -29,7 +29,6 @@ identify in every run that fits)::
 
 from __future__ import annotations
 
-import dataclasses
 import json
 import math
 from collections.abc import Mapping
@@ -37,14 +36,24 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from pipeline import __version__
-from pipeline.catalog import STAGE_NAMES, run_paths
+from pipeline import catalog
+from pipeline.catalog import RUN_FILES, STAGE_NAMES, run_paths
 from pipeline.errors import BadInput, CalibrationFailed, VtcalError
-from pipeline.fileio import atomic_write_bytes, config_hash
+from pipeline.fileio import config_hash
 from pipeline.jsonio import json_bytes, jsonable, write_json
 from pipeline.known_distances import metadata_distances
 from pipeline.recording_layout import locate
-from pipeline.runner import Context, Progress, StageRecord, hashes, is_fresh, plan, run_stages
+from pipeline.runner import (
+    Context,
+    Progress,
+    StageRecord,
+    build_configs,
+    hashes,
+    is_fresh,
+    plan,
+    run_stages,
+    write_run,
+)
 from pipeline.withdraw import snapshot, withdraw
 
 #: the stage names, in run order (``--until`` takes one)
@@ -96,28 +105,6 @@ class RunConfig:
     tolerance_mm: float | None = None
 
 
-def _build(cls: Any, options: Mapping[str, Any], **base: Any) -> Any:
-    """Instantiate a stage config dataclass from defaults, ``base`` and user ``options``.
-
-    A ``list[str]`` option given as text (``--set crossval.models=full,elastic``) is
-    split at its commas.
-    """
-    fields = {f.name: f for f in dataclasses.fields(cls)}
-    unknown = set(options) - set(fields)
-    if unknown:
-        raise BadInput(
-            f"unknown option(s) for {cls.__name__}: {', '.join(sorted(unknown))} "
-            f"(its options: {', '.join(sorted(fields))})"
-        )
-    given = {
-        k: [x.strip() for x in v.split(",") if x.strip()]
-        if isinstance(v, str) and str(fields[k].type) in ("list[str]", str(list[str]))
-        else v
-        for k, v in options.items()
-    }
-    return cls(**{**{k: v for k, v in base.items() if k in fields}, **given})
-
-
 def _diameter(text: str | None) -> float | None:
     """The recording's printed target diameter (m), or None when absent or not a size."""
     try:
@@ -125,17 +112,6 @@ def _diameter(text: str | None) -> float | None:
     except ValueError:
         return None
     return d if math.isfinite(d) and d > 0 else None
-
-
-def _implied_diameter(touchups: Path) -> float | None:
-    """The image-implied target diameter the touch-up stage recorded (None if absent)."""
-    from pipeline.artefacts import read_meta
-
-    try:
-        value = float(read_meta(touchups).get("implied_target_diameter_m", "nan"))
-    except (OSError, ValueError):
-        return None
-    return value if math.isfinite(value) else None
 
 
 def run_pipeline(
@@ -175,7 +151,7 @@ def run_pipeline(
     from pipeline import run_ledger
 
     cfg = config or RunConfig()
-    names = plan(until, report=cfg.report)
+    names = plan(until, leave_out=() if cfg.report else ("report",))
     recording = Path(recording)
     out = Path(out)
     locate(recording)  # a missing file, a directory that is not a bag: BadInput now
@@ -263,7 +239,7 @@ def _run_in(
 def _ingest_warnings(out: Path) -> list[str]:
     """The warnings in ``out/recording.json`` (none when absent or unreadable)."""
     try:
-        data = json.loads((out / "recording.json").read_text())
+        data = json.loads((out / RUN_FILES["recording"]).read_text())
     except (OSError, ValueError):
         return []
     warned = data.get("warnings") if isinstance(data, dict) else None
@@ -290,7 +266,7 @@ def _run_plan(
                 + "; ".join(info.implausible)
                 + " (rerun with --accept-implausible if it is right)"
             )
-        ctx.configs.update(stage_configs(cfg, info, P["touchups"]))
+        ctx.configs.update(stage_configs(cfg, info))
         ctx.robot = (info.urdf, info.base_link, info.flange_link)
         if "choose" in rest:
             ctx.source = _recording_source(recording, P["frames"], fp)
@@ -298,51 +274,39 @@ def _run_plan(
 
 
 def ingest_configs(cfg: RunConfig) -> dict[str, Any]:
-    """The ingest stage's options: ``{"ingest": IngestConfig, "detect": DetectConfig}``."""
-    from pipeline.stages import detect, ingest
-
-    opts = cfg.stage_options
-    return {
-        "ingest": _build(
-            ingest.IngestConfig,
-            opts.get("ingest", {}),
-            image_topic=cfg.image_topic,
-            joint_topic=cfg.joint_topic,
-            description_topic=cfg.description_topic,
-            overrides=dict(cfg.overrides),
-        ),
-        "detect": _build(detect.DetectConfig, opts.get("detect", {})),
+    """The ingest stage's options: ``{"ingest": IngestConfig, "detect": DetectConfig}``
+    (:func:`pipeline.runner.build_configs`, with the topics and metadata overrides)."""
+    topics = {
+        "image_topic": cfg.image_topic,
+        "joint_topic": cfg.joint_topic,
+        "description_topic": cfg.description_topic,
+        "overrides": dict(cfg.overrides),
     }
+    ingest = [s.name for s in catalog.STAGES if s.source]
+    return dict(build_configs(ingest, cfg.stage_options, {n: topics for n in ingest})[ingest[0]])
 
 
-def stage_configs(cfg: RunConfig, info: Any, touchups: Path) -> dict[str, Any]:
+def stage_configs(cfg: RunConfig, info: Any) -> dict[str, Any]:
     """The options of the stages after ingest, from ``cfg`` and the recording's metadata.
 
     Identify fits every model (cross-validation picks the one the run ships),
     with the recording's known distances (not strict: a truncated recording may
     not reach every target; strict when given on the command line) and its printed
-    and image-implied target sizes.
+    target size (the image-implied one identify reads from the touch-ups it declares,
+    :func:`pipeline.nodes.identify`).
     """
-    from pipeline.stages import crossval, identify, outliers, touchup
-
-    opts = cfg.stage_options
-    return {
-        "touchups": _build(touchup.TouchupConfig, opts.get("touchups", {})),
-        "outliers": _build(outliers.OutlierConfig, opts.get("outliers", {})),
-        # built when identify starts: the implied size is what the touch-ups stage found
-        "identify": lambda: _build(
-            identify.IdentifyConfig,
-            opts.get("identify", {}),
-            model="all",
-            distances=metadata_distances(info.metadata),
+    fixed = {
+        "identify": {
+            "model": "all",
+            "distances": metadata_distances(info.metadata),
             # the recording's own distances may name a target a truncated run never
             # reached (dropped, noted); one typed on the command line must name a target
-            strict_distances="known_distances" in cfg.overrides,
-            target_diameter_m=_diameter(info.metadata.get("target_diameter_m")),
-            implied_target_diameter_m=_implied_diameter(touchups),
-        ),
-        "crossval": _build(crossval.CrossvalConfig, opts.get("crossval", {})),
+            "strict_distances": "known_distances" in cfg.overrides,
+            "target_diameter_m": _diameter(info.metadata.get("target_diameter_m")),
+        }
     }
+    later = [s.name for s in catalog.STAGES if not s.source]
+    return build_configs(later, cfg.stage_options, fixed)
 
 
 def _recording_source(recording: Path, frames: Path, fp: Mapping[str, Any]) -> Any:
@@ -376,17 +340,12 @@ def _finish(
     summary: dict[str, Any] = {}
     if P["identify"].exists():
         summary = json.loads(P["identify"].read_text())
-    run: dict[str, Any] = {
-        "version": __version__,
-        "stages": records,
-        "report_inputs": report_inputs,
-        "tolerance_mm": tolerance_mm,
-    }
+    ledger: dict[str, Any] = {}
     if fingerprint is not None:
-        run[run_ledger.KEY] = run_ledger.entry(
+        ledger[run_ledger.KEY] = run_ledger.entry(
             out, fingerprint, [name for r in records for name in r.outputs]
         )
-    write_json(P["run"], run)
+    write_run(out, records, report_inputs=report_inputs, tolerance_mm=tolerance_mm, **ledger)
     return RunResult(out, records, summary)
 
 
@@ -410,16 +369,14 @@ def _from_ledger(out: Path, fp: dict[str, Any]) -> RunResult | None:
         summary: dict[str, Any] = {}
         if P["identify"].exists():
             summary = json.loads(P["identify"].read_text())
-        now = {
-            "version": __version__,
-            "stages": records,
-            "report_inputs": run.get("report_inputs"),
-            "tolerance_mm": run.get("tolerance_mm"),
-            run_ledger.KEY: run[run_ledger.KEY],
-        }
-        blob = json_bytes(now)
-        if P["run"].read_bytes() != blob:
-            atomic_write_bytes(P["run"], blob)
+        write_run(
+            out,
+            records,
+            changed_only=True,
+            report_inputs=run.get("report_inputs"),
+            tolerance_mm=run.get("tolerance_mm"),
+            **{run_ledger.KEY: run[run_ledger.KEY]},
+        )
     except (OSError, ValueError, TypeError, AttributeError):
         return None  # an odd run.json: let the per-stage checks decide
     return RunResult(out, records, summary)

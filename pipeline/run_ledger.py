@@ -34,6 +34,7 @@ from pathlib import Path
 from typing import Any
 
 from pipeline import __version__, resources
+from pipeline.catalog import RUN_FILES
 from pipeline.fileio import file_hash, hash_named_files
 from pipeline.recording_layout import locate, recording_hash
 
@@ -130,7 +131,7 @@ def lookup(out: Path, fp: dict[str, Any]) -> dict[str, Any] | None:
     dict or None : the parsed ``run.json`` on a hit, None on any miss.
     """
     try:
-        run = json.loads((out / "run.json").read_text())
+        run = json.loads((out / RUN_FILES["run"]).read_text())
     except (OSError, ValueError):
         return None
     if not isinstance(run, dict):

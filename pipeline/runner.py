@@ -13,11 +13,14 @@ For each stage of a plan the runner
    artefact's kind (:func:`write_output`): Parquet checked against its schema,
    JSON, text; Parquet first, so a JSON side file present means the stage finished.
 
-Two stages are keyed differently. ``choose`` is cheap and writes no Parquet:
-it always runs, and a file is rewritten only when its bytes change ("cached"
-when none did). ``report`` is keyed in ``run.json`` (``report_inputs``: the
-hashes of what it reads, its code and the tolerance it judges with), and its
-two files are written by the HTML and Rerun writers.
+How a stage is keyed is declared (``Stage.cache``), never looked up by its name.
+``"always"`` (choose): cheap and without Parquet, it always runs, and a file is
+rewritten only when its bytes change ("cached" when none did). ``"ledger"``
+(report): keyed in ``run.json`` (``report_inputs``: the hashes of what it reads,
+its code and the tolerance it judges with), its files written by their own
+writers (HTML, Rerun). A stage that reads the recording itself (``Stage.source``,
+ingest) is keyed by the recording's hash; a file per fitted model
+(``Artefact.per_model``) is named by its index artefact's ``"models"`` list.
 
 ``vtcal run`` starts the runner at ingest (:func:`pipeline.orchestrator.run_pipeline`),
 ``vtcal identify`` at identify with the touch-up table given
@@ -26,6 +29,7 @@ two files are written by the HTML and Rerun writers.
 
 from __future__ import annotations
 
+import dataclasses
 import importlib
 import json
 import time
@@ -35,7 +39,7 @@ from pathlib import Path
 from typing import Any
 
 from pipeline import __version__
-from pipeline.catalog import BY_KEY, STAGE, STAGE_NAMES, Parquet, Stage, model_urdf, run_paths
+from pipeline.catalog import BY_KEY, STAGE, STAGE_NAMES, STAGES, Artefact, Parquet, Stage, run_paths
 from pipeline.code_key import stage_code_digest
 from pipeline.errors import BadInput
 from pipeline.fileio import atomic_write_bytes, config_hash, file_hash
@@ -63,9 +67,7 @@ class Context:
     Attributes
     ----------
     out : the run folder
-    configs : ``{stage: options}`` of every stage of the plan; a function in
-        their place is called when the stage starts (options that depend on an
-        earlier stage's output)
+    configs : ``{stage: options}`` of every stage of the plan (:func:`build_configs`)
     recording : the recording (ingest reads it), None when starting later
     recording_hash : its content hash (ingest's cache key)
     robot : ``(URDF text, base link, flange link)`` the fits use
@@ -99,19 +101,25 @@ class Context:
     after_stage: dict[str, list[Callable[[Path], None]]] = field(default_factory=dict)
 
 
-def plan(until: str | None, *, crossval: bool = True, report: bool = True) -> list[str]:
-    """The stages a run makes: every stage up to ``until``, and ``choose`` after identify.
+def plan(until: str | None, *, leave_out: tuple[str, ...] = ()) -> list[str]:
+    """The stages a run makes: every stage up to ``until``, and each stage declared to
+    follow a planned one (``Stage.follows``: choose after identify), but ``leave_out``
+    (the caller's switches: ``--no-report``, ``--no-crossval``).
 
     The shipped calibration (``calibrated.urdf``, ``identify.json``) is chosen
     whenever models were fitted: ``--until identify`` ships identify's training
     choice, ``--until crossval`` the held-out one.
     """
+    unknown = [n for n in leave_out if n not in STAGE_NAMES]
+    if unknown:
+        raise ValueError(f"leave_out: {unknown} are not stages")
     if until is not None and until not in STAGE_NAMES:
         raise BadInput(f"--until {until!r}: not a stage (stages: {', '.join(STAGE_NAMES)})")
     names = list(STAGE_NAMES[: STAGE_NAMES.index(until) + 1] if until else STAGE_NAMES)
-    if "identify" in names and "choose" not in names:
-        names.append("choose")
-    return [n for n in names if (crossval or n != "crossval") and (report or n != "report")]
+    for s in STAGES:  # a stage declared to follow a planned one runs with it
+        if s.follows in names and s.name not in names:
+            names.append(s.name)
+    return [n for n in names if n not in leave_out]
 
 
 def is_fresh(outputs: list[Path], inputs: Mapping[str, str], config: Mapping[str, Any]) -> bool:
@@ -155,22 +163,30 @@ def hashes(paths: Mapping[str, Path]) -> dict[str, str]:
     return {name: file_hash(p) for name, p in sorted(paths.items())}
 
 
-def _model_names(out: Path) -> list[str] | None:
-    """The models identify fitted, from ``models.json`` (None when absent or unreadable)."""
+def _model_names(art: Artefact, out: Path) -> list[str] | None:
+    """The models a per-model artefact has files for, from its index artefact's ``"models"``
+    (``models.json``; None when absent or unreadable)."""
+    assert art.index is not None
     try:
-        return list(json.loads(run_paths(out)["models"].read_text())["models"])
+        return list(json.loads(run_paths(out)[art.index].read_text())["models"])
     except (OSError, ValueError, KeyError, TypeError):
         return None
 
 
+def _per_model(art: Artefact, out: Path, models: Any) -> list[Path]:
+    return [out / art.file.format(model=m) for m in models]
+
+
 def output_paths(stage: Stage, out: Path) -> list[Path]:
-    """The files ``stage`` writes into ``out`` (per-model URDFs as ``models.json`` names them)."""
+    """The files ``stage`` writes into ``out`` (per-model files as their index names them)."""
     P = run_paths(out)
     paths: list[Path] = []
     for key in stage.outputs:
-        if key == "model_urdfs":
-            names = _model_names(out)
-            paths += [model_urdf(out, m) for m in names] if names else [out / "models.json.missing"]
+        art = BY_KEY[key]
+        if art.per_model:
+            names = _model_names(art, out)
+            missing = [out / f"{P[str(art.index)].name}.missing"]
+            paths += _per_model(art, out, names) if names else missing
         else:
             paths.append(P[key])
     return paths
@@ -182,9 +198,10 @@ def load_input(key: str, out: Path) -> Any:
     Parquet: a DataFrame (schema checked) with its ``vtcal.*`` metadata in
     ``attrs["vtcal"]``; JSON: a dict; the per-model URDFs: ``{model: text}``.
     """
-    if key == "model_urdfs":
-        return {m: model_urdf(out, m).read_text() for m in _model_names(out) or []}
     art = BY_KEY[key]
+    if art.per_model:
+        names = _model_names(art, out) or []
+        return {m: p.read_text() for m, p in zip(names, _per_model(art, out, names), strict=True)}
     path = out / art.file
     if art.schema is not None:
         from pipeline.artefacts import read_artefact, read_meta
@@ -232,12 +249,12 @@ def write_output(
     """
     if isinstance(value, Path):
         return [value]
-    if key == "model_urdfs":
-        paths = [model_urdf(out, m) for m in value]
+    art = BY_KEY[key]
+    if art.per_model:
+        paths = _per_model(art, out, value)
         for p, text in zip(paths, value.values(), strict=True):
             atomic_write_bytes(p, text.encode())
         return paths
-    art = BY_KEY[key]
     path = out / art.file
     if art.schema is not None:
         from pipeline.artefacts import write_artefact
@@ -278,7 +295,7 @@ def input_hashes(stage: Stage, context: Context, names: list[str]) -> dict[str, 
     (``models.json``: its writer's Parquet outputs, read too, key its results)
     is left out.
     """
-    if stage.name == "ingest":
+    if stage.source:
         return {"recording": str(context.recording_hash)}
     P = run_paths(context.out)
     keys = [k for k in stage.inputs if k in P and k not in context.given]
@@ -286,14 +303,65 @@ def input_hashes(stage: Stage, context: Context, names: list[str]) -> dict[str, 
     return hashes({k: P[k] for k in keys if BY_KEY[k].keyed})
 
 
-def stage_config(name: str, context: Context) -> Any:
-    """The options of stage ``name`` (built now when given as a function)."""
-    import dataclasses
+def build_options(cls: Any, options: Mapping[str, Any], **base: Any) -> Any:
+    """Instantiate a stage config dataclass from defaults, ``base`` and user ``options``.
 
-    conf = context.configs.get(name)
-    if callable(conf) and not dataclasses.is_dataclass(conf):
-        conf = context.configs[name] = conf()
-    return conf
+    A ``list[str]`` option given as text (``--set crossval.models=full,elastic``) is
+    split at its commas.
+    """
+    fields = {f.name: f for f in dataclasses.fields(cls)}
+    unknown = set(options) - set(fields)
+    if unknown:
+        raise BadInput(
+            f"unknown option(s) for {cls.__name__}: {', '.join(sorted(unknown))} "
+            f"(its options: {', '.join(sorted(fields))})"
+        )
+    given = {
+        k: [x.strip() for x in v.split(",") if x.strip()]
+        if isinstance(v, str) and str(fields[k].type) in ("list[str]", str(list[str]))
+        else v
+        for k, v in options.items()
+    }
+    return cls(**{**{k: v for k, v in base.items() if k in fields}, **given})
+
+
+def _resolve(entry: str) -> Any:
+    mod, attr = entry.split(":")
+    return getattr(importlib.import_module(mod), attr)
+
+
+def build_configs(
+    names: list[str],
+    options: Mapping[str, Mapping[str, Any]],
+    fixed: Mapping[str, Mapping[str, Any]] | None = None,
+) -> dict[str, Any]:
+    """The options of stages ``names``, built in this one place from what the catalog
+    declares (``Stage.config``, ``Stage.sub_configs``).
+
+    Each option group's dataclass is built from its defaults, the run's ``fixed``
+    values (``{group: {field: value}}``: what the caller knows, e.g. the recording's
+    known distances) and the user's ``options`` (``--set GROUP.OPTION=VALUE``), by
+    :func:`build_options`. A stage without a config is left out; one with sub-configs
+    gets ``{group: options, ...}`` (ingest: ``ingest``, ``detect``).
+    """
+    fixed = fixed or {}
+    out: dict[str, Any] = {}
+    for name in names:
+        stage = STAGE[name]
+        if stage.config is None:
+            continue
+        groups = [(name, stage.config), *stage.sub_configs]
+        built = {
+            g: build_options(_resolve(cls), options.get(g, {}), **fixed.get(g, {}))
+            for g, cls in groups
+        }
+        out[name] = built if stage.sub_configs else built[name]
+    return out
+
+
+def stage_config(name: str, context: Context) -> Any:
+    """The options of stage ``name`` (:func:`build_configs`), None for a stage without."""
+    return context.configs.get(name)
 
 
 def _call(stage: Stage, context: Context, names: list[str]) -> dict[str, Any]:
@@ -304,46 +372,57 @@ def _call(stage: Stage, context: Context, names: list[str]) -> dict[str, Any]:
     return result
 
 
-def report_key(context: Context) -> dict[str, str]:
+def report_key(stage: Stage, context: Context) -> dict[str, str]:
     """The report's cache key (kept in ``run.json``): its inputs' hashes, code, tolerance."""
-    stage = STAGE["report"]
     P = run_paths(context.out)
     key = hashes({k: P[k] for k in stage.inputs})
     warm = context.warm_report
     code = warm.code_digest() if warm is not None else None  # pipeline.report.warm
-    key["code"] = code or stage_code_digest("report")  # the report's code is an input too
+    key["code"] = code or stage_code_digest(stage.name)  # the report's code is an input too
     key["tolerance_mm"] = repr(context.tolerance_mm)  # the verdict it shows
     return key
 
 
-def run_report(context: Context) -> dict[str, str] | None:
-    """The report stage (see the module docstring); its key in ``run.json`` mode, else None."""
+def run_ledgered(stage: Stage, context: Context) -> dict[str, str] | None:
+    """A stage keyed in ``run.json`` (``cache="ledger"``: the report; see the module
+    docstring); its key in ``run.json`` mode, else None."""
     records = context.records
-    outputs = ["report.html", "run.rrd"]
+    outputs = [BY_KEY[k].file for k in stage.outputs]
     if not context.ledger:
         t0 = time.perf_counter()
-        _call(STAGE["report"], context, [])
-        records.append(StageRecord("report", "ran", outputs, time.perf_counter() - t0))
+        _call(stage, context, [])
+        records.append(StageRecord(stage.name, "ran", outputs, time.perf_counter() - t0))
         return None
     t0 = time.perf_counter()  # the key's code digest and the report's imports are waited for too
-    key = report_key(context)
+    key = report_key(stage, context)
     P = run_paths(context.out)
     previous = json.loads(P["run"].read_text()) if P["run"].exists() else {}
     if (
         not context.force
-        and P["report"].exists()
-        and P["rrd"].exists()
+        and all(P[k].exists() for k in stage.outputs)
         and previous.get("report_inputs") == key
         and previous.get("version") == __version__
     ):
-        records.append(StageRecord("report", "cached", outputs))
+        records.append(StageRecord(stage.name, "cached", outputs))
         return key
     # the report shows the stage table: give it this run's, not the previous one
-    run = {"version": __version__, "stages": records, "tolerance_mm": context.tolerance_mm}
-    atomic_write_bytes(P["run"], json_bytes(run))
-    _call(STAGE["report"], context, [])
-    records.append(StageRecord("report", "ran", outputs, time.perf_counter() - t0))
+    write_run(context.out, records, tolerance_mm=context.tolerance_mm)
+    _call(stage, context, [])
+    records.append(StageRecord(stage.name, "ran", outputs, time.perf_counter() - t0))
     return key
+
+
+def write_run(
+    out: Path, stages: list[StageRecord], *, changed_only: bool = False, **fields: Any
+) -> None:
+    """The one writer of ``run.json``: ``{"version", "stages", **fields}``, byte-stable
+    (:func:`pipeline.jsonio.json_bytes`), atomic; with ``changed_only`` only when its bytes
+    change. The runner writes this run's stage table before the report (which shows it),
+    :mod:`pipeline.orchestrator` the finished run with its ledger entry."""
+    path = run_paths(out)["run"]
+    blob = json_bytes({"version": __version__, "stages": stages, **fields})
+    if not changed_only or not path.is_file() or path.read_bytes() != blob:
+        atomic_write_bytes(path, blob)
 
 
 def run_stage(name: str, context: Context, names: list[str]) -> None:
@@ -351,7 +430,7 @@ def run_stage(name: str, context: Context, names: list[str]) -> None:
     stage = STAGE[name]
     out = context.out
     t0 = time.perf_counter()
-    if name == "choose":
+    if stage.cache == "always":
         changed = _write_changed(_call(stage, context, names), out)
         status = "ran" if changed or context.force else "cached"
         files = [p.name for p in output_paths(stage, out)]
@@ -366,7 +445,7 @@ def run_stage(name: str, context: Context, names: list[str]) -> None:
         return
     result = _call(stage, context, names)
     # Parquet first, then the rest: a side file present means the stage finished
-    order = sorted(stage.outputs, key=lambda k: (BY_KEY[k].schema is None, k == "models"))
+    order = sorted(stage.outputs, key=lambda k: BY_KEY[k].schema is None)  # stable: declared order
     written: list[Path] = []
     for k in order:
         written += write_output(k, result[k], out, stage=name, config=key, inputs=inputs)
@@ -382,8 +461,8 @@ def run_stages(names: list[str], context: Context, plan_names: list[str]) -> dic
     context.out.mkdir(parents=True, exist_ok=True)
     key = None
     for name in names:
-        if name == "report":
-            key = run_report(context)
+        if STAGE[name].cache == "ledger":
+            key = run_ledgered(STAGE[name], context)
         else:
             run_stage(name, context, plan_names)
             for hook in context.after_stage.get(name, ()):

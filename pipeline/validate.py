@@ -21,7 +21,7 @@ depend on the base frame:
 
 Robots judged: the calibrated one with its own pin (the headline), the
 calibrated kinematics with the pin refitted on these touch-ups
-(:func:`pipeline.evaluate.fit_pin_and_targets`: separates a pin error from a
+(:func:`pipeline.measurement.pin.fit_pin_and_targets`: separates a pin error from a
 kinematic one) and the nominal kinematics with a refitted pin (what the cell
 gets without kinematic calibration; the "before"). The KPIs are those of
 ``benchmarks/bench_real.py`` (held-out placements of the MUKCa Panda data).
@@ -52,11 +52,11 @@ from pipeline.estimation.correction_frame import (
     table_scatters,
     translation_map,
 )
-from pipeline.evaluate import fit_pin_and_targets
 from pipeline.kinematics.chain import Chain, fk
 from pipeline.kinematics.se3 import F64
 from pipeline.kinematics.urdf import RobotDescription
 from pipeline.kinematics.urdf_write import PIN_JOINT
+from pipeline.measurement.pin import fit_pin_and_targets
 from pipeline.verdict import improvement
 
 #: a target needs this many usable touch-ups for a consistency (one point is always "consistent")

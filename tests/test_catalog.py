@@ -95,3 +95,83 @@ def test_a_rerun_identify_keeps_the_held_out_choice(sample_run: Path, tmp_path: 
     assert after["best_model"] == cv["chosen_model"]
     assert after["crossval"] == cv
     assert (out / "calibrated.urdf").read_text() == urdf
+
+
+def test_the_runner_keys_no_stage_or_file_by_name() -> None:
+    """How a stage is keyed, planned and written is declared (``Stage.cache``, ``source``,
+    ``follows``, ``Artefact.per_model``), never looked up by a stage's or file's name
+    (issue 37): the runner's loop names none, but its own ``run`` ledger, the source's
+    cache label ``recording`` and the index's ``models`` field (``write_fits``, the
+    library's identify-and-choose, aside)."""
+    import ast
+
+    import pipeline.runner as runner
+
+    names = set(STAGE_NAMES) | set(BY_KEY)
+    tree = ast.parse(Path(runner.__file__).read_text())
+    skip = {
+        id(n)
+        for f in tree.body
+        if isinstance(f, ast.FunctionDef) and f.name == "write_fits"
+        for n in ast.walk(f)
+    }
+    named = {
+        (n.lineno, n.value)
+        for n in ast.walk(tree)
+        if isinstance(n, ast.Constant) and n.value in names and id(n) not in skip
+    }
+    assert {v for _, v in named} <= {"run", "recording", "models"}, sorted(named)
+
+
+def test_identify_declares_the_touchups_it_reads_the_implied_diameter_from(
+    sample_run: Path,
+) -> None:
+    """The image-implied target diameter reaches identify as a declared input (its key
+    holds the touch-ups' hash), not through a config built from the disk (issue 37)."""
+    from pipeline.artefacts import read_meta
+    from pipeline.catalog import STAGE
+
+    assert "touchups" in STAGE["identify"].optional
+    inputs = json.loads(read_meta(sample_run / RUN_FILES["parameters"])["inputs"])
+    assert set(inputs) == {"inliers", "touchups"}
+
+
+def hand_typed_files(text: str, files: set[str]) -> list[tuple[int, str]]:
+    """``(line, name)`` of each string (docstrings aside) in ``text`` that is a run-folder
+    file name, or a path ending in one."""
+    import ast
+
+    tree = ast.parse(text)
+    docs = {
+        id(n.body[0].value)
+        for n in ast.walk(tree)
+        if isinstance(n, ast.Module | ast.FunctionDef | ast.AsyncFunctionDef | ast.ClassDef)
+        and n.body
+        and isinstance(n.body[0], ast.Expr)
+        and isinstance(n.body[0].value, ast.Constant)
+    }
+    return [
+        (n.lineno, n.value)
+        for n in ast.walk(tree)
+        if isinstance(n, ast.Constant)
+        and isinstance(n.value, str)
+        and id(n) not in docs
+        and any(n.value == f or n.value.endswith("/" + f) for f in files)
+    ]
+
+
+def test_run_folder_file_names_come_only_from_the_catalog() -> None:
+    """No module types a run-folder file name by hand (``RUN_FILES[key]`` instead), so a
+    renamed file is renamed once (issue 37). Prose and docstrings may name them."""
+    root = Path(__file__).resolve().parent.parent / "pipeline"
+    files = set(RUN_FILES.values())
+    typed = {
+        f"{p.relative_to(root)}:{line} {name}"
+        for p in root.rglob("*.py")
+        if p.name != "catalog.py"
+        for line, name in hand_typed_files(p.read_text(), files)
+    }
+    assert typed == set()
+    # the check can fail
+    sample = 'def f(out):\n    """Reads identify.json."""\n    return out / "identify.json"\n'
+    assert hand_typed_files(sample, files) == [(3, "identify.json")]

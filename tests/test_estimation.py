@@ -6,11 +6,11 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from pipeline.estimation.measurement import Problem, initial_pin_targets
 from pipeline.estimation.uncertainty import covariance
 from pipeline.estimation.whitening import robust_flange_whitening
 from pipeline.evaluate import perturbed_chain, random_deviations, synthetic_touchups
 from pipeline.kinematics import load_chain
+from pipeline.measurement.pin import Problem, initial_pin_targets
 from pipeline.models import make_model
 from pipeline.robots import builtin_urdf
 from pipeline.stages.identify_data import prepare_data

@@ -316,7 +316,7 @@ SIM_CELL = f"sim:{REPO / 'datasets' / 'scenarios' / 'small.toml'}:1"
 def _cell_plan(path: Path, n: int) -> Path:
     import pandas as pd
 
-    from pipeline.measure.sim_link import sim_cell, write_plan
+    from pipeline.sim.link import sim_cell, write_plan
 
     cell, _ = sim_cell(SIM_CELL)
     write_plan(cell, str(path))
@@ -632,7 +632,7 @@ def test_target_ids_survive_a_plan_that_visits_them_out_of_order(tmp_path, capsy
     the targets file's ids (0:2) is the same pair as first-touch labels 1:0 would be."""
     import pandas as pd
 
-    from pipeline.measure.sim_link import sim_cell
+    from pipeline.sim.link import sim_cell
 
     cell, _ = sim_cell(SIM_CELL)
     centre = {t.id: t.centre for t in cell.sess.cell.targets}

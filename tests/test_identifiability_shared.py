@@ -5,9 +5,9 @@ from __future__ import annotations
 import numpy as np
 
 import pipeline.evaluate as evaluate
-from pipeline.estimation import identifiability as ident
 from pipeline.models import model_names
 from pipeline.robots import builtin_urdf
+from pipeline.stages import identify_structure as ident
 from pipeline.stages.identify import IdentifyConfig, identify
 from tests.test_identify import _case
 

@@ -294,7 +294,7 @@ def test_robust_losses_match_scipy_on_touchup_rows(loss):
     except ImportError:
         pytest.skip("scipy's private loss table moved")
 
-    from pipeline.estimation.measurement import partial_loss
+    from pipeline.estimation.loss import partial_loss
 
     z = np.linspace(0.0, 9.0, 40)
     ours = partial_loss(loss, 30)(z)

@@ -15,10 +15,11 @@ from pipeline.estimation.correction_frame import PAIR_COLUMNS
 from pipeline.evaluate import perturbed_chain, random_deviations
 from pipeline.evaluate import synthetic_touchups as synth
 from pipeline.kinematics.chain import load_chain
+from pipeline.measurement.data import FitData
 from pipeline.stages.crossval import fold_assignment, usable_rows
 from pipeline.stages.crossval_refit import refit, refit_config, refit_table
 from pipeline.stages.identify import IdentifyConfig, IdentifyResult, identify
-from pipeline.stages.identify_data import FitData, prepare_data, prepare_table, restrict
+from pipeline.stages.identify_data import prepare_data, prepare_table, restrict
 from pipeline.stages.identify_types import Robot
 from pipeline.stages.print_shape import SHAPE_COLUMNS
 

@@ -116,6 +116,47 @@ def test_the_package_has_no_import_cycle() -> None:
     assert cycles(edges) == []
 
 
+def package_edges(edges: dict[str, set[str]]) -> dict[str, set[str]]:
+    """The import graph between packages: ``pipeline.X`` for every module of subpackage ``X``,
+    a top-level module ``pipeline.m`` as itself (issue 37)."""
+
+    def node(m: str) -> str:
+        return ".".join(m.split(".")[:2])
+
+    out: dict[str, set[str]] = {}
+    for a, bs in edges.items():
+        out.setdefault(node(a), set()).update(node(b) for b in bs if node(b) != node(a))
+    return out
+
+
+def test_no_package_import_cycle() -> None:
+    """``pipeline.estimation`` does not reach up into ``pipeline.stages``, nor
+    ``pipeline.measure`` into ``pipeline.sim`` (which runs its loop): the packages form
+    layers, lazy imports included."""
+    edges, _ = analyse(_package_sources())
+    pk = package_edges(edges)
+    assert {"pipeline.measurement", "pipeline.stages", "pipeline.sim", "pipeline.measure"} <= set(
+        pk
+    )
+    assert cycles(pk) == []
+
+
+def test_the_package_check_can_fail() -> None:
+    fake = {
+        "pipeline": ("", True),
+        "pipeline.a": ("", True),
+        "pipeline.a.x": ("from pipeline.b.y import f\n", False),
+        "pipeline.b": ("", True),
+        "pipeline.b.y": ("def f():\n    from pipeline.a import z\n", False),
+        "pipeline.a.z": ("", False),
+    }
+    edges, _ = analyse(fake)
+    assert cycles(edges) == []  # no module cycle ...
+    assert cycles(package_edges(edges)) == [
+        ["pipeline.a", "pipeline.b", "pipeline.a"]
+    ]  # ... a package one
+
+
 def test_no_module_takes_another_modules_private_names() -> None:
     _, private = analyse(_package_sources())
     assert private == []

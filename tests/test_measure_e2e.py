@@ -20,9 +20,9 @@ from pipeline import io_mcap
 from pipeline.cli import main
 from pipeline.measure.protocols import MeasureFault
 from pipeline.measure.record import read_progress
-from pipeline.measure.sim_link import sim_cell, write_plan
 from pipeline.measure.summary import from_metadata
 from pipeline.measure.tcp_server import Cell, CellServer, serve_in_thread
+from pipeline.sim.link import sim_cell, write_plan
 
 REPO = Path(__file__).resolve().parent.parent
 SCENARIO = REPO / "datasets" / "scenarios" / "small.toml"

@@ -23,9 +23,9 @@ import pandas as pd
 import pytest
 from mcap.reader import make_reader
 
+from pipeline.cell_adapters import connect
 from pipeline.cli import main
-from pipeline.measure.adapters import connect
-from pipeline.measure.sim_link import sim_cell, write_plan
+from pipeline.sim.link import sim_cell, write_plan
 from pipeline.stages.detect import DetectConfig, detect_target
 from pipeline.stages.ingest import load_image
 

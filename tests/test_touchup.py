@@ -7,13 +7,13 @@ import pytest
 
 from pipeline.artefacts import read_artefact, write_artefact
 from pipeline.kinematics.se3 import matrix_from_rpy
+from pipeline.measurement.image import camera_from_jacobian
 from pipeline.sim.camera import CameraModel
 from pipeline.sim.target_geometry import projected_ellipse
 from pipeline.stages.detect import DetectConfig
 from pipeline.stages.ingest import IngestConfig, ingest_recording
 from pipeline.stages.touchup import (
     TouchupConfig,
-    camera_from_jacobian,
     estimate_jacobian,
     extract_touchups,
     size_row_scales,

@@ -31,10 +31,10 @@ def _check_set_key(key: str) -> None:
 
     stage, dot, opt = key.partition(".")
     if dot:
-        if stage not in STAGE_OPTION_PREFIXES or not opt:
+        if stage not in stage_option_prefixes() or not opt:
             raise click.BadParameter(
                 f"{key!r}: no stage {stage!r}; STAGE.OPTION takes a stage of "
-                f"{list(STAGE_OPTION_PREFIXES)}"
+                f"{stage_option_prefixes()}"
             )
         return  # the option name is checked against the stage's own options when it runs
     keys = [*METADATA_KEYS, *OTHER_METADATA_KEYS]
@@ -43,7 +43,7 @@ def _check_set_key(key: str) -> None:
         hint = f" (did you mean {near[0]!r}?)" if near else ""
         raise click.BadParameter(
             f"{key!r} is not a touchup metadata key{hint}: the keys are {sorted(keys)}, "
-            f"or STAGE.OPTION with a stage of {list(STAGE_OPTION_PREFIXES)}"
+            f"or STAGE.OPTION with a stage of {stage_option_prefixes()}"
         )
 
 
@@ -63,8 +63,11 @@ def set_option(fn: Callable[..., Any]) -> Callable[..., Any]:
     )(fn)
 
 
-#: the stages whose options ``--set STAGE.OPTION=VALUE`` reaches
-STAGE_OPTION_PREFIXES = ("ingest", "detect", "touchups", "outliers", "identify", "crossval")
+def stage_option_prefixes() -> list[str]:
+    """The names ``--set STAGE.OPTION=VALUE`` reaches (the catalog's option groups)."""
+    from pipeline.catalog import option_groups
+
+    return option_groups()
 
 
 def _option_value(text: str) -> Any:
@@ -88,7 +91,7 @@ def split_stage_options(
     stages: dict[str, dict[str, Any]] = {}
     for key, val in overrides.items():
         stage, dot, opt = key.partition(".")
-        if dot and stage in STAGE_OPTION_PREFIXES and opt:
+        if dot and stage in stage_option_prefixes() and opt:
             stages.setdefault(stage, {})[opt] = _option_value(val)
         else:
             meta[key] = val

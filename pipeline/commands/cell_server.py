@@ -36,8 +36,8 @@ def command(
     withhold: tuple[str, ...],
 ) -> None:
     """Serve the simulated cell of SCENARIO and SEED on HOST:PORT until interrupted."""
-    from pipeline.measure.sim_link import sim_cell, write_plan
     from pipeline.measure.tcp_server import Cell, CellServer
+    from pipeline.sim.link import sim_cell, write_plan
 
     cell, tap = sim_cell(f"sim:{scenario_path}:{seed}")
     if plan_out is not None:

@@ -19,6 +19,7 @@ from typing import Any
 import click
 import pandas as pd
 
+from pipeline.catalog import RUN_FILES
 from pipeline.commands._common import (
     accept_implausible_option,
     distance_option,
@@ -211,8 +212,6 @@ def command(
     virtual_pin), identify.json, crossval.parquet, report.html and run.rrd.
     """
     from pipeline.known_distances import parse_distances
-    from pipeline.stages.crossval import CrossvalConfig
-    from pipeline.stages.identify import IdentifyConfig
 
     df = read_table(table)
     try:
@@ -231,25 +230,20 @@ def command(
             flange_link = f
             click.echo(f"flange link: {f} (inferred: end of the serial chain)")
     distances = [d for item in distance for d in parse_distances(item)]
-    cfg = IdentifyConfig(
-        model=model,
-        distances=distances,
-        robust_loss=robust_loss,
-        accept_implausible=accept_implausible,
-    )
     conf = {
         "model": model,
         "distances": distances,
         "robust_loss": robust_loss,
         "accept_implausible": accept_implausible,
     }
-    from pipeline.runner import Context, plan, run_stages
+    from pipeline.runner import Context, build_configs, plan, run_stages
 
-    names = plan(None, crossval=not no_crossval, report=not no_report)
+    off = (("crossval", no_crossval), ("report", no_report))
+    names = plan(None, leave_out=tuple(n for n, leave in off if leave))
     names = names[names.index("identify") :]
     ctx = Context(
         out_dir,
-        configs={"identify": cfg, "crossval": CrossvalConfig()},
+        configs=build_configs(names, {}, {"identify": conf}),
         robot=(urdf, base_link, flange_link),
         source=_table_source(table, urdf_path, df, conf),
         tolerance_mm=tolerance_mm,
@@ -275,7 +269,7 @@ def command(
             raise BadInput(f"{urdf_path}: {msg}") from exc
         raise
     written = [name for r in ctx.records for name in r.outputs]
-    summary = json.loads((out_dir / "identify.json").read_text())
+    summary = json.loads((out_dir / RUN_FILES["identify"]).read_text())
     for line in summary.get("headline", []):
         click.echo(line)
     v = echo_verdict(summary, tolerance_mm)

@@ -118,7 +118,7 @@ def run_measure(
     """
     import numpy as np
 
-    from pipeline.measure.adapters import connect
+    from pipeline.cell_adapters import connect
     from pipeline.measure.loop import LoopConfig
     from pipeline.measure.plan_file import check_limits, read_plan
     from pipeline.measure.protocols import MeasureFault

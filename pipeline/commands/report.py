@@ -6,6 +6,7 @@ from pathlib import Path
 
 import click
 
+from pipeline.catalog import RUN_FILES
 from pipeline.errors import BadInput
 
 
@@ -44,7 +45,7 @@ def command(
     """
     if not run_dir.is_dir():
         raise BadInput(f"{run_dir}: not a run folder (no such directory)")
-    known = ("recording.json", "touchups.parquet", "inliers.parquet", "identify.json")
+    known = tuple(RUN_FILES[k] for k in ("recording", "touchups", "inliers", "identify"))
     if not any((run_dir / n).exists() for n in known):
         raise BadInput(f"{run_dir}: not a run folder (none of {', '.join(known)})")
     if not no_html and not no_rrd:  # both from one load of the run folder

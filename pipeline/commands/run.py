@@ -7,6 +7,7 @@ from typing import Any
 
 import click
 
+from pipeline.catalog import RUN_FILES
 from pipeline.commands._common import (
     accept_implausible_option,
     distance_option,
@@ -134,7 +135,7 @@ def _recording_json(out: Path) -> dict[str, Any]:
     import json
 
     try:
-        data = json.loads((out / "recording.json").read_text())
+        data = json.loads((out / RUN_FILES["recording"]).read_text())
     except (OSError, ValueError):
         return {}
     return data if isinstance(data, dict) else {}

@@ -1,12 +1,15 @@
-"""Estimation of eq. (1): the measurement equation, its Jacobian, whitening,
-identifiability and uncertainty, in one place.
+"""Estimation on eq. (1): whitening, identifiability, uncertainty, the solver's loss.
 
-- :mod:`~pipeline.estimation.measurement`: the residuals and analytic Jacobian of
-  eq. (1) with weights, known-distance rows and gauge (:class:`Problem`), its start
-  point, the planning Jacobian, fitted target positions
+Eq. (1) itself (its layout, rows, :class:`~pipeline.measurement.pin.Problem` and
+the linear pin/target solve) is :mod:`pipeline.measurement.pin`; this package
+builds the estimation on it:
+
+- :mod:`~pipeline.estimation.loss`: the robust loss that spares the constraint rows
 - :mod:`~pipeline.estimation.whitening`: flange-frame whitening of the residuals
 - :mod:`~pipeline.estimation.identifiability`: pivoted-QR column selection
 - :mod:`~pipeline.estimation.uncertainty`: covariance and predicted pin error
+- :mod:`~pipeline.estimation.correction_frame`, :mod:`~pipeline.estimation.region`,
+  :mod:`~pipeline.estimation.distributions`
 
 Used by identification (:mod:`pipeline.stages.identify`), outlier rejection
 (:mod:`pipeline.stages.outliers`), cross-validation and pose planning

@@ -13,8 +13,8 @@ from __future__ import annotations
 import numpy as np
 
 from pipeline.estimation.distributions import chi2_ppf
-from pipeline.estimation.measurement import Problem
 from pipeline.kinematics.se3 import F64
+from pipeline.measurement.pin import Problem
 
 
 def flange_whitening(prob: Problem, z: F64, n_free: int) -> tuple[F64 | None, F64 | None]:
@@ -38,7 +38,7 @@ def flange_whitening(prob: Problem, z: F64, n_free: int) -> tuple[F64 | None, F6
     w = D.sw**2
     mu = (w[:, None] * e).sum(axis=0) / w.sum()
     c = e - mu
-    dof = 3 * len(e) - (n_free + 3 + 3 * D.K)
+    dof = 3 * len(e) - (n_free + prob.layout.n_nuisance)
     if dof < 15:  # a 3x3 covariance from fewer residual degrees of freedom is noise
         return None, None
     S = (w[:, None, None] * c[:, :, None] * c[:, None, :]).sum(axis=0) / w.sum()

@@ -24,6 +24,7 @@ from typing import Any
 
 import numpy as np
 
+from pipeline.catalog import RUN_FILES
 from pipeline.errors import BadInput
 from pipeline.kinematics.chain import Chain, load_chain
 from pipeline.kinematics.se3 import F64
@@ -91,7 +92,7 @@ def _pin(xml: str) -> tuple[str, F64]:
 
 
 def _offsets(run_dir: Path, joints: list[str]) -> OffsetsFit | None:
-    path = run_dir / "parameters.parquet"
+    path = run_dir / RUN_FILES["parameters"]
     if not path.is_file():
         return None
     import pandas as pd
@@ -140,7 +141,7 @@ def load_run(run_dir: str | Path) -> RunCalibration:
     run_dir = Path(run_dir)
     if not run_dir.is_dir():
         raise BadInput(f"{run_dir}: no such run folder")
-    urdf_path, id_path = run_dir / "calibrated.urdf", run_dir / "identify.json"
+    urdf_path, id_path = run_dir / RUN_FILES["calibrated_urdf"], run_dir / RUN_FILES["identify"]
     for p in (urdf_path, id_path):
         if not p.is_file():
             raise BadInput(f"{p}: missing (run 'vtcal run' or 'vtcal identify' first)")
@@ -156,7 +157,7 @@ def load_run(run_dir: str | Path) -> RunCalibration:
     except (OSError, ValueError) as exc:
         raise BadInput(f"{id_path}: not readable JSON: {exc}") from exc
     base = None
-    rec = run_dir / "recording.json"
+    rec = run_dir / RUN_FILES["recording"]
     if rec.is_file():
         try:
             base = json.loads(rec.read_text()).get("base_link")

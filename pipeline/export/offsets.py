@@ -29,6 +29,7 @@ import math
 from collections.abc import Sequence
 from typing import Any
 
+from pipeline.catalog import RUN_FILES
 from pipeline.errors import BadInput, ExportRefused
 from pipeline.export.calibration import RunCalibration, header_lines
 
@@ -77,7 +78,7 @@ def offsets_data(cal: RunCalibration, signs: Sequence[int] | None = None) -> dic
     fit = cal.offsets
     if fit is None:
         raise ExportRefused(
-            f"offsets: {cal.run_dir / 'parameters.parquet'} has no 'offsets' model "
+            f"offsets: {cal.run_dir / RUN_FILES['parameters']} has no 'offsets' model "
             "(identify with --model all, the default, or --model offsets)"
         )
     s = list(signs) if signs is not None else [1] * len(fit.joints)

@@ -23,6 +23,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from pipeline.measure.protocols import F64, Camera, Frame, JointReading, Robot
+from pipeline.measurement.image import image_error
 
 #: ``(u, v, s)``: target centre and full long axis of its ellipse (px), or None (not found)
 Detection = tuple[float, float, float] | None
@@ -60,8 +61,9 @@ class Goal:
     polarity: str
 
     def error(self, det: tuple[float, float, float]) -> F64:
-        """``e_T = (u - u0, v - v0, 1/s - 1/s0)`` (px, px, 1/px), shape (3,)."""
-        return np.array([det[0] - self.u0, det[1] - self.v0, 1.0 / det[2] - 1.0 / self.s0])
+        """``e_T = (u - u0, v - v0, 1/s - 1/s0)`` (px, px, 1/px), shape (3,)
+        (:func:`pipeline.measurement.image.image_error`)."""
+        return image_error(det[0], det[1], det[2], self.u0, self.v0, self.s0)
 
     def error_px(self, det: tuple[float, float, float]) -> tuple[float, float, float]:
         """``(u - u0, v - v0, s - s0)`` in px: what the convergence test compares."""

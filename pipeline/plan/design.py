@@ -1,7 +1,7 @@
 """The identification Jacobian of candidate poses, reduced to what touch-ups can identify.
 
 One touch-up of target ``k`` at joints ``q_i`` gives the three rows of the
-identification problem (:mod:`pipeline.stages.identify`, eq. 1) linearised at
+identification problem (eq. 1, :func:`pipeline.measurement.pin.rows`) linearised at
 the nominal robot (``x = 0``) with the pin on the target:
 
     A_i = [ J_x(q_i) D V  |  R_base_flange(q_i)  |  -E_k ]      (3 x (r + 3 + 3K))
@@ -46,6 +46,7 @@ from numpy.typing import ArrayLike
 
 from pipeline.kinematics.chain import Chain
 from pipeline.kinematics.se3 import F64
+from pipeline.measurement.pin import ParamLayout, rows
 from pipeline.models import make_model
 from pipeline.models.base import ErrorModel
 from pipeline.models.observability import observability
@@ -90,9 +91,14 @@ class Design:
         return int(self.Ax.shape[2])
 
     @property
+    def layout(self) -> ParamLayout:
+        """Columns of a full row ``A_i``: ``[kinematic (r) | pin | targets]``."""
+        return ParamLayout(self.r, self.K)
+
+    @property
     def p(self) -> int:
         """Columns of a full row ``A_i``: ``r + 3 + 3K``."""
-        return self.r + 3 + 3 * self.K
+        return self.layout.n
 
     def __len__(self) -> int:
         return len(self.tk)
@@ -100,16 +106,9 @@ class Design:
     # ---------------------------------------------------------------- rows and information
 
     def rows(self, idx: ArrayLike) -> F64:
-        """Full rows ``A_i`` of candidates ``idx``, (B, 3, p)."""
+        """Full rows ``A_i`` of candidates ``idx``, (B, 3, p) (:func:`pipeline.measurement.pin.rows`)."""
         idx = np.asarray(idx, dtype=np.int64)
-        B = len(idx)
-        A = np.zeros((B, 3, self.p))
-        A[:, :, : self.r] = self.Ax[idx]
-        A[:, :, self.r : self.r + 3] = self.R[idx]
-        cols = self.r + 3 + 3 * self.tk[idx]
-        for c in range(3):
-            A[np.arange(B), c, cols + c] = -1.0
-        return A
+        return rows(self.layout, self.Ax[idx], self.R[idx], self.tk[idx])
 
     def information(self, idx: ArrayLike) -> F64:
         """``M = sum_i A_i^T A_i`` over candidates ``idx``, (p, p)."""
@@ -143,8 +142,7 @@ class Design:
         idx = np.asarray(idx, dtype=np.int64)
         M = self.information(idx)
         e = self.r + 3
-        used = np.unique(self.tk[idx])
-        tcols = (e + 3 * used[:, None] + np.arange(3)).ravel()
+        tcols = self.layout.target_columns(np.unique(self.tk[idx]))
         Mee = M[:e, :e]
         Met = M[:e][:, tcols]
         Mtt = M[np.ix_(tcols, tcols)]

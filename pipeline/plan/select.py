@@ -39,6 +39,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from pipeline.kinematics.se3 import F64
+from pipeline.measurement.pin import ParamLayout
 from pipeline.plan.design import NUISANCE_RIDGE, Design
 
 CRITERIA = ("O1", "O3", "O4", "A")
@@ -106,7 +107,7 @@ class SelectionState:
         """``At`` (B, 3, r) and ``C = (I + H)^-1`` (B, 3, 3) of candidates ``idx`` (eq. 3)."""
         d = self.d
         R = d.R[idx]
-        t0 = 3 + 3 * d.tk[idx]
+        t0 = ParamLayout(0, d.K).target_start(d.tk[idx])
         ar3 = np.arange(3)
         tr = t0[:, None] + ar3  # (B, 3) target rows/cols in nuisance space
         Gt = self.G[tr]  # (B, 3, r)

@@ -36,6 +36,7 @@ import numpy as np
 import pandas as pd
 
 from pipeline.artefacts import read_meta
+from pipeline.catalog import RUN_FILES
 from pipeline.kinematics.chain import fk
 from pipeline.report.data import RunData
 
@@ -223,7 +224,7 @@ def settle_rows(data: RunData) -> list[dict[str, str]]:
     capture before the last against the last, the weights the averages used, and
     the one-mode swing fit of the centre (:mod:`pipeline.stages.touchup_swing`).
     """
-    path = data.run_dir / "touchups.parquet"
+    path = data.run_dir / RUN_FILES["touchups"]
     try:
         found = json.loads(read_meta(path).get("settle", "{}")) if path.exists() else {}
     except (OSError, ValueError):

@@ -319,7 +319,7 @@ def _nominal_fit(data: RunData) -> pd.DataFrame | None:
     q = data.joint_matrix(tu)
     if q is None or len(tu) < 2:
         return None
-    from pipeline.evaluate import fit_pin_and_targets
+    from pipeline.measurement.pin import fit_pin_and_targets
 
     d = np.zeros((len(tu), 3))
     cols = _first_cols(tu, [("dx_flange", "dy_flange", "dz_flange")])

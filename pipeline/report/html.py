@@ -34,6 +34,7 @@ import numpy as np
 import pandas as pd
 
 from pipeline.artefacts import atomic_write_bytes
+from pipeline.catalog import RUN_FILES
 from pipeline.report import plots
 from pipeline.report.data import RunData, load_run
 from pipeline.report.diagnosis import camera_section
@@ -206,7 +207,7 @@ def build_report(
     Parameters
     ----------
     run_dir : the run folder (``vtcal run --out``)
-    out_path : destination (default ``run_dir / "report.html"``)
+    out_path : destination (default ``run_dir / RUN_FILES["report"]``)
     tolerance_mm : the PASS/FAIL tolerance (default: run.json's, else the recording's key)
     data, images : the run folder already loaded (:func:`load_run`) and the thumbnails'
         images (:func:`thumbnail_frames`), when the caller has them (one load and one pass
@@ -216,7 +217,7 @@ def build_report(
     again from the recording only if the path in ``recording.json`` exists.
     """
     run_dir = Path(run_dir)
-    out = Path(out_path) if out_path is not None else run_dir / "report.html"
+    out = Path(out_path) if out_path is not None else run_dir / RUN_FILES["report"]
     loaded = data is not None
     data = data if data is not None else load_run(run_dir)
     if tolerance_mm is not None:

@@ -38,6 +38,7 @@ from __future__ import annotations
 from pathlib import Path
 
 from pipeline.artefacts import atomic_write_bytes
+from pipeline.catalog import RUN_FILES
 from pipeline.report.data import RunData, load_run, run_uuid
 from pipeline.report.images import Frame
 
@@ -57,7 +58,7 @@ def build_rrd(
     Parameters
     ----------
     run_dir : the run folder
-    out_path : destination (default ``run_dir / "run.rrd"``)
+    out_path : destination (default ``run_dir / RUN_FILES["rrd"]``)
     recording_id : Rerun recording id (default :func:`run_uuid` of the folder,
         so the same artefacts always give the same id)
     data, images : the run folder already loaded (:func:`load_run`) and the camera
@@ -67,7 +68,7 @@ def build_rrd(
     ``RecordingStream.disconnect()`` and then moved into place.
     """
     run_dir = Path(run_dir)
-    out = Path(out_path) if out_path is not None else run_dir / "run.rrd"
+    out = Path(out_path) if out_path is not None else run_dir / RUN_FILES["rrd"]
     loaded = data is not None
     data = data if data is not None else load_run(run_dir)
     rid = recording_id or run_uuid(run_dir)

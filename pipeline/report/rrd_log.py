@@ -19,6 +19,7 @@ import rerun as rr
 import rerun.blueprint as rrb
 
 from pipeline.kinematics.chain import Chain, fk
+from pipeline.measurement.image import focal_from_size
 from pipeline.report.data import RunData
 from pipeline.report.figures import pin_positions, skeleton_points, target_positions
 from pipeline.report.images import Frame, ellipse_polyline, recording_frames
@@ -50,7 +51,8 @@ def camera_guess(
 
     The camera frame (x right, y down, z optical axis, as OpenCV) sits at the
     flange origin with its z axis towards the virtual pin; the focal length
-    is ``f = s0 d / D`` (seed paper eq. 1, with ``d = |p_flange_pin|``); the
+    is ``f = s0 d / D`` (:func:`pipeline.measurement.image.focal_from_size`, with
+    ``d = |p_flange_pin|``); the
     image size is ``2 * designated + 1`` (designated pixel at the centre).
     """
     d0 = designated(data)
@@ -64,7 +66,11 @@ def camera_guess(
     except ValueError:
         D = float("nan")
     s0 = d0[2]
-    f = s0 * d / D if np.isfinite(D) and D > 0 and np.isfinite(s0) else 2.0 * (d0[0] + 0.5)
+    f = (
+        focal_from_size(s0, d, D)
+        if np.isfinite(D) and D > 0 and np.isfinite(s0)
+        else 2.0 * (d0[0] + 0.5)
+    )
     z = p_flange_pin / d
     x = np.cross([0.0, 1.0, 0.0], z) if abs(z[1]) < 0.9 else np.cross(z, [0.0, 0.0, 1.0])
     x /= np.linalg.norm(x)

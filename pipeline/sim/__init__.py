@@ -6,12 +6,14 @@ Modules: :mod:`~pipeline.sim.camera` (pinhole + radial distortion),
 :mod:`~pipeline.sim.target_geometry` (printed target shape, exact projected
 ellipse), :mod:`~pipeline.sim.detect` (the simulated controller's detection),
 :mod:`~pipeline.sim.robot` (deviations, true URDFs, nominal IK),
-:mod:`~pipeline.sim.scenario` (TOML scenarios), :mod:`~pipeline.sim.recorder`
-(streaming ROS 2 MCAP writer), :mod:`~pipeline.sim.cell` (the world of one seed),
+:mod:`~pipeline.sim.scenario` (TOML scenarios), :mod:`~pipeline.sim.cell` (the world of one seed),
 :mod:`~pipeline.sim.poses` (planned poses), :mod:`~pipeline.sim.session` (clock,
 motion, capture), :mod:`~pipeline.sim.cell_adapter` (the cell behind the
-measurement protocols), :mod:`~pipeline.sim.faults`, :mod:`~pipeline.sim.truth`
+measurement protocols), :mod:`~pipeline.sim.link` (that cell as ``vtcal measure``'s
+``sim:`` link), :mod:`~pipeline.sim.faults`, :mod:`~pipeline.sim.truth`
 (the truth file, whose layout follows the conformance sample's) and
 :mod:`~pipeline.sim.simulator` (runs a session with the shared touch-up loop of
-:mod:`pipeline.measure.loop`). See ``docs/simulator.md``.
+:mod:`pipeline.measure.loop`). It writes with the project's streaming ROS 2 MCAP writer,
+:mod:`pipeline.io_mcap_write` (shared with ``vtcal measure``). The simulator sits above
+:mod:`pipeline.measure` (it runs its loop), never below. See ``docs/simulator.md``.
 """

@@ -18,6 +18,7 @@ import numpy as np
 from pipeline.kinematics.chain import Chain, load_chain
 from pipeline.kinematics.se3 import F64, matrix_from_axis_angle, matrix_from_rpy, transform_from
 from pipeline.kinematics.urdf import parse_urdf
+from pipeline.measurement.image import depth_from_size, size_from_depth
 from pipeline.robots import load_urdf
 from pipeline.sim.camera import CameraModel
 from pipeline.sim.robot import deviated_origins, draw_deviations, urdf_with_origins, urdf_with_pin
@@ -113,7 +114,7 @@ def virtual_pin_camera(
     with ``(u, v, s)`` the centre and long axis of
     :func:`pipeline.sim.target_geometry.projected_ellipse` (the circle's points through
     the full camera model). Without distortion this is ``Z = fx D / s0`` on the
-    ray of ``(u0, v0)``. With radial distortion the disc's rim lies at
+    ray of ``(u0, v0)`` (:func:`pipeline.measurement.image.depth_from_size`). With radial distortion the disc's rim lies at
     normalised radius ``r = D / (2 Z)`` about its centre, and barrel distortion
     (``k1 < 0``) shrinks the image of the disc by ``1 + k1 r^2 + ...`` even at the
     principal point (``-6e-5`` for ``k1 = -0.07``, ``r = 0.03``): a perfect
@@ -136,7 +137,7 @@ def virtual_pin_camera(
     (3,) ``p_vt_camera`` (m).
     """
     xu, yu = camera.pixel_to_normalised(np.array([u0, v0]))
-    p = camera.fx * diameter_m / s0 * np.array([xu, yu, 1.0])
+    p = depth_from_size(camera.fx, diameter_m, s0) * np.array([xu, yu, 1.0])
     goal = np.array([u0, v0, s0])
 
     def err(pt: F64) -> F64:
@@ -189,7 +190,7 @@ def build_cell(sc: Scenario, rng: np.random.Generator) -> Cell:
     u0 = t.designated_u if t.designated_u is not None else (c.width - 1) / 2
     v0 = t.designated_v if t.designated_v is not None else (c.height - 1) / 2
     D = sc.targets.diameter_m
-    s0 = round(camera.fx * D / c.standoff_m, 3)
+    s0 = round(size_from_depth(camera.fx, D, c.standoff_m), 3)
     p_vt_camera = virtual_pin_camera(camera, float(u0), float(v0), s0, D)
     p_vt_flange = R_fc @ p_vt_camera + p_fc
 

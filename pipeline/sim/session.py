@@ -15,12 +15,12 @@ from typing import Any
 
 import numpy as np
 
+from pipeline.io_mcap_write import Recorder, stamp
 from pipeline.kinematics.chain import fk
 from pipeline.kinematics.se3 import F64, invert_transform, matrix_from_axis_angle, translation
 from pipeline.sim.cell import Target, build_cell
 from pipeline.sim.image_finish import Occluder, finish_image, paint_occluders
 from pipeline.sim.optics_state import OpticsState
-from pipeline.sim.recorder import Recorder, stamp
 from pipeline.sim.render import ExtraDisc, render_ideal
 from pipeline.sim.robot import solve_ik
 from pipeline.sim.scenario import Scenario

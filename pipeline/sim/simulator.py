@@ -56,6 +56,7 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
+from pipeline.io_mcap_write import Recorder
 from pipeline.kinematics.se3 import F64
 from pipeline.measure.loop import (
     CaptureInfo,
@@ -70,7 +71,6 @@ from pipeline.measure.protocols import Frame
 from pipeline.sim import faults
 from pipeline.sim.cell import Target
 from pipeline.sim.cell_adapter import SimCamera, SimCell
-from pipeline.sim.recorder import Recorder
 from pipeline.sim.scenario import Scenario
 from pipeline.sim.session import CaptureOptions, ImageSource, Session
 from pipeline.sim.truth import index_images, truth_of

@@ -59,21 +59,23 @@ import pandas as pd
 from scipy.optimize import least_squares
 
 from pipeline.errors import BadInput, CalibrationFailed
-from pipeline.estimation.design import design_jacobian
-from pipeline.estimation.identifiability import exact_touchups, select_columns, structure
-from pipeline.estimation.measurement import Problem, initial_pin_targets, partial_loss
+from pipeline.estimation.identifiability import select_columns
+from pipeline.estimation.loss import partial_loss
 from pipeline.estimation.region import predicted_over, widened_poses
 from pipeline.estimation.uncertainty import covariance, predicted_errors, residual_variance
 from pipeline.estimation.whitening import flange_whitening
 from pipeline.evaluate import workspace_poses
 from pipeline.kinematics.se3 import F64
 from pipeline.kinematics.urdf_write import write_calibrated_urdf
+from pipeline.measurement.data import FitData
+from pipeline.measurement.pin import Problem, initial_pin_targets
 from pipeline.models import model_names
 from pipeline.models.observability import indices_from_singular_values, project_out
-from pipeline.stages.identify_data import FitData, implausible_rows, prepare_data, refuse_early
+from pipeline.stages.identify_data import implausible_rows, prepare_data, refuse_early
 from pipeline.stages.identify_frame import correction_frame
 from pipeline.stages.identify_notes import COND_WARN, conditioning_note
 from pipeline.stages.identify_shape import fit_print_shape
+from pipeline.stages.identify_structure import design_jacobian, exact_touchups, structure
 from pipeline.stages.identify_tables import (
     FitFigures,
     Uncertainty,
@@ -256,7 +258,7 @@ def _share_exact_touchups(robot: Robot) -> None:
     """Make the robot's exact synthetic touch-ups here, before the fits fork.
 
     Every model's structural identifiability (:func:`structure`) rates it on the same
-    exact touch-ups (:func:`pipeline.estimation.identifiability.exact_touchups`, cached
+    exact touch-ups (:func:`pipeline.stages.identify_structure.exact_touchups`, cached
     per process); made once in this process, the forked workers (and a later stage's)
     find them made instead of each solving their inverse kinematics again. When they
     cannot be made, each model's fit says so.
@@ -352,9 +354,9 @@ class _Solved:
 
 def _solve(s: _Setup, data: FitData, config: IdentifyConfig) -> _Solved:
     """Step 2: least squares, flange-frame whitening (FGLS), print-shape refit."""
-    prob, kept, K, N = s.prob, s.kept, data.K, len(data.q)
+    prob, kept, N = s.prob, s.kept, len(data.q)
     z0 = prob.join(s.x0, s.pin0, s.tg0)
-    xs = np.concatenate([1.0 / s.pscale[kept], np.ones(3 + 3 * K)])
+    xs = np.concatenate([1.0 / s.pscale[kept], np.ones(prob.layout.n_nuisance)])
     linear = config.robust_loss == "linear"
     method = "lm" if linear and prob.m >= z0.size else "trf"
 
@@ -406,10 +408,10 @@ def _solve(s: _Setup, data: FitData, config: IdentifyConfig) -> _Solved:
 def _uncertainty(s: _Setup, f: _Solved, config: IdentifyConfig) -> Uncertainty:
     """Step 3: covariance, correlations, observability and the predicted pin error."""
     prob, kept, model, data = s.prob, s.kept, s.model, f.data
-    P, K = model.n_params, data.K
+    P = model.n_params
     Jfull = f.J
     Jz = Jfull[:, prob.columns()]
-    zscale = np.concatenate([s.pscale[kept], np.ones(3 + 3 * K)])
+    zscale = np.concatenate([s.pscale[kept], np.ones(prob.layout.n_nuisance)])
     cov, sigma2, dof = covariance(Jz, zscale, f.r)
     std_z = np.sqrt(np.clip(np.diag(cov), 0, None))
     ne = len(kept) + 3

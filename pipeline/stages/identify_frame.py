@@ -20,7 +20,7 @@ from pipeline.estimation.correction_frame import (
 )
 from pipeline.kinematics.chain import Chain
 from pipeline.kinematics.se3 import F64
-from pipeline.stages.identify_data import FitData
+from pipeline.measurement.data import FitData
 from pipeline.stages.identify_types import AUTO_ORDER, IdentifyConfig, IdentifyResult
 
 

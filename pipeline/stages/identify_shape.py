@@ -10,9 +10,9 @@ from typing import Any, NamedTuple
 import numpy as np
 
 from pipeline.estimation.distributions import f_sf
-from pipeline.estimation.measurement import Problem
 from pipeline.kinematics.se3 import F64
-from pipeline.stages.identify_data import FitData
+from pipeline.measurement.data import FitData
+from pipeline.measurement.pin import ParamLayout, Problem
 from pipeline.stages.identify_types import IdentifyConfig
 from pipeline.stages.print_shape import ShapeFit
 
@@ -189,7 +189,7 @@ def _dimensions(D0: FitData, cols: np.ndarray, n_free: int) -> tuple[FitData, F6
 
     assert D0.shape_g is not None
     K, N, ne = D0.K, len(D0.q), len(cols)
-    dof1 = 3 * N + len(D0.dist) - (n_free + 3 + 3 * K) - ne
+    dof1 = 3 * N + len(D0.dist) - (n_free + ParamLayout(0, K).n_nuisance) - ne
     D = dataclasses.replace(D0, d=D0.d.copy(), d_all=D0.d_all.copy())
     return D, D0.shape_g, 3 * K - 1, ne, dof1
 

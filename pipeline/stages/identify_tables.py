@@ -18,7 +18,7 @@ import pandas as pd
 
 from pipeline.estimation.region import region_summary
 from pipeline.kinematics.se3 import F64
-from pipeline.stages.identify_data import FitData
+from pipeline.measurement.data import FitData
 from pipeline.stages.identify_notes import conditioning_note
 
 

@@ -58,7 +58,7 @@ class IdentifyConfig:
         give p ~ 1e-34.
     target_diameter_m : printed diameter, to state print errors in micrometres (else relative)
     implied_target_diameter_m : the diameter the touch-up stage's image Jacobian implies
-        (:func:`pipeline.stages.touchup.diameter_from_jacobian`), checked against
+        (:func:`pipeline.measurement.image.diameter_from_jacobian`), checked against
         ``target_diameter_m`` by the guardrails; None for a table without images
     accept_implausible : identify even where :mod:`pipeline.stages.plausibility` finds an
         input the nominal robot contradicts (joint values outside the URDF's limits, a

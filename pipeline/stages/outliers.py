@@ -83,9 +83,9 @@ import pandas as pd
 
 from pipeline.estimation.correction_frame import PAIR_COLUMNS
 from pipeline.estimation.distributions import f_sf
-from pipeline.estimation.measurement import target_positions
 from pipeline.estimation.whitening import robust_flange_whitening
 from pipeline.kinematics.se3 import F64
+from pipeline.measurement.pin import ParamLayout, distance_row, whitened_rows
 from pipeline.stages.print_shape import SHAPE_COLUMNS
 
 INLIER_COLUMNS = (
@@ -325,7 +325,9 @@ def _fit(out: pd.DataFrame, info: Any, model: str, config: OutlierConfig) -> _Fi
     par = res.parameters
     kin = par[par["kind"] == "kinematic"].reset_index(drop=True)
     kept = np.flatnonzero(kin["identifiable"].to_numpy(dtype=bool))
-    tg = target_positions(res.targets)
+    ids = res.targets["target_id"].to_numpy(dtype=np.int64)
+    xyz = res.targets[["x", "y", "z"]].to_numpy(dtype=float)
+    tg = {int(t): xyz[i] for i, t in enumerate(ids)}  # fitted target positions
     tcol = {t: i for i, t in enumerate(sorted(tg))}
     rows = np.flatnonzero(res.residuals["used"].to_numpy(dtype=bool))
     q = out.iloc[rows][list(chain.joint_names)].to_numpy(dtype=float)
@@ -335,20 +337,14 @@ def _fit(out: pd.DataFrame, info: Any, model: str, config: OutlierConfig) -> _Fi
     tid = out.iloc[rows]["target_id"].to_numpy(dtype=int)
     p, R, Jx = em.pin_and_jacobian(res.x, q, res.p_flange_pin + d, jac=True)
     assert Jx is not None
-    N, K, nk = len(rows), len(tg), len(kept)
+    N, nk = len(rows), len(kept)
+    lay = ParamLayout(nk, len(tg))  # [identified kinematic | pin | targets in sorted order]
     t_at = np.array([tg[int(t)] for t in tid])
-    W = robust_flange_whitening(
-        R, p - t_at, sw**2, nk + 3 + 3 * K, bool(res.summary.get("flange_sigma_mm"))
-    )
+    W = robust_flange_whitening(R, p - t_at, sw**2, lay.n, bool(res.summary.get("flange_sigma_mm")))
     B = np.einsum("ab,ncb->nac", W, R) * sw[:, None, None]  # sqrt(w) W R^T
     e_rows = np.einsum("nab,nb->na", B, p - t_at).ravel()
-    ncol = nk + 3 + 3 * K
-    J = np.zeros((3 * N, ncol))
-    J[:, :nk] = np.einsum("nab,nbk->nak", B, Jx[:, :, kept]).reshape(3 * N, nk)
-    J[:, nk : nk + 3] = np.einsum("nab,nbk->nak", B, R).reshape(3 * N, 3)
-    for i in range(N):
-        c0 = nk + 3 + 3 * tcol[int(tid[i])]
-        J[3 * i : 3 * i + 3, c0 : c0 + 3] = -B[i]
+    tcols = np.array([tcol[int(t)] for t in tid], dtype=np.int64)
+    J = whitened_rows(lay, B, Jx[:, :, kept], R, tcols, einsum=True).reshape(3 * N, lay.n)
     # known-distance rows (their residuals are ~0 at the fit, weight as in identify)
     wd = float(icfg.distance_weight)
     extra_J, extra_e = [], []
@@ -356,12 +352,9 @@ def _fit(out: pd.DataFrame, info: Any, model: str, config: OutlierConfig) -> _Fi
         ta, tb = tg.get(int(a)), tg.get(int(b))
         if ta is None or tb is None:
             continue
-        u = (ta - tb) / max(float(np.linalg.norm(ta - tb)), 1e-12)
-        row = np.zeros(ncol)
-        row[nk + 3 + 3 * tcol[int(a)] : nk + 6 + 3 * tcol[int(a)]] = wd * u
-        row[nk + 3 + 3 * tcol[int(b)] : nk + 6 + 3 * tcol[int(b)]] = -wd * u
+        row, res_d = distance_row(lay, ta, tb, tcol[int(a)], tcol[int(b)], metres, wd)
         extra_J.append(row)
-        extra_e.append(wd * (float(np.linalg.norm(ta - tb)) - metres))
+        extra_e.append(res_d)
     if extra_J:
         J = np.vstack([J, np.array(extra_J)])
         e = np.concatenate([e_rows, np.array(extra_e)])
@@ -441,13 +434,9 @@ def _prediction_test(f: _Fit, out: pd.DataFrame, i: int, info: Any) -> tuple[flo
         return 1.0, 0.0
     p, R, Jx = em.pin_and_jacobian(f.x, q, f.pin + np.nan_to_num(d) @ f.M.T, jac=True)
     assert Jx is not None
-    nk = len(f.kept)
     Bi = np.sqrt(w) * f.W @ R[0].T
-    Ji = np.zeros((3, f.Vs.shape[0]))
-    Ji[:, :nk] = Bi @ Jx[0][:, f.kept]
-    Ji[:, nk : nk + 3] = Bi @ R[0]
-    c0 = nk + 3 + 3 * f.tcol[tid]
-    Ji[:, c0 : c0 + 3] = -Bi
+    lay = ParamLayout(len(f.kept), len(f.targets))
+    Ji = whitened_rows(lay, Bi[None], Jx[:, :, f.kept], R, [f.tcol[tid]])[0]
     G = Ji @ f.Vs
     V = np.eye(3) + G @ G.T
     e = Bi @ (p[0] - f.targets[tid])

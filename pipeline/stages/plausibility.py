@@ -41,7 +41,7 @@ Checks:
   Near the optical axis a flange translation moves the image by ``g = f / z``
   pixels per metre, and the long axis at the designated size is
   ``s_0 = f D / z``, so ``D_img = s_0 / g``
-  (:func:`pipeline.stages.touchup.diameter_from_jacobian`). ``D_img`` agrees
+  (:func:`pipeline.measurement.image.diameter_from_jacobian`). ``D_img`` agrees
   with the print to 0.3-1 % on the shipped and conformance samples; a declared
   diameter more than ``DIAMETER_REL_TOL`` off is a typo, a unit slip or another
   target set (the diameter states print errors in micrometres and scales the
@@ -52,10 +52,10 @@ from __future__ import annotations
 
 import numpy as np
 
-from pipeline.evaluate import fit_pin_and_targets
 from pipeline.kinematics.chain import Chain
 from pipeline.kinematics.se3 import F64
 from pipeline.kinematics.urdf import Joint, RobotDescription
+from pipeline.measurement.pin import fit_pin_and_targets
 
 #: rad (or m for a prismatic joint) beyond a URDF limit that counts as implausible
 JOINT_MARGIN = 0.05
@@ -112,7 +112,7 @@ def nominal_targets(
 ) -> tuple[F64, F64, float]:
     """Pin and targets at nominal kinematics and that fit's RMS residual (m).
 
-    :func:`pipeline.evaluate.fit_pin_and_targets` with the nominal chain.
+    :func:`pipeline.measurement.pin.fit_pin_and_targets` with the nominal chain.
 
     Returns
     -------

@@ -8,7 +8,7 @@ the stand-off), and the point that touched the target is
     p_i = T_base_flange(q_i) (p_pin + d_i + eps_i g_i),      g_i = z r_z      (S1)
 
 (``g`` per touch-up from the image Jacobian:
-:func:`pipeline.stages.touchup.view_geometry`). For a print whose boundary is
+:func:`pipeline.measurement.image.view_geometry`). For a print whose boundary is
 ``r(psi) = R (1 + e cos 2 (psi - phi))`` (semi-axes ``R (1 +- e)``, long axis at
 ``phi`` in the plate) and a relative size error ``kappa``, the extent along a
 line at angle ``alpha`` in the plate is ``2 R (1 + kappa + e cos 2 (alpha - phi))``
@@ -48,7 +48,7 @@ import numpy as np
 from pipeline.kinematics.se3 import F64
 
 #: the touch-up columns of each touch-up's print-shape geometry: the lever ``g`` and the
-#: long-axis direction ``l``, flange frame (``pipeline/stages/touchup.py``, view_geometry)
+#: long-axis direction ``l``, flange frame (``pipeline/measurement/image.py``, view_geometry)
 SHAPE_COLUMNS = ("view_gx", "view_gy", "view_gz", "axis_lx", "axis_ly", "axis_lz")
 
 

@@ -72,15 +72,8 @@ import pandas as pd
 from pipeline.errors import BadInput
 from pipeline.estimation.correction_frame import scatter_columns
 from pipeline.kinematics.chain import fk, load_chain
-from pipeline.stages.touchup_jacobian import (
-    camera_from_jacobian,
-    diameter_from_jacobian,
-    estimate_jacobian,
-    pair_change,
-    pair_scatters,
-    size_row_scales,
-    view_geometry,
-)
+from pipeline.measurement.image import diameter_from_jacobian, pair_change, view_geometry
+from pipeline.stages.touchup_jacobian import estimate_jacobian, pair_scatters, size_row_scales
 from pipeline.stages.touchup_noise import capture_noise
 from pipeline.stages.touchup_rows import final_shapes, touchup_row
 from pipeline.stages.touchup_segments import final_block, loop_starts, relative_pose, segments
@@ -89,16 +82,14 @@ from pipeline.stages.touchup_tilt import tilt_bias
 from pipeline.stages.touchup_types import Captures, Designated, Tilt
 
 #: the public names of touch-up extraction, importable from here (the image
-#: Jacobian and the tilt bias live in touchup_jacobian and touchup_tilt)
+#: Jacobian and the tilt bias live in touchup_jacobian and touchup_tilt; what a
+#: Jacobian implies of the camera, in pipeline.measurement.image)
 __all__ = [
     "TouchupConfig",
-    "camera_from_jacobian",
-    "diameter_from_jacobian",
     "estimate_jacobian",
     "extract_touchups",
     "size_row_scales",
     "tilt_bias",
-    "view_geometry",
 ]
 
 
@@ -228,7 +219,7 @@ def _jacobian_pairs(
     """Step 3: the pairs and the global image Jacobian they give.
 
     Each pair's change is taken at the designated pixel and size
-    (:func:`pipeline.stages.touchup_jacobian.pair_change`), and its translation is
+    (:func:`pipeline.measurement.image.pair_change`), and its translation is
     that of the flange point at the target, the pin estimate ``p_pin`` (step 4):
     ``R_a^T (t_b - t_a) + (R_a^T R_b - I) p_pin``, which is what moves the image
     (a pair within ``pure_translation_rad`` turns the flange by up to 2e-4 rad, 50 um

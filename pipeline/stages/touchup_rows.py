@@ -4,7 +4,7 @@
 where the camera had not settled, :mod:`pipeline.stages.touchup_settle`, and the
 centre then freed of the swing left in the last one, :mod:`pipeline.stages.touchup_swing`);
 :func:`measurement` turns one average into the table's measurement and its
-residual correction ``d_F = -J^-1 e_T``; :func:`touchup_row` makes the row.
+residual correction ``d_F = -J^-1 e_T`` (:mod:`pipeline.measurement.image`); :func:`touchup_row` makes the row.
 The stage itself: :mod:`pipeline.stages.touchup`.
 """
 
@@ -14,6 +14,7 @@ from typing import Any
 
 import numpy as np
 
+from pipeline.measurement.image import image_error, residual_correction, touchup_error
 from pipeline.stages.touchup_settle import settle, wmean
 from pipeline.stages.touchup_swing import remove_swing
 from pipeline.stages.touchup_types import Captures, Designated, Tilt, pose_key
@@ -85,13 +86,7 @@ def measurement(
         conv = abs(mu - u0) <= des.thr and abs(mv - v0) <= des.thr and abs(ms - s0) <= des.thr_s
         # the image of the circle's centre, and the size an untilted target would show
         mu_c, mv_c, ms_c = mu + bias[0], mv + bias[1], ms - bias[2]
-        e_T = np.array([mu_c - u0, mv_c - v0, 1.0 / ms_c - 1.0 / s0])
-        if depth_scaled:
-            e_T[:2] *= s0 / ms_c
-        try:
-            d = -np.linalg.solve(J, e_T)
-        except np.linalg.LinAlgError:
-            d = np.zeros(3)
+        d = residual_correction(J, touchup_error(mu_c, mv_c, ms_c, u0, v0, s0, depth_scaled))
         row.update(
             converged=bool(conv),
             dx_flange=float(d[0]),
@@ -99,14 +94,15 @@ def measurement(
             dz_flange=float(d[2]),
         )
     df = c.df
+    e_u, e_v, e_sinv = image_error(mu, mv, ms, u0, v0, s0)
     row.update(
         u=mu,
         v=mv,
         s=ms,
-        e_u=mu - u0,
-        e_v=mv - v0,
+        e_u=float(e_u),
+        e_v=float(e_v),
         e_s_px=ms - s0,
-        e_sinv=(1.0 / ms - 1.0 / s0) if np.isfinite(ms) else float("nan"),
+        e_sinv=float(e_sinv) if np.isfinite(ms) else float("nan"),
         fit_residual_px=float(np.max(df["residual_px"].to_numpy(float)[use]))
         if use
         else float("nan"),

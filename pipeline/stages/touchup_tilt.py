@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from pipeline.stages.touchup_jacobian import camera_from_jacobian
+from pipeline.measurement.image import camera_from_jacobian
 
 
 def tilt_bias(

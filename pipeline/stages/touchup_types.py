@@ -40,7 +40,7 @@ class Designated(NamedTuple):
 
 
 class Tilt(NamedTuple):
-    """Per touch-up tilt bias (:func:`pipeline.stages.touchup_tilt.tilt_bias`) and view geometry (:func:`pipeline.stages.touchup_jacobian.view_geometry`)."""
+    """Per touch-up tilt bias (:func:`pipeline.stages.touchup_tilt.tilt_bias`) and view geometry (:func:`pipeline.measurement.image.view_geometry`)."""
 
     bias: np.ndarray  # (n, 3)
     tilt_deg: np.ndarray  # (n,)

@@ -1,4 +1,4 @@
-"""Streaming MCAP writer for the simulated cell (ROS 2 profile, CDR, ros2msg schemas).
+"""Streaming MCAP writer (ROS 2 profile, CDR, ros2msg schemas): the simulator's and ``vtcal measure``'s.
 
 Messages are queued by log time in a small heap and written once the
 simulated clock has passed their log time, so the file is in log-time order

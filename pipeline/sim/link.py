@@ -16,9 +16,9 @@ from typing import Any
 import numpy as np
 
 from pipeline.errors import BadInput
+from pipeline.io_mcap_write import NullRecorder
 from pipeline.measure.cell_link import CellLink
 from pipeline.measure.protocols import JointReading
-from pipeline.sim.recorder import NullRecorder
 
 NS = 1_000_000_000
 

@@ -10,6 +10,10 @@
 
 With a TCP robot and a camera of its own (OpenCV, folder) the joint states are
 polled and stamped on the host clock, the camera's clock (docs/measure.md, "Clocks").
+
+Above both :mod:`pipeline.measure` (the live adapters) and :mod:`pipeline.sim`
+(the simulated cell, :mod:`pipeline.sim.link`), which runs the measure loop: so
+neither package imports the other both ways.
 """
 
 from __future__ import annotations
@@ -40,7 +44,7 @@ def _camera(spec: str) -> tuple[Camera, Callable[[], None]]:
 
 
 def _sim(spec: str, camera: str | None) -> CellLink:
-    from pipeline.measure.sim_link import connect_sim
+    from pipeline.sim.link import connect_sim
 
     if camera not in (None, "sim"):
         raise BadInput(
