@@ -154,3 +154,7 @@ def main(argv: list[str] | None = None) -> Any:
             err=True,
         )
         sys.exit(70)
+
+
+if __name__ == "__main__":  # python -m pipeline.cli, as python -m pipeline
+    main()

@@ -29,9 +29,10 @@ def test_every_command_has_help(name: str) -> None:
     assert "Usage: " in res.output and len(res.output.splitlines()) > 4
 
 
-def test_module_entry_point_runs() -> None:
+@pytest.mark.parametrize("module", ["pipeline", "pipeline.cli"])
+def test_module_entry_point_runs(module: str) -> None:
     out = subprocess.run(
-        [sys.executable, "-m", "pipeline", "--version"], capture_output=True, text=True, check=True
+        [sys.executable, "-m", module, "--version"], capture_output=True, text=True, check=True
     )
     assert "vtcal" in out.stdout
 
