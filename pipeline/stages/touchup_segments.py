@@ -14,6 +14,12 @@ import numpy as np
 
 from pipeline.kinematics.se3 import rotation_angle
 
+#: still captures within this of a touch-up's first are its Jacobian probes (the
+#: live loop's are 2 mm shifts, ``measure.loop.LoopConfig.probe_shift_m``; a
+#: recorder's may be larger): a translation beyond ``trans_split_m`` from there is
+#: still the loop's first step, not a new pose
+PROBE_SPAN_M = 0.006
+
 
 def relative_pose(T_a: np.ndarray, T_b: np.ndarray) -> tuple[float, np.ndarray]:
     """Rotation angle and flange-frame translation from pose a to pose b."""
@@ -28,9 +34,10 @@ def segments(
 
     Consecutive still captures whose flange poses differ by more than
     ``rot_split_rad`` in orientation or ``trans_split_m`` in position start a new
-    segment, except a pure translation right after a segment's first capture (the
-    loop's first step); a capture taken while moving joins the neighbouring still
-    capture whose pose is nearer (``0.2 m/rad angle + distance``).
+    segment, except a translation while the segment's still captures all lie within
+    ``PROBE_SPAN_M`` of its first (the loop's first step, after its first capture or
+    the Jacobian probes around it); a capture taken while moving joins the
+    neighbouring still capture whose pose is nearer (``0.2 m/rad angle + distance``).
 
     Parameters
     ----------
@@ -41,17 +48,20 @@ def segments(
     still_idx = np.nonzero(still)[0]
     cur = 0
     seg[still_idx[0]] = 0
-    n_cur = 1  # still captures in the current segment
+    first = int(still_idx[0])  # the current segment's first still capture
+    span = 0.0  # how far its still captures lie from that first one
     for a, b in zip(still_idx[:-1], still_idx[1:], strict=True):
         ang, d = relative_pose(T[a], T[b])
-        # a pure translation after a lone first capture is the loop's first step, however
-        # long (a plan made with the nominal robot can start 30+ mm off)
-        far = np.linalg.norm(d) > trans_split_m and n_cur > 1
+        # a translation before the segment has moved beyond its probes is the loop's
+        # first step, however long (a plan made with another pin or the nominal robot
+        # can start 30+ mm off)
+        far = np.linalg.norm(d) > trans_split_m and span > PROBE_SPAN_M
         if ang > rot_split_rad or far:
             cur += 1
-            n_cur = 0
+            first, span = int(b), 0.0
+        else:
+            span = max(span, float(np.linalg.norm(T[b][:3, 3] - T[first][:3, 3])))
         seg[b] = cur
-        n_cur += 1
     for i in np.nonzero(~still)[0]:
         prev = still_idx[still_idx < i]
         nxt = still_idx[still_idx > i]
