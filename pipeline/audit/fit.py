@@ -1,0 +1,226 @@
+"""One recording's own calibration as the audit uses it: the estimate and its covariance.
+
+Each recording is identified on its own (:func:`pipeline.stages.identify.identify`,
+the error model the audit compares with, ``full`` by default). What the change
+test needs of it is the vector of estimated quantities
+
+    z = [identified kinematic corrections, pin (3), target centres (3K)]
+
+and its joint covariance. The parameters artefact carries the kinematic and pin
+block only (standard errors and correlation rows); a moved base shows in the
+targets alone, so the covariance is rebuilt here over all of ``z`` from the
+fit's Jacobian at its solution (paper eq. 1 linearised, the identification's
+own columns)::
+
+    J = [J_x, R_i, -E_k ; w_D known-distance rows ; w_D scale-gauge row],
+    C_z = sigma^2 (J^T J)^-1                                                 (F1)
+
+with ``sigma`` the fit's per-axis noise (``sigma_mm``), isotropic rows (the
+fit whitens them in the flange frame; isotropic is what the simulator draws,
+and the whitened covariance of a real recording differs from (F1) by the
+anisotropy of its touch-up noise: the false-alarm rate is measured on
+simulated data, docs/audit.md).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+import pandas as pd
+
+from pipeline.audit.identity import AuditItem
+from pipeline.kinematics.se3 import F64
+from pipeline.stages.identify_types import IdentifyConfig, IdentifyResult
+
+#: the error model the change test compares (every physical cause is one of its columns)
+CHANGE_MODEL = "full"
+
+
+@dataclass
+class Estimate:
+    """A recording's calibration, as compared.
+
+    Attributes
+    ----------
+    names : E estimated quantity names (kinematic, ``pin.x/y/z``, ``target.LABEL.x/y/z``)
+    z : (E,) values (m, rad) ; cov : (E, E) (F1)
+    targets : DataFrame ``target_label, x, y, z, std_x, std_y, std_z`` (m)
+    result : the identification result (chain, pin, model, parameters)
+    q : (N, n) the usable touch-ups' joint vectors ; tk : (N,) their target index
+    labels : K target labels (text) of ``tk``
+    gauge : (P,) the scale gauge row ``g . x = 0`` the fit held (no known distance), else None
+    """
+
+    names: list[str]
+    z: F64
+    cov: F64
+    targets: pd.DataFrame
+    result: IdentifyResult
+    q: F64
+    tk: np.ndarray
+    labels: list[str]
+    gauge: F64 | None = None
+
+    def index(self) -> dict[str, int]:
+        return {n: i for i, n in enumerate(self.names)}
+
+
+def estimate_of(
+    result: IdentifyResult,
+    q: F64,
+    tk: np.ndarray,
+    labels: list[str],
+    distances: list[tuple[Any, Any, float]],
+    gauge: F64 | None,
+) -> Estimate:
+    """``z`` and (F1) of one fit (``q``, ``tk``, ``labels``: the touch-ups it used)."""
+    p = result.parameters
+    est = p[p["estimated_index"] >= 0].sort_values("estimated_index")
+    names = est["name"].tolist()
+    z = est["value"].to_numpy(dtype=float)
+    t = result.targets
+    tg = t[["target_label", "x", "y", "z", "std_x", "std_y", "std_z"]].copy()
+    tg["target_label"] = tg["target_label"].astype(str)
+    pos = tg.set_index("target_label").loc[labels, ["x", "y", "z"]].to_numpy(float)
+    names += [f"target.{lab}.{c}" for lab in labels for c in "xyz"]
+    z = np.concatenate([z, pos.ravel()])
+    e = Estimate(names, z, np.zeros((0, 0)), tg.reset_index(drop=True), result, q, tk, labels, gauge)
+    e.cov = covariance(e, distances)
+    return e
+
+
+def point_columns(est: Estimate, names: list[str]) -> F64:
+    """``d(touch-up point)/d(quantity)`` (3N, len(names)) at ``est``'s fit, quantities by name
+    (kinematic columns of the full parameter vector, ``pin.*``, ``target.LABEL.*``)."""
+    res = est.result
+    model = res.error_model
+    assert model is not None
+    _, R, J = model.pin_and_jacobian(res.x, est.q, res.p_flange_pin)
+    assert J is not None
+    N = len(est.q)
+    idx = {n: i for i, n in enumerate(model.param_names)}
+    kof = {lab: k for k, lab in enumerate(est.labels)}
+    cols = []
+    for n in names:
+        if n.startswith("pin."):
+            cols.append(R[:, :, "xyz".index(n[-1])].reshape(3 * N))
+        elif n.startswith("target."):
+            lab, ax = n[len("target.") : -2], "xyz".index(n[-1])
+            col = np.zeros((N, 3))
+            col[est.tk == kof[lab], ax] = -1.0
+            cols.append(col.reshape(3 * N))
+        else:
+            cols.append(J[:, :, idx[n]].reshape(3 * N))
+    return np.stack(cols, axis=1) if cols else np.zeros((3 * N, 0))
+
+
+def constraint_rows(est: Estimate, names: list[str], distances: list[tuple[Any, Any, float]]) -> F64:
+    """The fit's exact constraints on ``names``: known distances ``u . (t_a - t_b)`` and the
+    scale gauge ``g . x`` (rows, (m, len(names)))."""
+    rows = []
+    at = {n: i for i, n in enumerate(names)}
+    pos = {lab: est.z[at[f"target.{lab}.x"] : at[f"target.{lab}.x"] + 3] for lab in est.labels}
+    for a, b, _m in distances:
+        sa, sb = str(a), str(b)
+        if sa in pos and sb in pos:
+            u = pos[sa] - pos[sb]
+            u = u / np.linalg.norm(u)
+            row = np.zeros(len(names))
+            for c in range(3):
+                row[at[f"target.{sa}.{'xyz'[c]}"]] = u[c]
+                row[at[f"target.{sb}.{'xyz'[c]}"]] = -u[c]
+            rows.append(row)
+    if est.gauge is not None:
+        model = est.result.error_model
+        assert model is not None
+        gi = {n: i for i, n in enumerate(model.param_names)}
+        rows.append(np.array([est.gauge[gi[n]] if n in gi else 0.0 for n in names]))
+    return np.array(rows).reshape(len(rows), len(names))
+
+
+def covariance(est: Estimate, distances: list[tuple[Any, Any, float]]) -> F64:
+    """(F1) over ``est.names``: the constraints as rows of the fit's weight
+    (``IdentifyConfig.distance_weight``, the touch-up rows in metres), ``sigma^2 (J^T J)^+``."""
+    J = point_columns(est, est.names)
+    G = constraint_rows(est, est.names, distances)
+    A = np.vstack([J, IdentifyConfig().distance_weight * G])
+    scale = np.linalg.norm(A, axis=0)
+    scale[scale == 0] = 1.0
+    A = A / scale
+    sigma = float(est.result.summary.get("sigma_mm", 0.0)) * 1e-3
+    inv = np.linalg.pinv(A.T @ A, rcond=1e-12, hermitian=True)
+    cov = sigma**2 * inv / np.outer(scale, scale)
+    return np.asarray(0.5 * (cov + cov.T))
+
+
+def fit_table(
+    table: pd.DataFrame,
+    urdf: str,
+    base_link: str,
+    flange_link: str,
+    model: str = CHANGE_MODEL,
+    distances: list[tuple[Any, Any, float]] | None = None,
+) -> IdentifyResult:
+    """One error model fitted on a touch-up table (no cross-validation, no files)."""
+    from pipeline.stages.identify import identify
+
+    cfg = IdentifyConfig(model=model, distances=list(distances or []), check_plausibility=False)
+    res = identify(table, urdf, base_link, flange_link, cfg)
+    assert not isinstance(res, dict)
+    return res
+
+
+def fit_item(item: AuditItem, model: str = CHANGE_MODEL) -> Estimate:
+    """The recording's own calibration with ``model`` and its estimate (F1)."""
+    from pipeline.validate import usable_touchups
+
+    res = fit_table(item.table, item.urdf, item.base_link, item.flange_link, model, item.distances)
+    data = usable_touchups(item.table, list(res.chain.joint_names), item.name)
+    gauge = scale_gauge(res, item, bool(item.distances))
+    return estimate_of(res, data.q, data.tk, data.labels, item.distances, gauge)
+
+
+def scale_gauge(res: IdentifyResult, item: AuditItem, has_dist: bool) -> F64 | None:
+    """The fit's scale gauge row over the model's parameters (identify's ``_setup``), or None."""
+    from pipeline.estimation.identifiability import structure
+
+    model = res.error_model
+    assert model is not None
+    st = structure(res.model, item.urdf, item.base_link, item.flange_link, has_dist, 1e-8)
+    if st.gauge is None:
+        return None
+    g = np.asarray(st.gauge * model.column_scale(st.length), dtype=float)
+    return g / np.linalg.norm(g)
+
+
+def halves(table: pd.DataFrame) -> tuple[pd.DataFrame, pd.DataFrame]:
+    """The touch-ups split in two, alternately within each target (first, third, ... | second, ...)."""
+    rank = table.groupby("target_id").cumcount().to_numpy()
+    return table[rank % 2 == 0], table[rank % 2 == 1]
+
+
+def heldout_mm(item: AuditItem, model: str) -> tuple[float, str]:
+    """Two-fold held-out consistency of ``model`` on one recording (mm) and a note.
+
+    The touch-ups are split by :func:`halves`; each half's fit is judged on the
+    other by :func:`pipeline.validate.judge` (its own pin), and the two
+    consistencies pooled: ``sqrt((n_a c_a^2 + n_b c_b^2) / (n_a + n_b))``.
+    NaN with the reason when a half is too small for the model.
+    """
+    from pipeline.errors import VtcalError
+    from pipeline.validate import judge, usable_touchups
+
+    a, b = halves(item.table)
+    sq, n = 0.0, 0
+    for train, test in ((a, b), (b, a)):
+        try:
+            res = fit_table(train, item.urdf, item.base_link, item.flange_link, model)
+            data = usable_touchups(test, list(res.chain.joint_names), item.name)
+            j = judge(model, res.chain, res.p_flange_pin, data, [])
+        except VtcalError as exc:
+            return float("nan"), f"{model}: {exc}"
+        sq += len(data.q) * j["consistency_mm"] ** 2
+        n += len(data.q)
+    return float(np.sqrt(sq / n)), ""
