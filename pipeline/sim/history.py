@@ -244,6 +244,10 @@ def touch_targets(
     df["inlier"] = True
     df["reason"] = ""
     df["note"] = ""
+    for c in ("studentized", "leverage", "view_gx", "view_gy", "view_gz", "axis_lx", "axis_ly"):
+        df[c] = np.nan
+    for c in ("axis_lz", "pair_sxx", "pair_syy", "pair_szz", "pair_sxy", "pair_sxz", "pair_syz"):
+        df[c] = np.nan
     return df
 
 
