@@ -110,7 +110,9 @@ def run_audit(
                     fresh_mm=v["fresh_mm"], validated_mm=v["validated_mm"],
                     drift_mm=v["drift_mm"], passed=v["passed"], verdict=v["line"],
                 )  # fmt: skip
-                c = _change_row("history", runs[i - 1], it, est[runs[i - 1].name], est[it.name], alpha)
+                c = _change_row(
+                    "history", runs[i - 1], it, est[runs[i - 1].name], est[it.name], alpha
+                )
                 ch_rows.append(c)
                 lines.append(f"  {it.name}: {v['line']}; {c['text']}")
             rec_rows.append(row)

@@ -100,6 +100,4 @@ def compare_estimates(a: Estimate, b: Estimate) -> Difference:
     names = [n for n in b.names if n in ia]
     jb = [b.index()[n] for n in names]
     ja = [ia[n] for n in names]
-    return difference_test(
-        a.z[ja], a.cov[np.ix_(ja, ja)], b.z[jb], b.cov[np.ix_(jb, jb)], names
-    )
+    return difference_test(a.z[ja], a.cov[np.ix_(ja, ja)], b.z[jb], b.cov[np.ix_(jb, jb)], names)

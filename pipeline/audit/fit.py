@@ -86,7 +86,9 @@ def estimate_of(
     pos = tg.set_index("target_label").loc[labels, ["x", "y", "z"]].to_numpy(float)
     names += [f"target.{lab}.{c}" for lab in labels for c in "xyz"]
     z = np.concatenate([z, pos.ravel()])
-    e = Estimate(names, z, np.zeros((0, 0)), tg.reset_index(drop=True), result, q, tk, labels, gauge)
+    e = Estimate(
+        names, z, np.zeros((0, 0)), tg.reset_index(drop=True), result, q, tk, labels, gauge
+    )
     e.cov = covariance(e, distances)
     return e
 
@@ -116,7 +118,9 @@ def point_columns(est: Estimate, names: list[str]) -> F64:
     return np.stack(cols, axis=1) if cols else np.zeros((3 * N, 0))
 
 
-def constraint_rows(est: Estimate, names: list[str], distances: list[tuple[Any, Any, float]]) -> F64:
+def constraint_rows(
+    est: Estimate, names: list[str], distances: list[tuple[Any, Any, float]]
+) -> F64:
     """The fit's exact constraints on ``names``: known distances ``u . (t_a - t_b)`` and the
     scale gauge ``g . x`` (rows, (m, len(names)))."""
     rows = []

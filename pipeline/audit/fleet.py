@@ -54,7 +54,9 @@ def ranking(matrix: pd.DataFrame) -> pd.DataFrame:
             {
                 "model": m,
                 "median_rank": float(g.loc[g["rank"] > 0, "rank"].median()),
-                "rms_heldout_mm": float(np.sqrt(np.mean(f["heldout_mm"] ** 2))) if len(f) else np.nan,
+                "rms_heldout_mm": float(np.sqrt(np.mean(f["heldout_mm"] ** 2)))
+                if len(f)
+                else np.nan,
                 "n": int(g["heldout_mm"].notna().sum()),
             }
         )

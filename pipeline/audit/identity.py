@@ -81,9 +81,7 @@ def run_folders(paths: list[Path]) -> list[Path]:
             continue
         subs = sorted(d for d in p.iterdir() if (d / RECORDING).is_file()) if p.is_dir() else []
         if not subs:
-            raise BadInput(
-                f"{p}: not a run folder (no {RECORDING}) nor a folder of run folders"
-            )
+            raise BadInput(f"{p}: not a run folder (no {RECORDING}) nor a folder of run folders")
         out.extend(subs)
     return out
 

@@ -14,7 +14,7 @@ canvas (:mod:`pipeline.report.svg`):
 from __future__ import annotations
 
 import math
-from datetime import datetime, timezone
+from datetime import UTC, datetime
 from html import escape
 from typing import Any
 
@@ -35,7 +35,7 @@ KIND_COLOURS = {
 
 
 def _date(ns: int) -> str:
-    return datetime.fromtimestamp(ns / 1e9, tz=timezone.utc).strftime("%Y-%m-%d")
+    return datetime.fromtimestamp(ns / 1e9, tz=UTC).strftime("%Y-%m-%d")
 
 
 def _fmt(x: Any, digits: int = 3) -> str:
@@ -49,7 +49,9 @@ def timeline_svg(recs: pd.DataFrame, changes: pd.DataFrame) -> str:
     n = len(recs)
     x = np.arange(n, dtype=float)
     ticks = [(float(i), _date(int(s))) for i, s in zip(x, recs["stamp_ns"], strict=True)]
-    vals = np.concatenate([recs[c].to_numpy(float) for c in ("drift_mm", "validated_mm", "fresh_mm")])
+    vals = np.concatenate(
+        [recs[c].to_numpy(float) for c in ("drift_mm", "validated_mm", "fresh_mm")]
+    )
     vals = np.append(vals[np.isfinite(vals)], float(recs["tolerance_mm"].iloc[0]))
     top = Panel((70, 40, 620, 170), (-0.5, n - 0.5), (0.0, float(vals.max()) * 1.15 or 1.0))
     top.legend_above = False
@@ -64,18 +66,20 @@ def timeline_svg(recs: pd.DataFrame, changes: pd.DataFrame) -> str:
     ch = changes[changes["changed"]]
     sizes, errs, labels, xs, kinds = [], [], [], [], []
     pos = {r: i for i, r in enumerate(recs["recording"])}
-    for c in ch.itertuples():
-        cols, size, std = list(c.columns), list(c.size), list(c.size_std)
+    for c in ch.to_dict("records"):
+        cols, size, std = list(c["columns"]), list(c["size"]), list(c["size_std"])
         for k, (col, s, e) in enumerate(zip(cols, size, std, strict=True)):
             deg = col.endswith(("dq0", ".rx", ".ry", ".rz"))
             f = math.degrees(1) if deg else 1e3
-            xs.append(pos[c.to_recording] - 0.25 + 0.5 * (k + 0.5) / max(len(cols), 1))
+            xs.append(pos[c["to_recording"]] - 0.25 + 0.5 * (k + 0.5) / max(len(cols), 1))
             sizes.append(s * f)
             errs.append(2 * e * f)
             labels.append(col + (" deg" if deg else " mm"))
-            kinds.append(c.kind)
+            kinds.append(c["kind"])
     if sizes:
-        lo, hi = padded(min(np.array(sizes) - errs + [0.0]), max(np.array(sizes) + errs + [0.0]), 0.15)
+        lo, hi = padded(
+            min(np.array(sizes) - errs + [0.0]), max(np.array(sizes) + errs + [0.0]), 0.15
+        )
         bot = Panel((70, 270, 620, 150), (-0.5, n - 0.5), (lo, hi))
         bot.line([-0.5, n - 0.5], [0, 0], COLOURS["tol"], width=0.8)
         for xi, s, e, lab, kd in zip(xs, sizes, errs, labels, kinds, strict=True):
@@ -83,10 +87,12 @@ def timeline_svg(recs: pd.DataFrame, changes: pd.DataFrame) -> str:
             bot.line([xi, xi], [s - e, s + e], colour, width=1.5)
             bot.dots(np.array([xi]), np.array([s]), colour, 6)
             bot.text(xi, s, lab, size=8)
-        body.append(bot.render(ylabel="size (mm, deg)", title="changes read (2-sigma bars)", xticks=ticks))
-    for c in ch.itertuples():
-        if not len(c.columns):
-            top.text(pos[c.to_recording], 0, c.kind.replace("_", " "))
+        body.append(
+            bot.render(ylabel="size (mm, deg)", title="changes read (2-sigma bars)", xticks=ticks)
+        )
+    for c in ch.to_dict("records"):
+        if not len(c["columns"]):
+            top.text(pos[c["to_recording"]], 0, c["kind"].replace("_", " "))
     return canvas(720, 450 if sizes else 250, body)
 
 
@@ -99,22 +105,24 @@ def heatmap_svg(matrix: pd.DataFrame) -> str:
     ok = np.isfinite(v) & (v > 0)
     lo, hi = (np.log10(v[ok].min()), np.log10(v[ok].max())) if ok.any() else (0.0, 1.0)
     parts = []
-    for r in matrix.itertuples():
-        i, j = recs.index(r.recording), models.index(r.model)
+    for r in matrix.to_dict("records"):
+        i, j = recs.index(r["recording"]), models.index(r["model"])
         x, y = left + i * cw, top + j * ch
-        if np.isfinite(r.heldout_mm) and r.heldout_mm > 0:
-            t = (math.log10(r.heldout_mm) - lo) / max(hi - lo, 1e-9)
+        if np.isfinite(r["heldout_mm"]) and r["heldout_mm"] > 0:
+            t = (math.log10(r["heldout_mm"]) - lo) / max(hi - lo, 1e-9)
             colour = f"rgb({int(255 * t)},{int(200 * (1 - t) + 40)},{int(255 * (1 - t))})"
         else:
             colour = "#d0d7de"
-        stroke = ' stroke="#000" stroke-width="2"' if r.rank == 1 else ""
+        stroke = ' stroke="#000" stroke-width="2"' if r["rank"] == 1 else ""
         parts.append(
             f'<rect x="{x:.1f}" y="{y:.1f}" width="{cw - 2:.1f}" height="{ch - 2:.1f}" '
-            f'fill="{colour}"{stroke}><title>{escape(r.model)} on {escape(r.recording)}: '
-            f"{_fmt(r.heldout_mm, 4)} mm</title></rect>"
+            f'fill="{colour}"{stroke}><title>{escape(r["model"])} on {escape(r["recording"])}: '
+            f"{_fmt(r['heldout_mm'], 4)} mm</title></rect>"
         )
     for j, m in enumerate(models):
-        parts.append(f'<text x="{left - 6}" y="{top + j * ch + 14}" text-anchor="end">{escape(m)}</text>')
+        parts.append(
+            f'<text x="{left - 6}" y="{top + j * ch + 14}" text-anchor="end">{escape(m)}</text>'
+        )
     for i, rc in enumerate(recs):
         cx, cy = left + i * cw + 10, top - 6
         parts.append(
@@ -133,7 +141,9 @@ def render_page(res: AuditResult) -> str:
     """The audit's HTML page."""
     robots = []
     for rid, recs in res.recordings.groupby("robot_id", sort=True):
-        ch = res.changes[(res.changes["comparison"] == "history") & (res.changes["robot_id"] == rid)]
+        ch = res.changes[
+            (res.changes["comparison"] == "history") & (res.changes["robot_id"] == rid)
+        ]
         robots.append(
             {
                 "id": rid,

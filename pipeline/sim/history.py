@@ -153,7 +153,9 @@ def _unit(v: F64) -> F64:
     return v / n if n > 0 else np.array([1.0, 0.0, 0.0])
 
 
-def apply_event(nominal: Chain, truth: RobotTruth, event: Event, rng: np.random.Generator) -> RobotTruth:
+def apply_event(
+    nominal: Chain, truth: RobotTruth, event: Event, rng: np.random.Generator
+) -> RobotTruth:
     """The robot after ``event`` (a new :class:`RobotTruth`; ``truth`` unchanged)."""
     t = truth.copy()
     joints = {j.name: j for j in nominal.actuated}
@@ -283,7 +285,9 @@ def make_history(
     events = dict(events or {})
     bad = [i for i in events if not 1 <= i < n_recordings]
     if bad:
-        raise ValueError(f"events at {bad}: an event happens before recording 1 .. {n_recordings - 1}")
+        raise ValueError(
+            f"events at {bad}: an event happens before recording 1 .. {n_recordings - 1}"
+        )
     urdf = builtin_urdf(robot)
     nominal = load_chain(urdf, "base_link", "flange")
     rng = np.random.default_rng([seed, 1])
@@ -306,13 +310,26 @@ def make_history(
             truth = apply_event(nominal, truth, event, np.random.default_rng([seed, 2, i]))
             chain = perturbed_chain(nominal, truth.deviations)
         table = touch_targets(
-            chain, truth, p_world_target, qc, per_target, np.random.default_rng([seed, 3, i]), **noise
+            chain,
+            truth,
+            p_world_target,
+            qc,
+            per_target,
+            np.random.default_rng([seed, 3, i]),
+            **noise,
         )
         stamp = start_ns + i * DAY_NS
         table["stamp_ns"] = stamp + 10**9 * np.arange(len(table), dtype=np.int64) * 20
         out.append(
             HistoryRecording(
-                f"{robot_id}-r{i:02d}", robot_id, robot, stamp, table, truth.copy(), event, chain,
+                f"{robot_id}-r{i:02d}",
+                robot_id,
+                robot,
+                stamp,
+                table,
+                truth.copy(),
+                event,
+                chain,
                 f"0:{n_targets - 1}={bar_m:.9f}" if bar else "",
             )
         )
