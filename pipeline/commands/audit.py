@@ -12,9 +12,9 @@ import click
     "audit",
     epilog="""\b
 Examples:
-  vtcal batch fleet.toml --out runs/ --until outliers   # the recordings, on Dask if asked
-  vtcal audit runs/ --out audit/                         # every run folder under runs/
-  vtcal audit runs/cell3-* --tolerance-mm 0.05 --fail-on-change
+  vtcal batch fleet.toml --out fleet_runs/ --until outliers  # recordings, Dask if asked
+  vtcal audit fleet_runs/ --out audit/              # every run folder under fleet_runs/
+  vtcal audit fleet_runs/cell3-* --tolerance-mm 0.05 --fail-on-change
 """,
 )
 @click.argument("run_dirs", nargs=-1, required=True, type=click.Path(path_type=Path))
