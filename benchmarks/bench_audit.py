@@ -14,8 +14,9 @@ robot; every robot is a new seed (deviations, camera mount, cell). Cases:
   (pin moved 0.1 mm), **base** moved (1 mm, 1 mrad): detection (the event's
   comparison flagged), the reading right (arm: that joint's zero / that link;
   camera; base), and the other comparisons of those histories (false alarms);
-* the drift figure of the event's recording against the truth's drift (the
-  true robots before and after, the same poses, (D1) of :mod:`pipeline.audit.drift`);
+* the drift figure of the event's recording ((D3) of :mod:`pipeline.audit.drift`:
+  the pin motion of the change read, at the new recording's poses) against the
+  true change ((D1) between the true robots before and after, the same poses);
 * **different robots**: the first recording of robot ``i`` against robot ``i+1``'s.
 
 Every figure is printed with its counts. Three robots x six recordings is one
@@ -33,9 +34,9 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
-from pipeline.audit.attribute import attribute  # noqa: E402
+from pipeline.audit.attribute import Reading, attribute  # noqa: E402
 from pipeline.audit.change import ALPHA, compare_estimates  # noqa: E402
-from pipeline.audit.drift import drift_m  # noqa: E402
+from pipeline.audit.drift import drift_m, read_drift_m  # noqa: E402
 from pipeline.audit.fit import fit_item  # noqa: E402
 from pipeline.audit.identity import AuditItem  # noqa: E402
 from pipeline.known_distances import parse_distances  # noqa: E402
@@ -95,16 +96,13 @@ def main() -> None:
                 d = compare_estimates(est[i - 1], est[i])
                 if event is not None and i == AT:
                     found += d.changed()
-                    if d.changed():
-                        named += right(attribute(d, est[i]))
+                    reading = attribute(d, est[i]) if d.changed() else Reading("none", "", "")
+                    named += d.changed() and right(reading)
                     truth = drift_m(
                         (hist[i - 1].true_chain, hist[i - 1].truth.p_flange_pin),
                         (hist[i].true_chain, hist[i].truth.p_flange_pin), est[i].q,
                     )  # fmt: skip
-                    got = drift_m(
-                        (est[i - 1].result.chain, est[i - 1].result.p_flange_pin),
-                        (est[i].result.chain, est[i].result.p_flange_pin), est[i].q,
-                    )  # fmt: skip
+                    got = read_drift_m(est[i], d, reading)
                     if truth > 1e-6:  # a moved base leaves the robot as it was
                         ratios.append(got / truth)
                 else:
@@ -123,11 +121,13 @@ def main() -> None:
             f" {hist_fa}/{a.histories} histories with one ({100 * hist_fa / a.histories:.0f} %)"
         )
         print(line)
-        if ratios:
-            r = np.array(ratios)
+        for what, rs in (("true change", ratios),):
+            if not rs:
+                continue
+            r = np.array(rs)
             within = int(np.sum(np.abs(r - 1) <= 0.2))
             print(
-                f"{'':24s} drift measured / truth: median {np.median(r):.3f}, range "
+                f"{'':24s} drift / {what}: median {np.median(r):.3f}, range "
                 f"{r.min():.3f}-{r.max():.3f}, within 20 %: {within}/{len(r)}"
             )
     diff_ok = 0

@@ -12,6 +12,7 @@ import pytest
 
 from pipeline.audit.attribute import attribute
 from pipeline.audit.change import compare_estimates, difference_test
+from pipeline.audit.drift import drift_m, read_drift_m
 from pipeline.audit.fit import fit_item
 from pipeline.audit.identity import load_item
 from pipeline.sim.history import Event, make_history, write_history
@@ -64,12 +65,19 @@ def small_estimates(small_history, tmp_path_factory):
     return _estimates(tmp_path_factory.mktemp("hist"), small_history)
 
 
-def test_each_event_read_as_its_one_cause(small_estimates):
-    e = small_estimates
+def test_each_event_read_as_its_one_cause(small_history, small_estimates):
+    e, h = small_estimates, small_history
     readings = []
-    for a, b in zip(e[:4], e[1:5], strict=True):
+    for i, (a, b) in enumerate(zip(e[:4], e[1:5], strict=True)):
         d = compare_estimates(a, b)
         readings.append(attribute(d, b) if d.changed() else None)
+        if readings[-1] is not None and readings[-1].kind in ("arm", "camera"):
+            truth = drift_m(
+                (h[i].true_chain, h[i].truth.p_flange_pin),
+                (h[i + 1].true_chain, h[i + 1].truth.p_flange_pin),
+                b.q,
+            )
+            assert abs(read_drift_m(b, d, readings[-1]) / truth - 1) < 0.2
     assert readings[0] is None  # same robot, new poses: no change
     assert readings[1] is not None and readings[1].cause == "joint_3 zero offset"
     assert abs(np.degrees(readings[1].beta[0]) - 0.05) < 4 * np.degrees(readings[1].beta_std[0])

@@ -99,6 +99,8 @@ class Reading:
     beta, beta_std : (k,) the cause's size and its standard error (SI), with ``columns``
     residual, residual_dof, residual_p : (A2) of the cause read
     groups : the groups that changed (several / different robots)
+    explained : (E,) ``A_c beta``, the change of every compared quantity the cause
+        explains (``diff.names`` order; empty when no single cause does)
     """
 
     kind: str
@@ -111,6 +113,7 @@ class Reading:
     residual_dof: int = 0
     residual_p: float = float("nan")
     groups: list[str] = field(default_factory=list)
+    explained: list[float] = field(default_factory=list)
 
 
 def causes(est: Estimate) -> list[Cause]:
@@ -206,7 +209,7 @@ def attribute(diff: Difference, est: Estimate, alpha: float = ALPHA) -> Reading:
     diff : :func:`pipeline.audit.change.compare_estimates` of the two calibrations
     est : the later recording's estimate (its poses linearise (A1))
     """
-    best: tuple[float, Cause, F64, F64, float, int] | None = None
+    best: tuple[float, Cause, F64, F64, float, int, F64] | None = None
     for c0 in causes(est):
         if c0.kind == "base":
             A = base_response(diff.names, est.z[[est.index()[n] for n in diff.names]])
@@ -221,15 +224,16 @@ def attribute(diff: Difference, est: Estimate, alpha: float = ALPHA) -> Reading:
         beta, std, resid, dof = explain(diff, A)
         score = resid + 2 * (diff.dof - dof)
         if best is None or score < best[0]:
-            best = (score, c, beta, std, resid, dof)
+            best = (score, c, beta, std, resid, dof, A @ beta)
     if best is not None:
-        _, c, beta, std, resid, dof = best
+        _, c, beta, std, resid, dof, explained = best
         p = float(chi2.sf(resid, dof)) if dof > 0 else 1.0
         if p >= ALPHA_EXPLAINED:
             return Reading(
                 c.kind, c.name, f"{c.name}: {_fmt(beta, std, c.units)} (one cause explains it: "
                 f"residual chi2 {resid:.1f} on {dof} dof)", c.columns,
                 [float(v) for v in beta], [float(v) for v in std], resid, dof, p,
+                explained=[float(v) for v in explained],
             )  # fmt: skip
     groups = group_changes(diff, alpha)
     if len(groups) >= DIFFERENT_GROUPS:

@@ -24,7 +24,7 @@ import pandas as pd
 
 from pipeline.audit.attribute import Reading, attribute
 from pipeline.audit.change import ALPHA, compare_estimates
-from pipeline.audit.drift import TOLERANCE_MM, validate_previous
+from pipeline.audit.drift import TOLERANCE_MM, read_drift_m, validate_previous
 from pipeline.audit.fit import Estimate, fit_item
 from pipeline.audit.fleet import MODELS, model_matrix, ranking
 from pipeline.audit.identity import AuditItem, histories
@@ -47,6 +47,7 @@ def _change_row(
 ) -> dict[str, Any]:
     diff = compare_estimates(ea, eb)
     reading = attribute(diff, eb, alpha) if diff.changed(alpha) else Reading("none", "", "")
+    read_mm = read_drift_m(eb, diff, reading) * 1e3
     if not reading.text:
         reading.text = (
             f"no change: chi2 {diff.T:.1f} on {diff.dof} dof (p = {diff.p:.2g} >= {alpha:g})"
@@ -72,6 +73,7 @@ def _change_row(
         "residual_dof": reading.residual_dof,
         "groups": list(reading.groups),
         "text": reading.text,
+        "read_drift_mm": read_mm,
     }
 
 
@@ -100,19 +102,23 @@ def run_audit(
                 "fresh_mm": np.nan,
                 "validated_mm": np.nan,
                 "drift_mm": np.nan,
+                "drift_raw_mm": np.nan,
                 "tolerance_mm": tolerance_mm,
                 "passed": True,
                 "verdict": "first recording: nothing to validate against",
             }
             if i:
-                v = validate_previous(est[runs[i - 1].name], est[it.name], it, tolerance_mm)
-                row.update(
-                    fresh_mm=v["fresh_mm"], validated_mm=v["validated_mm"],
-                    drift_mm=v["drift_mm"], passed=v["passed"], verdict=v["line"],
-                )  # fmt: skip
                 c = _change_row(
                     "history", runs[i - 1], it, est[runs[i - 1].name], est[it.name], alpha
                 )
+                v = validate_previous(
+                    est[runs[i - 1].name], est[it.name], it, tolerance_mm, c["read_drift_mm"]
+                )
+                row.update(
+                    fresh_mm=v["fresh_mm"], validated_mm=v["validated_mm"],
+                    drift_mm=v["drift_mm"], drift_raw_mm=v["drift_raw_mm"], passed=v["passed"],
+                    verdict=v["line"],
+                )  # fmt: skip
                 ch_rows.append(c)
                 lines.append(f"  {it.name}: {v['line']}; {c['text']}")
             rec_rows.append(row)
@@ -142,5 +148,5 @@ def run_audit(
 CHANGE_COLUMNS = [
     "comparison", "robot_id", "from_robot_id", "from_recording", "to_recording", "stamp_ns",
     "chi2", "dof", "p_value", "alpha", "changed", "kind", "cause", "columns", "size",
-    "size_std", "residual_chi2", "residual_dof", "groups", "text",
+    "size_std", "residual_chi2", "residual_dof", "groups", "text", "read_drift_mm",
 ]  # fmt: skip

@@ -27,7 +27,10 @@ from pipeline.report.svg import Panel, canvas, padded
 from pipeline.report.templates import render_template
 
 TEMPLATE = "audit.html.j2"
-COLOURS = {"drift": "#cf222e", "validated": "#0969da", "fresh": "#1a7f37", "tol": "#57606a"}
+COLOURS = {
+    "drift": "#cf222e", "raw": "#fa8072", "validated": "#0969da", "fresh": "#1a7f37",
+    "tol": "#57606a",
+}  # fmt: skip
 KIND_COLOURS = {
     "arm": "#cf222e", "camera": "#8250df", "base": "#bc4c00",
     "several": "#57606a", "different_robot": "#000000", "none": "#1a7f37",
@@ -50,22 +53,33 @@ def timeline_svg(recs: pd.DataFrame, changes: pd.DataFrame) -> str:
     x = np.arange(n, dtype=float)
     ticks = [(float(i), _date(int(s))) for i, s in zip(x, recs["stamp_ns"], strict=True)]
     vals = np.concatenate(
-        [recs[c].to_numpy(float) for c in ("drift_mm", "validated_mm", "fresh_mm")]
+        [recs[c].to_numpy(float) for c in ("drift_mm", "drift_raw_mm", "validated_mm", "fresh_mm")]
     )
     vals = np.append(vals[np.isfinite(vals)], float(recs["tolerance_mm"].iloc[0]))
     top = Panel((70, 40, 620, 170), (-0.5, n - 0.5), (0.0, float(vals.max()) * 1.15 or 1.0))
     top.legend_above = False
-    for col, key in (("drift_mm", "drift"), ("validated_mm", "validated"), ("fresh_mm", "fresh")):
-        top.line(x, recs[col].to_numpy(float), COLOURS[key], markers=6)
-        top.key({"drift": "drift of the previous calibration", "validated": "previous, validated",
-                 "fresh": "own calibration"}[key], COLOURS[key])  # fmt: skip
+    keys = {
+        "drift": "drift of the previous calibration (the change read)",
+        "raw": "previous vs own calibration (with their noise)",
+        "validated": "previous, validated (consistency)",
+        "fresh": "own calibration (consistency)",
+    }
+    for col, key in (
+        ("drift_mm", "drift"), ("drift_raw_mm", "raw"), ("validated_mm", "validated"),
+        ("fresh_mm", "fresh"),
+    ):  # fmt: skip
+        dash = "3 2" if key == "raw" else ""
+        top.line(x, recs[col].to_numpy(float), COLOURS[key], markers=6, dash=dash)
+        top.key(keys[key], COLOURS[key])
     tol = float(recs["tolerance_mm"].iloc[0])
     top.line([-0.5, n - 0.5], [tol, tol], COLOURS["tol"], dash="4 3")
     top.key("tolerance", COLOURS["tol"])
-    body = [top.render(ylabel="mm", title="drift and consistency", xticks=ticks)]
     ch = changes[changes["changed"]]
-    sizes, errs, labels, xs, kinds = [], [], [], [], []
     pos = {r: i for i, r in enumerate(recs["recording"])}
+    for c in ch.to_dict("records"):
+        top.text(pos[c["to_recording"]], 0, c["kind"].replace("_", " "), dy=-14)
+    body = [top.render(ylabel="mm", title="drift and consistency", xticks=ticks)]
+    sizes, errs, labels, xs, kinds = [], [], [], [], []
     for c in ch.to_dict("records"):
         cols, size, std = list(c["columns"]), list(c["size"]), list(c["size_std"])
         for k, (col, s, e) in enumerate(zip(cols, size, std, strict=True)):
@@ -90,9 +104,6 @@ def timeline_svg(recs: pd.DataFrame, changes: pd.DataFrame) -> str:
         body.append(
             bot.render(ylabel="size (mm, deg)", title="changes read (2-sigma bars)", xticks=ticks)
         )
-    for c in ch.to_dict("records"):
-        if not len(c["columns"]):
-            top.text(pos[c["to_recording"]], 0, c["kind"].replace("_", " "))
     return canvas(720, 450 if sizes else 250, body)
 
 
