@@ -23,7 +23,7 @@ import pandas as pd
 
 from pipeline import __version__
 from pipeline.audit.audit import AuditResult
-from pipeline.report.svg import Panel, canvas, padded
+from pipeline.report.svg import Panel, canvas, legend_height, padded
 from pipeline.report.templates import render_template
 
 TEMPLATE = "audit.html.j2"
@@ -56,8 +56,9 @@ def timeline_svg(recs: pd.DataFrame, changes: pd.DataFrame) -> str:
         [recs[c].to_numpy(float) for c in ("drift_mm", "drift_raw_mm", "validated_mm", "fresh_mm")]
     )
     vals = np.append(vals[np.isfinite(vals)], float(recs["tolerance_mm"].iloc[0]))
-    top = Panel((70, 40, 620, 170), (-0.5, n - 0.5), (0.0, float(vals.max()) * 1.15 or 1.0))
-    top.legend_above = False
+    lh = legend_height(5)
+    top = Panel((70, 10 + lh, 620, 170), (-0.5, n - 0.5), (0.0, float(vals.max()) * 1.15 or 1.0))
+    top.legend_above = True
     keys = {
         "drift": "drift of the previous calibration (the change read)",
         "raw": "previous vs own calibration (with their noise)",
@@ -78,33 +79,34 @@ def timeline_svg(recs: pd.DataFrame, changes: pd.DataFrame) -> str:
     pos = {r: i for i, r in enumerate(recs["recording"])}
     for c in ch.to_dict("records"):
         top.text(pos[c["to_recording"]], 0, c["kind"].replace("_", " "), dy=-14)
-    body = [top.render(ylabel="mm", title="drift and consistency", xticks=ticks)]
+    body = [top.render(ylabel="mm (drift, consistency)", xticks=ticks)]
     sizes, errs, labels, xs, kinds = [], [], [], [], []
     for c in ch.to_dict("records"):
         cols, size, std = list(c["columns"]), list(c["size"]), list(c["size_std"])
         for k, (col, s, e) in enumerate(zip(cols, size, std, strict=True)):
             deg = col.endswith(("dq0", ".rx", ".ry", ".rz"))
             f = math.degrees(1) if deg else 1e3
-            xs.append(pos[c["to_recording"]] - 0.25 + 0.5 * (k + 0.5) / max(len(cols), 1))
+            xs.append(pos[c["to_recording"]] - 0.3 + 0.6 * (k + 0.5) / max(len(cols), 1))
             sizes.append(s * f)
             errs.append(2 * e * f)
-            labels.append(col + (" deg" if deg else " mm"))
+            short = col.rsplit(".", 1)[-1] + (" deg" if deg else " mm")
+            labels.append(f"{c['cause']}: {short}" if k == 0 else short)
             kinds.append(c["kind"])
     if sizes:
         lo, hi = padded(
             min(np.array(sizes) - errs + [0.0]), max(np.array(sizes) + errs + [0.0]), 0.15
         )
-        bot = Panel((70, 270, 620, 150), (-0.5, n - 0.5), (lo, hi))
+        bot = Panel((70, 240 + lh, 620, 150), (-0.5, n - 0.5), (lo, hi))
         bot.line([-0.5, n - 0.5], [0, 0], COLOURS["tol"], width=0.8)
         for xi, s, e, lab, kd in zip(xs, sizes, errs, labels, kinds, strict=True):
             colour = KIND_COLOURS.get(kd, "#000")
             bot.line([xi, xi], [s - e, s + e], colour, width=1.5)
             bot.dots(np.array([xi]), np.array([s]), colour, 6)
-            bot.text(xi, s, lab, size=8)
+            bot.text(xi, s, lab, dx=-4, dy=-6 - 9 * (labels.index(lab) % 2), size=8)
         body.append(
             bot.render(ylabel="size (mm, deg)", title="changes read (2-sigma bars)", xticks=ticks)
         )
-    return canvas(720, 450 if sizes else 250, body)
+    return canvas(720, (420 if sizes else 220) + lh, body)
 
 
 def heatmap_svg(matrix: pd.DataFrame) -> str:
