@@ -103,6 +103,11 @@ def main() -> None:
                         (hist[i].true_chain, hist[i].truth.p_flange_pin), est[i].q,
                     )  # fmt: skip
                     got = read_drift_m(est[i], d, reading)
+                    if not np.isfinite(got):  # no single cause read: (D1), as vtcal audit does
+                        got = drift_m(
+                            (est[i - 1].result.chain, est[i - 1].result.p_flange_pin),
+                            (est[i].result.chain, est[i].result.p_flange_pin), est[i].q,
+                        )  # fmt: skip
                     if truth > 1e-6:  # a moved base leaves the robot as it was
                         ratios.append(got / truth)
                 else:
