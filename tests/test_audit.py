@@ -131,3 +131,23 @@ def test_bad_input_said_in_one_line(small_history, tmp_path):
     assert p.returncode != 0 and "cannot change model" in p.stderr, p.stderr
     assert p.stderr.strip().count("\n") == 0
     assert not (tmp_path / "o").exists()
+
+
+def test_simulator_rerecords_one_robot_with_its_id():
+    """``[robot] cell_seed``: the same robot, camera and targets under another session seed
+    (new poses); ``robot_id`` goes into the recording's metadata."""
+    from pipeline.sim.cell import touchup_metadata
+    from pipeline.sim.recorder import NullRecorder
+    from pipeline.sim.scenario import scenario_from_dict
+    from pipeline.sim.session import Session
+
+    same = scenario_from_dict({"robot": {"cell_seed": 100, "robot_id": "cell3"}})
+    a, b = Session(same, 1, NullRecorder()), Session(same, 2, NullRecorder())
+    assert a.cell.deviations == b.cell.deviations
+    assert np.array_equal(a.cell.p_vt_flange, b.cell.p_vt_flange)
+    assert a.rng_pose.random() != b.rng_pose.random()
+    assert touchup_metadata(same, a.cell, [])["robot_id"] == "cell3"
+    plain = scenario_from_dict({})
+    c, d = Session(plain, 1, NullRecorder()), Session(plain, 2, NullRecorder())
+    assert c.cell.deviations != d.cell.deviations
+    assert "robot_id" not in touchup_metadata(plain, c.cell, [])

@@ -83,10 +83,18 @@ def run_audit(
     tolerance_mm: float = TOLERANCE_MM,
     alpha: float = ALPHA,
     models: tuple[str, ...] = MODELS,
+    workers: int = 1,
 ) -> AuditResult:
-    """Audit run folders' contents (see the module docstring)."""
+    """Audit run folders' contents (see the module docstring).
+
+    ``workers``: processes for the per-recording fits and the models x recordings
+    matrix (:func:`pipeline.stages.parallel_map.parallel_map`, 0 = the free cores).
+    """
+    from pipeline.stages.parallel_map import parallel_map
+
     hist = histories(items)
-    est = {it.name: fit_item(it) for runs in hist.values() for it in runs}
+    flat = [it for runs in hist.values() for it in runs]
+    est = dict(zip([it.name for it in flat], parallel_map(fit_item, flat, workers), strict=True))
     rec_rows, ch_rows, lines = [], [], []
     for rid, runs in hist.items():
         lines.append(f"robot {rid}: {len(runs)} recordings")
@@ -130,7 +138,7 @@ def run_audit(
             c = _change_row("robots", a, b, est[a.name], est[b.name], alpha)
             ch_rows.append(c)
             lines.append(f"robots {a.robot_id} vs {b.robot_id}: {c['text']}")
-    matrix = model_matrix([it for runs in hist.values() for it in runs], models)
+    matrix = model_matrix(flat, models, workers)
     rank = ranking(matrix)
     lines.append(
         "error models by held-out error across the fleet: "

@@ -20,11 +20,22 @@ from pipeline.audit.identity import AuditItem
 MODELS = ("offsets", "mdh", "full", "poe")
 
 
-def model_matrix(items: list[AuditItem], models: tuple[str, ...] = MODELS) -> pd.DataFrame:
-    """One row per (recording, model): ``robot_id, recording, model, heldout_mm, rank, note``."""
+def model_matrix(
+    items: list[AuditItem], models: tuple[str, ...] = MODELS, workers: int = 1
+) -> pd.DataFrame:
+    """One row per (recording, model): ``robot_id, recording, model, heldout_mm, rank, note``.
+
+    ``workers``: processes for the fits (:func:`pipeline.stages.parallel_map.parallel_map`;
+    0 = the free cores), one task per (recording, model); the results are the serial map's.
+    """
+    from pipeline.stages.parallel_map import parallel_map
+
+    tasks = [(i, m) for i in range(len(items)) for m in models]
+    res = parallel_map(lambda t: heldout_mm(items[t[0]], t[1]), tasks, workers)
+    got = dict(zip(tasks, res, strict=True))
     rows = []
-    for it in items:
-        errs = {m: heldout_mm(it, m) for m in models}
+    for i, it in enumerate(items):
+        errs = {m: got[(i, m)] for m in models}
         vals = pd.Series({m: e for m, (e, _) in errs.items()})
         ranks = vals.rank(method="min", na_option="keep")
         for m, (e, note) in errs.items():

@@ -29,10 +29,12 @@ Examples:
               help="Robot identity for recordings without the robot_id metadata key.")  # fmt: skip
 @click.option("--models", default="offsets,mdh,full,poe", show_default=True,
               help="Error models ranked across the fleet (comma-separated).")  # fmt: skip
+@click.option("--workers", type=int, default=0, show_default=True,
+              help="Processes for the fits (0: the free cores; 1: serial).")  # fmt: skip
 @click.option("--fail-on-change", is_flag=True, help="Exit with status 1 when a robot changed.")
 def command(
     run_dirs: tuple[Path, ...], out: Path, tolerance_mm: float, alpha: float,
-    robot_id: str | None, models: str, fail_on_change: bool,
+    robot_id: str | None, models: str, workers: int, fail_on_change: bool,
 ) -> None:  # fmt: skip
     """Audit robots over time from run folders (`vtcal run` / `vtcal batch`).
 
@@ -55,7 +57,9 @@ def command(
         raise BadInput(f"--alpha {alpha}: must be between 0 and 1")
     names = tuple(m.strip() for m in models.split(",") if m.strip())
     items = [load_item(f, robot_id) for f in run_folders(list(run_dirs))]
-    res = run_audit(items, tolerance_mm=tolerance_mm, alpha=alpha, models=names)
+    if workers < 0:
+        raise BadInput(f"--workers {workers}: must be >= 0")
+    res = run_audit(items, tolerance_mm=tolerance_mm, alpha=alpha, models=names, workers=workers)
     out.mkdir(parents=True, exist_ok=True)
     cfg = {"tolerance_mm": tolerance_mm, "alpha": alpha, "models": list(names)}
     for name, table in (
