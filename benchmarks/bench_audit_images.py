@@ -15,7 +15,9 @@ recorded six times with new poses (``--seed 1..6``):
 * before 4: nothing (one no-event comparison);
 * before 5: the base moved: every target 1 mm further in x (``[targets] centre_m``);
 
-plus one recording of another robot of the same model (``cell_seed = 200``).
+plus one recording of another robot of the same model (``cell_seed = 200``),
+and ``--extra`` more recordings of the first robot after the base move, nothing
+changing between them (more no-event comparisons).
 Prints each comparison's chi-square, dof and reading, and the counts. Each
 recording takes about 25 s (simulate 13 s, run to outliers 9 s) on this machine.
 """
@@ -76,7 +78,9 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--workdir", type=Path, default=None, help="keep recordings here")
     ap.add_argument("--per-target", type=int, default=6)
+    ap.add_argument("--extra", type=int, default=0, help="no-event recordings added")
     a = ap.parse_args()
+    plan = PLAN + [(100, "img-A", 1e-4, 1e-3, "none")] * a.extra
     from pipeline.audit.attribute import Reading, attribute
     from pipeline.audit.change import compare_estimates
     from pipeline.audit.fit import fit_item
@@ -86,7 +90,7 @@ def main() -> None:
     work.mkdir(parents=True, exist_ok=True)
     t0 = time.perf_counter()
     folders = []
-    for i, (cs, rid, dm, dc, _what) in enumerate(PLAN):
+    for i, (cs, rid, dm, dc, _what) in enumerate(plan):
         rec, run = work / f"r{i}.mcap", work / "runs" / f"r{i}"
         if not (run / "inliers.parquet").is_file():
             toml = work / f"r{i}.toml"
@@ -97,9 +101,11 @@ def main() -> None:
         folders.append(run)
     est = [fit_item(load_item(f)) for f in folders]
     counts = {"none": [0, 0], "camera": [0, 0], "base": [0, 0], "another robot": [0, 0]}
-    pairs = [(i - 1, i) for i in range(1, 6)] + [(0, 6)]
+    pairs = [(i - 1, i) for i in range(1, 6)] + [(0, 6), (5, 7)]
+    pairs += [(i - 1, i) for i in range(8, len(plan))]
+    pairs = [(ia, ib) for ia, ib in pairs if ib < len(plan)]
     for ia, ib in pairs:
-        what = PLAN[ib][4]
+        what = plan[ib][4]
         d = compare_estimates(est[ia], est[ib])
         r = attribute(d, est[ib]) if d.changed() else Reading("none", "", "no change")
         right = {"none": "none", "camera": "camera", "base": "base",
@@ -111,7 +117,7 @@ def main() -> None:
     print(
         "read right: "
         + ", ".join(f"{k} {v[0]}/{v[1]}" for k, v in counts.items())
-        + f"  ({len(PLAN)} recordings, 3 targets x {a.per_target} poses; "
+        + f"  ({len(plan)} recordings, 3 targets x {a.per_target} poses; "
         f"{time.perf_counter() - t0:.0f} s; recordings in {work})"
     )
 

@@ -27,8 +27,10 @@ The causes (full-model columns of each actuated joint ``j``):
                    and the pin unchanged)
 =================  ============================================  =====
 
-A cause's columns that the estimate cannot see (``|A_c e_j| <`` :data:`VISIBLE`,
-e.g. joint 1's origin, which the targets absorb) are dropped from it. A bent
+A cause's columns that the estimate cannot see (``|A_c e_j| <`` :data:`VISIBLE`) are
+dropped from it, and a cause that moves only the fitted targets (joint 1's zero
+and origin, held at nominal and absorbed by the targets) is the base's motion
+and left to the base cause. A bent
 link (its origin turned about an axis normal to the joint's) is not a cause of
 its own: to first order it is the neighbouring joint's zero offset plus an
 origin shift, and the two cannot be told apart from touch-ups.
@@ -135,7 +137,9 @@ def causes(est: Estimate) -> list[Cause]:
             out.append(Cause(f"link before {n} (origin moved)", "arm", lin, ["m"] * len(lin)))
     out.append(Cause("camera / pin remounted", "camera", ["pin.x", "pin.y", "pin.z"], ["m"] * 3))
     base = ["base.x", "base.y", "base.z", "base.rx", "base.ry", "base.rz"]
-    out.append(Cause("base moved", "base", base, ["m"] * 3 + ["rad"] * 3))
+    out.append(
+        Cause("base moved (the targets seen to move)", "base", base, ["m"] * 3 + ["rad"] * 3)
+    )
     return out
 
 
@@ -220,6 +224,9 @@ def attribute(diff: Difference, est: Estimate, alpha: float = ALPHA) -> Reading:
         else:
             A = response(est, diff.names, c0.columns)
         seen = np.linalg.norm(A, axis=0) >= VISIBLE
+        arm_rows = [i for i, n in enumerate(diff.names) if not n.startswith("target.")]
+        if c0.kind != "base" and np.linalg.norm(A[arm_rows]) < VISIBLE:
+            continue  # it moves the targets only: a motion of the base (read as such)
         if not seen.any():
             continue
         cols = [n for n, v in zip(c0.columns, seen, strict=True) if v]

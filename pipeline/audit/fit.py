@@ -12,14 +12,14 @@ targets alone, so the covariance is rebuilt here over all of ``z`` from the
 fit's Jacobian at its solution (paper eq. 1 linearised, the identification's
 own columns)::
 
-    J = [J_x, R_i, -E_k ; w_D known-distance rows ; w_D scale-gauge row],
-    C_z = sigma^2 (J^T J)^-1                                                 (F1)
+    J = [W R_i^T [J_x, R_i, -E_k] ; w_D / s known-distance rows ; w_D / s gauge row],
+    C_z = (J^T J)^-1                                                         (F1)
 
-with ``sigma`` the fit's per-axis noise (``sigma_mm``), isotropic rows (the
-fit whitens them in the flange frame; isotropic is what the simulator draws,
-and the whitened covariance of a real recording differs from (F1) by the
-anisotropy of its touch-up noise: the false-alarm rate is measured on
-simulated data, docs/audit.md).
+with ``W = S^(-1/2)`` the touch-up noise in the flange frame estimated from the
+fit's residuals (:func:`flange_noise`: a touch-up is less precise along the
+camera's view than across it; on image-level recordings the view axis's sigma is
+2-6 times the others'), ``s`` its mean sigma and ``w_D`` the fit's constraint
+weight on rows in metres.
 """
 
 from __future__ import annotations
@@ -74,8 +74,10 @@ def estimate_of(
     labels: list[str],
     distances: list[tuple[Any, Any, float]],
     gauge: F64 | None,
+    d: F64 | None = None,
 ) -> Estimate:
-    """``z`` and (F1) of one fit (``q``, ``tk``, ``labels``: the touch-ups it used)."""
+    """``z`` and (F1) of one fit (``q``, ``tk``, ``labels``: the touch-ups it used, ``d``
+    (N, 3) their residual corrections, zero when None)."""
     p = result.parameters
     est = p[p["estimated_index"] >= 0].sort_values("estimated_index")
     names = est["name"].tolist()
@@ -89,7 +91,7 @@ def estimate_of(
     e = Estimate(
         names, z, np.zeros((0, 0)), tg.reset_index(drop=True), result, q, tk, labels, gauge
     )
-    e.cov = covariance(e, distances)
+    e.cov = covariance(e, distances, np.zeros((len(q), 3)) if d is None else np.asarray(d))
     return e
 
 
@@ -144,16 +146,59 @@ def constraint_rows(
     return np.array(rows).reshape(len(rows), len(names))
 
 
-def covariance(est: Estimate, distances: list[tuple[Any, Any, float]]) -> F64:
-    """(F1) over ``est.names``: the constraints as rows of the fit's weight
-    (``IdentifyConfig.distance_weight``, the touch-up rows in metres), ``sigma^2 (J^T J)^+``."""
+def flange_noise(est: Estimate, d: F64) -> tuple[F64, float] | None:
+    """The touch-up noise of the fit in the flange frame: ``(W, s)`` with ``W = S^(-1/2)``,
+    ``S = cov(R_i^T (p_i - t_k)) 3N / (3N - E)`` (the fit's residuals, ``p_i`` its pin
+    predictions with the corrections ``d`` (N, 3)), eigenvalues floored at 1e-4 of the
+    largest, ``s^2`` their mean; None with fewer than 15 residual degrees of freedom."""
+    res = est.result
+    p = res.predict(est.q, d)
+    model = res.error_model
+    assert model is not None
+    _, R, _ = model.pin_and_jacobian(res.x, est.q, res.p_flange_pin, jac=False)
+    at = est.index()
+    tg = np.array([est.z[at[f"target.{lab}.x"] : at[f"target.{lab}.x"] + 3] for lab in est.labels])
+    e = np.einsum("nji,nj->ni", R, p - tg[est.tk])
+    dof = 3 * len(e) - len(est.names)
+    if dof < 15:
+        return None
+    c = e - e.mean(axis=0)
+    S = c.T @ c / len(e) * (3 * len(e) / dof)
+    lam, V = np.linalg.eigh(S)
+    if lam.max() <= 0:
+        return None
+    lam = np.maximum(lam, lam.max() * 1e-4)
+    return np.asarray((V / np.sqrt(lam)) @ V.T), float(np.sqrt(lam.mean()))
+
+
+def covariance(est: Estimate, distances: list[tuple[Any, Any, float]], d: F64) -> F64:
+    """(F1) over ``est.names``.
+
+    Rows whitened as the fit whitens them, in the flange frame (:func:`flange_noise`:
+    ``W R_i^T`` on each touch-up's three rows, unit variance), the constraints as rows of
+    the fit's weight relative to them (``IdentifyConfig.distance_weight / s``);
+    ``C = (J_w^T J_w)^+``. Without enough residual degrees of freedom: isotropic rows and
+    the fit's ``sigma_mm``.
+    """
     J = point_columns(est, est.names)
     G = constraint_rows(est, est.names, distances)
-    A = np.vstack([J, IdentifyConfig().distance_weight * G])
+    wd = IdentifyConfig().distance_weight
+    noise = flange_noise(est, d)
+    if noise is not None:
+        W, s = noise
+        res = est.result
+        model = res.error_model
+        assert model is not None
+        _, R, _ = model.pin_and_jacobian(res.x, est.q, res.p_flange_pin, jac=False)
+        N = len(est.q)
+        Jw = np.einsum("ab,ncb,ncE->naE", W, R, J.reshape(N, 3, -1)).reshape(3 * N, -1)
+        A, sigma = np.vstack([Jw, (wd / s) * G]), 1.0
+    else:
+        A = np.vstack([J, wd * G])
+        sigma = float(est.result.summary.get("sigma_mm", 0.0)) * 1e-3
     scale = np.linalg.norm(A, axis=0)
     scale[scale == 0] = 1.0
     A = A / scale
-    sigma = float(est.result.summary.get("sigma_mm", 0.0)) * 1e-3
     inv = np.linalg.pinv(A.T @ A, rcond=1e-12, hermitian=True)
     cov = sigma**2 * inv / np.outer(scale, scale)
     return np.asarray(0.5 * (cov + cov.T))
@@ -183,7 +228,7 @@ def fit_item(item: AuditItem, model: str = CHANGE_MODEL) -> Estimate:
     res = fit_table(item.table, item.urdf, item.base_link, item.flange_link, model, item.distances)
     data = usable_touchups(item.table, list(res.chain.joint_names), item.name)
     gauge = scale_gauge(res, item, bool(item.distances))
-    return estimate_of(res, data.q, data.tk, data.labels, item.distances, gauge)
+    return estimate_of(res, data.q, data.tk, data.labels, item.distances, gauge, data.d)
 
 
 def scale_gauge(res: IdentifyResult, item: AuditItem, has_dist: bool) -> F64 | None:
