@@ -113,6 +113,10 @@ def test_cli_audit_end_to_end(small_history, tmp_path):
     html = (out / "audit.html").read_text()
     assert "<svg" in html and "joint_3 zero offset" in html
     assert len(pd.read_parquet(out / "audit_models.parquet")) == 8
+    from rerun.chunk import RrdReader
+
+    entities = {c.entity_path for c in RrdReader(out / "audit.rrd").stream().to_chunks()}
+    assert {"/audit/A/drift_mm", "/audit/A/changes", "/audit/A/change/joint_3.dq0"} <= entities
 
 
 def test_bad_input_said_in_one_line(small_history, tmp_path):

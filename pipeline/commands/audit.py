@@ -20,7 +20,7 @@ Examples:
 @click.argument("run_dirs", nargs=-1, required=True, type=click.Path(path_type=Path))
 @click.option("--out", "out", type=click.Path(file_okay=False, path_type=Path),
               default=Path("audit"), show_default=True,
-              help="Folder for audit_recordings/changes/models.parquet and audit.html.")  # fmt: skip
+              help="Folder for audit_{recordings,changes,models}.parquet, audit.html, audit.rrd.")  # fmt: skip
 @click.option("--tolerance-mm", type=float, default=0.1, show_default=True,
               help="PASS when the previous calibration's drift and consistency are within it.")  # fmt: skip
 @click.option("--alpha", type=float, default=0.01, show_default=True,
@@ -49,6 +49,7 @@ def command(
     from pipeline.audit.audit import run_audit
     from pipeline.audit.identity import load_item, run_folders
     from pipeline.audit.page import render_page
+    from pipeline.audit.rrd import write_rrd
     from pipeline.errors import BadInput
 
     if not tolerance_mm > 0:
@@ -69,8 +70,9 @@ def command(
         write_artefact(out / f"{name}.parquet", table, name, stage="audit", config=cfg)
     page = out / "audit.html"
     atomic_write_bytes(page, render_page(res).encode())
+    write_rrd(res, out / "audit.rrd")
     for line in res.lines:
         click.echo(line)
-    click.echo(f"tables: {out}/audit_*.parquet   page: {page}")
+    click.echo(f"tables: {out}/audit_*.parquet   page: {page}   Rerun: {out}/audit.rrd")
     if fail_on_change and bool(res.changes["changed"].any()):
         sys.exit(1)
