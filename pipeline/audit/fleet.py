@@ -54,10 +54,10 @@ def model_matrix(
 
 
 def ranking(matrix: pd.DataFrame) -> pd.DataFrame:
-    """Per model: ``median_rank``, ``rms_heldout_mm`` (recordings every model fitted), ``n``;
-    best first."""
+    """Per model: ``median_rank``, ``rms_heldout_mm`` (over the recordings every model
+    fitted; when there is none, over the model's own), ``n``; best first."""
     ok = matrix.groupby("recording")["heldout_mm"].transform(lambda s: s.notna().all())
-    full = matrix[ok]
+    full = matrix[ok] if ok.any() else matrix[matrix["heldout_mm"].notna()]
     out = []
     for m, g in matrix.groupby("model", sort=False):
         f = full[full["model"] == m]

@@ -12,6 +12,7 @@ import click
     "audit",
     epilog="""\b
 Examples:
+  vtcal audit runs/sample --robot-id sample --out audit/   # one run: its models ranked
   vtcal batch fleet.toml --out fleet_runs/ --until outliers  # recordings, Dask if asked
   vtcal audit fleet_runs/ --out audit/              # every run folder under fleet_runs/
   vtcal audit fleet_runs/cell3-* --tolerance-mm 0.05 --fail-on-change
