@@ -155,3 +155,19 @@ def test_simulator_rerecords_one_robot_with_its_id():
     c, d = Session(plain, 1, NullRecorder()), Session(plain, 2, NullRecorder())
     assert c.cell.deviations != d.cell.deviations
     assert "robot_id" not in touchup_metadata(plain, c.cell, [])
+
+
+def test_the_batch_manifest_names_the_robot(small_history, tmp_path):
+    """A run whose recording has no robot_id takes its manifest entry's."""
+    from pipeline.audit.identity import load_item, manifest_ids
+
+    folders = write_history(small_history[:1], tmp_path / "runs")
+    rec = json.loads((folders[0] / "recording.json").read_text())
+    del rec["metadata"]["robot_id"]
+    (folders[0] / "recording.json").write_text(json.dumps(rec))
+    (tmp_path / "a.mcap").write_bytes(b"")
+    (tmp_path / "fleet.toml").write_text(
+        f'[[recordings]]\npath = "a.mcap"\nname = "{folders[0].name}"\nrobot_id = "cell7"\n'
+    )
+    assert load_item(folders[0], None, manifest_ids(tmp_path / "fleet.toml")).robot_id == "cell7"
+    assert load_item(folders[0], "x", {}).robot_id == "x"

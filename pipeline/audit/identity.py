@@ -4,7 +4,9 @@ A run folder (``vtcal run``, ``vtcal batch``, or :func:`pipeline.sim.history.wri
 holds ``recording.json`` and ``inliers.parquet``. Its robot is
 
 * **identity**: the recording's ``robot_id`` metadata key
-  (``shared/spec/recording.md``), else the ``--robot-id`` given for all inputs;
+  (``shared/spec/recording.md``), else the ``robot_id`` of its entry in the batch
+  manifest (the entry whose run folder name it has), else the ``--robot-id``
+  given for all inputs;
 * **model**: the nominal URDF's ``<robot name>``, its chain ends and joint names
   (two robots of one model share it; a history must not mix models);
 * **date**: the first stamp (``recording.json``'s ``first_stamp_ns`` when
@@ -101,8 +103,17 @@ def _first_stamp(folder: Path, rec: dict[str, Any], table: pd.DataFrame) -> int:
     raise BadInput(f"{folder}: no stamp to date the recording by (frames.parquet, stamp_ns)")
 
 
-def load_item(folder: Path, robot_id: str | None = None) -> AuditItem:
-    """Read one run folder.
+def manifest_ids(path: Path) -> dict[str, str]:
+    """``{run folder name: robot_id}`` of a batch manifest's entries that give one."""
+    from pipeline.batch_manifest import load_manifest
+
+    return {it.name: it.robot_id for it in load_manifest(path).items if it.robot_id}
+
+
+def load_item(
+    folder: Path, robot_id: str | None = None, ids: dict[str, str] | None = None
+) -> AuditItem:
+    """Read one run folder (``ids``: :func:`manifest_ids`; ``robot_id``: for all).
 
     Raises
     ------
@@ -121,11 +132,12 @@ def load_item(folder: Path, robot_id: str | None = None) -> AuditItem:
     if not (folder / INLIERS).is_file():
         raise BadInput(f"{folder}: no {INLIERS} (run the recording up to the outliers stage)")
     meta = dict(rec.get("metadata") or {})
-    rid = str(meta.get("robot_id") or robot_id or "")
+    rid = str(meta.get("robot_id") or (ids or {}).get(folder.name) or robot_id or "")
     if not rid:
         raise BadInput(
             f"{folder / RECORDING}: no robot_id (the recording's metadata key robot_id, "
-            "shared/spec/recording.md); give --robot-id NAME to audit it as one robot"
+            "shared/spec/recording.md, or its batch manifest entry's); give --manifest "
+            "FILE.toml or --robot-id NAME"
         )
     table = read_artefact(folder / INLIERS, "inliers")
     urdf = str(rec.get("urdf", ""))

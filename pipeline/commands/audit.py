@@ -26,6 +26,8 @@ Examples:
               help="PASS when the previous calibration's drift and consistency are within it.")  # fmt: skip
 @click.option("--alpha", type=float, default=0.01, show_default=True,
               help="False-alarm rate of the change test per comparison.")  # fmt: skip
+@click.option("--manifest", type=click.Path(dir_okay=False, path_type=Path), default=None,
+              help="The batch manifest: its entries' robot_id name the runs' robots.")  # fmt: skip
 @click.option("--robot-id", default=None,
               help="Robot identity for recordings without the robot_id metadata key.")  # fmt: skip
 @click.option("--models", default="offsets,mdh,full,poe", show_default=True,
@@ -35,11 +37,13 @@ Examples:
 @click.option("--fail-on-change", is_flag=True, help="Exit with status 1 when a robot changed.")
 def command(
     run_dirs: tuple[Path, ...], out: Path, tolerance_mm: float, alpha: float,
-    robot_id: str | None, models: str, workers: int, fail_on_change: bool,
+    manifest: Path | None, robot_id: str | None, models: str, workers: int,
+    fail_on_change: bool,
 ) -> None:  # fmt: skip
     """Audit robots over time from run folders (`vtcal run` / `vtcal batch`).
 
-    Runs with the same robot_id form a history, ordered by their first stamp.
+    Runs with the same robot_id (the recording's, its --manifest entry's, or
+    --robot-id) form a history, ordered by their first stamp.
     Per recording: the previous calibration validated on it and its drift;
     between consecutive recordings: a chi-square change test with a stated
     false-alarm rate and the one physical cause that explains a change (joint
@@ -48,7 +52,7 @@ def command(
     """
     from pipeline.artefacts import atomic_write_bytes, write_artefact
     from pipeline.audit.audit import run_audit
-    from pipeline.audit.identity import load_item, run_folders
+    from pipeline.audit.identity import load_item, manifest_ids, run_folders
     from pipeline.audit.page import render_page
     from pipeline.audit.rrd import write_rrd
     from pipeline.errors import BadInput
@@ -58,7 +62,8 @@ def command(
     if not 0 < alpha < 1:
         raise BadInput(f"--alpha {alpha}: must be between 0 and 1")
     names = tuple(m.strip() for m in models.split(",") if m.strip())
-    items = [load_item(f, robot_id) for f in run_folders(list(run_dirs))]
+    ids = manifest_ids(manifest) if manifest is not None else {}
+    items = [load_item(f, robot_id, ids) for f in run_folders(list(run_dirs))]
     if workers < 0:
         raise BadInput(f"--workers {workers}: must be >= 0")
     res = run_audit(items, tolerance_mm=tolerance_mm, alpha=alpha, models=names, workers=workers)
