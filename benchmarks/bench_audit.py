@@ -11,7 +11,9 @@ robot; every robot is a new seed (deviations, camera mount, cell). Cases:
   history (any alarm in it), at ``alpha = 0.01``;
 * one event before recording 3: **joint offset** (joint 3's zero +0.05 deg),
   **link** (joint 3's origin +0.1 mm along the upper arm), **camera** remount
-  (pin moved 0.1 mm), **base** moved (1 mm, 1 mrad): detection (the event's
+  (pin moved 0.1 mm), **base** moved (1 mm, 1 mrad), and beyond the issue's list
+  joint 5's zero +0.05 deg and a **thermal** growth of every link by 100 ppm
+  (seen through the calibration bar): detection (the event's
   comparison flagged), the reading right (arm: that joint's zero / that link;
   camera; base), and the other comparisons of those histories (false alarms);
 * the drift figure of the event's recording ((D3) of :mod:`pipeline.audit.drift`:
@@ -55,6 +57,14 @@ CASES = {
         lambda r: r.kind == "arm" and r.cause.startswith("link before joint_3"),
     ),
     "camera remount 0.1 mm": (Event("camera", 1e-4), lambda r: r.kind == "camera"),
+    "joint 5 offset 0.05 deg": (
+        Event("joint_offset", np.radians(0.05), "joint_5"),
+        lambda r: r.kind == "arm" and r.cause == "joint_5 zero offset",
+    ),
+    "thermal 100 ppm": (
+        Event("thermal", 1e-4),
+        lambda r: r.kind == "arm" and r.cause.startswith("thermal growth"),
+    ),
     "base moved 1 mm": (Event("base", 1e-3), lambda r: r.kind == "base"),
 }
 

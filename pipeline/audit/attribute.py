@@ -21,6 +21,10 @@ The causes (full-model columns of each actuated joint ``j``):
 ``joint_offset``   ``j.dq0``: the joint's zero                    1
 ``link``           ``j.dx, j.dy, j.dz``: the joint's origin moved 3
                    (the link before it: its length, or sideways)
+``thermal``        every link offset grown by one factor          1
+                   (``sum_j o_j . (j.dx, j.dy, j.dz)``, ``o_j`` the
+                   nominal offsets; seen only with a known
+                   distance: without, the scale is the gauge)
 ``camera``         ``pin.x, pin.y, pin.z``: camera/pin remounted  3
 ``base``           a rigid motion of every target centre (the     6
                    base moved against the cell; the kinematics
@@ -36,7 +40,8 @@ its own: to first order it is the neighbouring joint's zero offset plus an
 origin shift, and the two cannot be told apart from touch-ups.
 
 The reading is the cause with the smallest ``R_c + 2 k_c`` (Akaike's penalty:
-a cause with more unknowns must fit better by more than chance) whose residual
+a cause with more unknowns must fit better by more than chance; causes within
+:data:`EQUALLY_WELL` of it are named beside it as not told apart) whose residual
 is itself unremarkable: ``R_c <= chi2_isf(ALPHA_EXPLAINED, r - k_c) +
 LINEAR_SHARE * T`` (:data:`ALPHA_EXPLAINED` is smaller than the change test's
 ``alpha``, and (A1) is a linearisation at the later fit: a change thousands of
@@ -67,6 +72,8 @@ from pipeline.stages.identify_types import IdentifyConfig
 
 #: a residual this unlikely under the cause read: no single cause explains the change
 ALPHA_EXPLAINED = 1e-3
+#: causes whose score is within this of the best are named beside it (Akaike: not told apart)
+EQUALLY_WELL = 2.0
 #: the share of the change's chi-square a first-order reading may leave unexplained
 LINEAR_SHARE = 1e-3
 #: a cause column whose response (A1) is below this norm is invisible to the estimate
@@ -86,12 +93,17 @@ KINDS = {
 
 @dataclass
 class Cause:
-    """One candidate explanation: a name, its kind and the full-model columns it moves."""
+    """One candidate explanation: a name, its kind and the full-model columns it moves.
+
+    With ``weights`` the cause is the one column ``sum_k weights[k] * columns[k]`` (its
+    unit ``units[0]``): a thermal growth moves every link offset in proportion to it.
+    """
 
     name: str
     kind: str
     columns: list[str]
     units: list[str]
+    weights: list[float] | None = None
 
 
 @dataclass
@@ -107,6 +119,9 @@ class Reading:
     groups : the groups that changed (several / different robots)
     explained : (E,) ``A_c beta``, the change of every compared quantity the cause
         explains (``diff.names`` order; empty when no single cause does)
+    alternatives : other causes whose score is within :data:`EQUALLY_WELL` of it: the
+        touch-ups cannot tell them apart (e.g. joint 4's and joint 5's origins moved
+        along joint 4's axis, which is one motion)
     """
 
     kind: str
@@ -120,6 +135,7 @@ class Reading:
     residual_p: float = float("nan")
     groups: list[str] = field(default_factory=list)
     explained: list[float] = field(default_factory=list)
+    alternatives: list[str] = field(default_factory=list)
 
 
 def causes(est: Estimate) -> list[Cause]:
@@ -135,6 +151,19 @@ def causes(est: Estimate) -> list[Cause]:
         lin = [f"{n}.{c}" for c in ("dx", "dy", "dz") if f"{n}.{c}" in have]
         if lin:
             out.append(Cause(f"link before {n} (origin moved)", "arm", lin, ["m"] * len(lin)))
+    grow = [(f"{j.name}.{c}", float(j.T_parent_joint[i, 3])) for j in model.nominal.actuated
+            for i, c in enumerate(("dx", "dy", "dz")) if f"{j.name}.{c}" in have]  # fmt: skip
+    grow = [(n, w) for n, w in grow if w != 0.0]
+    if grow:
+        out.append(
+            Cause(
+                "thermal growth (every link offset)",
+                "arm",
+                [n for n, _ in grow],
+                ["1"],
+                [w for _, w in grow],
+            )  # fmt: skip
+        )
     out.append(Cause("camera / pin remounted", "camera", ["pin.x", "pin.y", "pin.z"], ["m"] * 3))
     base = ["base.x", "base.y", "base.z", "base.rx", "base.ry", "base.rz"]
     out.append(
@@ -158,11 +187,16 @@ def base_response(names: list[str], z: F64) -> F64:
     return A
 
 
-def response(est: Estimate, names: list[str], cause_columns: list[str]) -> F64:
-    """(A1): the estimate's response ``A_c`` (len(names), k) to a cause's columns, under the
-    fit's constraints (known distances, scale gauge: both estimates satisfy them)."""
+def response(
+    est: Estimate, names: list[str], cause_columns: list[str], weights: list[float] | None = None
+) -> F64:
+    """(A1): the estimate's response ``A_c`` (len(names), k) to a cause's columns (one
+    combined column with ``weights``), under the fit's constraints (known distances, scale
+    gauge: both estimates satisfy them)."""
     Jfull = point_columns(est, names)
     Jc = point_columns(est, cause_columns)
+    if weights is not None:
+        Jc = Jc @ np.asarray(weights, dtype=float)[:, None]
     G = constraint_rows(est, names, [])
     if len(G):
         Jfull = np.vstack([Jfull, IdentifyConfig().distance_weight * G])
@@ -199,11 +233,22 @@ def group_changes(diff: Difference, alpha: float = ALPHA) -> list[str]:
     return out
 
 
+def display_unit(column: str) -> tuple[float, str]:
+    """How a cause's column is shown: ``(factor from SI, unit)``: deg, ppm or mm."""
+    if column.endswith(("dq0", ".rx", ".ry", ".rz")):
+        return float(np.degrees(1.0)), "deg"
+    if column == "growth":
+        return 1e6, "ppm"
+    return 1e3, "mm"
+
+
 def _fmt(beta: F64, std: F64, units: list[str]) -> str:
     parts = []
     for b, s, u in zip(beta, std, units, strict=True):
         if u == "rad":
             parts.append(f"{np.degrees(b):+.4f} +- {np.degrees(s):.4f} deg")
+        elif u == "1":
+            parts.append(f"{b * 1e6:+.1f} +- {s * 1e6:.1f} ppm")
         else:
             parts.append(f"{b * 1e3:+.4f} +- {s * 1e3:.4f} mm")
     return ", ".join(parts)
@@ -218,11 +263,14 @@ def attribute(diff: Difference, est: Estimate, alpha: float = ALPHA) -> Reading:
     est : the later recording's estimate (its poses linearise (A1))
     """
     best: tuple[float, Cause, F64, F64, float, int, F64] | None = None
+    scores: list[tuple[float, str]] = []
     for c0 in causes(est):
         if c0.kind == "base":
             A = base_response(diff.names, est.z[[est.index()[n] for n in diff.names]])
         else:
-            A = response(est, diff.names, c0.columns)
+            A = response(est, diff.names, c0.columns, c0.weights)
+        if c0.weights is not None:
+            c0 = Cause(c0.name, c0.kind, ["growth"], c0.units)
         seen = np.linalg.norm(A, axis=0) >= VISIBLE
         arm_rows = [i for i, n in enumerate(diff.names) if not n.startswith("target.")]
         if c0.kind != "base" and np.linalg.norm(A[arm_rows]) < VISIBLE:
@@ -234,6 +282,7 @@ def attribute(diff: Difference, est: Estimate, alpha: float = ALPHA) -> Reading:
         c, A = Cause(c0.name, c0.kind, cols, units), A[:, seen]
         beta, std, resid, dof = explain(diff, A)
         score = resid + 2 * (diff.dof - dof)
+        scores.append((score, c.name))
         if best is None or score < best[0]:
             best = (score, c, beta, std, resid, dof, A @ beta)
     if best is not None:
@@ -241,11 +290,13 @@ def attribute(diff: Difference, est: Estimate, alpha: float = ALPHA) -> Reading:
         p = float(chi2.sf(resid, dof)) if dof > 0 else 1.0
         bound = (float(chi2.isf(ALPHA_EXPLAINED, dof)) if dof > 0 else 0.0) + LINEAR_SHARE * diff.T
         if resid <= bound:
+            alts = [n for sc, n in scores if n != c.name and sc - best[0] < EQUALLY_WELL]
+            also = f"; as well explained by: {', '.join(alts)}" if alts else ""
             return Reading(
                 c.kind, c.name, f"{c.name}: {_fmt(beta, std, c.units)} (one cause explains it: "
-                f"residual chi2 {resid:.1f} on {dof} dof)", c.columns,
+                f"residual chi2 {resid:.1f} on {dof} dof{also})", c.columns,
                 [float(v) for v in beta], [float(v) for v in std], resid, dof, p,
-                explained=[float(v) for v in explained],
+                explained=[float(v) for v in explained], alternatives=alts,
             )  # fmt: skip
     groups = group_changes(diff, alpha)
     if len(groups) >= DIFFERENT_GROUPS:

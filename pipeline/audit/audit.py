@@ -72,6 +72,7 @@ def _change_row(
         "residual_chi2": reading.residual,
         "residual_dof": reading.residual_dof,
         "groups": list(reading.groups),
+        "alternatives": list(reading.alternatives),
         "text": reading.text,
         "read_drift_mm": read_mm,
     }
@@ -156,5 +157,5 @@ def run_audit(
 CHANGE_COLUMNS = [
     "comparison", "robot_id", "from_robot_id", "from_recording", "to_recording", "stamp_ns",
     "chi2", "dof", "p_value", "alpha", "changed", "kind", "cause", "columns", "size",
-    "size_std", "residual_chi2", "residual_dof", "groups", "text", "read_drift_mm",
+    "size_std", "residual_chi2", "residual_dof", "groups", "alternatives", "text", "read_drift_mm",
 ]  # fmt: skip

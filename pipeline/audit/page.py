@@ -22,6 +22,7 @@ import numpy as np
 import pandas as pd
 
 from pipeline import __version__
+from pipeline.audit.attribute import display_unit
 from pipeline.audit.audit import AuditResult
 from pipeline.report.svg import Panel, canvas, legend_height, padded
 from pipeline.report.templates import render_template
@@ -84,12 +85,11 @@ def timeline_svg(recs: pd.DataFrame, changes: pd.DataFrame) -> str:
     for c in ch.to_dict("records"):
         cols, size, std = list(c["columns"]), list(c["size"]), list(c["size_std"])
         for k, (col, s, e) in enumerate(zip(cols, size, std, strict=True)):
-            deg = col.endswith(("dq0", ".rx", ".ry", ".rz"))
-            f = math.degrees(1) if deg else 1e3
+            f, unit = display_unit(col)
             xs.append(pos[c["to_recording"]] - 0.3 + 0.6 * (k + 0.5) / max(len(cols), 1))
             sizes.append(s * f)
             errs.append(2 * e * f)
-            short = col.rsplit(".", 1)[-1] + (" deg" if deg else " mm")
+            short = f"{col.rsplit('.', 1)[-1]} {unit}"
             labels.append(f"{c['cause']}: {short}" if k == 0 else short)
             kinds.append(c["kind"])
     if sizes:
@@ -104,7 +104,9 @@ def timeline_svg(recs: pd.DataFrame, changes: pd.DataFrame) -> str:
             bot.dots(np.array([xi]), np.array([s]), colour, 6)
             bot.text(xi, s, lab, dx=-4, dy=-6 - 9 * (labels.index(lab) % 2), size=8)
         body.append(
-            bot.render(ylabel="size (mm, deg)", title="changes read (2-sigma bars)", xticks=ticks)
+            bot.render(
+                ylabel="size (mm, deg, ppm)", title="changes read (2-sigma bars)", xticks=ticks
+            )
         )
     return canvas(720, (420 if sizes else 220) + lh, body)
 

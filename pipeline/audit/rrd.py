@@ -5,7 +5,7 @@ on the ``date`` timeline: ``drift_mm`` (the drift of the change read),
 ``drift_raw_mm`` (the two calibrations' difference with their noise),
 ``validated_mm`` and ``fresh_mm`` (consistencies) as scalars, and each
 comparison's reading as a text log entry (``audit/R/changes``) at the later
-recording's stamp; for a cause read, its size per column (mm or deg) under
+recording's stamp; for a cause read, its size per column (mm, deg or ppm) under
 ``audit/R/change/COLUMN``. Written to a temporary sibling, then moved into place.
 """
 
@@ -17,6 +17,7 @@ from pathlib import Path
 import numpy as np
 
 from pipeline.artefacts import atomic_write_bytes
+from pipeline.audit.attribute import display_unit
 from pipeline.audit.audit import AuditResult
 
 APP_ID = "vtcal_audit"
@@ -46,8 +47,7 @@ def write_rrd(res: AuditResult, out: Path) -> Path:
                 level = "INFO" if not c["changed"] else "WARN"
                 rec.log(f"audit/{c['robot_id']}/changes", rr.TextLog(c["text"], level=level))
                 for col, v in zip(c["columns"], c["size"], strict=True):
-                    deg = col.endswith(("dq0", ".rx", ".ry", ".rz"))
-                    f = math.degrees(1) if deg else 1e3
+                    f, _unit = display_unit(col)
                     rec.log(f"audit/{c['robot_id']}/change/{col}", rr.Scalars(v * f))
         finally:
             rec.disconnect()
