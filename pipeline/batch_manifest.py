@@ -30,6 +30,8 @@ class BatchItem:
     notes : free text from the manifest
     simulate : ``(scenario TOML, seed)`` when the manifest says how to make the recording
         with ``vtcal simulate``: the batch's worker writes it first if it is missing
+    robot_id : the physical robot (cell) that recorded it, for ``vtcal audit`` ('' when not
+        given; the recording's own ``robot_id`` metadata key wins)
     """
 
     name: str
@@ -37,6 +39,7 @@ class BatchItem:
     robot: str = ""
     notes: str = ""
     simulate: tuple[str, int] | None = None
+    robot_id: str = ""
 
 
 @dataclass(frozen=True)
@@ -92,6 +95,7 @@ def load_manifest(path: str | os.PathLike[str]) -> Manifest:
         path = "fleet_demo/cell1.mcap"   # required
         name = "cell1"                   # optional run folder name (default: file stem)
         robot = "lrmate"                 # optional
+        robot_id = "cell1-SN123"         # optional: the physical robot (vtcal audit)
         notes = "after the J2 gearbox swap"   # optional
         simulate = { scenario = "scenarios/standard.toml", seed = 11 }   # optional: see below
 
@@ -120,15 +124,15 @@ def load_manifest(path: str | os.PathLike[str]) -> Manifest:
     base = p.parent.absolute()
     paths: list[Path] = []
     given: list[str | None] = []
-    extra: list[tuple[str, str, tuple[str, int] | None]] = []
+    extra: list[tuple[str, str, tuple[str, int] | None, str]] = []
     for i, r in enumerate(recs):
         where = f"{p}: recordings[{i}]"
         if not isinstance(r, dict) or not isinstance(r.get("path"), str) or not r["path"]:
             raise BadInput(f"{where}: needs a 'path' string")
-        unknown = set(r) - {"path", "name", "robot", "notes", "simulate"}
+        unknown = set(r) - {"path", "name", "robot", "robot_id", "notes", "simulate"}
         if unknown:
             raise BadInput(f"{where}: unknown key(s) {', '.join(sorted(unknown))}")
-        for key in ("name", "robot", "notes"):
+        for key in ("name", "robot", "robot_id", "notes"):
             if key in r and not isinstance(r[key], str):
                 raise BadInput(f"{where}: '{key}' must be a string, got {r[key]!r}")
         if "name" in r and not NAME_OK.match(r["name"]):
@@ -136,15 +140,22 @@ def load_manifest(path: str | os.PathLike[str]) -> Manifest:
         rp = Path(r["path"]).expanduser()
         paths.append(rp if rp.is_absolute() else base / rp)
         given.append(r.get("name"))
-        extra.append((r.get("robot", ""), r.get("notes", ""), _simulate(r, base, where)))
+        extra.append(
+            (
+                r.get("robot", ""),
+                r.get("notes", ""),
+                _simulate(r, base, where),
+                r.get("robot_id", ""),
+            )
+        )
     explicit = [g for g in given if g]
     dup = sorted({g for g in explicit if explicit.count(g) > 1})
     if dup:
         raise BadInput(f"{p}: repeated recording name(s) {', '.join(dup)}")
     names = _unique_names([g or q.stem for g, q in zip(given, paths, strict=True)])
     items = tuple(
-        BatchItem(n, q, robot, notes, sim)
-        for n, q, (robot, notes, sim) in zip(names, paths, extra, strict=True)
+        BatchItem(n, q, robot, notes, sim, rid)
+        for n, q, (robot, notes, sim, rid) in zip(names, paths, extra, strict=True)
     )
     return Manifest(
         path=p,

@@ -32,6 +32,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "plan": ("pipeline.commands.plan", "Plan well-conditioned measuring poses."),
     "compare": ("pipeline.commands.compare", "Compare runs: held-out error, parameters, drift."),
     "batch": ("pipeline.commands.batch", "Run many recordings, cached, in parallel."),
+    "audit": ("pipeline.commands.audit", "Robots over time: drift, what changed, models ranked."),
     "validate": (
         "pipeline.commands.validate",
         "Judge a calibrated URDF on another recording's touch-ups.",

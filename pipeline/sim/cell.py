@@ -275,6 +275,8 @@ def touchup_metadata(sc: Scenario, cell: Cell, known: list[dict[str, Any]]) -> d
         "threshold_size_px": f"{tt.threshold_size_px:g}",
         "polarity": sc.targets.polarity,
     }
+    if sc.robot.robot_id:
+        metadata["robot_id"] = sc.robot.robot_id
     if known:
         metadata["known_distances"] = ";".join(
             f"{k['labels'][0]}:{k['labels'][1]}={k['metres']:.6f}" for k in known

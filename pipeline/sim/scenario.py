@@ -4,7 +4,10 @@ Every key is optional; the defaults below make the standard cell (LR Mate-like
 arm, 3 targets x 12 poses, 640 x 512 PNG images, a calibration bar). Sections
 and keys (see ``docs/simulator.md`` for the meaning of each)::
 
-    [robot]    name | urdf, base_link, flange_link, sigma_xyz_m, sigma_rpy_rad, sigma_q0_rad
+    [robot]    name | urdf, base_link, flange_link, sigma_xyz_m, sigma_rpy_rad, sigma_q0_rad,
+               robot_id (written as the recording's robot_id), cell_seed (draw the robot,
+               camera and targets from this seed, the session from --seed: the same
+               robot re-recorded; -1, the default, draws all from --seed)
     [camera]   width, height, f_px, f_jitter, pp_jitter_px, k1, k2, standoff_m,
                mount_xyz_m, mount_jitter_m, mount_tilt_rad, image ("png"|"raw"),
                blur_sigma_px, noise_sigma, vignetting, exposure_s, latency_s, subsamples
@@ -46,6 +49,8 @@ class RobotCfg:
     sigma_rpy_rad: float = 1.5e-3
     sigma_q0_rad: float = 1e-3
     home: tuple[float, ...] | None = None
+    robot_id: str = ""
+    cell_seed: int = -1
 
 
 @dataclass(frozen=True)

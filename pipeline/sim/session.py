@@ -158,7 +158,10 @@ class Session:
         self.seed = seed
         ss = np.random.SeedSequence(seed)
         streams = ss.spawn(6)
-        self.rng_cell = np.random.default_rng(streams[0])
+        cell_stream = streams[0]
+        if sc.robot.cell_seed >= 0:  # the robot of cell_seed, re-recorded with this seed
+            cell_stream = np.random.SeedSequence(sc.robot.cell_seed).spawn(6)[0]
+        self.rng_cell = np.random.default_rng(cell_stream)
         self.rng_pose = np.random.default_rng(streams[1])
         self.rng_img = np.random.default_rng(streams[2])
         self.rng_enc = np.random.default_rng(streams[3])

@@ -1,0 +1,84 @@
+"""``vtcal audit RUN_DIR ...``: robots over time: drift, changes and their cause, models ranked."""
+
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+import click
+
+
+@click.command(
+    "audit",
+    epilog="""\b
+Examples:
+  vtcal audit runs/sample --robot-id sample --out audit/   # one run: its models ranked
+  vtcal batch fleet.toml --out fleet_runs/ --until outliers  # recordings, Dask if asked
+  vtcal audit fleet_runs/ --out audit/              # every run folder under fleet_runs/
+  vtcal audit fleet_runs/cell3-* --tolerance-mm 0.05 --fail-on-change
+""",
+)
+@click.argument("run_dirs", nargs=-1, required=True, type=click.Path(path_type=Path))
+@click.option("--out", "out", type=click.Path(file_okay=False, path_type=Path),
+              default=Path("audit"), show_default=True,
+              help="Folder for audit_{recordings,changes,models}.parquet, audit.html, audit.rrd.")  # fmt: skip
+@click.option("--tolerance-mm", type=float, default=0.1, show_default=True,
+              help="PASS when the previous calibration's drift and consistency are within it.")  # fmt: skip
+@click.option("--alpha", type=float, default=0.01, show_default=True,
+              help="False-alarm rate of the change test per comparison.")  # fmt: skip
+@click.option("--manifest", type=click.Path(dir_okay=False, path_type=Path), default=None,
+              help="The batch manifest: its entries' robot_id name the runs' robots.")  # fmt: skip
+@click.option("--robot-id", default=None,
+              help="Robot identity for recordings without the robot_id metadata key.")  # fmt: skip
+@click.option("--models", default="offsets,mdh,full,poe", show_default=True,
+              help="Error models ranked across the fleet (comma-separated).")  # fmt: skip
+@click.option("--workers", type=int, default=0, show_default=True,
+              help="Processes for the fits (0: the free cores; 1: serial).")  # fmt: skip
+@click.option("--fail-on-change", is_flag=True, help="Exit with status 1 when a robot changed.")
+def command(
+    run_dirs: tuple[Path, ...], out: Path, tolerance_mm: float, alpha: float,
+    manifest: Path | None, robot_id: str | None, models: str, workers: int,
+    fail_on_change: bool,
+) -> None:  # fmt: skip
+    """Audit robots over time from run folders (`vtcal run` / `vtcal batch`).
+
+    Runs with the same robot_id (the recording's, its --manifest entry's, or
+    --robot-id) form a history, ordered by their first stamp.
+    Per recording: the previous calibration validated on it and its drift;
+    between consecutive recordings: a chi-square change test with a stated
+    false-alarm rate and the one physical cause that explains a change (joint
+    zero, link, camera/pin, base, or different robots); across the fleet: the
+    error models ranked by held-out error. Writes Parquet tables and an HTML page.
+    """
+    from pipeline.artefacts import atomic_write_bytes, write_artefact
+    from pipeline.audit.audit import run_audit
+    from pipeline.audit.identity import load_item, manifest_ids, run_folders
+    from pipeline.audit.page import render_page
+    from pipeline.audit.rrd import write_rrd
+    from pipeline.errors import BadInput
+
+    if not tolerance_mm > 0:
+        raise BadInput(f"--tolerance-mm {tolerance_mm}: must be > 0")
+    if not 0 < alpha < 1:
+        raise BadInput(f"--alpha {alpha}: must be between 0 and 1")
+    names = tuple(m.strip() for m in models.split(",") if m.strip())
+    ids = manifest_ids(manifest) if manifest is not None else {}
+    items = [load_item(f, robot_id, ids) for f in run_folders(list(run_dirs))]
+    if workers < 0:
+        raise BadInput(f"--workers {workers}: must be >= 0")
+    res = run_audit(items, tolerance_mm=tolerance_mm, alpha=alpha, models=names, workers=workers)
+    out.mkdir(parents=True, exist_ok=True)
+    cfg = {"tolerance_mm": tolerance_mm, "alpha": alpha, "models": list(names)}
+    for name, table in (
+        ("audit_recordings", res.recordings), ("audit_changes", res.changes),
+        ("audit_models", res.models),
+    ):  # fmt: skip
+        write_artefact(out / f"{name}.parquet", table, name, stage="audit", config=cfg)
+    page = out / "audit.html"
+    atomic_write_bytes(page, render_page(res).encode())
+    write_rrd(res, out / "audit.rrd")
+    for line in res.lines:
+        click.echo(line)
+    click.echo(f"tables: {out}/audit_*.parquet   page: {page}   Rerun: {out}/audit.rrd")
+    if fail_on_change and bool(res.changes["changed"].any()):
+        sys.exit(1)

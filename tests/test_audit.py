@@ -1,0 +1,173 @@
+"""vtcal audit: the change test's false-alarm rate, one reading per event, the CLI, bad input."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from pipeline.audit.attribute import attribute
+from pipeline.audit.change import compare_estimates, difference_test
+from pipeline.audit.drift import drift_m, read_drift_m
+from pipeline.audit.fit import fit_item
+from pipeline.audit.identity import load_item
+from pipeline.sim.history import Event, make_history, write_history
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def test_change_test_false_alarm_rate_on_known_covariances():
+    """Pairs drawn from known, correlated, rank-deficient covariances: the alarm rate at alpha
+    is alpha (a per-parameter 3-sigma rule over 20 correlated parameters would say far more),
+    and a shift of 5 sigma along one direction is found."""
+    rng = np.random.default_rng(3)
+    E, n = 20, 2000
+    L = rng.normal(size=(E, E - 2))  # rank E - 2: two directions not identified
+    C = L @ L.T * 1e-8
+    alarms = 0
+    for _ in range(n):
+        za, zb = rng.multivariate_normal(np.zeros(E), C / 2, 2)
+        d = difference_test(za, C / 2, zb, C / 2, [f"p{i}" for i in range(E)])
+        assert d.dof == E - 2
+        alarms += d.changed(0.05)
+    rate = alarms / n
+    assert abs(rate - 0.05) < 3 * np.sqrt(0.05 * 0.95 / n) + 0.005, rate
+    u = L[:, 0] / np.linalg.norm(L[:, 0])
+    s = np.sqrt(u @ C @ u)
+    d = difference_test(np.zeros(E), C / 2, 5 * s * u / np.sqrt(1.0), C / 2, [""] * E)
+    assert d.changed(0.05)
+
+
+@pytest.fixture(scope="session")
+def small_history():
+    """One robot, five recordings: nothing, joint 3's zero +0.05 deg, the camera 0.1 mm,
+    the base 1 mm; and another robot of the same model (its first recording)."""
+    events = {
+        2: Event("joint_offset", np.radians(0.05), "joint_3"),
+        3: Event("camera", 1e-4),
+        4: Event("base", 1e-3),
+    }
+    hist = make_history("A", events, seed=11, n_recordings=5, per_target=8)
+    other = make_history("B", {}, seed=12, n_recordings=1, per_target=8)
+    return hist + other
+
+
+def _estimates(tmp: Path, hist):
+    return [fit_item(load_item(f)) for f in write_history(hist, tmp)]
+
+
+@pytest.fixture(scope="session")
+def small_estimates(small_history, tmp_path_factory):
+    return _estimates(tmp_path_factory.mktemp("hist"), small_history)
+
+
+def test_each_event_read_as_its_one_cause(small_history, small_estimates):
+    e, h = small_estimates, small_history
+    readings = []
+    for i, (a, b) in enumerate(zip(e[:4], e[1:5], strict=True)):
+        d = compare_estimates(a, b)
+        readings.append(attribute(d, b) if d.changed() else None)
+        if readings[-1] is not None and readings[-1].kind in ("arm", "camera"):
+            truth = drift_m(
+                (h[i].true_chain, h[i].truth.p_flange_pin),
+                (h[i + 1].true_chain, h[i + 1].truth.p_flange_pin),
+                b.q,
+            )
+            assert abs(read_drift_m(b, d, readings[-1]) / truth - 1) < 0.2
+    assert readings[0] is None  # same robot, new poses: no change
+    assert readings[1] is not None and readings[1].cause == "joint_3 zero offset"
+    assert abs(np.degrees(readings[1].beta[0]) - 0.05) < 4 * np.degrees(readings[1].beta_std[0])
+    assert readings[2] is not None and readings[2].kind == "camera"
+    assert readings[3] is not None and readings[3].kind == "base"
+
+
+def test_two_robots_of_one_model_read_as_different_robots(small_estimates):
+    d = compare_estimates(small_estimates[0], small_estimates[5])
+    r = attribute(d, small_estimates[5])
+    assert d.changed() and r.kind == "different_robot", r.text
+
+
+def _vtcal(*args: str) -> subprocess.CompletedProcess[str]:
+    env = {"PYTHONPATH": str(ROOT), "PATH": "/usr/bin:/bin"}
+    return subprocess.run(
+        [sys.executable, "-m", "pipeline", *args], capture_output=True, text=True, env=env
+    )
+
+
+def test_cli_audit_end_to_end(small_history, tmp_path):
+    import pandas as pd
+
+    write_history(small_history[:4], tmp_path / "runs")
+    out = tmp_path / "audit"
+    p = _vtcal("audit", str(tmp_path / "runs"), "--out", str(out), "--models", "offsets,full")
+    assert p.returncode == 0, p.stderr
+    ch = pd.read_parquet(out / "audit_changes.parquet")
+    assert ch["kind"].tolist() == ["none", "arm", "camera"]
+    rec = pd.read_parquet(out / "audit_recordings.parquet")
+    assert rec["recording"].tolist() == [f"A-r0{i}" for i in range(4)]
+    assert rec.loc[2, "drift_mm"] > 2 * rec.loc[1, "drift_mm"] and rec.loc[1, "passed"]
+    html = (out / "audit.html").read_text()
+    assert "<svg" in html and "joint_3 zero offset" in html
+    assert len(pd.read_parquet(out / "audit_models.parquet")) == 8
+    from rerun.chunk import RrdReader
+
+    entities = {c.entity_path for c in RrdReader(out / "audit.rrd").stream().to_chunks()}
+    assert {"/audit/A/drift_mm", "/audit/A/changes", "/audit/A/change/joint_3.dq0"} <= entities
+
+
+def test_bad_input_said_in_one_line(small_history, tmp_path):
+    folders = write_history(small_history[:2], tmp_path / "runs")
+    rec = json.loads((folders[1] / "recording.json").read_text())
+    del rec["metadata"]["robot_id"]
+    (folders[1] / "recording.json").write_text(json.dumps(rec))
+    p = _vtcal("audit", *map(str, folders), "--out", str(tmp_path / "o"))
+    assert p.returncode != 0
+    assert p.stderr.strip().count("\n") == 0 and "no robot_id" in p.stderr, p.stderr
+    assert str(folders[1]) in p.stderr
+    rec["metadata"]["robot_id"] = "A"
+    rec["urdf"] = rec["urdf"].replace('name="', 'name="other_', 1)
+    (folders[1] / "recording.json").write_text(json.dumps(rec))
+    p = _vtcal("audit", *map(str, folders), "--out", str(tmp_path / "o"))
+    assert p.returncode != 0 and "cannot change model" in p.stderr, p.stderr
+    assert p.stderr.strip().count("\n") == 0
+    assert not (tmp_path / "o").exists()
+
+
+def test_simulator_rerecords_one_robot_with_its_id():
+    """``[robot] cell_seed``: the same robot, camera and targets under another session seed
+    (new poses); ``robot_id`` goes into the recording's metadata."""
+    from pipeline.sim.cell import touchup_metadata
+    from pipeline.sim.recorder import NullRecorder
+    from pipeline.sim.scenario import scenario_from_dict
+    from pipeline.sim.session import Session
+
+    same = scenario_from_dict({"robot": {"cell_seed": 100, "robot_id": "cell3"}})
+    a, b = Session(same, 1, NullRecorder()), Session(same, 2, NullRecorder())
+    assert a.cell.deviations == b.cell.deviations
+    assert np.array_equal(a.cell.p_vt_flange, b.cell.p_vt_flange)
+    assert a.rng_pose.random() != b.rng_pose.random()
+    assert touchup_metadata(same, a.cell, [])["robot_id"] == "cell3"
+    plain = scenario_from_dict({})
+    c, d = Session(plain, 1, NullRecorder()), Session(plain, 2, NullRecorder())
+    assert c.cell.deviations != d.cell.deviations
+    assert "robot_id" not in touchup_metadata(plain, c.cell, [])
+
+
+def test_the_batch_manifest_names_the_robot(small_history, tmp_path):
+    """A run whose recording has no robot_id takes its manifest entry's."""
+    from pipeline.audit.identity import load_item, manifest_ids
+
+    folders = write_history(small_history[:1], tmp_path / "runs")
+    rec = json.loads((folders[0] / "recording.json").read_text())
+    del rec["metadata"]["robot_id"]
+    (folders[0] / "recording.json").write_text(json.dumps(rec))
+    (tmp_path / "a.mcap").write_bytes(b"")
+    (tmp_path / "fleet.toml").write_text(
+        f'[[recordings]]\npath = "a.mcap"\nname = "{folders[0].name}"\nrobot_id = "cell7"\n'
+    )
+    assert load_item(folders[0], None, manifest_ids(tmp_path / "fleet.toml")).robot_id == "cell7"
+    assert load_item(folders[0], "x", {}).robot_id == "x"
