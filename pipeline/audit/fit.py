@@ -244,7 +244,7 @@ def fit_item(item: AuditItem, model: str = CHANGE_MODEL) -> Estimate:
 
 def scale_gauge(res: IdentifyResult, item: AuditItem, has_dist: bool) -> F64 | None:
     """The fit's scale gauge row over the model's parameters (identify's ``_setup``), or None."""
-    from pipeline.estimation.identifiability import structure
+    from pipeline.stages.identify_structure import structure
 
     model = res.error_model
     assert model is not None

@@ -26,10 +26,11 @@ from typing import Any
 
 import pandas as pd
 
+from pipeline.catalog import RUN_FILES
 from pipeline.errors import BadInput
 
-RECORDING = "recording.json"
-INLIERS = "inliers.parquet"
+RECORDING = RUN_FILES["recording"]
+INLIERS = RUN_FILES["inliers"]
 
 
 @dataclass
@@ -91,7 +92,7 @@ def run_folders(paths: list[Path]) -> list[Path]:
 def _first_stamp(folder: Path, rec: dict[str, Any], table: pd.DataFrame) -> int:
     if "first_stamp_ns" in rec:
         return int(rec["first_stamp_ns"])
-    frames = folder / "frames.parquet"
+    frames = folder / RUN_FILES["frames"]
     if frames.is_file():
         import pyarrow.parquet as pq
 

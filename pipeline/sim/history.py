@@ -373,13 +373,14 @@ def recording_json(rec: HistoryRecording) -> dict[str, Any]:
 def write_history(history: list[HistoryRecording], out: Path) -> list[Path]:
     """Write each recording as ``out/NAME/{inliers.parquet, recording.json, truth.json}``."""
     from pipeline.artefacts import write_artefact
+    from pipeline.catalog import RUN_FILES
 
     folders = []
     for rec in history:
         folder = Path(out) / rec.name
         folder.mkdir(parents=True, exist_ok=True)
-        write_artefact(folder / "inliers.parquet", rec.table, "inliers", stage="history")
-        (folder / "recording.json").write_text(json.dumps(recording_json(rec), indent=1))
+        write_artefact(folder / RUN_FILES["inliers"], rec.table, "inliers", stage="history")
+        (folder / RUN_FILES["recording"]).write_text(json.dumps(recording_json(rec), indent=1))
         (folder / "truth.json").write_text(json.dumps(truth_json(rec), indent=1))
         folders.append(folder)
     return folders
