@@ -40,7 +40,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Iterable, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
@@ -50,6 +50,7 @@ from scipy.special import ndtr
 from pipeline.kinematics.se3 import F64
 from pipeline.stages.detect import DetectConfig, detect_target, ellipse_foot
 from pipeline.stages.response import Response
+from pipeline.stages.response_fit import edge_spread, fit_edge
 
 
 @dataclass
@@ -123,6 +124,8 @@ class _Profile:
     grey: F64
     x0: tuple[float, float] = (0.0, 0.8)
     diameter_px: float = 0.0
+    #: fits of model (R1)-(R2) already made, by curve: ``(rss, (delta, sigma))``
+    fits: dict[tuple[Any, ...], tuple[float, tuple[float, float]]] = field(default_factory=dict)
 
 
 def edge_profile(
@@ -201,45 +204,30 @@ def edge_harmonics(d: F64, du: F64, dv: F64, grey: F64, psi: F64, x0: tuple[floa
 
 
 #: the edge profile's odd shape terms (R2): a point spread function that is not Gaussian
+#: (:func:`pipeline.stages.response_fit.edge_spread`)
 SHAPE_TERMS = True
 
-
-def edge_spread(t: F64, b: F64) -> F64:
-    """The edge profile of (R1)-(R2) at ``t = (d - delta) / sigma``, (N,).
-
-    ``F = Phi(t) + b3 He3(t) phi(t) + b5 He5(t) phi(t)`` (``He`` the Hermite
-    polynomials, ``phi`` the normal density): the edge of *any* symmetric point
-    spread function is ``1/2`` plus an odd function of ``t``, and these two odd terms
-    take a disk (defocus) or a box (pixel) kernel's profile where an erf alone
-    leaves a residual of a few grey levels on a sharp edge. A response error bends
-    the profile by an even function (``c F (1 - F)``) and cannot hide in them.
-    """
-    F: F64 = ndtr(t)
-    if len(b):
-        ph = np.exp(-0.5 * t * t) / math.sqrt(2.0 * math.pi)
-        t2 = t * t
-        F = F + b[0] * (t * t2 - 3.0 * t) * ph
-        if len(b) > 1:
-            F = F + b[1] * (t * t2 * t2 - 10.0 * t * t2 + 15.0 * t) * ph
-    return F
+__all__ = ["ResponseEstimate", "edge_profile", "edge_spread", "estimate_response"]
 
 
 def _fit_profile(pr: _Profile, resp: Response) -> tuple[float, tuple[float, float]]:
-    """Residual sum (grey^2, normalised scale) of model (R1)-(R2) under the curve ``resp``."""
+    """Residual sum (grey^2, normalised scale) of model (R1)-(R2) under the curve ``resp``.
+
+    Fitted by :func:`pipeline.stages.response_fit.fit_edge` (variable projection, analytic
+    Jacobian); a profile keeps its fit per curve, so the figures computed at the best power
+    law after the search (noise, edge width, illumination) do not fit it again.
+    """
+    key = ("linear", 1.0, ()) if resp.is_linear else (resp.kind, resp.gamma, resp.table)
+    got = pr.fits.get(key)
+    if got is not None:
+        return got
     E = resp.to_linear(pr.grey)
     w = 1.0 / np.maximum(resp.slope(pr.grey), 1e-6)
-    d, du, dv = pr.d, pr.du, pr.dv
-
-    def res(x: F64) -> F64:
-        F = edge_spread((d - x[0]) / max(abs(x[1]), 0.05), x[2:])
-        A = np.stack([1 - F, (1 - F) * du, (1 - F) * dv, F, F * du, F * dv], 1) * w[:, None]
-        coef, *_ = np.linalg.lstsq(A, E * w, rcond=None)
-        r: F64 = A @ coef - E * w
-        return r
-
     x0 = np.array([*pr.x0, *((0.0, 0.0) if SHAPE_TERMS else ())], dtype=float)
-    sol = least_squares(res, x0, method="lm", xtol=1e-10)
-    return float(np.sum(sol.fun**2)), (float(sol.x[0]), float(abs(sol.x[1])))
+    rss, x = fit_edge(pr.d, pr.du, pr.dv, E, w, x0)
+    out = (rss, (float(x[0]), float(abs(x[1]))))
+    pr.fits[key] = out
+    return out
 
 
 def _flat_noise2(pr: _Profile, resp: Response) -> tuple[float, int]:
