@@ -54,6 +54,20 @@ def test_analytic_jacobian_matches_finite_differences(curve, x):
     assert np.abs(J - Jn).max() < 1e-7 * np.abs(Jn).max()
 
 
+def test_harmonics_jacobian_matches_finite_differences():
+    """The edge's own harmonics around the contour (edge_harmonics): raw grey, no weights."""
+    d, du, dv, g = profile(seed=2)
+    psi = np.arctan2(dv, du)
+    ks = np.arange(1, rest.ROUND_HARMONICS + 1)
+    C = np.concatenate([np.cos(np.outer(psi, ks)), np.sin(np.outer(psi, ks))], axis=1)
+    fit = EdgeFit(d, du, dv, g, np.ones_like(g), harmonics=C)
+    x = np.array([0.1, 0.8, *np.linspace(-0.05, 0.05, C.shape[1])])
+    J = fit.jacobian(x)
+    Jn = approx_derivative(fit.residual, x, method="3-point")
+    assert J.shape == (len(d), 2 + C.shape[1])
+    assert np.abs(J - Jn).max() < 1e-7 * np.abs(Jn).max()
+
+
 def test_fit_equals_the_differenced_fit():
     d, du, dv, g = profile(seed=3)
     for curve in (Response("linear"), Response("srgb"), Response("gamma", 2.4)):

@@ -50,7 +50,7 @@ from scipy.special import ndtr
 from pipeline.kinematics.se3 import F64
 from pipeline.stages.detect import DetectConfig, detect_target, ellipse_foot
 from pipeline.stages.response import Response
-from pipeline.stages.response_fit import edge_spread, fit_edge
+from pipeline.stages.response_fit import EdgeFit, edge_spread, fit_edge
 
 
 @dataclass
@@ -185,20 +185,15 @@ def edge_harmonics(d: F64, du: F64, dv: F64, grey: F64, psi: F64, x0: tuple[floa
     smear the profile by several grey levels on a sharp edge, more than the
     noise and the response's own signature. They are geometry, the same in
     every curve: fitted once on raw grey with model (R1) (``psi`` the ellipse's
-    parametric angle, ``k = 1..ROUND_HARMONICS``) and taken out of ``d``.
+    parametric angle, ``k = 1..ROUND_HARMONICS``; analytic Jacobian,
+    :class:`pipeline.stages.response_fit.EdgeFit`) and taken out of ``d``.
     """
     K = ROUND_HARMONICS
     ks = np.arange(1, K + 1)
     C = np.concatenate([np.cos(np.outer(psi, ks)), np.sin(np.outer(psi, ks))], axis=1)
-
-    def res(x: F64) -> F64:
-        F = ndtr((d - x[0] - C @ x[2:]) / max(abs(x[1]), 0.05))
-        A = np.stack([1 - F, (1 - F) * du, (1 - F) * dv, F, F * du, F * dv], 1)
-        coef, *_ = np.linalg.lstsq(A, grey, rcond=None)
-        r: F64 = A @ coef - grey
-        return r
-
-    sol = least_squares(res, np.array([*x0, *np.zeros(2 * K)]), method="lm", xtol=1e-8)
+    fit = EdgeFit(d, du, dv, grey, np.ones_like(grey), harmonics=C)
+    x0_ = np.array([*x0, *np.zeros(2 * K)])
+    sol = least_squares(fit.residual, x0_, jac=fit.jacobian, method="lm", xtol=1e-8)
     shift: F64 = np.clip(C @ sol.x[2:], -1.0, 1.0)
     return shift
 

@@ -103,11 +103,17 @@ class EdgeFit:
     d, du, dv : (N,) signed distance to the contour and offsets from its centre, px
     y : (N,) weighted linearised grey ``w E``
     w : (N,) weights ``1 / (dE/dI)``
+    harmonics : (N, 2K), optional: the edge's harmonics around the contour
+        (:func:`pipeline.stages.response_estimate.edge_harmonics`): then ``x = (delta,
+        sigma, a_1..a_K, b_1..b_K)``, ``t = (d - delta - C x[2:]) / s``, ``F = Phi(t)`` (no
+        shape terms) and ``dF/dx_{2+j} = -(dF/dt) C_j / s``
     """
 
-    def __init__(self, d: F64, du: F64, dv: F64, y: F64, w: F64) -> None:
+    def __init__(
+        self, d: F64, du: F64, dv: F64, y: F64, w: F64, harmonics: F64 | None = None
+    ) -> None:
         self.d, self.du, self.dv, self.y, self.w = d, du, dv, y, w
-        # G (N, 6) and the unweighted level basis rows share du, dv
+        self.C = harmonics
         self._cache: list[tuple[bytes, tuple[F64, ...]]] = []
 
     def _parts(self, x: F64) -> tuple[F64, ...]:
@@ -118,13 +124,17 @@ class EdgeFit:
         s = abs(x[1])
         clipped = s < MIN_SIGMA
         s = max(s, MIN_SIGMA)
-        t = (self.d - x[0]) / s
-        F, dFdt, dFdb = edge_spread_grad(t, x[2:])
+        if self.C is None:
+            t = (self.d - x[0]) / s
+            F, dFdt, dFdb = edge_spread_grad(t, x[2:])
+        else:  # the edge's own harmonics instead of the shape terms (edge_harmonics)
+            t = (self.d - x[0] - self.C @ x[2:]) / s
+            F, dFdt, dFdb = edge_spread_grad(t, x[:0])
         wF, w1F = self.w * F, self.w * (1.0 - F)
         du, dv = self.du, self.dv
         A = np.stack([w1F, w1F * du, w1F * dv, wF, wF * du, wF * dv], 1)
         Q, R = np.linalg.qr(A)
-        c = solve_triangular(R, Q.T @ self.y)
+        c = solve_triangular(R, Q.T @ self.y, check_finite=False)
         r = A @ c - self.y
         parts = (r, Q, R, c, t, dFdt, *dFdb, np.array([s, float(clipped), np.sign(x[1])]))
         self._cache = [(key, parts), *self._cache[:1]]
@@ -140,6 +150,8 @@ class EdgeFit:
         dFdb, (s, clipped, sgn) = rest[:-1], rest[-1]
         du, dv, w = self.du, self.dv, self.w
         dF = [-dFdt / s, (np.zeros_like(t) if clipped else -dFdt * t / s * sgn), *dFdb]
+        if self.C is not None:
+            dF += [-dFdt / s * ck for ck in self.C.T]
         Gc = (c[3] - c[0]) + (c[4] - c[1]) * du + (c[5] - c[2]) * dv
         wr = w * r
         J = np.empty((len(r), len(dF)))
@@ -151,7 +163,7 @@ class EdgeFit:
             g = f * wr
             s0, s1, s2 = g.sum(), (g * du).sum(), (g * dv).sum()
             Z[:, k] = (-s0, -s1, -s2, s0, s1, s2)
-        J -= Q @ solve_triangular(R, Z, trans="T")
+        J -= Q @ solve_triangular(R, Z, trans="T", check_finite=False)
         return J
 
 
