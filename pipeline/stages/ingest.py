@@ -212,7 +212,7 @@ def ingest_recording(
     for msg in iter_recording(layout, state):
         take_message(path, layout.path, msg, state, config, s, progress, n_total)
     if s.probing is not None:
-        got = resolve_response(s.probing, s.rows, s.dcfg, s.crops, final=True)
+        got = resolve_response(s.probing, s.rows, s.dcfg, s.crops, final=True, raw=s.probe_raw)
         assert got is not None
         s.dcfg, s.response_est, s.expected = got
     flat = correct_flat_field(s.crops, s.rows, s.dcfg, (s.height, s.width))

@@ -81,6 +81,8 @@ class Streamed:
         in ``rows`` are in binned pixels until :func:`pipeline.stages.binning.unbin`) and why
     polarity_votes : without a declared polarity, how many images automatic detection read
         as each polarity (:func:`pipeline.stages.detect_blob.image_polarity`)
+    probe_raw : the held-back images' raw-grey detections the response estimate made, in
+        ``probing`` order (a retry with more images held back does not redo them)
     """
 
     image_topic: str | None
@@ -104,6 +106,7 @@ class Streamed:
     bin: int = 0
     bin_note: str = ""
     polarity_votes: dict[str, int] = field(default_factory=dict)
+    probe_raw: list[dict[str, Any]] = field(default_factory=list)
 
 
 def take_message(
@@ -193,7 +196,7 @@ def _take_image(
     if n_held >= RESPONSE_PROBE_IMAGES and n_held % RESPONSE_PROBE_IMAGES == 0:
         assert s.probing is not None
         got = resolve_response(
-            s.probing, s.rows, s.dcfg, s.crops, final=n_held >= RESPONSE_PROBE_MAX
+            s.probing, s.rows, s.dcfg, s.crops, final=n_held >= RESPONSE_PROBE_MAX, raw=s.probe_raw
         )
         if got is not None:
             s.dcfg, s.response_est, s.expected = got
@@ -253,6 +256,7 @@ def resolve_response(
     dcfg: DetectConfig,
     crops: CropStore | None = None,
     final: bool = True,
+    raw: list[dict[str, Any]] | None = None,
 ) -> tuple[DetectConfig, ResponseEstimate, tuple[float, float, float] | None] | None:
     """Estimate the camera response from the held-back images, then detect them with it.
 
@@ -260,9 +264,12 @@ def resolve_response(
     capture's detection steering the next one's (``expected``) as in the stream;
     clean ones are kept in ``crops`` as the stream keeps its own. Unless ``final``,
     None (nothing done: hold more images back) when fewer than half of
-    :data:`RESPONSE_FIT_IMAGES` of them showed a clean target edge.
+    :data:`RESPONSE_FIT_IMAGES` of them showed a clean target edge. ``raw`` keeps the
+    estimate's raw-grey detections between the calls (none is made twice).
     """
-    est = estimate_response((g for _, g in probing), dcfg, max_images=RESPONSE_FIT_IMAGES)
+    est = estimate_response(
+        (g for _, g in probing), dcfg, max_images=RESPONSE_FIT_IMAGES, detections=raw
+    )
     if not final and est.n_images < RESPONSE_FIT_IMAGES // 2:
         return None
     cfg = DetectConfig(**{**dcfg.to_dict(), "response": est.response.spec})

@@ -403,6 +403,7 @@ def estimate_response(
     config: Any = None,
     max_images: int = 12,
     warn_sigma2_per_image: float = WARN_PER_IMAGE,
+    detections: list[dict[str, Any]] | None = None,
 ) -> ResponseEstimate:
     """Estimate a camera's response curve from grey images that show a target.
 
@@ -413,6 +414,9 @@ def estimate_response(
     max_images : the first this many images with a clean detection are used
     warn_sigma2_per_image : the estimate's note warns when the chosen curve fits worse
         than the best power law by more than this many noise variances per image
+    detections : optional, the raw-grey detections of the first images from an earlier
+        call on the same images (the caller's list, extended with the new ones): a retry
+        with more images held back detects only those (``ingest_stream.resolve_response``)
 
     Returns
     -------
@@ -421,9 +425,14 @@ def estimate_response(
     cfg = DetectConfig(**{**(config.to_dict() if config is not None else {}), "response": "linear"})
     profiles: list[_Profile] = []
     sat: list[tuple[int, int]] = []
-    for img in images:
+    for i, img in enumerate(images):
         arr = np.asarray(img)
-        det = detect_target(arr, cfg)
+        if detections is not None and i < len(detections):
+            det = detections[i]
+        else:
+            det = detect_target(arr, cfg)
+            if detections is not None:
+                detections.append(det)
         full = 65535.0 if arr.dtype == np.uint16 else 255.0
         pr = edge_profile(arr, det, full)
         if pr is not None:
