@@ -12,6 +12,7 @@ metadata are taken from their topics.
 
 from __future__ import annotations
 
+from concurrent.futures import Future
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -25,10 +26,8 @@ from pipeline.io_mcap import (
     JOINT_TYPES,
     STRING_TYPES,
     StreamState,
-    decode_image_message,
     decode_joint_state,
     decode_string,
-    image_to_gray,
     significant_bits,
     to_full_range,
 )
@@ -39,6 +38,7 @@ from pipeline.stages.detect import RESULT_KEYS, DetectConfig, detect_target, emp
 from pipeline.stages.detect_blob import image_polarity
 from pipeline.stages.flat_field import CropStore
 from pipeline.stages.ingest_joints import JointGroups, strip_prefix
+from pipeline.stages.ingest_prefetch import Decoded, decode_image
 from pipeline.stages.ingest_types import IngestConfig, Progress
 from pipeline.stages.response_estimate import ResponseEstimate, estimate_response
 from pipeline.stages.row_buffer import RowBuffer
@@ -118,8 +118,12 @@ def take_message(
     s: Streamed,
     progress: Progress | None,
     n_total: int | None,
+    pre: Future[Decoded] | None = None,
 ) -> None:
-    """One message of the stream: an image, a joint state, the URDF or touch-up metadata."""
+    """One message of the stream: an image, a joint state, the URDF or touch-up metadata.
+
+    ``pre``: the image's decoding started ahead (:mod:`pipeline.stages.ingest_prefetch`).
+    """
     topic, sname, menc = state.topic_type(msg.channel_id)
     if menc != "cdr" and sname.startswith(("sensor_msgs/", "std_msgs/")):
         if topic in (s.image_topic, config.joint_topic, config.description_topic):
@@ -130,7 +134,7 @@ def take_message(
     if s.image_topic is None and sname in IMAGE_TYPES:
         s.image_topic = topic  # no index (truncated file): the first image topic seen
     if topic == s.image_topic:
-        _take_image(path, topic, sname, menc, msg, s, progress, n_total)
+        _take_image(path, topic, sname, menc, msg, s, progress, n_total, pre)
     elif sname in IMAGE_TYPES:
         s.seen_image_topics.add(topic)
     elif topic == config.joint_topic:
@@ -155,18 +159,20 @@ def _take_image(
     s: Streamed,
     progress: Progress | None,
     n_total: int | None,
+    pre: Future[Decoded] | None = None,
 ) -> None:
     """Decode and detect one image (or hold it back until the response is estimated)."""
     if sname not in IMAGE_TYPES:
         raise BadInput(f"{path}: topic {topic}: type {sname!r} is not an image type")
     k = len(s.rows)
-    try:
-        enc = decode_image_message(sname, menc, msg.data)
-    except Exception as exc:  # noqa: BLE001 - struct/json/protobuf errors: bad bytes
-        raise BadInput(f"{path}: {topic} message {k}: undecodable: {exc}") from exc
-    try:
-        grey = image_to_gray(enc)
-    except ValueError as exc:
+    enc_, grey, enc_exc, grey_exc = (
+        pre.result() if pre is not None else decode_image(sname, menc, msg.data)
+    )
+    if enc_exc is not None or enc_ is None:
+        raise BadInput(f"{path}: {topic} message {k}: undecodable: {enc_exc}") from enc_exc
+    enc = enc_
+    if grey_exc is not None:
+        exc = grey_exc
         if "unknown" in str(exc):
             raise BadInput(f"{path}: {topic} message {k}: {exc}") from exc
         det = {kk: v for kk, v in zip(RESULT_KEYS, _nan_row(), strict=True)}
