@@ -40,11 +40,18 @@ class BuildWithDetector(build_py):
 
     def run(self) -> None:
         super().run()
-        if getattr(self, "editable_mode", False) or os.environ.get("VTCAL_NO_PRECOMPILE"):
+        if getattr(self, "editable_mode", False):
+            return
+        build_lib = os.path.abspath(self.build_lib)
+        # an earlier build's cache (pip builds in the tree's build/): made again or left out
+        cache = os.path.join(build_lib, "pipeline", "stages", "__pycache__")
+        for name in os.listdir(cache) if os.path.isdir(cache) else ():
+            if name.startswith("_detect_jit.") and name.endswith((".nbi", ".nbc")):
+                os.remove(os.path.join(cache, name))
+        if os.environ.get("VTCAL_NO_PRECOMPILE"):
             return
         env = {k: v for k, v in os.environ.items() if k != "NUMBA_CACHE_DIR"}
         env.update(OMP_NUM_THREADS="1", OPENBLAS_NUM_THREADS="1", MKL_NUM_THREADS="1")
-        build_lib = os.path.abspath(self.build_lib)
         try:
             proc = subprocess.run(
                 [sys.executable, "-c", _COMPILE, build_lib],

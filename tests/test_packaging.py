@@ -89,9 +89,14 @@ def test_no_compile_for_an_editable_install_or_when_asked(
 ):
     cmd, calls = build_command
     cmd.build_lib = str(tmp_path)
+    stale = tmp_path / "pipeline" / "stages" / "__pycache__" / "_detect_jit.fine_stage-1.py311.nbi"
+    stale.parent.mkdir(parents=True)
+    stale.write_bytes(b"an earlier build's")
     if how == "editable":
         cmd.editable_mode = True
     else:
         monkeypatch.setenv("VTCAL_NO_PRECOMPILE", "1")
     cmd.run()
     assert calls == []
+    # asked not to: an earlier build's cache in the build tree is not shipped either
+    assert stale.exists() == (how == "editable")
