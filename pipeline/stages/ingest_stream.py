@@ -165,9 +165,12 @@ def _take_image(
     if sname not in IMAGE_TYPES:
         raise BadInput(f"{path}: topic {topic}: type {sname!r} is not an image type")
     k = len(s.rows)
-    enc_, grey, enc_exc, grey_exc = (
-        pre.result() if pre is not None else decode_image(sname, menc, msg.data)
-    )
+    # decoded ahead, or being decoded: its result; not started yet (the other core was
+    # busy): taken back and decoded here rather than waiting for the thread's turn
+    if pre is not None and (pre.done() or not pre.cancel()):
+        enc_, grey, enc_exc, grey_exc = pre.result()
+    else:
+        enc_, grey, enc_exc, grey_exc = decode_image(sname, menc, msg.data)
     if enc_exc is not None or enc_ is None:
         raise BadInput(f"{path}: {topic} message {k}: undecodable: {enc_exc}") from enc_exc
     enc = enc_
