@@ -73,7 +73,7 @@ def install(venv: Path, precompile: bool) -> float:
 
 
 def run(venv: Path, out: Path, cache_home: Path, scratch: Path) -> tuple[float, str]:
-    """Wall time and stderr of one ``vtcal run SAMPLE --out OUT --force`` of the venv."""
+    """Wall time and output (stdout and stderr) of one ``vtcal run SAMPLE --out OUT --force``."""
     t0 = time.perf_counter()
     proc = subprocess.run(
         [str(venv / "bin" / "vtcal"), "run", str(SAMPLE), "--out", str(out), "--force"],
@@ -85,7 +85,7 @@ def run(venv: Path, out: Path, cache_home: Path, scratch: Path) -> tuple[float, 
     took = time.perf_counter() - t0
     if proc.returncode != 0:
         raise SystemExit(f"vtcal run failed ({proc.returncode}): {proc.stderr[-2000:]}")
-    return took, proc.stderr
+    return took, proc.stdout + proc.stderr
 
 
 def ingest_seconds(out: Path) -> float:
@@ -127,8 +127,8 @@ def main() -> None:
         f"{'without' if args.no_precompile else 'with'} the detector precompiled): {took:.1f} s",
         flush=True,
     )
-    first, err = run(venv, workdir / "run_first", cache_home, scratch)
-    announced = "compiling the detector" in err
+    first, said = run(venv, workdir / "run_first", cache_home, scratch)
+    announced = "compiling the detector" in said
     warm = []
     for i in range(args.repeat):
         warm.append(run(venv, workdir / f"run_warm{i}", cache_home, scratch)[0])
