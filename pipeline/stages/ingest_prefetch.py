@@ -10,9 +10,11 @@ between them. The messages still come out in file order, each image with its
 decoded result (:func:`decode_image`), and an error (of the decoding or of
 reading the file) surfaces where it would have without the read-ahead: a
 decoding error when its message is taken, a read error after every message
-read before it. The results are the same with or without it (``--set
-ingest...`` has no switch for it: nothing changes but the time;
-``tests/test_ingest_prefetch.py``).
+read before it. An image whose decoding has not started when its message is
+taken (the other core busy) is taken back and decoded inline
+(``ingest_stream._take_image``), so a loaded machine waits no longer than
+without the thread. The results are the same with or without it; there is no
+switch (``tests/test_ingest_prefetch.py``).
 """
 
 from __future__ import annotations
