@@ -1,13 +1,74 @@
-"""Packaging beyond pyproject.toml: the top-level ``schemas/`` and ``reports/`` in the wheel.
+"""Packaging beyond pyproject.toml: the top-level ``schemas/`` and ``reports/`` in the wheel,
+and the detector compiled into the wheel.
 
-The repository keeps them beside ``pipeline/``; a wheel carries them inside the
-package as ``pipeline/_data/schemas`` and ``pipeline/_data/reports``, where
-:mod:`pipeline.resources` looks when no checkout is beside the package.
+The repository keeps ``schemas/`` and ``reports/`` beside ``pipeline/``; a wheel carries
+them inside the package as ``pipeline/_data/schemas`` and ``pipeline/_data/reports``,
+where :mod:`pipeline.resources` looks when no checkout is beside the package.
+
+Building the package (``pip install .``, ``pip wheel .``) also compiles the detector's
+numba code once (:mod:`pipeline.stages.detect_compile`) into the built tree's
+``pipeline/stages/__pycache__``, so an installed vtcal's first run loads machine code
+instead of waiting ~15-20 s for the compiler. numba keys that cache on the source's
+content (sha256), its own version, the Python version and the CPU, so it serves the
+machine the package was built on (a local install); elsewhere, or with another numba,
+the first run compiles as before (announced). ``VTCAL_NO_PRECOMPILE=1`` skips the step;
+an editable install never runs it. A failed compile only leaves the cache out.
 """
 
+import os
+import subprocess
+import sys
+
 from setuptools import find_packages, setup
+from setuptools.command.build_py import build_py
 
 DATA = {"pipeline._data.schemas": "schemas", "pipeline._data.reports": "reports"}
+
+#: run in a child interpreter on the built tree (its _detect_jit.py is the one installed)
+_COMPILE = """
+import sys
+sys.path.insert(0, sys.argv[1])
+import pipeline
+assert pipeline.__file__.startswith(sys.argv[1]), pipeline.__file__
+from pipeline.stages.detect_compile import compile_detector
+print(f"{compile_detector():.1f}")
+"""
+
+
+class BuildWithDetector(build_py):
+    """``build_py``, then the detector compiled into the built tree (module docstring)."""
+
+    def run(self) -> None:
+        super().run()
+        if getattr(self, "editable_mode", False):
+            return
+        build_lib = os.path.abspath(self.build_lib)
+        # an earlier build's cache (pip builds in the tree's build/): made again or left out
+        cache = os.path.join(build_lib, "pipeline", "stages", "__pycache__")
+        for name in os.listdir(cache) if os.path.isdir(cache) else ():
+            if name.startswith("_detect_jit.") and name.endswith((".nbi", ".nbc")):
+                os.remove(os.path.join(cache, name))
+        if os.environ.get("VTCAL_NO_PRECOMPILE"):
+            return
+        env = {k: v for k, v in os.environ.items() if k != "NUMBA_CACHE_DIR"}
+        env.update(OMP_NUM_THREADS="1", OPENBLAS_NUM_THREADS="1", MKL_NUM_THREADS="1")
+        try:
+            proc = subprocess.run(
+                [sys.executable, "-c", _COMPILE, build_lib],
+                env=env,
+                capture_output=True,
+                text=True,
+                timeout=900,
+            )
+        except (OSError, subprocess.TimeoutExpired) as exc:
+            print(f"vtcal: detector not precompiled ({exc}); the first run compiles it")
+            return
+        if proc.returncode != 0:
+            tail = (proc.stderr.strip().splitlines() or ["?"])[-1]
+            print(f"vtcal: detector not precompiled ({tail}); the first run compiles it")
+        else:
+            print(f"vtcal: detector compiled into the package ({proc.stdout.strip()} s)")
+
 
 setup(
     packages=find_packages(include=["pipeline", "pipeline.*"]) + list(DATA),
@@ -17,4 +78,5 @@ setup(
         "pipeline._data.schemas": ["*.json", "ros2/*/msg/*.msg"],
         "pipeline._data.reports": ["*.j2", "*.css"],
     },
+    cmdclass={"build_py": BuildWithDetector},
 )

@@ -7,7 +7,12 @@ reused when already there), then measures in this one run:
 1. ``vtcal run REC --out DIR --force -q`` as a fresh process, ``--repeat`` times
    per cell: per-stage wall time from ``run.json`` (median over the repeats),
    the ingest time and the ratio (everything after ingest) / ingest
-   (goal <= 0.5) and the report stage (goal < 0.5 s);
+   (goal <= 0.5) and the report stage (goal < 0.5 s); and, interleaved with
+   those runs (a fresh process each, its imports not timed), the read floor:
+   the stock readers (``mcap`` + ``mcap_ros2``) reading the same file and
+   decoding every message (images to pixels, joint states), with the ratios
+   whole run (the stages' seconds) / floor (issue 38's goal <= 1.5), ingest /
+   floor and the process's wall time / floor;
 2. the report stage (``pipeline.report.outputs.build_outputs``) in this process
    with warm imports, and its cProfile on the first cell's run folder, top
    ``--top`` functions by cumulative time;
@@ -33,6 +38,7 @@ import io
 import json
 import os
 import pstats
+import resource
 import shutil
 import statistics
 import subprocess
@@ -84,16 +90,63 @@ def simulate(workdir: Path) -> dict[str, Path]:
     return recs
 
 
-def vtcal(*args: str) -> float:
-    """Wall time of one ``python -m pipeline ARGS`` process (it must succeed)."""
-    t0 = time.perf_counter()
+def children_cpu() -> float:
+    """CPU seconds (user + system) of this process's waited-for children and theirs."""
+    r = resource.getrusage(resource.RUSAGE_CHILDREN)
+    return r.ru_utime + r.ru_stime
+
+
+def vtcal_cpu(*args: str) -> tuple[float, float]:
+    """Wall time and CPU time (its whole process tree) of one ``python -m pipeline ARGS``."""
+    t0, c0 = time.perf_counter(), children_cpu()
     proc = subprocess.run(
         [sys.executable, "-m", "pipeline", *args], env=env(), capture_output=True, text=True
     )
-    took = time.perf_counter() - t0
+    took, cpu = time.perf_counter() - t0, children_cpu() - c0
     if proc.returncode != 0:
         raise SystemExit(f"vtcal {' '.join(args)} failed ({proc.returncode}): {proc.stderr}")
-    return took
+    return took, cpu
+
+
+def vtcal(*args: str) -> float:
+    """Wall time of one ``python -m pipeline ARGS`` process (it must succeed)."""
+    return vtcal_cpu(*args)[0]
+
+
+def read_floor(path: Path) -> tuple[float, float]:
+    """Seconds the stock readers take to read ``path`` and decode every message.
+
+    ``mcap_ros2``'s ``iter_decoded_messages`` decodes each message (joint states,
+    images, the rest); an image's pixels are then made an array (raw: the buffer
+    reshaped; compressed: ``cv2.imdecode``). Imports are not timed. Returns the wall
+    and the CPU seconds.
+    """
+    import cv2
+    import numpy as np
+    from mcap.reader import make_reader
+    from mcap_ros2.decoder import DecoderFactory
+
+    t0, c0 = time.perf_counter(), time.process_time()
+    with open(path, "rb") as f:
+        reader = make_reader(f, decoder_factories=[DecoderFactory()])
+        for schema, _, _, msg in reader.iter_decoded_messages(log_time_order=False):
+            name = schema.name if schema is not None else ""
+            if name.endswith("CompressedImage"):
+                cv2.imdecode(np.frombuffer(msg.data, np.uint8), cv2.IMREAD_UNCHANGED)
+            elif name.endswith("/Image"):
+                np.frombuffer(msg.data, np.uint8).reshape(msg.height, msg.step)
+    return time.perf_counter() - t0, time.process_time() - c0
+
+
+def floor_process(rec: Path) -> tuple[float, float]:
+    """:func:`read_floor` of ``rec`` in a fresh process (as the runs are): wall, CPU."""
+    proc = subprocess.run(
+        [sys.executable, __file__, "--floor", str(rec)], env=env(), capture_output=True, text=True
+    )
+    if proc.returncode != 0:
+        raise SystemExit(f"read floor of {rec} failed: {proc.stderr}")
+    wall, cpu = proc.stdout.split()[-2:]
+    return float(wall), float(cpu)
 
 
 def stage_seconds(out: Path) -> dict[str, float]:
@@ -113,23 +166,57 @@ def bench_stages(recs: dict[str, Path], workdir: Path, repeat: int) -> None:
         f"{'cell':<10}" + "".join(f"{n:>9}" for n in names) + f"{'after':>8}{'after/ingest':>13}"
         f"{'wall':>7}"
     )
+    floors: dict[str, tuple[float, ...]] = {}
     for label, rec in recs.items():
         out = workdir / f"run_{label}"
         per: dict[str, list[float]] = {n: [] for n in names}
         per.setdefault("report", [])
-        walls = []
+        walls, floor, whole, cpus, floor_cpu = [], [], [], [], []
         for _ in range(repeat):
-            walls.append(vtcal("run", str(rec), "--out", str(out), "--force", "-q"))
-            for n, s in stage_seconds(out).items():
+            wall, cpu = vtcal_cpu("run", str(rec), "--out", str(out), "--force", "-q")
+            walls.append(wall)
+            cpus.append(cpu)
+            secs = stage_seconds(out)
+            whole.append(sum(secs.values()))
+            for n, s in secs.items():
                 per.setdefault(n, []).append(s)
+            fw, fc = floor_process(rec)
+            floor.append(fw)
+            floor_cpu.append(fc)
         med = {n: statistics.median(v) for n, v in per.items() if v}
         after = sum(v for n, v in med.items() if n != "ingest")
+        floors[label] = (
+            statistics.median(floor),
+            statistics.median(whole),
+            med["ingest"],
+            statistics.median(walls),
+            statistics.median(floor_cpu),
+            statistics.median(cpus),
+        )
         print(
             f"{label:<10}"
             + "".join(f"{med.get(n, float('nan')):9.3f}" for n in names)
             + f"{after:8.3f}{after / med['ingest']:13.2f}{statistics.median(walls):7.2f}"
         )
     print("goals: after/ingest <= 0.5, report < 0.5 s")
+    print(
+        f"\n== the read floor: stock mcap + mcap_ros2 read and decode of the same file, fresh "
+        f"process, median of {repeat}, interleaved with the runs (load {load()})"
+    )
+    print(
+        f"{'cell':<10}{'floor':>8}{'whole run':>11}{'ingest':>8}{'run/floor':>11}"
+        f"{'ingest/floor':>14}{'wall/floor':>12}{'floor CPU':>11}{'run CPU':>9}"
+    )
+    for label, (fl, wh, ing, wall, fcpu, rcpu) in floors.items():
+        print(
+            f"{label:<10}{fl:8.3f}{wh:11.3f}{ing:8.3f}{wh / fl:11.2f}{ing / fl:14.2f}"
+            f"{wall / fl:12.2f}{fcpu:11.3f}{rcpu:9.3f}"
+        )
+    print(
+        "goal (issue 38): whole run (the stages' seconds) / floor <= 1.5. CPU: the floor's "
+        "read+decode, and the run's whole process tree (imports, the warm report process, "
+        "forked fits: it counts both cores)"
+    )
 
 
 def profile_report(out: Path, top: int) -> None:
@@ -243,7 +330,12 @@ def main() -> None:
     ap.add_argument("--top", type=int, default=25, help="profile rows")
     ap.add_argument("--first-run", action="store_true", help="also time a first run (cold JIT)")
     ap.add_argument("--only", default=None, help="one cell label (e.g. lrmate-36)")
+    ap.add_argument("--floor", type=Path, default=None, help=argparse.SUPPRESS)
+    ap.add_argument("--skip-startup", action="store_true", help="no report profile, start-up")
     args = ap.parse_args()
+    if args.floor is not None:  # the child of floor_process
+        print("{:.6f} {:.6f}".format(*read_floor(args.floor)))
+        return
     tmp = None
     if args.workdir is None:
         tmp = tempfile.TemporaryDirectory(prefix="bench_run_stages_")
@@ -257,8 +349,9 @@ def main() -> None:
         recs = {args.only: recs[args.only]}
     bench_stages(recs, workdir, args.repeat)
     first = next(iter(recs))
-    profile_report(workdir / f"run_{first}", args.top)
-    bench_startup(recs[first], workdir / f"run_{first}", args.repeat_startup)
+    if not args.skip_startup:
+        profile_report(workdir / f"run_{first}", args.top)
+        bench_startup(recs[first], workdir / f"run_{first}", args.repeat_startup)
     if args.first_run:
         bench_first_run(workdir, 1 if args.repeat < 2 else 2)
     print(f"\nload after: {load()}")

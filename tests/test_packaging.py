@@ -8,10 +8,14 @@ finds them there when no checkout is beside the package. Before, a plain
 
 from __future__ import annotations
 
+import os
+import runpy
 import subprocess
 import sys
 import zipfile
 from pathlib import Path
+
+import pytest
 
 REPO = Path(__file__).resolve().parent.parent
 
@@ -21,6 +25,7 @@ def test_the_wheel_carries_schemas_templates_and_robots(tmp_path: Path) -> None:
         [sys.executable, "-m", "pip", "wheel", "--no-deps", "--no-build-isolation", "-q",
          "-w", str(tmp_path), str(REPO)],
         capture_output=True, text=True, timeout=300,
+        env={**os.environ, "VTCAL_NO_PRECOMPILE": "1"},  # the compile: test below
     )  # fmt: skip
     assert proc.returncode == 0, proc.stderr[-2000:]
     (wheel,) = tmp_path.glob("*.whl")
@@ -44,3 +49,54 @@ def test_resources_fall_back_to_the_wheels_copy(tmp_path: Path, monkeypatch) -> 
     (fake_pkg / "_data" / "schemas").mkdir(parents=True)
     monkeypatch.setattr(resources, "PACKAGE_DIR", fake_pkg)
     assert resources.data_dir("schemas") == fake_pkg / "_data" / "schemas"
+
+
+@pytest.fixture
+def build_command(monkeypatch):
+    """setup.py's build_py command (``setup()`` not run) and the subprocess calls it makes."""
+    import setuptools
+    from setuptools.command.build_py import build_py
+    from setuptools.dist import Distribution
+
+    monkeypatch.setattr(setuptools, "setup", lambda **kw: None)
+    ns = runpy.run_path(str(REPO / "setup.py"), run_name="__main__")
+    calls: list[tuple[list[str], dict[str, str]]] = []
+
+    def fake_run(args, env, **kw):
+        calls.append((list(args), dict(env)))
+        return subprocess.CompletedProcess(args, 0, stdout="12.3\n", stderr="")
+
+    monkeypatch.setattr(build_py, "run", lambda self: None)  # the copying itself
+    monkeypatch.setattr(ns["subprocess"], "run", fake_run)
+    return ns["BuildWithDetector"](Distribution()), calls
+
+
+def test_the_build_compiles_the_detector_into_the_built_tree(build_command, tmp_path, monkeypatch):
+    """The wheel's numba cache is made from the built tree's own _detect_jit.py."""
+    cmd, calls = build_command
+    monkeypatch.setenv("NUMBA_CACHE_DIR", str(tmp_path / "elsewhere"))
+    monkeypatch.delenv("VTCAL_NO_PRECOMPILE", raising=False)
+    cmd.build_lib = str(tmp_path / "build" / "lib")
+    cmd.run()
+    ((args, env),) = calls
+    assert args[0] == sys.executable and args[-1] == cmd.build_lib
+    assert "compile_detector" in args[2] and "NUMBA_CACHE_DIR" not in env  # into the tree
+
+
+@pytest.mark.parametrize("how", ["editable", "env"])
+def test_no_compile_for_an_editable_install_or_when_asked(
+    build_command, tmp_path, monkeypatch, how
+):
+    cmd, calls = build_command
+    cmd.build_lib = str(tmp_path)
+    stale = tmp_path / "pipeline" / "stages" / "__pycache__" / "_detect_jit.fine_stage-1.py311.nbi"
+    stale.parent.mkdir(parents=True)
+    stale.write_bytes(b"an earlier build's")
+    if how == "editable":
+        cmd.editable_mode = True
+    else:
+        monkeypatch.setenv("VTCAL_NO_PRECOMPILE", "1")
+    cmd.run()
+    assert calls == []
+    # asked not to: an earlier build's cache in the build tree is not shipped either
+    assert stale.exists() == (how == "editable")

@@ -187,3 +187,27 @@ def test_images_without_a_clean_target_are_held_back_until_some_show_one():
     rng = np.random.default_rng(2)
     est = estimate_response([_misfit_image(rng, True) for _ in range(4)])
     assert not est.assumed and est.response.kind == "srgb", est.note
+
+
+def test_a_retry_with_more_images_held_back_detects_only_the_new_ones(monkeypatch):
+    """resolve_response's retries: the estimate's raw detections are kept between calls."""
+    import pipeline.stages.response_estimate as re_
+    from pipeline.stages.ingest_stream import resolve_response
+
+    seen: list[int] = []
+    detect = re_.detect_target
+
+    def counting(img, cfg, *a):
+        seen.append(id(img))
+        return detect(img, cfg, *a)
+
+    monkeypatch.setattr(re_, "detect_target", counting)
+    blank = np.full((160, 200), 200, np.uint8)
+    cfg = DetectConfig(polarity="dark_on_light")
+    probing = [(k, blank.copy()) for k in range(24)]
+    rows: list[dict] = [{} for _ in range(48)]
+    raw: list[dict] = []
+    assert resolve_response(probing, rows, cfg, final=False, raw=raw) is None
+    probing += [(k, blank.copy()) for k in range(24, 48)]
+    assert resolve_response(probing, rows, cfg, final=True, raw=raw) is not None
+    assert len(seen) == 48 == len(set(seen)) == len(raw)

@@ -13,6 +13,13 @@ own detections are the same with or without it (same compiled code).
 
 Where numba keeps the cache: ``__pycache__`` beside ``_detect_jit.py`` when that
 folder is writable, else numba's user cache folder; ``NUMBA_CACHE_DIR`` moves it.
+An installed package normally has it already: building the wheel runs
+:func:`compile_detector` on the built tree (``setup.py``), and numba keys the
+cache on the source's content, its own version, Python's and the CPU, so a
+``pip install`` on the machine that runs vtcal ships the machine code with it
+(``benchmarks/bench_first_run.py``: first run within 1.5x of a warm one). A wheel
+built elsewhere, another numba or a read-only install compile on the first run,
+announced as before.
 """
 
 from __future__ import annotations

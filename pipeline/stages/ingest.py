@@ -27,6 +27,7 @@ from __future__ import annotations
 
 import math
 import os
+from collections.abc import Callable
 from typing import Any
 
 import numpy as np
@@ -52,6 +53,7 @@ from pipeline.stages.ingest_joints import (
     frame_table,
     other_joints,
 )
+from pipeline.stages.ingest_prefetch import prefetch_images
 from pipeline.stages.ingest_stream import (
     RESPONSE_FIT_IMAGES,
     RESPONSE_PROBE_IMAGES,
@@ -152,6 +154,25 @@ def infer_links(
     return base, tip, f"{tip} ({why})"
 
 
+def _ahead_wanted(state: StreamState, s: Streamed) -> Callable[[Any], tuple[str, str] | None]:
+    """The messages :func:`prefetch_images` decodes ahead: images of the image topic.
+
+    Before the image topic is known (a file without a summary) any image-typed
+    message is decoded ahead; one of another topic is then dropped undecoded.
+    """
+
+    def wants(msg: Any) -> tuple[str, str] | None:
+        try:
+            topic, sname, menc = state.topic_type(msg.channel_id)
+        except KeyError:  # take_message says what is wrong, in order
+            return None
+        if sname not in IMAGE_TYPES or s.image_topic not in (None, topic):
+            return None
+        return sname, menc
+
+    return wants
+
+
 def ingest_recording(
     path: str | os.PathLike[str],
     config: IngestConfig,
@@ -209,10 +230,10 @@ def ingest_recording(
     )
     state = StreamState(path)
     s = Streamed(image_topic=image_topic, dcfg=dcfg, probing=[] if resp_fixed is None else None)
-    for msg in iter_recording(layout, state):
-        take_message(path, layout.path, msg, state, config, s, progress, n_total)
+    for msg, pre in prefetch_images(iter_recording(layout, state), _ahead_wanted(state, s)):
+        take_message(path, layout.path, msg, state, config, s, progress, n_total, pre)
     if s.probing is not None:
-        got = resolve_response(s.probing, s.rows, s.dcfg, s.crops, final=True)
+        got = resolve_response(s.probing, s.rows, s.dcfg, s.crops, final=True, raw=s.probe_raw)
         assert got is not None
         s.dcfg, s.response_est, s.expected = got
     flat = correct_flat_field(s.crops, s.rows, s.dcfg, (s.height, s.width))

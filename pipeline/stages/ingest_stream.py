@@ -12,6 +12,7 @@ metadata are taken from their topics.
 
 from __future__ import annotations
 
+from concurrent.futures import Future
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -25,10 +26,8 @@ from pipeline.io_mcap import (
     JOINT_TYPES,
     STRING_TYPES,
     StreamState,
-    decode_image_message,
     decode_joint_state,
     decode_string,
-    image_to_gray,
     significant_bits,
     to_full_range,
 )
@@ -39,6 +38,7 @@ from pipeline.stages.detect import RESULT_KEYS, DetectConfig, detect_target, emp
 from pipeline.stages.detect_blob import image_polarity
 from pipeline.stages.flat_field import CropStore
 from pipeline.stages.ingest_joints import JointGroups, strip_prefix
+from pipeline.stages.ingest_prefetch import Decoded, decode_image
 from pipeline.stages.ingest_types import IngestConfig, Progress
 from pipeline.stages.response_estimate import ResponseEstimate, estimate_response
 from pipeline.stages.row_buffer import RowBuffer
@@ -81,6 +81,8 @@ class Streamed:
         in ``rows`` are in binned pixels until :func:`pipeline.stages.binning.unbin`) and why
     polarity_votes : without a declared polarity, how many images automatic detection read
         as each polarity (:func:`pipeline.stages.detect_blob.image_polarity`)
+    probe_raw : the held-back images' raw-grey detections the response estimate made, in
+        ``probing`` order (a retry with more images held back does not redo them)
     """
 
     image_topic: str | None
@@ -104,6 +106,7 @@ class Streamed:
     bin: int = 0
     bin_note: str = ""
     polarity_votes: dict[str, int] = field(default_factory=dict)
+    probe_raw: list[dict[str, Any]] = field(default_factory=list)
 
 
 def take_message(
@@ -115,8 +118,12 @@ def take_message(
     s: Streamed,
     progress: Progress | None,
     n_total: int | None,
+    pre: Future[Decoded] | None = None,
 ) -> None:
-    """One message of the stream: an image, a joint state, the URDF or touch-up metadata."""
+    """One message of the stream: an image, a joint state, the URDF or touch-up metadata.
+
+    ``pre``: the image's decoding started ahead (:mod:`pipeline.stages.ingest_prefetch`).
+    """
     topic, sname, menc = state.topic_type(msg.channel_id)
     if menc != "cdr" and sname.startswith(("sensor_msgs/", "std_msgs/")):
         if topic in (s.image_topic, config.joint_topic, config.description_topic):
@@ -127,7 +134,7 @@ def take_message(
     if s.image_topic is None and sname in IMAGE_TYPES:
         s.image_topic = topic  # no index (truncated file): the first image topic seen
     if topic == s.image_topic:
-        _take_image(path, topic, sname, menc, msg, s, progress, n_total)
+        _take_image(path, topic, sname, menc, msg, s, progress, n_total, pre)
     elif sname in IMAGE_TYPES:
         s.seen_image_topics.add(topic)
     elif topic == config.joint_topic:
@@ -152,18 +159,23 @@ def _take_image(
     s: Streamed,
     progress: Progress | None,
     n_total: int | None,
+    pre: Future[Decoded] | None = None,
 ) -> None:
     """Decode and detect one image (or hold it back until the response is estimated)."""
     if sname not in IMAGE_TYPES:
         raise BadInput(f"{path}: topic {topic}: type {sname!r} is not an image type")
     k = len(s.rows)
-    try:
-        enc = decode_image_message(sname, menc, msg.data)
-    except Exception as exc:  # noqa: BLE001 - struct/json/protobuf errors: bad bytes
-        raise BadInput(f"{path}: {topic} message {k}: undecodable: {exc}") from exc
-    try:
-        grey = image_to_gray(enc)
-    except ValueError as exc:
+    # decoded ahead, or being decoded: its result; not started yet (the other core was
+    # busy): taken back and decoded here rather than waiting for the thread's turn
+    if pre is not None and (pre.done() or not pre.cancel()):
+        enc_, grey, enc_exc, grey_exc = pre.result()
+    else:
+        enc_, grey, enc_exc, grey_exc = decode_image(sname, menc, msg.data)
+    if enc_exc is not None or enc_ is None:
+        raise BadInput(f"{path}: {topic} message {k}: undecodable: {enc_exc}") from enc_exc
+    enc = enc_
+    if grey_exc is not None:
+        exc = grey_exc
         if "unknown" in str(exc):
             raise BadInput(f"{path}: {topic} message {k}: {exc}") from exc
         det = {kk: v for kk, v in zip(RESULT_KEYS, _nan_row(), strict=True)}
@@ -193,7 +205,7 @@ def _take_image(
     if n_held >= RESPONSE_PROBE_IMAGES and n_held % RESPONSE_PROBE_IMAGES == 0:
         assert s.probing is not None
         got = resolve_response(
-            s.probing, s.rows, s.dcfg, s.crops, final=n_held >= RESPONSE_PROBE_MAX
+            s.probing, s.rows, s.dcfg, s.crops, final=n_held >= RESPONSE_PROBE_MAX, raw=s.probe_raw
         )
         if got is not None:
             s.dcfg, s.response_est, s.expected = got
@@ -253,6 +265,7 @@ def resolve_response(
     dcfg: DetectConfig,
     crops: CropStore | None = None,
     final: bool = True,
+    raw: list[dict[str, Any]] | None = None,
 ) -> tuple[DetectConfig, ResponseEstimate, tuple[float, float, float] | None] | None:
     """Estimate the camera response from the held-back images, then detect them with it.
 
@@ -260,9 +273,12 @@ def resolve_response(
     capture's detection steering the next one's (``expected``) as in the stream;
     clean ones are kept in ``crops`` as the stream keeps its own. Unless ``final``,
     None (nothing done: hold more images back) when fewer than half of
-    :data:`RESPONSE_FIT_IMAGES` of them showed a clean target edge.
+    :data:`RESPONSE_FIT_IMAGES` of them showed a clean target edge. ``raw`` keeps the
+    estimate's raw-grey detections between the calls (none is made twice).
     """
-    est = estimate_response((g for _, g in probing), dcfg, max_images=RESPONSE_FIT_IMAGES)
+    est = estimate_response(
+        (g for _, g in probing), dcfg, max_images=RESPONSE_FIT_IMAGES, detections=raw
+    )
     if not final and est.n_images < RESPONSE_FIT_IMAGES // 2:
         return None
     cfg = DetectConfig(**{**dcfg.to_dict(), "response": est.response.spec})

@@ -40,7 +40,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Iterable, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
@@ -50,6 +50,7 @@ from scipy.special import ndtr
 from pipeline.kinematics.se3 import F64
 from pipeline.stages.detect import DetectConfig, detect_target, ellipse_foot
 from pipeline.stages.response import Response
+from pipeline.stages.response_fit import EdgeFit, edge_spread, fit_edge
 
 
 @dataclass
@@ -123,6 +124,8 @@ class _Profile:
     grey: F64
     x0: tuple[float, float] = (0.0, 0.8)
     diameter_px: float = 0.0
+    #: fits of model (R1)-(R2) already made, by curve: ``(rss, (delta, sigma))``
+    fits: dict[tuple[Any, ...], tuple[float, tuple[float, float]]] = field(default_factory=dict)
 
 
 def edge_profile(
@@ -182,64 +185,44 @@ def edge_harmonics(d: F64, du: F64, dv: F64, grey: F64, psi: F64, x0: tuple[floa
     smear the profile by several grey levels on a sharp edge, more than the
     noise and the response's own signature. They are geometry, the same in
     every curve: fitted once on raw grey with model (R1) (``psi`` the ellipse's
-    parametric angle, ``k = 1..ROUND_HARMONICS``) and taken out of ``d``.
+    parametric angle, ``k = 1..ROUND_HARMONICS``; analytic Jacobian,
+    :class:`pipeline.stages.response_fit.EdgeFit`) and taken out of ``d``.
     """
     K = ROUND_HARMONICS
     ks = np.arange(1, K + 1)
     C = np.concatenate([np.cos(np.outer(psi, ks)), np.sin(np.outer(psi, ks))], axis=1)
-
-    def res(x: F64) -> F64:
-        F = ndtr((d - x[0] - C @ x[2:]) / max(abs(x[1]), 0.05))
-        A = np.stack([1 - F, (1 - F) * du, (1 - F) * dv, F, F * du, F * dv], 1)
-        coef, *_ = np.linalg.lstsq(A, grey, rcond=None)
-        r: F64 = A @ coef - grey
-        return r
-
-    sol = least_squares(res, np.array([*x0, *np.zeros(2 * K)]), method="lm", xtol=1e-8)
+    fit = EdgeFit(d, du, dv, grey, np.ones_like(grey), harmonics=C)
+    x0_ = np.array([*x0, *np.zeros(2 * K)])
+    sol = least_squares(fit.residual, x0_, jac=fit.jacobian, method="lm", xtol=1e-8)
     shift: F64 = np.clip(C @ sol.x[2:], -1.0, 1.0)
     return shift
 
 
 #: the edge profile's odd shape terms (R2): a point spread function that is not Gaussian
+#: (:func:`pipeline.stages.response_fit.edge_spread`)
 SHAPE_TERMS = True
 
-
-def edge_spread(t: F64, b: F64) -> F64:
-    """The edge profile of (R1)-(R2) at ``t = (d - delta) / sigma``, (N,).
-
-    ``F = Phi(t) + b3 He3(t) phi(t) + b5 He5(t) phi(t)`` (``He`` the Hermite
-    polynomials, ``phi`` the normal density): the edge of *any* symmetric point
-    spread function is ``1/2`` plus an odd function of ``t``, and these two odd terms
-    take a disk (defocus) or a box (pixel) kernel's profile where an erf alone
-    leaves a residual of a few grey levels on a sharp edge. A response error bends
-    the profile by an even function (``c F (1 - F)``) and cannot hide in them.
-    """
-    F: F64 = ndtr(t)
-    if len(b):
-        ph = np.exp(-0.5 * t * t) / math.sqrt(2.0 * math.pi)
-        t2 = t * t
-        F = F + b[0] * (t * t2 - 3.0 * t) * ph
-        if len(b) > 1:
-            F = F + b[1] * (t * t2 * t2 - 10.0 * t * t2 + 15.0 * t) * ph
-    return F
+__all__ = ["ResponseEstimate", "edge_profile", "edge_spread", "estimate_response"]
 
 
 def _fit_profile(pr: _Profile, resp: Response) -> tuple[float, tuple[float, float]]:
-    """Residual sum (grey^2, normalised scale) of model (R1)-(R2) under the curve ``resp``."""
+    """Residual sum (grey^2, normalised scale) of model (R1)-(R2) under the curve ``resp``.
+
+    Fitted by :func:`pipeline.stages.response_fit.fit_edge` (variable projection, analytic
+    Jacobian); a profile keeps its fit per curve, so the figures computed at the best power
+    law after the search (noise, edge width, illumination) do not fit it again.
+    """
+    key = ("linear", 1.0, ()) if resp.is_linear else (resp.kind, resp.gamma, resp.table)
+    got = pr.fits.get(key)
+    if got is not None:
+        return got
     E = resp.to_linear(pr.grey)
     w = 1.0 / np.maximum(resp.slope(pr.grey), 1e-6)
-    d, du, dv = pr.d, pr.du, pr.dv
-
-    def res(x: F64) -> F64:
-        F = edge_spread((d - x[0]) / max(abs(x[1]), 0.05), x[2:])
-        A = np.stack([1 - F, (1 - F) * du, (1 - F) * dv, F, F * du, F * dv], 1) * w[:, None]
-        coef, *_ = np.linalg.lstsq(A, E * w, rcond=None)
-        r: F64 = A @ coef - E * w
-        return r
-
     x0 = np.array([*pr.x0, *((0.0, 0.0) if SHAPE_TERMS else ())], dtype=float)
-    sol = least_squares(res, x0, method="lm", xtol=1e-10)
-    return float(np.sum(sol.fun**2)), (float(sol.x[0]), float(abs(sol.x[1])))
+    rss, x = fit_edge(pr.d, pr.du, pr.dv, E, w, x0)
+    out = (rss, (float(x[0]), float(abs(x[1]))))
+    pr.fits[key] = out
+    return out
 
 
 def _flat_noise2(pr: _Profile, resp: Response) -> tuple[float, int]:
@@ -420,6 +403,7 @@ def estimate_response(
     config: Any = None,
     max_images: int = 12,
     warn_sigma2_per_image: float = WARN_PER_IMAGE,
+    detections: list[dict[str, Any]] | None = None,
 ) -> ResponseEstimate:
     """Estimate a camera's response curve from grey images that show a target.
 
@@ -430,6 +414,9 @@ def estimate_response(
     max_images : the first this many images with a clean detection are used
     warn_sigma2_per_image : the estimate's note warns when the chosen curve fits worse
         than the best power law by more than this many noise variances per image
+    detections : optional, the raw-grey detections of the first images from an earlier
+        call on the same images (the caller's list, extended with the new ones): a retry
+        with more images held back detects only those (``ingest_stream.resolve_response``)
 
     Returns
     -------
@@ -438,9 +425,14 @@ def estimate_response(
     cfg = DetectConfig(**{**(config.to_dict() if config is not None else {}), "response": "linear"})
     profiles: list[_Profile] = []
     sat: list[tuple[int, int]] = []
-    for img in images:
+    for i, img in enumerate(images):
         arr = np.asarray(img)
-        det = detect_target(arr, cfg)
+        if detections is not None and i < len(detections):
+            det = detections[i]
+        else:
+            det = detect_target(arr, cfg)
+            if detections is not None:
+                detections.append(det)
         full = 65535.0 if arr.dtype == np.uint16 else 255.0
         pr = edge_profile(arr, det, full)
         if pr is not None:

@@ -1,0 +1,151 @@
+"""Benchmark: the first ``vtcal run`` after a fresh install against a warm run (issue 38).
+
+Builds a fresh virtual environment under ``--workdir`` (``python -m venv``, no
+system site-packages), ``pip install``s this checkout into it (dependencies from
+the configured indexes or the local wheel cache; the build compiles the
+detector into the wheel, ``setup.py``), then, as fresh processes of the venv's
+own ``vtcal`` from a scratch folder (so this checkout is not imported):
+
+1. the first ``vtcal run`` of the shipped sample, with an empty cache home
+   (``XDG_CACHE_HOME``: vtcal's code-key and template caches, numba's user
+   cache) and no ``NUMBA_CACHE_DIR``: what a new user waits for;
+2. ``--repeat`` warm runs of the same recording into new folders (``--force``),
+   the same cache home now filled: their median;
+
+and prints the install time, both run times and their ratio (goal <= 1.5), the
+ingest stage's seconds of each (``run.json``), whether the first run
+announced a compile, and which of the first run's tables (``detections.parquet`` and every
+other) differ from the warm run's (``pandas.DataFrame.equals``). ``--no-precompile`` installs
+with ``VTCAL_NO_PRECOMPILE=1`` (the package without its compiled detector: the
+state before), for the comparison. The load average is printed before and after.
+
+    python benchmarks/bench_first_run.py [--workdir /tmp/first_run] [--repeat 3] [--no-precompile]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import shutil
+import statistics
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+SAMPLE = ROOT / "datasets" / "samples" / "sample_lrmate.mcap"
+
+
+def load() -> str:
+    """The 1, 5 and 15 minute load averages."""
+    return " ".join(f"{x:.2f}" for x in os.getloadavg())
+
+
+def clean_env(cache_home: Path) -> dict[str, str]:
+    """The environment of a new user: no checkout on the path, an empty cache home."""
+    e = {k: v for k, v in os.environ.items() if k not in ("PYTHONPATH", "NUMBA_CACHE_DIR")}
+    e["XDG_CACHE_HOME"] = str(cache_home)
+    return e
+
+
+def install(venv: Path, precompile: bool) -> float:
+    """A fresh venv with this checkout installed; seconds of the ``pip install``."""
+    if venv.exists():
+        shutil.rmtree(venv)
+    subprocess.run([sys.executable, "-m", "venv", str(venv)], check=True)
+    env = {k: v for k, v in os.environ.items() if k not in ("PYTHONPATH", "NUMBA_CACHE_DIR")}
+    if not precompile:
+        env["VTCAL_NO_PRECOMPILE"] = "1"
+    t0 = time.perf_counter()
+    proc = subprocess.run(
+        [str(venv / "bin" / "python"), "-m", "pip", "install", "-q", str(ROOT)],
+        env=env,
+        capture_output=True,
+        text=True,
+    )
+    took = time.perf_counter() - t0
+    if proc.returncode != 0:
+        raise SystemExit(f"pip install failed: {proc.stderr[-2000:]}")
+    return took
+
+
+def run(venv: Path, out: Path, cache_home: Path, scratch: Path) -> tuple[float, str]:
+    """Wall time and output (stdout and stderr) of one ``vtcal run SAMPLE --out OUT --force``."""
+    t0 = time.perf_counter()
+    proc = subprocess.run(
+        [str(venv / "bin" / "vtcal"), "run", str(SAMPLE), "--out", str(out), "--force"],
+        env=clean_env(cache_home),
+        cwd=scratch,
+        capture_output=True,
+        text=True,
+    )
+    took = time.perf_counter() - t0
+    if proc.returncode != 0:
+        raise SystemExit(f"vtcal run failed ({proc.returncode}): {proc.stderr[-2000:]}")
+    return took, proc.stdout + proc.stderr
+
+
+def ingest_seconds(out: Path) -> float:
+    run_json = json.loads((out / "run.json").read_text())
+    return next(float(s["seconds"]) for s in run_json["stages"] if s["stage"] == "ingest")
+
+
+def differing_tables(a: Path, b: Path) -> list[str]:
+    """The Parquet tables of run ``a`` whose values differ from run ``b``'s (not metadata)."""
+    import pandas as pd
+
+    files = sorted(p.name for p in a.glob("*.parquet"))
+    assert "detections.parquet" in files, files
+    return [f for f in files if not pd.read_parquet(a / f).equals(pd.read_parquet(b / f))]
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--workdir", type=Path, default=None, help="venv and runs (under /tmp)")
+    ap.add_argument("--repeat", type=int, default=3, help="warm runs")
+    ap.add_argument(
+        "--no-precompile", action="store_true", help="install without the compiled detector"
+    )
+    args = ap.parse_args()
+    tmp = None
+    if args.workdir is None:
+        tmp = tempfile.TemporaryDirectory(prefix="bench_first_run_")
+        workdir = Path(tmp.name)
+    else:
+        workdir = args.workdir
+        shutil.rmtree(workdir, ignore_errors=True)
+        workdir.mkdir(parents=True)
+    print(f"load before: {load()}  (cores: {os.cpu_count()})", flush=True)
+    venv, cache_home, scratch = workdir / "venv", workdir / "cache", workdir / "scratch"
+    scratch.mkdir()
+    took = install(venv, precompile=not args.no_precompile)
+    print(
+        f"pip install of {ROOT.name} into a fresh venv ("
+        f"{'without' if args.no_precompile else 'with'} the detector precompiled): {took:.1f} s",
+        flush=True,
+    )
+    first, said = run(venv, workdir / "run_first", cache_home, scratch)
+    announced = "compiling the detector" in said
+    warm = []
+    for i in range(args.repeat):
+        warm.append(run(venv, workdir / f"run_warm{i}", cache_home, scratch)[0])
+    w = statistics.median(warm)
+    print(
+        f"first vtcal run after the install: {first:.2f} s (ingest "
+        f"{ingest_seconds(workdir / 'run_first'):.2f} s; compile announced: {announced})\n"
+        f"warm runs: median {w:.2f} s (ingest {ingest_seconds(workdir / 'run_warm0'):.2f} s), "
+        f"{[round(x, 2) for x in warm]}\n"
+        f"first / warm: {first / w:.2f} (goal <= 1.5: {'met' if first / w <= 1.5 else 'NOT met'})\n"
+        f"tables of the first run that differ from the warm run's (detections.parquet and "
+        f"every other): {differing_tables(workdir / 'run_first', workdir / 'run_warm0') or 'none'}"
+    )
+    print(f"load after: {load()}")
+    if tmp is not None:
+        shutil.rmtree(workdir, ignore_errors=True)
+
+
+if __name__ == "__main__":
+    main()
