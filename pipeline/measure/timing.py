@@ -18,7 +18,9 @@ to its end is then cut into four phases:
 *Arrival* is read from the joint states the cell logs while the call runs (the
 recording's ``/joint_states``): the first sample from which every later sample of
 the call is within ``arrive_tol_rad`` of the call's last one. A call with fewer
-than two samples in it counts as arrived at its end.
+than two samples in it counts as arrived at its end. On a cell whose joint states the
+client polls and stamps with the host clock while ``JOINTS?`` answers on the
+controller's, the cut is only as good as the two clocks agree.
 
 The phases are consecutive stretches of one clock cut at the noted instants, so
 they sum to the touch-up's time exactly (integer nanoseconds):
