@@ -83,8 +83,9 @@ def run_session(
 ) -> list[dict[str, Any]]:
     """Measure the plan's poses from ``rec.progress.done`` on; return the session's summaries.
 
-    Each summary (also saved in the recording's progress file) holds the plan
-    index, target, outcome (``converged``, ``reason``), ``iterations``,
+    Each summary (also saved in the recording's progress file) holds the
+    touch-up's place in the run (``index``) and its row of the plan file
+    (``plan_row``: another one after ``--order travel``), target, outcome (``converged``, ``reason``), ``iterations``,
     ``captures`` (probes included), ``final_error_px``, ``cell_s`` (cell clock
     from the start of the large move to the last capture), its split
     ``travel_s``, ``settle_s``, ``servo_s``, ``capture_s``
