@@ -95,7 +95,7 @@ def test_tcp_and_in_process_measure_the_same_and_vtcal_run_calibrates_it(
     # the protocol carries floats and pixels exactly: the same cell gives the same file
     assert (tmp_path / "tcp.mcap").read_bytes() == (tmp_path / "sim.mcap").read_bytes()
     truncated, n_img, n_joint = _images(tmp_path / "tcp.mcap")
-    assert not truncated and n_img == 51
+    assert not truncated and n_img == 45  # 6 x (2 loop + 2 extra) + 3 targets x 7 probes
     assert n_joint >= 50 * 50  # >= 50 Hz over the ~57 s of cell time
     code, out, err = _vtcal(
         ["run", str(tmp_path / "tcp.mcap"), "--out", str(tmp_path / "run"), "-q", "--no-report"],
@@ -107,7 +107,7 @@ def test_tcp_and_in_process_measure_the_same_and_vtcal_run_calibrates_it(
     # the recording says how it was measured; ingest keeps it for the report
     info = json.loads((tmp_path / "run" / "recording.json").read_text())
     m = from_metadata(info["measurement"])
-    assert (m["n_plan"], m["converged"], m["captures"], m["gave_up"]) == (6, 6, 51, {})
+    assert (m["n_plan"], m["converged"], m["captures"], m["gave_up"]) == (6, 6, 45, {})
     assert 40.0 < m["cell_s"] < 80.0 and m["sessions"] == 1
     prog = read_progress(tmp_path / "tcp.mcap")
     assert prog is not None and prog.finished and prog.done == 6
@@ -286,12 +286,12 @@ def test_calibrate_measures_once_and_reports_the_measurement(
     code, out, err = _vtcal(argv, capsys)
     assert code in (0, 3), err  # 3: NOT improved is possible on 6 poses
     m = json.loads((tmp_path / "cal" / "measure.json").read_text())
-    assert m["converged"] == 6 and m["captures"] == 51 and m["cell_s"] > 10
+    assert m["converged"] == 6 and m["captures"] == 45 and m["cell_s"] > 10
     assert out.count("measured 6/6 touch-ups: 6 converged") == 2  # after measuring and at the end
     assert (tmp_path / "cal" / "run" / "calibrated.urdf").exists()
     # the report says how the recording was measured (from the recording itself)
     html = (tmp_path / "cal" / "run" / "report.html").read_text()
-    assert "by vtcal measure: 6 of 6 planned touch-ups converged; 51 captures" in html
+    assert "by vtcal measure: 6 of 6 planned touch-ups converged; 45 captures" in html
     stamp = (tmp_path / "cal" / "recording.mcap").stat().st_mtime_ns
     code2, out2, _ = _vtcal(argv, capsys)
     assert code2 == code and "measured 6/6" in out2

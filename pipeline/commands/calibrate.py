@@ -118,6 +118,7 @@ def command(
     gain: float,
     limit_margin_deg: float,
     quiet: bool,
+    order: str,
 ) -> None:
     """Plan, measure and calibrate a cell in one command."""
     from pipeline.commands import plan as plan_cmd
@@ -167,7 +168,7 @@ def command(
     else:
         s = run_measure(
             plan_path, robot, camera, rec, urdf_path, overrides, speed, max_iterations, gain,
-            limit_margin_deg, quiet,
+            limit_margin_deg, quiet, order=order,
         )  # fmt: skip
     line = summary_line(s)
     click.echo(f"{rec}: {line}")

@@ -24,6 +24,10 @@ if TYPE_CHECKING:
 #: cell time the arm stays still after each capture (s): more than ingest's still window
 #: (+-0.06 s about the stamp) plus half an exposure
 HOLD_S = 0.1
+#: the servo gain ``vtcal measure`` takes by default: the full linear step (the Jacobian is
+#: probed and then updated from the loop's own steps, so one step from the planned pose
+#: lands within the thresholds on the standard cells: 2 loop captures where 0.9 took 3)
+MEASURE_GAIN = 1.0
 
 ADAPTER_HELP = "tcp://HOST:PORT, sim:SCENARIO.toml:SEED"
 CAMERA_HELP = "opencv:INDEX|URL, folder:PATH, or omit: the robot's link serves CAPTURE"
@@ -47,8 +51,13 @@ def measure_options(fn: Callable[..., Any]) -> Callable[..., Any]:
                      help="Speed of the large moves (0-1 of the adapter's maximum)."),
         click.option("--max-iterations", type=click.IntRange(1, 100), default=12, show_default=True,
                      help="Loop captures per touch-up before it gives up."),
-        click.option("--gain", type=click.FloatRange(0.05, 1.0), default=0.9, show_default=True,
+        click.option("--gain", type=click.FloatRange(0.05, 1.0), default=MEASURE_GAIN,
+                     show_default=True,
                      help="Fraction of the linear correction per servo step."),
+        click.option("--order", type=click.Choice(["plan", "travel"]), default="plan",
+                     show_default=True,
+                     help="Visit the poses in the plan's order, or in the order of shortest "
+                     "joint travel (the paths between poses change: dry-run it first)."),
         click.option("--limit-margin-deg", type=click.FloatRange(0.0, 30.0), default=0.0,
                      show_default=True, help="Refuse poses closer than this to a joint limit."),
         click.option("--quiet", "-q", is_flag=True, help="No live progress."),
@@ -104,8 +113,12 @@ def run_measure(
     limit_margin_deg: float,
     quiet: bool,
     dry_run: bool = False,
+    order: str = "plan",
 ) -> dict[str, Any]:
     """Measure ``plan_path`` on the cell into ``out``; return the measurement summary.
+
+    ``order`` is ``plan`` (the file's order) or ``travel``
+    (:func:`pipeline.measure.plan_file.in_travel_order`).
 
     Raises
     ------
@@ -119,8 +132,7 @@ def run_measure(
     import numpy as np
 
     from pipeline.cell_adapters import connect
-    from pipeline.measure.loop import LoopConfig
-    from pipeline.measure.plan_file import check_limits, read_plan
+    from pipeline.measure.plan_file import check_limits, in_travel_order, read_plan
     from pipeline.measure.protocols import MeasureFault
     from pipeline.measure.session import SessionOptions
     from pipeline.measure.session import dry_run as visit
@@ -136,13 +148,15 @@ def run_measure(
         urdf = _urdf_of(urdf_path, link.urdf, robot)
         plan = read_plan(plan_path, link.robot.joint_names)
         check_limits(plan, urdf, float(np.radians(limit_margin_deg)))
-        # the cell's known distances restated by target ids; --set ones are by ids already
-        meta = {**with_target_order(dict(link.metadata), plan.target_ids), **overrides}
+        # the cell's known distances restated by target ids (its first-touch labels follow
+        # the file's order); --set ones are by ids already
+        labels_from = plan.target_ids
+        if order == "travel":
+            plan = in_travel_order(plan)
+        meta = {**with_target_order(dict(link.metadata), plan.target_ids, labels_from), **overrides}
         # hold still HOLD_S after each capture: ingest judges stillness from the joint
         # states within +-60 ms of the stamp, so the next move must not start inside it
-        cfg = LoopConfig(
-            gain=gain, max_iterations=max_iterations, update_jacobian=True, compute_s=HOLD_S
-        )
+        cfg = loop_config(gain, max_iterations)
         opts = SessionOptions(speed=speed)
         if not quiet:
             click.echo(f"vtcal measure: {len(plan)} poses from {plan_path}; {link.description}")
@@ -158,26 +172,42 @@ def run_measure(
         link.close()
 
 
-def with_target_order(meta: dict[str, str], target_ids: list[int]) -> dict[str, str]:
+def loop_config(gain: float, max_iterations: int) -> LoopConfig:
+    """The loop ``vtcal measure`` runs: the Jacobian updated from the loop's own steps
+    (Broyden), the arm held still ``HOLD_S`` after each capture, the loop's other defaults
+    (3 captures at convergence)."""
+    from pipeline.measure.loop import LoopConfig
+
+    return LoopConfig(
+        gain=gain, max_iterations=max_iterations, update_jacobian=True, compute_s=HOLD_S
+    )
+
+
+def with_target_order(
+    meta: dict[str, str], target_ids: list[int], labels_from: list[int] | None = None
+) -> dict[str, str]:
     """The metadata with ``target_order``: the plan's target ids in first-visit order.
 
     The recorder knows the order, so the cell can name its targets (and its bar, in
     ``known_distances``) by the ids of its targets file. Known distances the cell
-    states in first-touch labels (0, 1, ... in visiting order: the simulated cell's,
-    right when the plan measured is the cell's own) are restated by those names.
+    states in first-touch labels (0, 1, ... in the order of ``labels_from``, default
+    ``target_ids``: the plan file's order, in which the simulated cell's own plan
+    visits them; right when the plan measured is the cell's own) are restated by
+    those names, whatever order the run then visits them in (``target_ids``).
     """
     if "target_order" in meta:
         return meta
     order = [str(t) for t in dict.fromkeys(target_ids)]
+    named = [str(t) for t in dict.fromkeys(target_ids if labels_from is None else labels_from)]
     out = {**meta, "target_order": ",".join(order)}
     text = meta.get("known_distances")
     if text:
         from pipeline.known_distances import parse_distances
 
         items = parse_distances(text)
-        if all(isinstance(x, int) and 0 <= x < len(order) for a, b, _ in items for x in (a, b)):
+        if all(isinstance(x, int) and 0 <= x < len(named) for a, b, _ in items for x in (a, b)):
             out["known_distances"] = ";".join(
-                f"{order[int(a)]}:{order[int(b)]}={m!r}" for a, b, m in items
+                f"{named[int(a)]}:{named[int(b)]}={m!r}" for a, b, m in items
             )
         else:  # not first-touch labels: leave the metadata as the cell gave it
             del out["target_order"]
@@ -312,11 +342,12 @@ def command(
     gain: float,
     limit_margin_deg: float,
     quiet: bool,
+    order: str,
 ) -> None:
     """Run a plan on a cell: move, touch up, record (crash-safe, resumable)."""
     s = run_measure(
         plan_path, robot, camera, out, urdf_path, overrides, speed, max_iterations, gain,
-        limit_margin_deg, quiet, dry_run,
+        limit_margin_deg, quiet, dry_run, order,
     )  # fmt: skip
     if s.get("dry_run"):
         click.echo(f"dry run: visited {s['n_plan']} poses in {s['wall_s']:.1f} s; nothing recorded")

@@ -36,6 +36,8 @@ class Plan:
     target_ids : (N,) int
     q : (N, n) joint positions, columns in ``joint_names`` order
     joint_names : the robot's joint names
+    rows : (N,) the file's row of each pose (``0 .. N-1`` in the file's order;
+        another order after :func:`in_travel_order`)
     """
 
     path: Path
@@ -43,9 +45,49 @@ class Plan:
     target_ids: list[int]
     q: F64
     joint_names: list[str]
+    rows: list[int] | None = None
 
     def __len__(self) -> int:
         return len(self.target_ids)
+
+    def row(self, i: int) -> int:
+        """The file's row of the ``i``-th pose visited."""
+        return i if self.rows is None else self.rows[i]
+
+
+#: the plan's visiting orders ``vtcal measure --order`` takes
+ORDERS = ("plan", "travel")
+
+
+def in_travel_order(plan: Plan) -> Plan:
+    """The plan's poses in the order of shortest joint travel (``vtcal measure --order travel``).
+
+    A large move at a common speed limit takes ``1.875 |q_a - q_b|_inf / v`` (the
+    synchronised quintic move; at least a minimum duration) followed by a fixed
+    settle time, so the order that minimises the summed joint travel
+    ``sum |q_a - q_b|_inf`` minimises the cell's travel and settle time too: nearest
+    neighbour then 2-opt (:func:`pipeline.plan.order.order_visits`), starting at the
+    file's first pose, without a cost for changing target (the image Jacobian is kept
+    per target, so going back to a target probes nothing). The order depends on the
+    file alone, so a resumed run follows the same one.
+    """
+    from pipeline.plan.order import order_visits
+
+    o = [int(k) for k in order_visits(plan.q, plan.target_ids, switch_cost=0.0)]
+    return Plan(
+        plan.path,
+        plan.sha256,
+        [plan.target_ids[k] for k in o],
+        plan.q[o],
+        plan.joint_names,
+        [plan.row(k) for k in o],
+    )
+
+
+def joint_travel(plan: Plan, q_start: F64 | None = None) -> float:
+    """Summed largest joint change of the plan's large moves (rad), from ``q_start`` if given."""
+    q = plan.q if q_start is None else np.vstack([q_start, plan.q])
+    return float(np.sum(np.max(np.abs(np.diff(q, axis=0)), axis=1))) if len(q) > 1 else 0.0
 
 
 def read_plan(path: Path, joint_names: list[str]) -> Plan:

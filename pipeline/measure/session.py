@@ -33,6 +33,7 @@ from pipeline.measure.loop import (
 from pipeline.measure.plan_file import Plan
 from pipeline.measure.protocols import Frame, MeasureFault
 from pipeline.measure.record import LiveRecording
+from pipeline.measure.timing import seconds, timed
 
 NS = 1_000_000_000
 
@@ -82,10 +83,13 @@ def run_session(
 ) -> list[dict[str, Any]]:
     """Measure the plan's poses from ``rec.progress.done`` on; return the session's summaries.
 
-    Each summary (also saved in the recording's progress file) holds the plan
-    index, target, outcome (``converged``, ``reason``), ``iterations``,
+    Each summary (also saved in the recording's progress file) holds the
+    touch-up's place in the run (``index``) and its row of the plan file
+    (``plan_row``: another one after ``--order travel``), target, outcome (``converged``, ``reason``), ``iterations``,
     ``captures`` (probes included), ``final_error_px``, ``cell_s`` (cell clock
-    from the start of the large move to the last capture) and ``wall_s``.
+    from the start of the large move to the last capture), its split
+    ``travel_s``, ``settle_s``, ``servo_s``, ``capture_s``
+    (:mod:`pipeline.measure.timing`; they sum to ``cell_s``) and ``wall_s``.
 
     Raises
     ------
@@ -93,7 +97,7 @@ def run_session(
         From the adapters, or ``target_not_found`` after
         ``opts.max_lost_in_a_row`` touch-ups in a row lost their target.
     """
-    robot = link.robot
+    robot, camera, clock = timed(link.robot, link.camera)
     names = robot.joint_names
     state = rec.progress.state
     jacobians = {int(k): np.array(v, dtype=float) for k, v in state.get("jacobians", {}).items()}
@@ -102,9 +106,14 @@ def run_session(
 
     probes = [0]  # probe captures of the touch-up in progress
 
+    def joints() -> None:
+        samples = link.drain_joints()
+        clock.observe(samples)
+        rec.joints(names, samples)
+
     def on_capture(frame: Frame, info: CaptureInfo) -> None:
         probes[0] += info.kind == "probe"
-        rec.joints(names, link.drain_joints())
+        joints()
         rec.image(frame)
         report(Event("capture", i, len(plan), tid, _error_px(goal, info)))
 
@@ -112,20 +121,21 @@ def run_session(
         tid = plan.target_ids[i]
         report(Event("start", i, len(plan), tid))
         wall0 = time.perf_counter()
-        t0 = robot.read_joints().stamp_ns
+        t0 = clock.start()
         robot.move_joints(plan.q[i], opts.speed)
         probes[0] = 0
         J = jacobians.get(tid)
         if J is None:
-            J = estimate_jacobian(robot, link.camera, detect, on_capture, goal, cfg, i)
+            J = estimate_jacobian(robot, camera, detect, on_capture, goal, cfg, i)
         n_probe = probes[0]
-        res = touch_up(robot, link.camera, detect, on_capture, goal, cfg, J, i)
+        res = touch_up(robot, camera, detect, on_capture, goal, cfg, J, i)
         if res.jacobian is not None and res.reason != "no_jacobian":
             jacobians[tid] = res.jacobian
-        rec.joints(names, link.drain_joints())
+        joints()
         lost_in_a_row = 0 if res.converged or not res.lost else lost_in_a_row + 1
         summary = {
             "index": i,
+            "plan_row": plan.row(i),
             "target_id": tid,
             "converged": res.converged,
             "reason": res.reason,
@@ -134,6 +144,7 @@ def run_session(
             "probe_captures": n_probe,
             "final_error_px": None if res.final_error_px is None else list(res.final_error_px),
             "cell_s": (res.joints.stamp_ns - t0) / NS,
+            **seconds(clock.split(res.joints.stamp_ns)),
             "wall_s": time.perf_counter() - wall0,
         }
         out.append(summary)

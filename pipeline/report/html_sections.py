@@ -168,7 +168,15 @@ def measurement_text(kv: dict[str, str]) -> str:
     ]
     cell_s = m.get("cell_s")
     if isinstance(cell_s, (int, float)):
-        parts.append(f"measuring took {cell_s / 60:.1f} min of cell time")
+        split = [(p, m.get(f"{p}_s")) for p in ("travel", "settle", "servo", "capture")]
+        parts.append(
+            f"measuring took {cell_s / 60:.1f} min of cell time"
+            + (
+                " (" + ", ".join(f"{p} {v:.0f} s" for p, v in split) + ")"
+                if all(isinstance(v, (int, float)) for _, v in split)
+                else ""
+            )
+        )
     if isinstance(m.get("sessions"), int) and m["sessions"] > 1:
         parts.append(f"over {m['sessions']} sessions (resumed)")
     return "by vtcal measure: " + "; ".join(parts)
