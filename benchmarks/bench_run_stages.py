@@ -207,7 +207,7 @@ def jit_cache_files() -> list[Path]:
     """
     import importlib.util
 
-    spec = importlib.util.find_spec("pipeline.stages._detect_jit")
+    spec = importlib.util.find_spec("pipeline.stages.detect._jit")
     assert spec is not None and spec.origin is not None
     found = [*(Path(spec.origin).parent / "__pycache__").glob("_detect_jit.*.nb[ic]")]
     if os.environ.get("NUMBA_CACHE_DIR"):
