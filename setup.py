@@ -6,8 +6,8 @@ them inside the package as ``pipeline/_data/schemas`` and ``pipeline/_data/repor
 where :mod:`pipeline.resources` looks when no checkout is beside the package.
 
 Building the package (``pip install .``, ``pip wheel .``) also compiles the detector's
-numba code once (:mod:`pipeline.stages.detect_compile`) into the built tree's
-``pipeline/stages/__pycache__``, so an installed vtcal's first run loads machine code
+numba code once (:mod:`pipeline.stages.detect.precompile`) into the built tree's
+``pipeline/stages/detect/__pycache__``, so an installed vtcal's first run loads machine code
 instead of waiting ~15-20 s for the compiler. numba keys that cache on the source's
 content (sha256), its own version, the Python version and the CPU, so it serves the
 machine the package was built on (a local install); elsewhere, or with another numba,
@@ -24,13 +24,13 @@ from setuptools.command.build_py import build_py
 
 DATA = {"pipeline._data.schemas": "schemas", "pipeline._data.reports": "reports"}
 
-#: run in a child interpreter on the built tree (its _detect_jit.py is the one installed)
+#: run in a child interpreter on the built tree (its stages/detect/_jit.py is the one installed)
 _COMPILE = """
 import sys
 sys.path.insert(0, sys.argv[1])
 import pipeline
 assert pipeline.__file__.startswith(sys.argv[1]), pipeline.__file__
-from pipeline.stages.detect_compile import compile_detector
+from pipeline.stages.detect.precompile import compile_detector
 print(f"{compile_detector():.1f}")
 """
 
@@ -44,9 +44,9 @@ class BuildWithDetector(build_py):
             return
         build_lib = os.path.abspath(self.build_lib)
         # an earlier build's cache (pip builds in the tree's build/): made again or left out
-        cache = os.path.join(build_lib, "pipeline", "stages", "__pycache__")
+        cache = os.path.join(build_lib, "pipeline", "stages", "detect", "__pycache__")
         for name in os.listdir(cache) if os.path.isdir(cache) else ():
-            if name.startswith("_detect_jit.") and name.endswith((".nbi", ".nbc")):
+            if name.startswith("_jit.") and name.endswith((".nbi", ".nbc")):
                 os.remove(os.path.join(cache, name))
         if os.environ.get("VTCAL_NO_PRECOMPILE"):
             return

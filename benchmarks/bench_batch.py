@@ -116,7 +116,7 @@ RECYCLE = 10
 
 def timed_batch(items, out: Path, workers: int, until: str, cfg) -> tuple[float, object]:
     """Run a batch; also print how much CPU other processes took meanwhile."""
-    from pipeline.batch import run_batch
+    from pipeline.batch.run import run_batch
 
     b0, t0 = cpu_busy_seconds(), time.perf_counter()
     res = run_batch(
@@ -156,7 +156,7 @@ def main() -> None:
     global RECYCLE
     RECYCLE = args.recycle
 
-    from pipeline.batch import load_manifest, open_executor
+    from pipeline.batch.run import load_manifest, open_executor
     from pipeline.orchestrator import RunConfig
 
     tmp = tempfile.TemporaryDirectory(prefix="bench_batch_")

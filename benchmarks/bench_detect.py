@@ -3,7 +3,7 @@
 Prints, per condition (target size, plate tilt, polarity, raw or PNG), the
 RMS error of the centre and the relative RMS error of the long axis for
 
-- vtcal's detector (:func:`pipeline.stages.detect.detect_target`),
+- vtcal's detector (:func:`pipeline.stages.detect.detector.detect_target`),
 - plain ``cv2.fitEllipse`` on the contour of the image thresholded halfway
   between the two grey levels,
 
@@ -37,7 +37,12 @@ from pipeline.kinematics.se3 import matrix_from_rpy
 from pipeline.sim.camera import CameraModel
 from pipeline.sim.render import render_target_image
 from pipeline.sim.target_geometry import projected_ellipse
-from pipeline.stages.detect import DetectConfig, detect_target, ellipse_foot, ellipse_normals
+from pipeline.stages.detect.detector import (
+    DetectConfig,
+    detect_target,
+    ellipse_foot,
+    ellipse_normals,
+)
 
 CAM = CameraModel(fx=912.0, fy=912.0, cx=317.6, cy=254.2, k1=-0.068, k2=0.0067)
 NOISE, BLUR, D = 2.0, 0.7, 0.01

@@ -86,7 +86,7 @@ def simulate(workdir: Path, n: int) -> list[Path]:
 
 def warm(recording: str, out: str) -> int:
     """Run on every worker: one recording, so imports and the detector load untimed."""
-    from pipeline.batch import BatchItem, run_recording
+    from pipeline.batch.run import BatchItem, run_recording
     from pipeline.orchestrator import RunConfig
 
     cfg = RunConfig(stage_options={"identify": {"model": "offsets", "accept_implausible": True}})
@@ -96,7 +96,7 @@ def warm(recording: str, out: str) -> int:
 
 def timed(items, out: Path, cfg, scheduler: str | None, label: str):
     """One batch; wall time, and the CPU that other processes took meanwhile."""
-    from pipeline.batch import run_batch
+    from pipeline.batch.run import run_batch
 
     kind = "dask" if scheduler else "processes"
     b0, t0 = cpu_busy_seconds(), time.perf_counter()
@@ -132,7 +132,7 @@ def main() -> None:
 
     logging.getLogger("distributed").setLevel(logging.ERROR)  # start/stop chatter
 
-    from pipeline.batch import items_from_paths
+    from pipeline.batch.run import items_from_paths
     from pipeline.orchestrator import RunConfig
 
     tmp = tempfile.TemporaryDirectory(prefix="bench_fleet_")

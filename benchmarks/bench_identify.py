@@ -52,7 +52,7 @@ from pipeline.evaluate import (  # noqa: E402
 from pipeline.kinematics import load_chain  # noqa: E402
 from pipeline.models.mdh import MDHModel  # noqa: E402
 from pipeline.robots import builtin_urdf  # noqa: E402
-from pipeline.stages import identify as ident  # noqa: E402
+from pipeline.stages.identify import stage as ident  # noqa: E402
 
 PIN = np.array([0.0167, -0.0101, 0.2524])
 CENTRES = {

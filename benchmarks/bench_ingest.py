@@ -6,7 +6,7 @@ joint states at 100 Hz and images at 30 Hz) and measures, in one run:
 - **floor A**: stream the file and decode every message with vtcal's own
   decoders (CDR + pixels), nothing else;
 - **floor B**: the stock readers, ``mcap_ros2`` ``iter_decoded_messages``;
-- **ingest**: :func:`pipeline.stages.ingest.ingest_recording` (decode, detect
+- **ingest**: :func:`pipeline.stages.ingest.stage.ingest_recording` (decode, detect
   every image, interpolate joints, stillness);
 
 and prints images/s (each the best of 3 interleaved runs: the machine is
@@ -85,7 +85,7 @@ def make_recording(path: Path, n_images: int, encoding: str = "mono8") -> None:
 
 
 def floor_a(path: Path) -> tuple[float, int]:
-    from pipeline.io_mcap import (
+    from pipeline.io.mcap import (
         IMAGE_TYPES,
         JOINT_TYPES,
         StreamState,
@@ -127,8 +127,8 @@ def floor_b(path: Path) -> tuple[float, int]:
 
 
 def ingest(path: Path) -> tuple[float, int]:
-    from pipeline.stages.detect import DetectConfig
-    from pipeline.stages.ingest import IngestConfig, ingest_recording
+    from pipeline.stages.detect.detector import DetectConfig
+    from pipeline.stages.ingest.stage import IngestConfig, ingest_recording
 
     t0 = time.perf_counter()
     _, dets, info = ingest_recording(path, IngestConfig(), DetectConfig())
@@ -140,8 +140,8 @@ def ingest(path: Path) -> tuple[float, int]:
 def child_rss(path: Path) -> dict[str, float]:
     code = (
         "import json,resource,sys,time;"
-        "from pipeline.stages.ingest import ingest_recording, IngestConfig;"
-        "from pipeline.stages.detect import DetectConfig;"
+        "from pipeline.stages.ingest.stage import ingest_recording, IngestConfig;"
+        "from pipeline.stages.detect.detector import DetectConfig;"
         "t=time.perf_counter();"
         f"ingest_recording({str(path)!r}, IngestConfig(), DetectConfig());"
         "print(json.dumps({'s': time.perf_counter()-t,"

@@ -30,7 +30,7 @@ import cv2
 import numpy as np
 
 from pipeline.sim.optics import Response, Sensor, form_image
-from pipeline.stages.detect import DetectConfig, detect_target
+from pipeline.stages.detect.detector import DetectConfig, detect_target
 
 H, W, R, CX, CY = 240, 320, 38.3, 160.4, 119.7
 

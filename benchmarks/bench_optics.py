@@ -168,7 +168,7 @@ def one_case(cell: str, effect: str, seed: int, work: str) -> dict[str, Any]:
         "miss_across_um": across,
         "miss_along_um": along,
         # what the run claimed: the verdict's figure, whether it called it a lower bound,
-        # and the model-adequacy ratio (pipeline.stages.adequacy)
+        # and the model-adequacy ratio (pipeline.stages.trust.adequacy)
         "claim": float(v.get("validated_mm") or float("nan")),
         "lower_bound": bool(v.get("lower_bound")),
         "console_warnings": len(v.get("warnings") or []),
@@ -312,7 +312,7 @@ def _print_seed(
         " corrected pins against the truth, per-target means out; claim = the verdict's"
         " figure (pipeline.verdict V2), x true = claim / true shape (goal 0.5-2x, or the run"
         " said the figure is a lower bound: lower), adeq = the fit's residual over what the"
-        " repeated captures' noise predicts (pipeline.stages.adequacy A1; > 3: lower bound)"
+        " repeated captures' noise predicts (pipeline.stages.trust.adequacy A1; > 3: lower bound)"
     )
     n = sum(1 for c in cells for e in effects)
     met = sum(1 for c in cells for e in effects if not _claim_flag(res[(c, e)]))

@@ -49,8 +49,8 @@ import pandas as pd
 from pipeline.evaluate import pin_accuracy, register_points, workspace_poses
 from pipeline.kinematics.chain import fk, load_chain
 from pipeline.known_distances import parse_distances
-from pipeline.stages.crossval import fold_assignment, heldout_predictions, usable_rows
-from pipeline.stages.identify import IdentifyConfig
+from pipeline.stages.crossval.stage import fold_assignment, heldout_predictions, usable_rows
+from pipeline.stages.identify.stage import IdentifyConfig
 
 ROOT = Path(__file__).resolve().parent.parent
 FAULTS = (
@@ -223,7 +223,7 @@ def refit_accuracy(
     """Identify ``table`` (inliers layout) with ``model`` and the recording's known
     distances, then judge it as :func:`accuracy` does, over the volume of the inlier
     touch-ups of ``poses``."""
-    from pipeline.stages.identify import IdentifyResult, identify
+    from pipeline.stages.identify.stage import IdentifyResult, identify
 
     cfg = IdentifyConfig(
         model=model, distances=parse_distances(rec["metadata"].get("known_distances", ""))

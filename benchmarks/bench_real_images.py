@@ -13,13 +13,13 @@ Per detector, in one run:
   parameters ``cv2.findCirclesGrid`` uses (symmetric 10x10 grid): its keypoint
   centres in findCirclesGrid's order; its ``KeyPoint.size`` as its size.
   Photos where findCirclesGrid fails are left out (and named).
-- **vtcal**: :func:`pipeline.stages.detect.detect_target` on a crop of about
+- **vtcal**: :func:`pipeline.stages.detect.detector.detect_target` on a crop of about
   3x the dot size around each of those dots (the neighbours are cut, the
   chosen one is whole), ``expected`` = the coarse centre in crop coordinates,
   the crop offset added back. Grey as vtcal's ingest makes it from colour
-  (the mean of the three channels, :func:`pipeline.io_mcap.colour_to_grey`).
+  (the mean of the three channels, :func:`pipeline.io.mcap.colour_to_grey`).
 - **vtcal, response estimated**: the camera's response curve estimated from the
-  crops (:func:`pipeline.stages.response_estimate.estimate_response`), then detection on
+  crops (:func:`pipeline.stages.image.response_estimate.estimate_response`), then detection on
   linearised grey (``DetectConfig(response=...)``).
 
 Figures:
@@ -66,8 +66,8 @@ from typing import Any
 import cv2
 import numpy as np
 
-from pipeline.stages.detect import DetectConfig, conic_to_params, detect_target, fit_conic
-from pipeline.stages.response_estimate import estimate_response
+from pipeline.stages.detect.detector import DetectConfig, conic_to_params, detect_target, fit_conic
+from pipeline.stages.image.response_estimate import estimate_response
 
 DATA = Path(__file__).resolve().parents[1] / "datasets" / "real" / "dots"
 ROWS = COLS = 10
@@ -96,7 +96,7 @@ def read_pitch() -> float:
 
 def load_grey(path: Path) -> np.ndarray:
     """The photo as vtcal's ingest makes a colour image grey (the mean of its channels)."""
-    from pipeline.io_mcap import colour_to_grey
+    from pipeline.io.mcap import colour_to_grey
 
     img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
     if img is None:

@@ -149,7 +149,7 @@ def measure(robot: str, seed: int) -> None:
 
     import numpy as np
 
-    from pipeline.io_mcap_write import NullRecorder
+    from pipeline.io.mcap_write import NullRecorder
     from pipeline.kinematics.se3 import transform_from
     from pipeline.sim.cell import R_CAMERA_UNTILTED
     from pipeline.sim.render_pbr import PbrEffects, PbrSettings, PbrSource
@@ -169,7 +169,7 @@ def measure(robot: str, seed: int) -> None:
 
     T = pose(20.0)
     from pipeline.sim.target_geometry import projected_ellipse
-    from pipeline.stages.detect import DetectConfig, detect_target
+    from pipeline.stages.detect.detector import DetectConfig, detect_target
 
     quiet = replace(PbrEffects.linear(), shot_noise=False, read_noise=False, prnu=False)
     img, _ = PbrSource(cam, tg, D, Rp, pol, z0, seed, quiet).capture(0, T[None])

@@ -5,9 +5,9 @@ The sample (75 PNG images 640x512, 9,735 joint states) is converted with
 rosbags' own writers (tests/support/rosbag_writers.py); then, for each container, in
 one run:
 
-- **stream**: every message through :func:`pipeline.io_recording.iter_recording`
+- **stream**: every message through :func:`pipeline.io.recording.iter_recording`
   (container reading, plus ROS 1 -> ROS 2 CDR conversion for the ``.bag``);
-- **ingest**: :func:`pipeline.stages.ingest.ingest_recording` (stream, decode and
+- **ingest**: :func:`pipeline.stages.ingest.stage.ingest_recording` (stream, decode and
   detect every image, interpolate the joints);
 
 each the best of 3 runs (the machine is shared), after one warm-up ingest
@@ -39,11 +39,11 @@ from support.rosbag_writers import (  # noqa: E402
     write_split_mcap_bag,
 )
 
-from pipeline.io_mcap import StreamState  # noqa: E402
-from pipeline.io_recording import iter_recording  # noqa: E402
-from pipeline.recording_layout import locate  # noqa: E402
-from pipeline.stages.detect import DetectConfig  # noqa: E402
-from pipeline.stages.ingest import IngestConfig, ingest_recording  # noqa: E402
+from pipeline.io.layout import locate  # noqa: E402
+from pipeline.io.mcap import StreamState  # noqa: E402
+from pipeline.io.recording import iter_recording  # noqa: E402
+from pipeline.stages.detect.detector import DetectConfig  # noqa: E402
+from pipeline.stages.ingest.stage import IngestConfig, ingest_recording  # noqa: E402
 
 
 def best_of(fn, n: int = 3) -> float:  # type: ignore[no-untyped-def]

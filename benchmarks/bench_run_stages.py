@@ -289,16 +289,16 @@ def bench_startup(rec: Path, out: Path, repeat: int) -> None:
 def jit_cache_files() -> list[Path]:
     """The detector's compiled-code cache files (numba ``cache=True``).
 
-    Beside the module in ``__pycache__`` (``_detect_jit.*.nbi`` index, ``*.nbc`` code),
+    Beside the module in ``__pycache__`` (``_jit.*.nbi`` index, ``*.nbc`` code),
     or under ``NUMBA_CACHE_DIR`` when that is set.
     """
     import importlib.util
 
-    spec = importlib.util.find_spec("pipeline.stages._detect_jit")
+    spec = importlib.util.find_spec("pipeline.stages.detect._jit")
     assert spec is not None and spec.origin is not None
-    found = [*(Path(spec.origin).parent / "__pycache__").glob("_detect_jit.*.nb[ic]")]
+    found = [*(Path(spec.origin).parent / "__pycache__").glob("_jit.*.nb[ic]")]
     if os.environ.get("NUMBA_CACHE_DIR"):
-        found += [*Path(os.environ["NUMBA_CACHE_DIR"]).rglob("_detect_jit.*.nb[ic]")]
+        found += [*Path(os.environ["NUMBA_CACHE_DIR"]).rglob("_jit.*.nb[ic]")]
     return found
 
 

@@ -31,9 +31,9 @@ from pathlib import Path
 import numpy as np
 
 from pipeline.kinematics.chain import fk, load_chain
-from pipeline.stages.detect import DetectConfig
-from pipeline.stages.ingest import IngestConfig, ingest_recording
-from pipeline.stages.touchup import TouchupConfig, extract_touchups
+from pipeline.stages.detect.detector import DetectConfig
+from pipeline.stages.ingest.stage import IngestConfig, ingest_recording
+from pipeline.stages.touchup.stage import TouchupConfig, extract_touchups
 
 SAMPLE = Path("/work/shared/samples/conformance_lrmate_small.mcap")
 

@@ -184,7 +184,7 @@ def module_closure(name: str) -> tuple[str, ...]:
 
     Parameters
     ----------
-    name : dotted module name, e.g. ``"pipeline.stages.identify"``
+    name : dotted module name, e.g. ``"pipeline.stages.identify.stage"``
 
     Returns
     -------

@@ -24,16 +24,16 @@ from pipeline.catalog import Parquet
 
 
 def _info(recording: dict[str, Any]) -> Any:
-    """``recording.json`` as the :class:`~pipeline.stages.ingest.RecordingInfo` stages take."""
-    from pipeline.stages.ingest import RecordingInfo
+    """``recording.json`` as the :class:`~pipeline.stages.ingest.stage.RecordingInfo` stages take."""
+    from pipeline.stages.ingest.stage import RecordingInfo
 
     return RecordingInfo(**recording)
 
 
 def ingest(data: dict[str, Any], config: dict[str, Any], context: Any) -> dict[str, Any]:
     """frames, detections and recording.json from the recording (one streaming pass)."""
-    from pipeline.stages import ingest as stage
-    from pipeline.stages.detect_compile import compile_detector
+    from pipeline.stages.detect.precompile import compile_detector
+    from pipeline.stages.ingest import stage
 
     progress = context.progress
 
@@ -65,7 +65,7 @@ def ingest(data: dict[str, Any], config: dict[str, Any], context: Any) -> dict[s
 
 def touchups(data: dict[str, Any], config: Any, context: Any) -> dict[str, Any]:
     """touchups.parquet from frames and detections (its implied target size in the metadata)."""
-    from pipeline.stages import touchup
+    from pipeline.stages.touchup import stage as touchup
 
     table = touchup.extract_touchups(
         data["frames"], data["detections"], _info(data["recording"]), config
@@ -80,7 +80,7 @@ def touchups(data: dict[str, Any], config: Any, context: Any) -> dict[str, Any]:
 
 def outliers(data: dict[str, Any], config: Any, context: Any) -> dict[str, Any]:
     """inliers.parquet: every touch-up, flagged (with the reason of each rejection)."""
-    from pipeline.stages import outliers as stage
+    from pipeline.stages.trust import outliers as stage
 
     return {"inliers": stage.flag_outliers(data["touchups"], _info(data["recording"]), config)}
 
@@ -91,7 +91,7 @@ def identify(data: dict[str, Any], config: Any, context: Any) -> dict[str, Any]:
     With the touch-ups stage in the run, the target diameter its image Jacobian implies
     (their ``implied_target_diameter_m`` metadata) is checked by the guardrails.
     """
-    from pipeline.stages import identify as stage
+    from pipeline.stages.identify import stage
 
     urdf, base_link, flange_link = context.robot
     if "touchups" in data:
@@ -134,7 +134,7 @@ def integer_target_ids(table: Any, config: Any) -> tuple[Any, Any]:
 
 def crossval(data: dict[str, Any], config: Any, context: Any) -> dict[str, Any]:
     """crossval.parquet: held-out residuals per model; its summary rides in the metadata."""
-    from pipeline.stages import crossval as stage
+    from pipeline.stages.crossval import stage
 
     urdf, base_link, flange_link = context.robot
     table, id_config = integer_target_ids(data["inliers"], context.configs["identify"])
@@ -153,9 +153,9 @@ def crossval(data: dict[str, Any], config: Any, context: Any) -> dict[str, Any]:
 
 
 def choose(data: dict[str, Any], config: Any, context: Any) -> dict[str, Any]:
-    """calibrated.urdf and identify.json: the shipped model (:mod:`pipeline.stages.choose`)."""
-    from pipeline.stages import choose as stage
-    from pipeline.stages.adequacy import trust
+    """calibrated.urdf and identify.json: the shipped model (:mod:`pipeline.stages.crossval.choose`)."""
+    from pipeline.stages.crossval import choose as stage
+    from pipeline.stages.trust.adequacy import trust
 
     cv = data.get("crossval")
     summary = None if cv is None else json.loads(cv.attrs["vtcal"]["summary"])

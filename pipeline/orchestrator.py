@@ -40,9 +40,9 @@ from pipeline import catalog
 from pipeline.catalog import RUN_FILES, STAGE_NAMES, run_paths
 from pipeline.errors import BadInput, CalibrationFailed, VtcalError
 from pipeline.fileio import config_hash
+from pipeline.io.layout import locate
 from pipeline.jsonio import json_bytes, jsonable, write_json
 from pipeline.known_distances import metadata_distances
-from pipeline.recording_layout import locate
 from pipeline.runner import (
     Context,
     Progress,
@@ -254,7 +254,7 @@ def _run_plan(
     run_stages(["ingest"], ctx, names)
     rest = names[1:]
     if rest:
-        from pipeline.stages.ingest import RecordingInfo
+        from pipeline.stages.ingest.stage import RecordingInfo
 
         info = RecordingInfo(**json.loads(P["recording"].read_text()))
         metadata_distances(info.metadata)  # bad values fail now

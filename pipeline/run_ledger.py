@@ -36,7 +36,7 @@ from typing import Any
 from pipeline import __version__, resources
 from pipeline.catalog import RUN_FILES
 from pipeline.fileio import file_hash, hash_named_files
-from pipeline.recording_layout import locate, recording_hash
+from pipeline.io.layout import locate, recording_hash
 
 PACKAGE_DIR = Path(__file__).resolve().parent
 SCHEMA_DIR = resources.SCHEMA_DIR
@@ -82,7 +82,7 @@ def fingerprint(recording: Path, config: Any, until: str | None) -> dict[str, An
     Parameters
     ----------
     recording : the MCAP file or ROS bag (hashed: its bytes, not its name, count;
-        :func:`pipeline.recording_layout.recording_hash`)
+        :func:`pipeline.io.layout.recording_hash`)
     config : the run's :class:`~pipeline.orchestrator.RunConfig`
     until : last stage asked for, or None
     """

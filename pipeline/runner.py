@@ -473,13 +473,13 @@ def run_stages(names: list[str], context: Context, plan_names: list[str]) -> dic
 def write_fits(results: Any, out: Path) -> dict[str, Path]:
     """Write identification results as the identify and choose stages would (library use).
 
-    For a script or test that called :func:`pipeline.stages.identify.identify`
+    For a script or test that called :func:`pipeline.stages.identify.stage.identify`
     itself: the tables, ``models.json`` and per-model URDFs, then the training
     choice (no cross-validation, no provenance block) as ``calibrated.urdf``
     and ``identify.json``. Returns ``{artefact key: path}``.
     """
-    from pipeline.stages.choose import choose_model
-    from pipeline.stages.identify import fit_outputs
+    from pipeline.stages.crossval.choose import choose_model
+    from pipeline.stages.identify.stage import fit_outputs
 
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)

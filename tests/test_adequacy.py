@@ -1,7 +1,7 @@
 """The model-adequacy test and the assumptions: when the run's figure cannot be trusted.
 
 The fit's residual against what the repeated captures' scatter predicts
-(:mod:`pipeline.stages.adequacy`, (A1); :mod:`pipeline.stages.touchup_noise`,
+(:mod:`pipeline.stages.trust.adequacy`, (A1); :mod:`pipeline.stages.touchup.noise`,
 (N1)-(N2)); an assumed camera response; and what the verdict then says.
 """
 
@@ -12,8 +12,8 @@ import math
 import numpy as np
 import pytest
 
-from pipeline.stages.adequacy import RATIO_MAX, adequacy, assumptions, trust
-from pipeline.stages.touchup_noise import capture_noise
+from pipeline.stages.touchup.noise import capture_noise
+from pipeline.stages.trust.adequacy import RATIO_MAX, adequacy, assumptions, trust
 from pipeline.verdict import verdict
 
 

@@ -140,7 +140,7 @@ def test_bad_input_said_in_one_line(small_history, tmp_path):
 def test_simulator_rerecords_one_robot_with_its_id():
     """``[robot] cell_seed``: the same robot, camera and targets under another session seed
     (new poses); ``robot_id`` goes into the recording's metadata."""
-    from pipeline.io_mcap_write import NullRecorder
+    from pipeline.io.mcap_write import NullRecorder
     from pipeline.sim.cell import touchup_metadata
     from pipeline.sim.scenario import scenario_from_dict
     from pipeline.sim.session import Session

@@ -21,12 +21,7 @@ import pyarrow.parquet as pq
 import pytest
 
 from pipeline.artefacts import read_artefact, read_meta
-from pipeline.batch import (
-    items_from_paths,
-    load_manifest,
-    open_executor,
-    run_batch,
-)
+from pipeline.batch.run import items_from_paths, load_manifest, open_executor, run_batch
 from pipeline.errors import BadInput
 
 REPO = Path(__file__).resolve().parent.parent
@@ -321,7 +316,7 @@ def test_worker_killed_mid_task_is_retried_alone(recordings, tmp_path: Path) -> 
 def test_workers_run_single_threaded_numerics() -> None:
     """Workers come from a fork server started with OMP_NUM_THREADS=1 and friends
     (set before numpy loads there); this process's environment is left as it was."""
-    from pipeline.batch import THREAD_ENV
+    from pipeline.batch.run import THREAD_ENV
 
     before = {k: os.environ.get(k) for k in THREAD_ENV}
     with open_executor("processes", 1) as pool:
@@ -424,7 +419,7 @@ def _ledger_batch(pool_batch, tmp_path: Path):
 
 
 def _refuse_pool(monkeypatch: pytest.MonkeyPatch) -> None:
-    import pipeline.batch as batch
+    import pipeline.batch.run as batch
 
     def refuse(*args: object, **kwargs: object) -> None:
         raise AssertionError("a worker pool was started")
@@ -483,7 +478,7 @@ def test_fully_cached_cli_batch_loads_no_numeric_library(pool_batch, tmp_path: P
         "        continue\n"
         "    if stat.rsplit(')', 1)[1].split()[1] == str(os.getpid()):\n"
         "        kids.append(d)\n"
-        "heavy = ['pandas', 'pyarrow', 'scipy', 'cv2', 'numba', 'pipeline.stages.ingest']\n"
+        "heavy = ['pandas', 'pyarrow', 'scipy', 'cv2', 'numba', 'pipeline.stages.ingest.stage']\n"
         "print(json.dumps({'kids': kids, 'loaded': [m for m in heavy if m in sys.modules]}))\n"
     )
     env = {**os.environ, "COLUMNS": "200"}
@@ -528,7 +523,7 @@ def test_abort_after_ctrl_c_does_not_wait_for_a_stuck_worker() -> None:
     import multiprocessing as mp
     from concurrent.futures import ProcessPoolExecutor
 
-    from pipeline.batch import _Slot
+    from pipeline.batch.run import _Slot
 
     ctx = mp.get_context("spawn")
     slot = _Slot(None, 1, lambda: ProcessPoolExecutor(max_workers=1, mp_context=ctx), 0)

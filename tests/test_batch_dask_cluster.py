@@ -26,7 +26,7 @@ import pytest
 
 pytest.importorskip("distributed")
 
-from pipeline.batch import items_from_paths, run_batch  # noqa: E402
+from pipeline.batch.run import items_from_paths, run_batch  # noqa: E402
 from pipeline.cli import main  # noqa: E402
 from pipeline.cluster import PROBE_PREFIX, preflight, worker_facts  # noqa: E402
 from pipeline.errors import BadInput  # noqa: E402

@@ -13,8 +13,8 @@ from types import SimpleNamespace
 
 import pytest
 
-from pipeline.batch import RecordingOutcome, take_result
-from pipeline.batch_summary import summary_table
+from pipeline.batch.run import RecordingOutcome, take_result
+from pipeline.batch.summary import summary_table
 from pipeline.commands.batch import _line, print_summary, summary_console
 from pipeline.verdict import verdict
 

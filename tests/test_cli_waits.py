@@ -48,7 +48,7 @@ def test_identify_shows_a_bar_per_stage(lrmate_run: Path, tmp_path: Path) -> Non
 
 def test_a_manifest_simulates_its_missing_recordings(tmp_path: Path) -> None:
     """The fleet demo's recordings are made by the batch itself (``simulate`` key)."""
-    from pipeline.batch import load_manifest, run_batch
+    from pipeline.batch.run import load_manifest, run_batch
 
     m = tmp_path / "m.toml"
     m.write_text(
@@ -64,14 +64,14 @@ def test_a_manifest_simulates_its_missing_recordings(tmp_path: Path) -> None:
 
 
 def test_the_shipped_fleet_manifest_says_how_to_make_every_recording() -> None:
-    from pipeline.batch import load_manifest
+    from pipeline.batch.run import load_manifest
 
     for it in load_manifest(REPO / "datasets" / "fleet_demo.toml").items:
         assert it.recording.exists() or it.simulate is not None, it.name
 
 
 def test_a_bad_simulate_entry_is_one_line(tmp_path: Path) -> None:
-    from pipeline.batch import load_manifest
+    from pipeline.batch.run import load_manifest
     from pipeline.errors import BadInput
 
     m = tmp_path / "m.toml"

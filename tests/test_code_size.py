@@ -13,7 +13,7 @@ PACKAGE = Path(__file__).resolve().parents[1] / "pipeline"
 MAX_MODULE = 600
 MAX_FUNCTION = 100
 #: "module:function" -> why it stays whole (docs/architecture.md)
-FUNCTION_EXCEPTIONS = {"stages/_detect_jit.py:fine_stage": "one numba-compiled loop"}
+FUNCTION_EXCEPTIONS = {"stages/detect/_jit.py:fine_stage": "one numba-compiled loop"}
 
 
 def _sizes() -> tuple[dict[str, int], dict[str, int]]:

@@ -13,9 +13,9 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
-from pipeline.io_mcap import EncodedImage, colour_to_grey, image_to_gray
+from pipeline.io.mcap import EncodedImage, colour_to_grey, image_to_gray
 from pipeline.sim.optics import Sensor, form_image
-from pipeline.stages.detect import DetectConfig, detect_target
+from pipeline.stages.detect.detector import DetectConfig, detect_target
 
 H, W = 200, 240
 

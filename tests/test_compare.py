@@ -15,8 +15,8 @@ from pipeline.errors import BadInput
 from pipeline.evaluate import perturbed_chain, random_deviations, synthetic_touchups
 from pipeline.kinematics.chain import Chain, load_chain
 from pipeline.runner import write_fits
-from pipeline.stages.crossval import CrossvalConfig, cross_validate
-from pipeline.stages.identify import IdentifyConfig, identify
+from pipeline.stages.crossval.stage import CrossvalConfig, cross_validate
+from pipeline.stages.identify.stage import IdentifyConfig, identify
 
 URDF = (Path(__file__).resolve().parent.parent / "pipeline/robots/lrmate.urdf").read_text()
 PIN = np.array([0.01, -0.02, 0.2])

@@ -37,10 +37,10 @@ from pipeline.measurement.image import pair_change
 from pipeline.orchestrator import RunConfig, run_pipeline
 from pipeline.sim.scenario import scenario_from_dict
 from pipeline.sim.simulator import write_recording
-from pipeline.stages.identify import IdentifyConfig, identify
-from pipeline.stages.ingest import RecordingInfo
-from pipeline.stages.touchup import TouchupConfig, extract_touchups
-from pipeline.stages.touchup_jacobian import estimate_jacobian
+from pipeline.stages.identify.stage import IdentifyConfig, identify
+from pipeline.stages.ingest.stage import RecordingInfo
+from pipeline.stages.touchup.jacobian import estimate_jacobian
+from pipeline.stages.touchup.stage import TouchupConfig, extract_touchups
 
 ROOT = Path(__file__).resolve().parents[1]
 SAMPLE_TRUTH = ROOT / "datasets" / "samples" / "sample_lrmate.mcap.truth.json"

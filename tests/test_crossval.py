@@ -11,14 +11,14 @@ from pipeline.artefacts import read_artefact, write_artefact
 from pipeline.evaluate import perturbed_chain, pin_positions, random_deviations, register_points
 from pipeline.evaluate import synthetic_touchups as synth
 from pipeline.kinematics.chain import load_chain
-from pipeline.stages.crossval import (
+from pipeline.stages.crossval.predict import heldout_predictions
+from pipeline.stages.crossval.stage import (
     CrossvalConfig,
     cross_validate,
     fold_assignment,
     usable_rows,
 )
-from pipeline.stages.crossval_predict import heldout_predictions
-from pipeline.stages.identify import IdentifyConfig
+from pipeline.stages.identify.stage import IdentifyConfig
 
 URDF = (Path(__file__).resolve().parent.parent / "pipeline/robots/lrmate.urdf").read_text()
 PIN = np.array([0.01, -0.02, 0.2])
@@ -135,7 +135,7 @@ def test_the_choice_names_a_different_training_choice_only_when_there_is_one() -
     """Issue 35: 'the smallest training RMS (poe, 0.0198 mm) would have chosen differently'
     while the chosen full showed 0.0198 too and elastic (0.0190, fitted but not
     cross-validated) was the smallest."""
-    from pipeline.stages.crossval import _choose
+    from pipeline.stages.crossval.stage import _choose
 
     def m(kfold: float, train: float) -> dict:
         return {"kfold_rms_mm": kfold, "train_rms_mm": train, "kfold_failed_folds": 0,

@@ -11,8 +11,8 @@ import pytest
 from pipeline.evaluate import perturbed_chain, random_deviations
 from pipeline.evaluate import synthetic_touchups as synth
 from pipeline.kinematics.chain import load_chain
-from pipeline.stages.crossval import CrossvalConfig, cross_validate, refit_config
-from pipeline.stages.identify import IdentifyConfig, IdentifyResult, identify
+from pipeline.stages.crossval.stage import CrossvalConfig, cross_validate, refit_config
+from pipeline.stages.identify.stage import IdentifyConfig, IdentifyResult, identify
 from pipeline.stages.parallel_map import parallel_map
 
 URDF = (Path(__file__).resolve().parent.parent / "pipeline/robots/lrmate.urdf").read_text()
@@ -94,7 +94,7 @@ def test_prediction_only_refits_predict_what_full_refits_do(monkeypatch) -> None
     """The folds' lean refits: the same held-out figures, without tables or URDF."""
     import dataclasses
 
-    import pipeline.stages.crossval as cv
+    import pipeline.stages.crossval.stage as cv
 
     tab, dist = cell(9, per_target=6)
     idc = IdentifyConfig(model="all", distances=dist)

@@ -9,7 +9,7 @@ from pipeline.kinematics.se3 import matrix_from_rpy
 from pipeline.sim.camera import CameraModel
 from pipeline.sim.render import render_target_image
 from pipeline.sim.target_geometry import projected_ellipse
-from pipeline.stages.detect import (
+from pipeline.stages.detect.detector import (
     DetectConfig,
     conic_to_params,
     detect_target,
@@ -205,7 +205,7 @@ def test_edge_width_not_biased_by_grey_noise():
 
 
 def test_noise_bias_of_the_edge_sum_matches_monte_carlo():
-    from pipeline.stages.detect import noise_bias_pq
+    from pipeline.stages.detect.detector import noise_bias_pq
 
     rng = np.random.default_rng(0)
     z = rng.standard_normal(400_000)

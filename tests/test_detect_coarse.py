@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-jit = pytest.importorskip("pipeline.stages._detect_jit")
+jit = pytest.importorskip("pipeline.stages.detect._jit")
 
 
 @pytest.mark.parametrize("shape,k", [((512, 640), 4), ((37, 53), 3), ((9, 11), 2), ((100, 80), 5)])

@@ -4,8 +4,8 @@ from __future__ import annotations
 
 import pytest
 
-from pipeline.stages import detect_compile
-from pipeline.stages.detect import DetectConfig, detect_target
+from pipeline.stages.detect import precompile as detect_compile
+from pipeline.stages.detect.detector import DetectConfig, detect_target
 
 
 def test_synthetic_target_is_found_where_it_was_drawn() -> None:
@@ -20,7 +20,7 @@ def test_synthetic_target_is_found_where_it_was_drawn() -> None:
 
 
 def test_compile_detector_warms_the_compiled_fine_stage() -> None:
-    jit = pytest.importorskip("pipeline.stages._detect_jit")
+    jit = pytest.importorskip("pipeline.stages.detect._jit")
     calls: list[int] = []
     took = detect_compile.compile_detector(
         DetectConfig(), on_slow=lambda: calls.append(1), after_s=600

@@ -13,8 +13,8 @@ from pipeline.kinematics import load_chain
 from pipeline.measurement.pin import Problem, initial_pin_targets
 from pipeline.models import make_model
 from pipeline.robots import builtin_urdf
-from pipeline.stages.identify_data import prepare_data
-from pipeline.stages.identify_types import IdentifyConfig
+from pipeline.stages.identify.data import prepare_data
+from pipeline.stages.identify.types import IdentifyConfig
 
 PIN = np.array([0.0167, -0.0101, 0.2524])
 CENTRE = np.array([-0.73, 0.18, -0.45, 0.34, -0.57, -0.32])

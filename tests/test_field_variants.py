@@ -35,7 +35,7 @@ def sim(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, dict]:
     return simulated(tmp_path_factory.mktemp("field"))
 
 
-#: the verdict's own warnings (pipeline.stages.adequacy: the calibration's trust, the
+#: the verdict's own warnings (pipeline.stages.trust.adequacy: the calibration's trust, the
 #: same on the reference recording of the tiny scene), not warnings about reading it
 _TRUST = (
     "vtcal: warning: systematic error likely",
@@ -437,7 +437,7 @@ def test_a_found_detection_on_the_real_dot_photos_is_where_a_dot_is():
     to 364 px from any dot; none of them may be ``found``."""
     import importlib.util
 
-    from pipeline.stages.detect import detect_target
+    from pipeline.stages.detect.detector import detect_target
 
     spec = importlib.util.spec_from_file_location(
         "bench_real_images", REPO / "benchmarks" / "bench_real_images.py"

@@ -22,8 +22,8 @@ import pytest
 
 from pipeline.sim.scenario import scenario_from_dict
 from pipeline.sim.simulator import write_recording
-from pipeline.stages.detect import DetectConfig, detect_target
-from pipeline.stages.flat_field import (
+from pipeline.stages.detect.detector import DetectConfig, detect_target
+from pipeline.stages.image.flat_field import (
     ROUNDS,
     Z_MIN,
     CropStore,
@@ -31,7 +31,7 @@ from pipeline.stages.flat_field import (
     estimate_flat_field,
     redetect,
 )
-from pipeline.stages.ingest import IngestConfig, ingest_recording
+from pipeline.stages.ingest.stage import IngestConfig, ingest_recording
 
 ROOT = Path(__file__).resolve().parents[1]
 H, W = 112, 128

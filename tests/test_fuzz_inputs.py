@@ -146,9 +146,11 @@ def mutate(data: bytes, muts: list[tuple[str, Any, Any]]) -> bytes:
 def stages(path: Path, deep: bool) -> None:
     """Ingest and touch-up extraction; with ``deep`` also outliers and identification."""
     from pipeline.known_distances import parse_distances
-    from pipeline.stages import identify, outliers, touchup
-    from pipeline.stages.detect import DetectConfig
-    from pipeline.stages.ingest import IngestConfig, ingest_recording
+    from pipeline.stages.detect.detector import DetectConfig
+    from pipeline.stages.identify import stage as identify
+    from pipeline.stages.ingest.stage import IngestConfig, ingest_recording
+    from pipeline.stages.touchup import stage as touchup
+    from pipeline.stages.trust import outliers
 
     frames, dets, info = ingest_recording(path, IngestConfig(), DetectConfig())
     conform(frames, "frames")
@@ -299,7 +301,7 @@ def base_table() -> Case:
 
 def identify_and_write(df: pd.DataFrame, urdf: str, out: Path) -> None:
     from pipeline.runner import write_fits
-    from pipeline.stages.identify import IdentifyConfig, identify
+    from pipeline.stages.identify.stage import IdentifyConfig, identify
 
     res = identify(df, urdf, "base_link", "flange", IdentifyConfig(model="offsets", n_workspace=20))
     write_fits(res, out)

@@ -7,8 +7,8 @@ import numpy as np
 import pipeline.evaluate as evaluate
 from pipeline.models import model_names
 from pipeline.robots import builtin_urdf
-from pipeline.stages import identify_structure as ident
-from pipeline.stages.identify import IdentifyConfig, identify
+from pipeline.stages.identify import structure as ident
+from pipeline.stages.identify.stage import IdentifyConfig, identify
 from tests.test_identify import _case
 
 
@@ -47,7 +47,7 @@ def test_every_model_is_rated_on_one_inverse_kinematics(monkeypatch):
 
 
 def test_identify_makes_them_before_the_fits_fork(monkeypatch):
-    import pipeline.stages.identify as stage
+    import pipeline.stages.identify.stage as stage
 
     urdf, _, _, table, _ = _case(seed=3)
     _fresh()

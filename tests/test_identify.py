@@ -20,7 +20,7 @@ from pipeline.evaluate import (
 from pipeline.kinematics import load_chain
 from pipeline.robots import builtin_urdf
 from pipeline.runner import write_fits
-from pipeline.stages.identify import IdentifyConfig, identify
+from pipeline.stages.identify.stage import IdentifyConfig, identify
 
 PIN = np.array([0.0167, -0.0101, 0.2524])
 LRMATE_CENTRE = np.array([-0.73, 0.18, -0.45, 0.34, -0.57, -0.32])
@@ -359,7 +359,7 @@ def test_runs_on_the_conformance_touchups(conformance_truth):
 
 def test_design_jacobian_rates_pose_sets():
     from pipeline.models.observability import observability
-    from pipeline.stages.identify import design_jacobian
+    from pipeline.stages.identify.stage import design_jacobian
 
     urdf, nominal, true, table, targets = _case(seed=13, per_target=12)
     q = table[nominal.joint_names].to_numpy()

@@ -16,12 +16,12 @@ from pipeline.evaluate import perturbed_chain, random_deviations
 from pipeline.evaluate import synthetic_touchups as synth
 from pipeline.kinematics.chain import load_chain
 from pipeline.measurement.data import FitData
-from pipeline.stages.crossval import fold_assignment, usable_rows
-from pipeline.stages.crossval_refit import refit, refit_config, refit_table
-from pipeline.stages.identify import IdentifyConfig, IdentifyResult, identify
-from pipeline.stages.identify_data import prepare_data, prepare_table, restrict
-from pipeline.stages.identify_types import Robot
-from pipeline.stages.print_shape import SHAPE_COLUMNS
+from pipeline.stages.crossval.refit import refit, refit_config, refit_table
+from pipeline.stages.crossval.stage import fold_assignment, usable_rows
+from pipeline.stages.identify.data import prepare_data, prepare_table, restrict
+from pipeline.stages.identify.print_shape import SHAPE_COLUMNS
+from pipeline.stages.identify.stage import IdentifyConfig, IdentifyResult, identify
+from pipeline.stages.identify.types import Robot
 
 URDF = (Path(__file__).resolve().parent.parent / "pipeline/robots/lrmate.urdf").read_text()
 CHAIN = load_chain(URDF, "base_link", "flange")

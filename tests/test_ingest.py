@@ -10,8 +10,8 @@ from test_robustness_data import MS, NAMES, T0, URDF
 
 from pipeline.artefacts import write_artefact
 from pipeline.errors import BadInput
-from pipeline.stages.detect import DetectConfig
-from pipeline.stages.ingest import IngestConfig, ingest_recording, load_image
+from pipeline.stages.detect.detector import DetectConfig
+from pipeline.stages.ingest.stage import IngestConfig, ingest_recording, load_image
 
 
 def disc_image(u: float, v: float, r: float, w: int = 160, h: int = 128, dark: bool = True):

@@ -25,8 +25,8 @@ import pytest
 
 from pipeline.sim.scenario import load_scenario
 from pipeline.sim.simulator import write_recording
-from pipeline.stages.detect import DetectConfig
-from pipeline.stages.ingest import IngestConfig, ingest_recording
+from pipeline.stages.detect.detector import DetectConfig
+from pipeline.stages.ingest.stage import IngestConfig, ingest_recording
 
 CELL = """\
 name = "memory_small"
@@ -80,7 +80,7 @@ def test_row_buffer_equals_the_rows_stacked() -> None:
     """Across several doublings of its capacity, the buffer holds exactly the rows given."""
     import numpy as np
 
-    from pipeline.stages.row_buffer import RowBuffer
+    from pipeline.stages.ingest.row_buffer import RowBuffer
 
     rng = np.random.default_rng(5)
     rows = rng.normal(size=(1000, 6))

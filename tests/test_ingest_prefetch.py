@@ -1,4 +1,4 @@
-"""Images decoded ahead in a second thread (pipeline.stages.ingest_prefetch)."""
+"""Images decoded ahead in a second thread (pipeline.stages.ingest.prefetch)."""
 
 from __future__ import annotations
 
@@ -8,12 +8,12 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
-import pipeline.stages.ingest as ing
-from pipeline.io_mcap import IMAGE_TYPES, StreamState
-from pipeline.io_recording import iter_recording
-from pipeline.recording_layout import locate
-from pipeline.stages.detect import DetectConfig
-from pipeline.stages.ingest_prefetch import decode_image, prefetch_images
+import pipeline.stages.ingest.stage as ing
+from pipeline.io.layout import locate
+from pipeline.io.mcap import IMAGE_TYPES, StreamState
+from pipeline.io.recording import iter_recording
+from pipeline.stages.detect.detector import DetectConfig
+from pipeline.stages.ingest.prefetch import decode_image, prefetch_images
 
 SAMPLE = Path(__file__).resolve().parents[1] / "datasets" / "samples" / "sample_lrmate.mcap"
 

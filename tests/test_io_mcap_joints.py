@@ -7,8 +7,8 @@ import struct
 import numpy as np
 import pytest
 
-from pipeline import io_mcap
-from pipeline.io_mcap import decode_joint_state
+from pipeline.io import mcap as io_mcap
+from pipeline.io.mcap import decode_joint_state
 
 
 def encode(stamp_ns, frame, names, pos, order="<", xcdr2=False, vel=()):

@@ -16,8 +16,8 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from pipeline import io_mcap
 from pipeline.cli import main
+from pipeline.io import mcap as io_mcap
 from pipeline.measure.protocols import MeasureFault
 from pipeline.measure.record import read_progress
 from pipeline.measure.summary import from_metadata

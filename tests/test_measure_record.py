@@ -8,8 +8,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from pipeline import io_mcap
 from pipeline.errors import BadInput
+from pipeline.io import mcap as io_mcap
 from pipeline.measure.protocols import Frame, JointReading
 from pipeline.measure.record import open_recording, progress_path, read_progress
 

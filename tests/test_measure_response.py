@@ -26,8 +26,8 @@ from mcap.reader import make_reader
 from pipeline.cell_adapters import connect
 from pipeline.cli import main
 from pipeline.sim.link import sim_cell, write_plan
-from pipeline.stages.detect import DetectConfig, detect_target
-from pipeline.stages.ingest import load_image
+from pipeline.stages.detect.detector import DetectConfig, detect_target
+from pipeline.stages.ingest.stage import load_image
 
 REPO = Path(__file__).resolve().parent.parent
 

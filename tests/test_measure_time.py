@@ -113,8 +113,8 @@ def test_the_recording_carries_the_split(tmp_path: Path) -> None:
     """vtcal measure on the simulated small cell, two poses in travel order: the split of
     every touch-up and of the whole in the progress file and the ``measurement`` record; the
     simulated robot settles 0.15 s after every move, which the arrival cut finds."""
-    from pipeline import io_mcap
     from pipeline.commands.measure import run_measure
+    from pipeline.io import mcap as io_mcap
     from pipeline.measure.record import read_progress
     from pipeline.measure.summary import from_metadata
     from pipeline.sim.link import sim_cell, write_plan

@@ -101,7 +101,7 @@ def test_pin_and_jacobian_names_a_wrong_shape() -> None:
 
 def test_mdh_writes_its_nominal_dh_values() -> None:
     urdf, _, _, table, targets = _case(seed=5, per_target=10)
-    from pipeline.stages.identify import IdentifyConfig, identify
+    from pipeline.stages.identify.stage import IdentifyConfig, identify
 
     d02 = float(np.linalg.norm(targets[0] - targets[2]))
     res = identify(table, urdf, "base_link", "flange", IdentifyConfig(model="mdh", distances=[(0, 2, d02)]))  # fmt: skip

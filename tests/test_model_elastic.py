@@ -11,8 +11,8 @@ from pipeline.kinematics.chain import fk_frames
 from pipeline.models import get_model
 from pipeline.models.elastic import G_BASE, LUMPED_MASS_KG, gravity_torque
 from pipeline.robots import builtin_urdf
-from pipeline.stages.crossval import CrossvalConfig, cross_validate
-from pipeline.stages.identify import IdentifyConfig, identify
+from pipeline.stages.crossval.stage import CrossvalConfig, cross_validate
+from pipeline.stages.identify.stage import IdentifyConfig, identify
 
 PIN = np.array([0.0167, -0.0101, 0.2524])
 LRMATE_CENTRE = np.array([-0.73, 0.18, -0.45, 0.34, -0.57, -0.32])

@@ -22,8 +22,8 @@ from pipeline.evaluate import (
     synthetic_touchups,
 )
 from pipeline.kinematics.chain import Chain, load_chain
-from pipeline.stages.identify import IdentifyConfig, IdentifyResult, identify
-from pipeline.stages.outliers import OutlierConfig, _fit, _mean_shift, flag_outliers
+from pipeline.stages.identify.stage import IdentifyConfig, IdentifyResult, identify
+from pipeline.stages.trust.outliers import OutlierConfig, _fit, _mean_shift, flag_outliers
 
 URDF = (Path(__file__).resolve().parent.parent / "pipeline/robots/lrmate.urdf").read_text()
 PIN = np.array([0.01, -0.02, 0.2])

@@ -72,7 +72,7 @@ def build_command(monkeypatch):
 
 
 def test_the_build_compiles_the_detector_into_the_built_tree(build_command, tmp_path, monkeypatch):
-    """The wheel's numba cache is made from the built tree's own _detect_jit.py."""
+    """The wheel's numba cache is made from the built tree's own stages/detect/_jit.py."""
     cmd, calls = build_command
     monkeypatch.setenv("NUMBA_CACHE_DIR", str(tmp_path / "elsewhere"))
     monkeypatch.delenv("VTCAL_NO_PRECOMPILE", raising=False)
@@ -89,7 +89,9 @@ def test_no_compile_for_an_editable_install_or_when_asked(
 ):
     cmd, calls = build_command
     cmd.build_lib = str(tmp_path)
-    stale = tmp_path / "pipeline" / "stages" / "__pycache__" / "_detect_jit.fine_stage-1.py311.nbi"
+    stale = (
+        tmp_path / "pipeline" / "stages" / "detect" / "__pycache__" / "_jit.fine_stage-1.py311.nbi"
+    )
     stale.parent.mkdir(parents=True)
     stale.write_bytes(b"an earlier build's")
     if how == "editable":

@@ -103,7 +103,7 @@ def test_every_top_level_figure_is_the_shipped_models(sample_run: Path, tmp_path
     # the batch summary reads the same figures
     from types import SimpleNamespace
 
-    from pipeline.batch import FIGURES_FLOAT, FIGURES_INT, RecordingOutcome, take_result
+    from pipeline.batch.run import FIGURES_FLOAT, FIGURES_INT, RecordingOutcome, take_result
 
     rec = RecordingOutcome(name="sample", recording=str(SAMPLE), run_dir=str(run))
     stage = SimpleNamespace(stage="identify", status="cached", seconds=0.0)

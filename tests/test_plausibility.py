@@ -17,8 +17,8 @@ from pipeline.errors import CalibrationFailed
 from pipeline.evaluate import synthetic_touchups
 from pipeline.kinematics import load_chain
 from pipeline.robots import builtin_urdf
-from pipeline.stages import plausibility as pl
-from pipeline.stages.identify import IdentifyConfig, conditioning_note, identify
+from pipeline.stages.identify.stage import IdentifyConfig, conditioning_note, identify
+from pipeline.stages.trust import plausibility as pl
 
 REPO = Path(__file__).resolve().parent.parent
 

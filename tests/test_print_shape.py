@@ -2,7 +2,7 @@
 
 Synthetic touch-ups of a known robot whose targets are printed out of round: a
 touch-up then stops ``z eps`` off along the view (model (S1)-(S2) of
-:mod:`pipeline.stages.print_shape`), where ``eps`` depends on where the image long
+:mod:`pipeline.stages.identify.print_shape`), where ``eps`` depends on where the image long
 axis lies on the plate. The fit must find ``e``, its orientation and the relative
 sizes, and leave perfect prints alone.
 """
@@ -22,8 +22,8 @@ from pipeline.evaluate import (
 from pipeline.kinematics import load_chain
 from pipeline.kinematics.chain import fk
 from pipeline.robots import builtin_urdf
-from pipeline.stages import print_shape as ps
-from pipeline.stages.identify import IdentifyConfig, identify
+from pipeline.stages.identify import print_shape as ps
+from pipeline.stages.identify.stage import IdentifyConfig, identify
 
 PIN = np.array([0.0167, -0.0101, 0.2524])
 LRMATE_CENTRE = np.array([-0.73, 0.18, -0.45, 0.34, -0.57, -0.32])
@@ -191,7 +191,7 @@ def test_design_rows_are_the_first_order_extent_of_an_ellipse():
 
 def _both_tests(table, urdf, monkeypatch, **cfg):
     """(summary with the Gauss-Newton test, summary with every test refitted)."""
-    from pipeline.stages import identify_shape
+    from pipeline.stages.identify import shape as identify_shape
 
     fast = identify(table, urdf, "base_link", "flange", IdentifyConfig(**cfg)).summary
     fast = fast["print_shape"]
@@ -235,7 +235,7 @@ def test_held_out_touchups_are_judged_with_the_print_shape_the_fit_kept():
     error: the held-out RMS then tracks the print (here ~10x the true pin error), not
     the calibration.
     """
-    from pipeline.stages.crossval import CrossvalConfig, cross_validate
+    from pipeline.stages.crossval.stage import CrossvalConfig, cross_validate
 
     e = np.array([1.0e-3, 0.6e-3, 1.4e-3])  # 20, 12 and 28 um on a 10 mm disc
     urdf, nominal, true, table, _, _ = _printed_case(e, [0.0, 4e-4, -3e-4], noise_pin=5e-6)

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from pipeline.estimation.region import GROWTH_WARN, region_summary, widened_poses
-from pipeline.stages.adequacy import trust
+from pipeline.stages.trust.adequacy import trust
 
 
 def test_widened_poses_reach_half_a_span_beyond_and_keep_to_the_limits():
@@ -38,7 +38,7 @@ def test_identify_reports_the_covered_ranges_of_the_touchups():
     from pipeline.evaluate import perturbed_chain, random_deviations, synthetic_touchups
     from pipeline.kinematics import load_chain
     from pipeline.robots import builtin_urdf
-    from pipeline.stages.identify import IdentifyConfig, identify
+    from pipeline.stages.identify.stage import IdentifyConfig, identify
 
     urdf = builtin_urdf("lrmate")
     nominal = load_chain(urdf, "base_link", "flange")

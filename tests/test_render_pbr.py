@@ -12,7 +12,7 @@ from pipeline.kinematics.se3 import transform_from
 from pipeline.sim.camera import CameraModel
 from pipeline.sim.cell import R_CAMERA_UNTILTED
 from pipeline.sim.target_geometry import projected_ellipse
-from pipeline.stages.detect import DetectConfig, detect_target
+from pipeline.stages.detect.detector import DetectConfig, detect_target
 
 REPO = Path(__file__).resolve().parent.parent
 #: a small camera (200 x 160 px, the 10 mm target about 29 px across at 0.17 m)

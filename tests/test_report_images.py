@@ -4,7 +4,7 @@ Frame ``k`` is the image message of rank ``k`` on the image topic in log-time
 order, ties in file order (ingest's ``frame_index``: a stable sort of the
 file-order log times). Each image here is filled with one grey value that
 names the message, so a frame's pixels say which message was read. The
-indexed read (:func:`pipeline.io_mcap_index.topic_messages`) must give the same
+indexed read (:func:`pipeline.io.mcap_index.topic_messages`) must give the same
 frames as the streaming pass, also when chunks overlap in time and log times
 repeat, and must step aside (None) for a file whose index it cannot trust.
 """
@@ -19,7 +19,7 @@ import numpy as np
 import pytest
 from mcap.writer import CompressionType, IndexType, Writer
 
-from pipeline.io_mcap_index import topic_messages
+from pipeline.io.mcap_index import topic_messages
 from pipeline.report.images import load_images
 
 TOPIC = "/camera/image_raw"

@@ -10,9 +10,9 @@ from test_detect import pose
 from pipeline.sim.camera import CameraModel
 from pipeline.sim.render import render_ideal
 from pipeline.sim.target_geometry import projected_ellipse
-from pipeline.stages.detect import DetectConfig, detect_target
-from pipeline.stages.response import Response, parse_response
-from pipeline.stages.response_estimate import estimate_response
+from pipeline.stages.detect.detector import DetectConfig, detect_target
+from pipeline.stages.image.response import Response, parse_response
+from pipeline.stages.image.response_estimate import estimate_response
 
 CAM = CameraModel(fx=900.0, fy=900.0, cx=318.2, cy=256.9, k1=-0.05, k2=0.005)
 
@@ -161,7 +161,7 @@ def test_when_the_edge_model_misfits_the_images_votes_choose_the_curve(monkeypat
     """Without the contour's harmonics the print's out-of-roundness leaves ~3 grey of
     misfit; the curve every image prefers is still chosen, said to rest on the votes
     (before: "linear (assumed)" on these sRGB images)."""
-    import pipeline.stages.response_estimate as re_
+    import pipeline.stages.image.response_estimate as re_
 
     monkeypatch.setattr(re_, "ROUND_HARMONICS", 0)
     rng = np.random.default_rng(11)
@@ -174,7 +174,7 @@ def test_images_without_a_clean_target_are_held_back_until_some_show_one():
     """The first 24 captures all of a spoiled target (lamp, plate edge): the estimate
     waits for more rather than assuming linear from nothing (an sRGB render's run did,
     and called the guess "estimated")."""
-    from pipeline.stages.ingest_stream import resolve_response
+    from pipeline.stages.ingest.stream import resolve_response
 
     blank = np.full((160, 200), 200, np.uint8)
     rows: list[dict] = [{} for _ in range(24)]
@@ -191,8 +191,8 @@ def test_images_without_a_clean_target_are_held_back_until_some_show_one():
 
 def test_a_retry_with_more_images_held_back_detects_only_the_new_ones(monkeypatch):
     """resolve_response's retries: the estimate's raw detections are kept between calls."""
-    import pipeline.stages.response_estimate as re_
-    from pipeline.stages.ingest_stream import resolve_response
+    import pipeline.stages.image.response_estimate as re_
+    from pipeline.stages.ingest.stream import resolve_response
 
     seen: list[int] = []
     detect = re_.detect_target

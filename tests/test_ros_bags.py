@@ -32,10 +32,10 @@ from support.rosbag_writers import (
 from pipeline.artefacts import read_artefact
 from pipeline.cli import main
 from pipeline.errors import BadInput
-from pipeline.io_recording import TOUCHUP_TOPIC
+from pipeline.io.recording import TOUCHUP_TOPIC
 from pipeline.orchestrator import RunConfig, run_pipeline
-from pipeline.stages.detect import DetectConfig
-from pipeline.stages.ingest import IngestConfig, ingest_recording
+from pipeline.stages.detect.detector import DetectConfig
+from pipeline.stages.ingest.stage import IngestConfig, ingest_recording
 
 
 @pytest.fixture(scope="module")
@@ -65,7 +65,7 @@ def runs(recordings: dict[str, Path], tmp_path_factory: pytest.TempPathFactory) 
 
 def test_split_bag_layout(recordings: dict[str, Path]) -> None:
     """The split bag really is three .mcap files read in metadata.yaml's order."""
-    from pipeline.recording_layout import locate
+    from pipeline.io.layout import locate
 
     lay = locate(recordings["split"])
     assert lay.kind == "rosbag2-mcap" and [f.name for f in lay.files] == [
@@ -277,7 +277,7 @@ def test_split_bag_run_is_cached_by_content(short_msgs: list[Msg], tmp_path: Pat
     """A bag directory is hashed over its data files: same bytes -> every stage cached;
     one file changed -> a new hash (metadata.yaml itself is not hashed)."""
     from pipeline.fileio import file_hash
-    from pipeline.recording_layout import locate, recording_hash
+    from pipeline.io.layout import locate, recording_hash
 
     bag = write_split_mcap_bag(tmp_path / "split", short_msgs, 2)
     cfg = RunConfig(report=False)

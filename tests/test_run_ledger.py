@@ -26,7 +26,7 @@ SAMPLE = REPO / "datasets" / "samples" / "sample_lrmate.mcap"
 UNTIL = "identify"
 STAGES = ["ingest", "touchups", "outliers", "identify", "choose"]
 #: what a cached run must not load (the point of the ledger)
-HEAVY = ("pandas", "pyarrow", "scipy", "cv2", "numba", "pipeline.stages.ingest")
+HEAVY = ("pandas", "pyarrow", "scipy", "cv2", "numba", "pipeline.stages.ingest.stage")
 
 
 @pytest.fixture(scope="module")

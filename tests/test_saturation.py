@@ -6,8 +6,8 @@ import numpy as np
 import pytest
 from test_response import renders
 
-from pipeline.stages.detect import DetectConfig, detect_target
-from pipeline.stages.saturation import fit_clipped_edge
+from pipeline.stages.detect.detector import DetectConfig, detect_target
+from pipeline.stages.detect.saturation import fit_clipped_edge
 
 
 def _errors(images, clip_correction: bool):

@@ -90,7 +90,7 @@ def test_the_report_batch_and_compare_show_the_same_figures(run_dir: Path, tmp_p
     assert f"{held_out:.4f}" in html, "the report's validated figure is the shipped model's"
     assert f"{s['rms_mm']:.4f}" in html, "the training residual is the shipped model's"
     # batch summary figures
-    from pipeline.batch import FIGURES_FLOAT, FIGURES_INT, RecordingOutcome, take_result
+    from pipeline.batch.run import FIGURES_FLOAT, FIGURES_INT, RecordingOutcome, take_result
 
     rec = RecordingOutcome(name="r", recording="r.mcap", run_dir=str(run_dir))
     stage = SimpleNamespace(stage="identify", status="cached", seconds=0.0)

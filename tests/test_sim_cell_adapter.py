@@ -86,10 +86,10 @@ def test_a_jpeg_cameras_frames_are_what_its_recording_carries(tmp_path: Path) ->
     """A live client of a JPEG camera sees the decoded JPEG, not the pixels before it."""
     import tomllib
 
-    from pipeline.io_mcap_write import Recorder
+    from pipeline.io.mcap_write import Recorder
     from pipeline.measure.detector import frame_to_grey
     from pipeline.sim.scenario import scenario_from_dict
-    from pipeline.stages.ingest import load_image
+    from pipeline.stages.ingest.stage import load_image
 
     raw = tomllib.loads((SCEN / "small.toml").read_text())
     raw["optics"] = {"jpeg_quality": 90}

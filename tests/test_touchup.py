@@ -10,9 +10,9 @@ from pipeline.kinematics.se3 import matrix_from_rpy
 from pipeline.measurement.image import camera_from_jacobian
 from pipeline.sim.camera import CameraModel
 from pipeline.sim.target_geometry import projected_ellipse
-from pipeline.stages.detect import DetectConfig
-from pipeline.stages.ingest import IngestConfig, ingest_recording
-from pipeline.stages.touchup import (
+from pipeline.stages.detect.detector import DetectConfig
+from pipeline.stages.ingest.stage import IngestConfig, ingest_recording
+from pipeline.stages.touchup.stage import (
     TouchupConfig,
     estimate_jacobian,
     extract_touchups,

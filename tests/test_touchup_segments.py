@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from pipeline.stages.touchup_segments import PROBE_SPAN_M, segments
+from pipeline.stages.touchup.segments import PROBE_SPAN_M, segments
 
 
 def _pose(x: float, y: float, z: float, yaw: float = 0.0) -> np.ndarray:

@@ -68,7 +68,7 @@ from scipy.stats import chi2
 from pipeline.audit.change import ALPHA, Difference, difference_test
 from pipeline.audit.fit import Estimate, constraint_rows, point_columns
 from pipeline.kinematics.se3 import F64
-from pipeline.stages.identify_types import IdentifyConfig
+from pipeline.stages.identify.types import IdentifyConfig
 
 #: a residual this unlikely under the cause read: no single cause explains the change
 ALPHA_EXPLAINED = 1e-3

@@ -1,6 +1,6 @@
 """One recording's own calibration as the audit uses it: the estimate and its covariance.
 
-Each recording is identified on its own (:func:`pipeline.stages.identify.identify`,
+Each recording is identified on its own (:func:`pipeline.stages.identify.stage.identify`,
 the error model the audit compares with, ``full`` by default). What the change
 test needs of it is the vector of estimated quantities
 
@@ -32,7 +32,7 @@ import pandas as pd
 
 from pipeline.audit.identity import AuditItem
 from pipeline.kinematics.se3 import F64
-from pipeline.stages.identify_types import IdentifyConfig, IdentifyResult
+from pipeline.stages.identify.types import IdentifyConfig, IdentifyResult
 
 #: the touch-up noise is whitened in the flange frame only when its variances differ this much
 ISOTROPIC_BELOW = 4.0
@@ -224,7 +224,7 @@ def fit_table(
     distances: list[tuple[Any, Any, float]] | None = None,
 ) -> IdentifyResult:
     """One error model fitted on a touch-up table (no cross-validation, no files)."""
-    from pipeline.stages.identify import identify
+    from pipeline.stages.identify.stage import identify
 
     cfg = IdentifyConfig(model=model, distances=list(distances or []), check_plausibility=False)
     res = identify(table, urdf, base_link, flange_link, cfg)
@@ -244,7 +244,7 @@ def fit_item(item: AuditItem, model: str = CHANGE_MODEL) -> Estimate:
 
 def scale_gauge(res: IdentifyResult, item: AuditItem, has_dist: bool) -> F64 | None:
     """The fit's scale gauge row over the model's parameters (identify's ``_setup``), or None."""
-    from pipeline.stages.identify_structure import structure
+    from pipeline.stages.identify.structure import structure
 
     model = res.error_model
     assert model is not None

@@ -106,7 +106,7 @@ def _first_stamp(folder: Path, rec: dict[str, Any], table: pd.DataFrame) -> int:
 
 def manifest_ids(path: Path) -> dict[str, str]:
     """``{run folder name: robot_id}`` of a batch manifest's entries that give one."""
-    from pipeline.batch_manifest import load_manifest
+    from pipeline.batch.manifest import load_manifest
 
     return {it.name: it.robot_id for it in load_manifest(path).items if it.robot_id}
 

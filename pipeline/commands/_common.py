@@ -27,7 +27,7 @@ def _parse_set(
 def _check_set_key(key: str) -> None:
     """Refuse a ``--set`` key vtcal does not use, listing the ones it does (a typo is not
     silently ignored)."""
-    from pipeline.stages.ingest_types import METADATA_KEYS, OTHER_METADATA_KEYS
+    from pipeline.stages.ingest.types import METADATA_KEYS, OTHER_METADATA_KEYS
 
     stage, dot, opt = key.partition(".")
     if dot:
@@ -189,7 +189,7 @@ def tolerance_option(fn: Callable[..., Any]) -> Callable[..., Any]:
 
 
 def accept_implausible_option(fn: Callable[..., Any]) -> Callable[..., Any]:
-    """``--accept-implausible``: identify despite the guardrails (:mod:`pipeline.stages.plausibility`)."""
+    """``--accept-implausible``: identify despite the guardrails (:mod:`pipeline.stages.trust.plausibility`)."""
     return click.option(
         "--accept-implausible",
         is_flag=True,

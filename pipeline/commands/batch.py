@@ -7,7 +7,7 @@ from typing import Any
 
 import click
 
-from pipeline.batch import EXECUTORS, BatchIncomplete, BatchResult, RecordingOutcome
+from pipeline.batch.run import EXECUTORS, BatchIncomplete, BatchResult, RecordingOutcome
 from pipeline.commands._common import (
     accept_implausible_option,
     distance_option,
@@ -116,7 +116,7 @@ def command(
     compare.html, as `vtcal compare`). Exit status 0 when every recording
     finished, 1 otherwise. See docs/batch.md.
     """
-    from pipeline.batch import default_workers, items_from_paths, load_manifest, run_batch
+    from pipeline.batch.run import default_workers, items_from_paths, load_manifest, run_batch
 
     if manifest is not None and recordings:
         raise BadInput("give recordings or --manifest, not both")
@@ -209,7 +209,7 @@ def _run_with_progress(
         TimeRemainingColumn,
     )
 
-    from pipeline.batch import run_batch
+    from pipeline.batch.run import run_batch
 
     with Progress(
         TextColumn("[bold]recordings"),

@@ -11,7 +11,7 @@ builds the estimation on it:
 - :mod:`~pipeline.estimation.correction_frame`, :mod:`~pipeline.estimation.region`,
   :mod:`~pipeline.estimation.distributions`
 
-Used by identification (:mod:`pipeline.stages.identify`), outlier rejection
-(:mod:`pipeline.stages.outliers`), cross-validation and pose planning
+Used by identification (:mod:`pipeline.stages.identify.stage`), outlier rejection
+(:mod:`pipeline.stages.trust.outliers`), cross-validation and pose planning
 (:mod:`pipeline.plan.design`).
 """

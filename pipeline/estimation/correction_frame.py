@@ -12,7 +12,7 @@ stopped short in size), a few thousandths of them is micrometres across the view
 far above a touch-up's noise there (~1 um), and it varies with the correction, so
 no constant absorbs it. The fix: after a first fit, ``d_c = M_eff d`` with ``M_eff``
 from the calibrated kinematics (:func:`translation_map`), then fit again
-(:mod:`pipeline.stages.identify`). ``M_eff`` is a pose average (F2) because ``J`` is
+(:mod:`pipeline.stages.identify.stage`). ``M_eff`` is a pose average (F2) because ``J`` is
 one matrix for every pose.
 
 The maths. The image moves with the point of the flange at the target, the pin

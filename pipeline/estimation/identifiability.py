@@ -1,10 +1,10 @@
 """Which columns of eq. (1) a fit can identify: pivoted QR (Businger & Golub 1965).
 
 Structural redundancies are found on exact synthetic touch-ups of the nominal
-robot (:func:`pipeline.stages.identify_structure.structure`, cached per robot and
+robot (:func:`pipeline.stages.identify.structure.structure`, cached per robot and
 model); what the actual touch-ups fail to excite by a second pivoted QR
 (:func:`select_columns`); each held column gets a reason (:func:`held_reasons`). The method: the module
-docstring of :mod:`pipeline.stages.identify` (base-parameter method of Gautier
+docstring of :mod:`pipeline.stages.identify.stage` (base-parameter method of Gautier
 & Khalil 1990, Hollerbach & Wampler 1996).
 """
 

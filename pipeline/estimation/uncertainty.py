@@ -58,7 +58,7 @@ def covariance(J: F64, scale: F64, r: F64) -> tuple[F64, float, int]:
     the SVD of the column-scaled ``J S = U diag(s) V^T`` as
     ``S V diag(s^-2) V^T S sigma^2`` (singular values below ``1e-12 s_max``
     dropped: a pseudo-inverse), so that columns in radians and metres are
-    conditioned alike (the scaling of :mod:`pipeline.stages.identify`).
+    conditioned alike (the scaling of :mod:`pipeline.stages.identify.stage`).
 
     Parameters
     ----------

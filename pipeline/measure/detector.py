@@ -1,8 +1,8 @@
 """vtcal's own target detector as the touch-up loop's default :data:`~pipeline.measure.loop.Detector`.
 
 The frame is reduced to grey exactly as ingest reduces a recorded image
-(:func:`pipeline.io_mcap.image_to_gray`: BT.601 weights for colour), then
-:func:`pipeline.stages.detect.detect_target` fits the target's ellipse on grey
+(:func:`pipeline.io.mcap.image_to_gray`: BT.601 weights for colour), then
+:func:`pipeline.stages.detect.detector.detect_target` fits the target's ellipse on grey
 levels linearised by the camera response, declared or estimated as ingest
 does (:class:`LiveDetector`). The loop thus drives the target to the
 designated values as the pipeline will later measure them.
@@ -15,12 +15,12 @@ from collections.abc import Callable
 
 import numpy as np
 
-from pipeline.io_mcap import EncodedImage, image_to_gray
+from pipeline.io.mcap import EncodedImage, image_to_gray
 from pipeline.measure.loop import Detection
 from pipeline.measure.protocols import Frame
-from pipeline.stages.detect import DetectConfig, detect_target
-from pipeline.stages.response import parse_response
-from pipeline.stages.response_estimate import ResponseEstimate, estimate_response
+from pipeline.stages.detect.detector import DetectConfig, detect_target
+from pipeline.stages.image.response import parse_response
+from pipeline.stages.image.response_estimate import ResponseEstimate, estimate_response
 
 
 def frame_to_grey(frame: Frame) -> np.ndarray:
@@ -48,11 +48,11 @@ ESTIMATE_IMAGES = 7
 class LiveDetector:
     """vtcal's detector for the live loop, on grey levels linearised as ingest linearises them.
 
-    The camera response (:mod:`pipeline.stages.response`) is applied by
-    :func:`pipeline.stages.detect.detect_target` itself (``DetectConfig.response``,
+    The camera response (:mod:`pipeline.stages.image.response`) is applied by
+    :func:`pipeline.stages.detect.detector.detect_target` itself (``DetectConfig.response``,
     the code path of offline detection). A declared response is used from the
     first capture. An undeclared one (``auto``) is estimated by the offline
-    estimator (:func:`pipeline.stages.response_estimate.estimate_response`) from
+    estimator (:func:`pipeline.stages.image.response_estimate.estimate_response`) from
     the first :data:`ESTIMATE_IMAGES` captures in which the target was found,
     detected meanwhile on raw grey (linear); ``say`` is told the outcome in one
     line. Called as a :data:`~pipeline.measure.loop.Detector`.

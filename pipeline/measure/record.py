@@ -2,7 +2,7 @@
 
 The file is the spec's MCAP (``recording.md``: ``/robot_description`` first,
 ``/joint_states``, ``/camera/image_raw``, metadata ``touchup``), written with
-the project's one ROS 2 MCAP writer (:class:`pipeline.io_mcap_write.Recorder`).
+the project's one ROS 2 MCAP writer (:class:`pipeline.io.mcap_write.Recorder`).
 
 **Crash-safe.** After every capture the chunk in progress is closed and the
 file flushed to the operating system, so a killed process leaves a truncated
@@ -33,10 +33,10 @@ from typing import IO, Any
 
 import numpy as np
 
-from pipeline import io_mcap
 from pipeline.errors import BadInput
 from pipeline.fileio import atomic_write_bytes
-from pipeline.io_mcap_write import Recorder, stamp
+from pipeline.io import mcap as io_mcap
+from pipeline.io.mcap_write import Recorder, stamp
 from pipeline.measure.protocols import Frame, JointReading
 from pipeline.measure.summary import METADATA_NAME
 

@@ -1,6 +1,6 @@
 """The rows identification fits: :class:`FitData`, what the identify stage prepares.
 
-Built from a touch-up table by :func:`pipeline.stages.identify_data.prepare_data`
+Built from a touch-up table by :func:`pipeline.stages.identify.data.prepare_data`
 (every input row kept with the reason it was or was not used), and read by
 eq. (1)'s :class:`pipeline.measurement.pin.Problem`.
 """
@@ -36,7 +36,7 @@ class FitData:
     d_all: F64
     tk_all: np.ndarray  # target index per row (-1 if target not used)
     #: (N, 3) each used row's print-size lever ``g`` and (N, 3) long-axis direction ``l``
-    #: (flange frame, :mod:`pipeline.stages.print_shape`), None without those columns
+    #: (flange frame, :mod:`pipeline.stages.identify.print_shape`), None without those columns
     shape_g: F64 | None = None
     shape_l: F64 | None = None
     #: (M, 3, 3) every row's image-Jacobian pair scatter ``S_i`` (flange frame, m^2,

@@ -18,7 +18,7 @@ axis its first two rows are ``-(f/z)`` times the first two rows of
 (:func:`camera_from_jacobian`). The residual correction of a touch-up that
 stopped at ``e_T`` is ``d_F = -J^-1 e_T`` (:func:`residual_correction`).
 
-Callers: the touch-up stage (:mod:`pipeline.stages.touchup`, ``touchup_rows``,
+Callers: the touch-up stage (:mod:`pipeline.stages.touchup.stage`, ``touchup_rows``,
 ``touchup_tilt``), the live loop (:class:`pipeline.measure.loop.Goal`), the
 simulator (:func:`pipeline.sim.cell.virtual_pin_camera`, the cell's designated
 size), the report's nominal camera (:func:`pipeline.report.rrd_log.camera_guess`).
@@ -185,7 +185,7 @@ def view_geometry(J: F64, s0: float, angle: np.ndarray) -> tuple[F64, F64]:
         l_k = cos(a_k) r_x + sin(a_k) r_y           (unit)
 
     ``a_k`` its image long-axis angle (from ``+u`` towards ``+v``): what
-    :mod:`pipeline.stages.print_shape` needs to tell an out-of-round print from the
+    :mod:`pipeline.stages.identify.print_shape` needs to tell an out-of-round print from the
     roll of the view.
 
     Returns

@@ -24,7 +24,7 @@ targets ``a`` and ``b`` adds the row ``w_D (|t_a - t_b| - D)`` (:func:`distance_
   (:func:`initial_pin_targets`), and with a chain's kinematics
   (:func:`fit_pin_and_targets`) plausibility, validate and the report's nominal fit.
 
-The method and its sources: the module docstring of :mod:`pipeline.stages.identify`.
+The method and its sources: the module docstring of :mod:`pipeline.stages.identify.stage`.
 """
 
 from __future__ import annotations

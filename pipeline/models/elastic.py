@@ -52,7 +52,7 @@ A URDF cannot hold (E1): :meth:`ElasticModel.origins` returns the rigid part
 ``parameters.parquet`` and ``identify.json`` carry ``c_j``
 (``JOINT.compliance``, unit ``rad/(N m)``); cross-validation predicts with the
 full map (E3), and the shipped ``calibrated.urdf`` is never this model's
-(``urdf_exact = False``; see :mod:`pipeline.stages.crossval`).
+(``urdf_exact = False``; see :mod:`pipeline.stages.crossval.stage`).
 """
 
 from __future__ import annotations

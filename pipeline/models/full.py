@@ -13,7 +13,7 @@ exponential coordinates, so it represents any true robot of that kind
 exactly. It is over-complete on purpose (the rotation about the axis and the
 zero offset coincide, the first joint's origin is the base frame the targets
 absorb, ...): identification keeps what the touch-ups identify (QR with column
-pivoting) and holds the rest at nominal (``pipeline.stages.identify``).
+pivoting) and holds the rest at nominal (``pipeline.stages.identify.stage``).
 
 Jacobian, by equation (1) of :mod:`pipeline.models.base`: ``d_k`` is a pure
 translation in frame ``X_k`` (the parent frame after the fixed joints before

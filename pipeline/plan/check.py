@@ -8,7 +8,7 @@ miss ``N(0, noise_pin_m^2)`` per axis by minimum-norm Gauss-Newton on the pin
 position (:func:`pipeline.evaluate.solve_pin_ik`, as the servo loop moves the
 flange, orientation kept near the plan), the recorded joints get encoder noise
 ``N(0, noise_q_rad^2)``; the table goes through the real identification
-(:func:`pipeline.stages.identify.identify`) and the calibrated chain and pin
+(:func:`pipeline.stages.identify.stage.identify`) and the calibrated chain and pin
 are scored by :func:`pipeline.evaluate.pin_accuracy`.
 """
 
@@ -36,7 +36,7 @@ def touchups_at(
     noise_pin_m: float = 1e-5,
     noise_q_rad: float = 1e-6,
 ) -> pd.DataFrame:
-    """A touch-up table (``pipeline.stages.identify`` input) of the true robot at planned poses.
+    """A touch-up table (``pipeline.stages.identify.stage`` input) of the true robot at planned poses.
 
     Parameters
     ----------
@@ -87,7 +87,7 @@ def calibrate_and_score(
     dict: ``shape_rms_m`` etc. (:func:`pipeline.evaluate.pin_accuracy`), ``identify_predicted_
     shape_rms_m`` (identification's own covariance prediction) and ``n_identified``
     """
-    from pipeline.stages.identify import IdentifyConfig, identify
+    from pipeline.stages.identify.stage import IdentifyConfig, identify
 
     res = identify(table, urdf, base_link, flange_link, IdentifyConfig(model=model))
     assert not isinstance(res, dict)

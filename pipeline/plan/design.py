@@ -157,7 +157,7 @@ class Design:
         ``dp(q) = [J_x(q) D V, R(q)] de`` with ``de ~ N(0, cov_e)``
         (:meth:`kinematic_covariance`), over the evaluation poses ``q_eval``, after the best
         similarity (shape) or rigid (absolute) registration, exactly as identification
-        predicts it (:func:`pipeline.stages.identify.predicted_errors`).
+        predicts it (:func:`pipeline.stages.identify.stage.predicted_errors`).
 
         Returns
         -------

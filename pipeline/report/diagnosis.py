@@ -9,13 +9,13 @@ touch-ups' residuals along the view then correlate with the tilt and with the
 long axis' direction on the plate. This section shows, from the artefacts only:
 
 * the response curve detection used and how it was chosen
-  (``recording.json`` ``camera``, :mod:`pipeline.stages.response`);
+  (``recording.json`` ``camera``, :mod:`pipeline.stages.image.response`);
 * the sensor's fixed gain pattern (PRNU), found and divided out or not
-  (``camera`` ``flat_field``, :mod:`pipeline.stages.flat_field`);
+  (``camera`` ``flat_field``, :mod:`pipeline.stages.image.flat_field`);
 * the illumination gradient across the target;
 * touch-ups that stopped off target and were corrected rather than rejected;
 * whether the camera had settled at each touch-up's repeated final captures,
-  and the weights their averages used (:mod:`pipeline.stages.touchup_settle`);
+  and the weights their averages used (:mod:`pipeline.stages.touchup.settle`);
 * per-target print shape, where identification estimated one
   (``targets.parquet`` columns ``print_*``);
 * the along-view residual of every used touch-up against the tilt ``theta``
@@ -111,7 +111,7 @@ def _response_rows(cam: dict[str, Any]) -> tuple[list[dict[str, str]], list[str]
 
 
 def flat_field_rows(cam: dict[str, Any]) -> list[dict[str, str]]:
-    """What ingest found of the sensor's fixed gain pattern (:mod:`pipeline.stages.flat_field`)."""
+    """What ingest found of the sensor's fixed gain pattern (:mod:`pipeline.stages.image.flat_field`)."""
     ff = cam.get("flat_field")
     if not isinstance(ff, dict):
         return []
@@ -220,9 +220,9 @@ def settle_rows(data: RunData) -> list[dict[str, str]]:
     """Whether the camera had settled at the touch-ups' repeated final captures.
 
     From ``touchups.parquet``'s ``vtcal.settle`` metadata
-    (:func:`pipeline.stages.touchup_settle.settle_summary`): the scatter of each
+    (:func:`pipeline.stages.touchup.settle.settle_summary`): the scatter of each
     capture before the last against the last, the weights the averages used, and
-    the one-mode swing fit of the centre (:mod:`pipeline.stages.touchup_swing`).
+    the one-mode swing fit of the centre (:mod:`pipeline.stages.touchup.swing`).
     """
     path = data.run_dir / RUN_FILES["touchups"]
     try:

@@ -21,7 +21,8 @@ from typing import TYPE_CHECKING
 import cv2
 import numpy as np
 
-from pipeline.io_mcap import (
+from pipeline.io.layout import locate
+from pipeline.io.mcap import (
     DEFAULT_IMAGE_TOPICS,
     IMAGE_TYPES,
     EncodedImage,
@@ -29,9 +30,8 @@ from pipeline.io_mcap import (
     decode_image_message,
     image_to_gray,
 )
-from pipeline.io_mcap_index import topic_messages
-from pipeline.io_recording import iter_recording
-from pipeline.recording_layout import locate
+from pipeline.io.mcap_index import topic_messages
+from pipeline.io.recording import iter_recording
 
 if TYPE_CHECKING:
     from pipeline.report.data import RunData
@@ -82,11 +82,11 @@ def load_images(
     ----------
     path : the recording (an MCAP file or a bag)
     image_topic : the topic ingest read images from (None: the first of
-        :data:`~pipeline.io_mcap.DEFAULT_IMAGE_TOPICS` with an image message)
+        :data:`~pipeline.io.mcap.DEFAULT_IMAGE_TOPICS` with an image message)
     indices : wanted frame indices, as ingest numbers frames
     n_images : how many images ingest read on the topic (``recording.json``);
         with the topic, it lets an indexed MCAP file be read through its index
-        (:func:`pipeline.io_mcap_index.topic_messages`: only the chunks holding
+        (:func:`pipeline.io.mcap_index.topic_messages`: only the chunks holding
         wanted frames), when the index counts as many; otherwise, or when the
         file has no usable index, the recording is streamed.
 

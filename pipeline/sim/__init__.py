@@ -14,6 +14,6 @@ measurement protocols), :mod:`~pipeline.sim.link` (that cell as ``vtcal measure`
 (the truth file, whose layout follows the conformance sample's) and
 :mod:`~pipeline.sim.simulator` (runs a session with the shared touch-up loop of
 :mod:`pipeline.measure.loop`). It writes with the project's streaming ROS 2 MCAP writer,
-:mod:`pipeline.io_mcap_write` (shared with ``vtcal measure``). The simulator sits above
+:mod:`pipeline.io.mcap_write` (shared with ``vtcal measure``). The simulator sits above
 :mod:`pipeline.measure` (it runs its loop), never below. See ``docs/simulator.md``.
 """

@@ -23,7 +23,7 @@ and ``SimCamera.target`` / ``SimCamera.options`` pick the rendered target and
 add second blobs or occluders.
 
 :meth:`SimCell.from_scenario` builds the whole cell from a scenario and a seed,
-recording into a :class:`~pipeline.io_mcap_write.Recorder` or nowhere (a cell run
+recording into a :class:`~pipeline.io.mcap_write.Recorder` or nowhere (a cell run
 standalone, e.g. behind the TCP reference server).
 """
 
@@ -35,7 +35,7 @@ from typing import Any
 import cv2
 import numpy as np
 
-from pipeline.io_mcap_write import NullRecorder, Recorder
+from pipeline.io.mcap_write import NullRecorder, Recorder
 from pipeline.kinematics.se3 import F64
 from pipeline.measure.loop import Detection, Detector, Goal, LoopConfig
 from pipeline.measure.protocols import Frame, JointReading

@@ -16,7 +16,7 @@ from typing import Any
 import numpy as np
 
 from pipeline.errors import BadInput
-from pipeline.io_mcap_write import NullRecorder
+from pipeline.io.mcap_write import NullRecorder
 from pipeline.measure.cell_link import CellLink
 from pipeline.measure.protocols import JointReading
 

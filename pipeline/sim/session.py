@@ -15,7 +15,7 @@ from typing import Any
 
 import numpy as np
 
-from pipeline.io_mcap_write import Recorder, stamp
+from pipeline.io.mcap_write import Recorder, stamp
 from pipeline.kinematics.chain import fk
 from pipeline.kinematics.se3 import F64, invert_transform, matrix_from_axis_angle, translation
 from pipeline.sim.cell import Target, build_cell

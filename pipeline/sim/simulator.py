@@ -56,7 +56,7 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
-from pipeline.io_mcap_write import Recorder
+from pipeline.io.mcap_write import Recorder
 from pipeline.kinematics.se3 import F64
 from pipeline.measure.loop import (
     CaptureInfo,

@@ -279,7 +279,7 @@ def make_demo_run(
     ]  # fmt: skip
     _write(run_dir / "crossval.parquet", pd.DataFrame(cv), "crossval")
     (run_dir / "calibrated.urdf").write_text(write_calibrated_urdf(urdf, origins, "flange", p_pin))
-    # the fields identify.json carries (pipeline/stages/identify.py), with made-up values
+    # the fields identify.json carries (pipeline/stages/identify/stage.py), with made-up values
     held = [{"name": "joint_1.z", "reason": "along the base frame's z: not observable"}]
     identify: dict[str, Any] = {
         "model": "full",

@@ -23,7 +23,7 @@ from mcap.writer import CompressionType
 from mcap_ros2.decoder import DecoderFactory
 from mcap_ros2.writer import Writer as RosWriter
 
-from pipeline.io_mcap_write import msgdef as recorder_msgdef
+from pipeline.io.mcap_write import msgdef as recorder_msgdef
 
 SMALL_TOML = """
 name = "field_small"

@@ -22,7 +22,7 @@ from rosbags.rosbag2 import Writer as Writer2
 from rosbags.typesys import Stores, get_typestore
 from ruamel.yaml import YAML
 
-from pipeline.io_recording import TOUCHUP_TOPIC
+from pipeline.io.recording import TOUCHUP_TOPIC
 
 REPO = Path(__file__).resolve().parents[2]
 SAMPLE = REPO / "datasets" / "samples" / "sample_lrmate.mcap"

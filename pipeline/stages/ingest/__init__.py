@@ -1,0 +1,6 @@
+"""Ingest: one streaming pass over a recording -> frames, detections, recording info.
+
+``stage`` (the stage), ``stream`` (the pass over every message once), ``joints`` (the
+joint states at every image), ``types`` (its settings and what it learns about a
+recording), ``row_buffer`` (the growable tables it fills).
+"""

@@ -1,0 +1,93 @@
+"""The detection noise of a touch-up, measured from its repeated final captures.
+
+At convergence a touch-up takes several captures at one flange pose
+(:mod:`pipeline.stages.touchup.stage`, step 5). Their measurements ``m = (u, v, 1/s)``
+differ only by what changes from one image to the next at a fixed pose: sensor
+noise, flicker, a camera still swinging. Pooled over every touch-up with ``n_k``
+captures, with ``mbar_k`` its mean::
+
+    Sigma_m = sum_k sum_j (m_kj - mbar_k)(m_kj - mbar_k)^T / sum_k (n_k - 1)      (N1)
+
+and, through the image Jacobian (the correction ``d_F = -J^{-1} e_T``), one
+capture's noise in the flange frame and that of a touch-up's averaged correction::
+
+    Sigma_d = J^{-1} Sigma_m J^{-T},        Sigma_dbar = Sigma_d / n_eff               (N2)
+
+(``n_eff`` the harmonic mean of the ``n_k``). This is what the touch-ups' pin
+positions would scatter by if detection noise were their only error: an
+independent prediction of the fit's residual, against which
+:mod:`pipeline.stages.trust.adequacy` tests the fit. It is blind, by construction, to
+what stays the same at one pose and changes between poses (a response curve,
+defocus, uneven light, an out-of-round print seen from another angle): those are
+exactly the errors the test is there to reveal.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+
+from pipeline.kinematics.se3 import F64
+
+
+def capture_noise(
+    uses: list[list[int]], u: F64, v: F64, s: F64, J: F64, s0: float
+) -> dict[str, Any]:
+    """(N1)-(N2) from the final captures of each touch-up.
+
+    Parameters
+    ----------
+    uses : per touch-up the capture indices averaged at its final pose
+    u, v, s : (n,) every capture's centre and long axis, px
+    J : (3, 3) image Jacobian ``d(u, v, 1/s) / d d_F`` (per metre, flange frame)
+    s0 : designated long axis, px (the centre rows hold at it)
+
+    Returns
+    -------
+    dict (JSON-able): ``n_touchups`` with two or more finite captures, ``dof`` of (N1),
+    ``n_eff``, ``sd_px`` the per-capture standard deviations of ``u, v, s``,
+    ``cov_flange_m2`` (3, 3) Sigma_d of one capture, ``sd_touchup_um`` (3,) the
+    averaged correction's standard deviations along the flange axes, and
+    ``rms_touchup_um`` ``sqrt(tr Sigma_dbar)``; figures NaN without repeated captures.
+    """
+    S = np.zeros((3, 3))
+    dof = 0
+    ns: list[int] = []
+    for use in uses:
+        if len(use) < 2:
+            continue
+        idx = np.asarray(use, dtype=int)
+        m = np.stack([u[idx], v[idx], 1.0 / s[idx]], axis=1)
+        m = m[np.all(np.isfinite(m), axis=1)]
+        if len(m) < 2:
+            continue
+        dm = m - m.mean(axis=0)
+        S += dm.T @ dm
+        dof += len(m) - 1
+        ns.append(len(m))
+    nan3 = [float("nan")] * 3
+    out: dict[str, Any] = {
+        "n_touchups": len(ns),
+        "dof": dof,
+        "n_eff": float("nan"),
+        "sd_px": nan3,
+        "cov_flange_m2": [nan3, nan3, nan3],
+        "sd_touchup_um": nan3,
+        "rms_touchup_um": float("nan"),
+    }
+    if dof < 3 or not np.all(np.isfinite(J)):
+        return out
+    Sm = S / dof
+    Ji = np.linalg.inv(np.asarray(J, dtype=float))
+    Sd = Ji @ Sm @ Ji.T
+    n_eff = len(ns) / float(np.sum(1.0 / np.asarray(ns, dtype=float)))
+    sd_s = float(np.sqrt(Sm[2, 2])) * s0 * s0  # d(1/s) = -ds / s^2 at s0
+    out.update(
+        n_eff=n_eff,
+        sd_px=[float(np.sqrt(Sm[0, 0])), float(np.sqrt(Sm[1, 1])), sd_s],
+        cov_flange_m2=Sd.tolist(),
+        sd_touchup_um=(1e6 * np.sqrt(np.clip(np.diag(Sd), 0, None) / n_eff)).tolist(),
+        rms_touchup_um=float(1e6 * np.sqrt(max(np.trace(Sd), 0.0) / n_eff)),
+    )
+    return out

@@ -1,0 +1,130 @@
+"""Touch-up extraction, steps 1 and 2: the segments, the final pose, the loop start.
+
+Nothing in a recording marks where a touch-up starts or ends; consecutive still
+captures a large move apart belong to different touch-ups (:func:`segments`).
+Inside one, the captures at the final pose are the repeated captures at
+convergence (:func:`final_block`) and the loop starts where the probing shifts
+come back to the first pose (:func:`loop_starts`). The steps are described in
+:mod:`pipeline.stages.touchup.stage`; poses are the nominal model's flange poses.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from pipeline.kinematics.se3 import rotation_angle
+
+#: still captures within this of a touch-up's first are its Jacobian probes (the
+#: live loop's are 2 mm shifts, ``measure.loop.LoopConfig.probe_shift_m``; a
+#: recorder's may be larger): a translation beyond ``trans_split_m`` from there is
+#: still the loop's first step, not a new pose
+PROBE_SPAN_M = 0.006
+
+
+def relative_pose(T_a: np.ndarray, T_b: np.ndarray) -> tuple[float, np.ndarray]:
+    """Rotation angle and flange-frame translation from pose a to pose b."""
+    R = T_a[:3, :3].T @ T_b[:3, :3]
+    return float(rotation_angle(R)), T_a[:3, :3].T @ (T_b[:3, 3] - T_a[:3, 3])
+
+
+def segments(
+    T: np.ndarray, still: np.ndarray, *, rot_split_rad: float, trans_split_m: float
+) -> list[np.ndarray]:
+    """Step 1: the frame indices of each touch-up, in order.
+
+    Consecutive still captures whose flange poses differ by more than
+    ``rot_split_rad`` in orientation or ``trans_split_m`` in position start a new
+    segment, except a translation while the segment's still captures all lie within
+    ``PROBE_SPAN_M`` of its first (the loop's first step, after its first capture or
+    the Jacobian probes around it); a capture taken while moving joins the
+    neighbouring still capture whose pose is nearer (``0.2 m/rad angle + distance``).
+
+    Parameters
+    ----------
+    T : (n, 4, 4) flange poses of the captures, in frame order
+    still : (n,) the capture was taken standing still (at least one is)
+    """
+    seg = np.full(len(still), -1, dtype=np.int64)
+    still_idx = np.nonzero(still)[0]
+    cur = 0
+    seg[still_idx[0]] = 0
+    first = int(still_idx[0])  # the current segment's first still capture
+    span = 0.0  # how far its still captures lie from that first one
+    for a, b in zip(still_idx[:-1], still_idx[1:], strict=True):
+        ang, d = relative_pose(T[a], T[b])
+        # a translation before the segment has moved beyond its probes is the loop's
+        # first step, however long (a plan made with another pin or the nominal robot
+        # can start 30+ mm off)
+        far = np.linalg.norm(d) > trans_split_m and span > PROBE_SPAN_M
+        if ang > rot_split_rad or far:
+            cur += 1
+            first, span = int(b), 0.0
+        else:
+            span = max(span, float(np.linalg.norm(T[b][:3, 3] - T[first][:3, 3])))
+        seg[b] = cur
+    for i in np.nonzero(~still)[0]:
+        prev = still_idx[still_idx < i]
+        nxt = still_idx[still_idx > i]
+        cand = []
+        for j in [int(x) for x in prev[-1:]] + [int(x) for x in nxt[:1]]:
+            ang, d = relative_pose(T[j], T[i])
+            cand.append((ang * 0.2 + np.linalg.norm(d), j))
+        seg[i] = seg[min(cand)[1]] if cand else 0
+    n_seg = int(seg.max()) + 1
+    return [np.nonzero(seg == k)[0] for k in range(n_seg)]
+
+
+def final_block(
+    fr: np.ndarray, T: np.ndarray, still: np.ndarray, *, same_pose_rad: float, same_pose_m: float
+) -> np.ndarray:
+    """Step 2: the still captures of segment ``fr`` at its final pose, in order.
+
+    The final pose is that of the segment's last still capture; the block is the
+    run of still captures before it within ``same_pose_rad`` and ``same_pose_m``
+    (empty when the segment has no still capture).
+    """
+    st = [i for i in fr if still[i]]
+    if not st:
+        return np.array([], dtype=np.int64)
+    last = st[-1]
+    block = [last]
+    for i in reversed(st[:-1]):
+        ang, d = relative_pose(T[last], T[i])
+        if ang < same_pose_rad and np.linalg.norm(d) < same_pose_m:
+            block.insert(0, i)
+        else:
+            break
+    return np.array(block, dtype=np.int64)
+
+
+def loop_starts(
+    seg_frames: list[np.ndarray],
+    T: np.ndarray,
+    still: np.ndarray,
+    *,
+    same_pose_rad: float,
+    same_pose_m: float,
+) -> list[int]:
+    """Step 2: per segment, the frame the touch-up loop starts at.
+
+    The last still capture that returns to the segment's first pose (within
+    ``same_pose_rad`` and ``same_pose_m``) after leaving it, since the probing
+    shifts come back to the base pose before the loop; else the segment's
+    first capture.
+    """
+    loop_start = []
+    for fr in seg_frames:
+        st = [i for i in fr if still[i]]
+        start = fr[0]
+        if st:
+            away = False
+            for i in st[1:]:
+                ang, d = relative_pose(T[st[0]], T[i])
+                at_first = ang < same_pose_rad and np.linalg.norm(d) < same_pose_m
+                if not at_first:
+                    away = True
+                elif away:
+                    start = i
+                    away = False
+        loop_start.append(int(start))
+    return loop_start

@@ -1,0 +1,109 @@
+"""Touch-up extraction: the tilt bias of a tilted target's ellipse.
+
+A tilted circle images as an ellipse whose centre is not the image of the
+circle's centre and whose long axis exceeds the untilted size;
+:func:`tilt_bias` gives both offsets per touch-up, with the camera taken from the
+image Jacobian (:mod:`pipeline.stages.touchup.jacobian`). The steps are described
+in :mod:`pipeline.stages.touchup.stage`.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from pipeline.measurement.image import camera_from_jacobian
+
+
+def tilt_bias(
+    shape: np.ndarray,
+    T_base_flange: np.ndarray,
+    labels: np.ndarray,
+    J: np.ndarray,
+    s0: float,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Offsets between the ellipse and the projected circle centre / untilted size.
+
+    A circle of radius ``R`` at distance ``z`` whose plane is tilted by ``theta``
+    images as an ellipse with ``b / a = cos(theta)`` (``a = f R / z``), whose centre
+    lies off the image of the circle's centre by ``(a^2 / f) sin(theta) cos(theta)``
+    along the minor axis, away from the side the plate normal leans to, and
+    whose long axis exceeds ``f 2R / z`` by ``s (a / f)^2 sin^2(theta) / 2`` (second
+    order expansion of the perspective projection of the tilted circle).
+    ``f`` comes from the image Jacobian (:func:`camera_from_jacobian`). Which end
+    of the minor axis the normal leans to is ambiguous in one image; the sign
+    is chosen per target so that the plate normals of all its touch-ups agree
+    in the base frame (nominal flange orientations, camera orientation from ``J``).
+
+    Parameters
+    ----------
+    shape : (n, 5) per touch-up: u, v, s, s_minor, long-axis angle (NaN if lost)
+    T_base_flange : (n, 4, 4) nominal flange poses at the final captures
+    labels : (n,) target labels
+    J : (3, 3) image Jacobian
+    s0 : designated size
+
+    Returns
+    -------
+    bias : (n, 3) ``(du, dv, ds)``: add du, dv to the ellipse centre, subtract ds
+        from its long axis (0 where not resolved)
+    tilt_deg : (n,) tilt of the plate from the image (NaN if lost)
+    resolved : (n,) the sign was resolved (at least two touch-ups of the target
+        with distinct orientations, or a negligible tilt)
+    """
+    n = len(shape)
+    bias = np.zeros((n, 3))
+    resolved = np.zeros(n, dtype=bool)
+    ok = np.all(np.isfinite(shape), axis=1)
+    a = 0.5 * shape[:, 2]
+    b = 0.5 * shape[:, 3]
+    cos_t = np.clip(np.where(ok, b / np.where(ok, a, 1.0), 1.0), 0.0, 1.0)
+    sin_t = np.sqrt(1.0 - cos_t**2)
+    tilt_deg = np.where(ok, np.degrees(np.arccos(cos_t)), np.nan)
+    try:
+        R_fc, f, _ = camera_from_jacobian(J, s0)
+    except (np.linalg.LinAlgError, ValueError):
+        return bias, tilt_deg, resolved
+    if not np.isfinite(f) or f <= 0:
+        return bias, tilt_deg, resolved
+    phi = shape[:, 4]
+    m = np.stack([-np.sin(phi), np.cos(phi)], axis=1)  # minor-axis direction (u, v)
+    n_cam = np.stack([sin_t * m[:, 0], sin_t * m[:, 1], -cos_t], axis=1)
+    n_base = np.einsum("nij,jk,nk->ni", T_base_flange[:, :3, :3], R_fc, np.nan_to_num(n_cam))
+    n_flip = np.einsum(
+        "nij,jk,nk->ni",
+        T_base_flange[:, :3, :3],
+        R_fc,
+        np.nan_to_num(n_cam * np.array([-1.0, -1.0, 1.0])),
+    )
+    sign = np.ones(n)
+    for g in np.unique(labels):
+        idx = [int(i) for i in np.nonzero((labels == g) & ok)[0]]
+        if not idx:
+            continue
+        if len(idx) == 1:
+            resolved[idx[0]] = bool(tilt_deg[idx[0]] < 2.0)
+            continue
+        best, best_sc = None, -1.0
+        if len(idx) <= 10:
+            for code in range(1 << len(idx)):
+                sg = np.array([(-1.0 if (code >> jj) & 1 else 1.0) for jj in range(len(idx))])
+                vecs = np.where(sg[:, None] > 0, n_base[idx], n_flip[idx])
+                sc = float(np.linalg.norm(vecs.sum(axis=0)))
+                if sc > best_sc:
+                    best, best_sc = sg, sc
+        else:
+            sg = np.ones(len(idx))
+            for _ in range(5):
+                for j in range(len(idx)):
+                    rest = np.where(sg[:, None] > 0, n_base[idx], n_flip[idx]).sum(axis=0)
+                    rest -= n_base[idx[j]] if sg[j] > 0 else n_flip[idx[j]]
+                    sg[j] = 1.0 if n_base[idx[j]] @ rest >= n_flip[idx[j]] @ rest else -1.0
+            best = sg
+        assert best is not None
+        sign[idx] = best
+        resolved[idx] = True
+    shift = (a**2 / f) * sin_t * cos_t
+    bias[:, 0] = np.where(ok & resolved, sign * shift * m[:, 0], 0.0)
+    bias[:, 1] = np.where(ok & resolved, sign * shift * m[:, 1], 0.0)
+    bias[:, 2] = np.where(ok, shape[:, 2] * (a / f) ** 2 * sin_t**2 / 2.0, 0.0)
+    return bias, tilt_deg, resolved

@@ -1,0 +1,7 @@
+"""What the data and the fit can be trusted with; nothing is deleted, only flagged.
+
+``plausibility`` (guardrails: inputs that look right but cannot be, caught before
+identification), ``outliers`` (the outliers stage: touch-ups identification must not
+trust), ``adequacy`` (whether the run's accuracy figure can be trusted: the
+model-adequacy test).
+"""
