@@ -49,7 +49,8 @@ import pandas as pd
 from pipeline.evaluate import pin_accuracy, register_points, workspace_poses
 from pipeline.kinematics.chain import fk, load_chain
 from pipeline.known_distances import parse_distances
-from pipeline.stages.crossval.stage import fold_assignment, heldout_predictions, usable_rows
+from pipeline.stages.crossval.predict import heldout_predictions
+from pipeline.stages.crossval.stage import fold_assignment, usable_rows
 from pipeline.stages.identify.stage import IdentifyConfig
 
 ROOT = Path(__file__).resolve().parent.parent
