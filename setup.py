@@ -6,9 +6,9 @@ them inside the package as ``pipeline/_data/schemas`` and ``pipeline/_data/repor
 where :mod:`pipeline.resources` looks when no checkout is beside the package.
 
 Building the package (``pip install .``, ``pip wheel .``) also compiles the detector's
-numba code once (:mod:`pipeline.stages.detect.precompile`) into the built tree's
-``pipeline/stages/detect/__pycache__``, so an installed vtcal's first run loads machine code
-instead of waiting ~15-20 s for the compiler. numba keys that cache on the source's
+numba code once (:mod:`pipeline.stages.detect.precompile`, with the response estimate's
+edge fit) into the built tree's ``__pycache__`` folders, so an installed vtcal's first run
+loads machine code instead of waiting ~15-20 s for the compiler. numba keys that cache on the source's
 content (sha256), its own version, the Python version and the CPU, so it serves the
 machine the package was built on (a local install); elsewhere, or with another numba,
 the first run compiles as before (announced). ``VTCAL_NO_PRECOMPILE=1`` skips the step;
@@ -21,6 +21,9 @@ import sys
 
 from setuptools import find_packages, setup
 from setuptools.command.build_py import build_py
+
+#: the numba modules (folder under pipeline/stages, cache file prefix) compiled into the build
+JIT_MODULES = (("detect", "_jit."), ("image", "_edge_jit."))
 
 DATA = {"pipeline._data.schemas": "schemas", "pipeline._data.reports": "reports"}
 
@@ -44,10 +47,11 @@ class BuildWithDetector(build_py):
             return
         build_lib = os.path.abspath(self.build_lib)
         # an earlier build's cache (pip builds in the tree's build/): made again or left out
-        cache = os.path.join(build_lib, "pipeline", "stages", "detect", "__pycache__")
-        for name in os.listdir(cache) if os.path.isdir(cache) else ():
-            if name.startswith("_jit.") and name.endswith((".nbi", ".nbc")):
-                os.remove(os.path.join(cache, name))
+        for folder, prefix in JIT_MODULES:
+            cache = os.path.join(build_lib, "pipeline", "stages", folder, "__pycache__")
+            for name in os.listdir(cache) if os.path.isdir(cache) else ():
+                if name.startswith(prefix) and name.endswith((".nbi", ".nbc")):
+                    os.remove(os.path.join(cache, name))
         if os.environ.get("VTCAL_NO_PRECOMPILE"):
             return
         env = {k: v for k, v in os.environ.items() if k != "NUMBA_CACHE_DIR"}

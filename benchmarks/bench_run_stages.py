@@ -287,18 +287,21 @@ def bench_startup(rec: Path, out: Path, repeat: int) -> None:
 
 
 def jit_cache_files() -> list[Path]:
-    """The detector's compiled-code cache files (numba ``cache=True``).
+    """The compiled-code cache files (numba ``cache=True``) of the detector and the edge fit.
 
-    Beside the module in ``__pycache__`` (``_jit.*.nbi`` index, ``*.nbc`` code),
+    Beside each module in ``__pycache__`` (``_jit.*.nbi`` index, ``*.nbc`` code),
     or under ``NUMBA_CACHE_DIR`` when that is set.
     """
     import importlib.util
 
-    spec = importlib.util.find_spec("pipeline.stages.detect._jit")
-    assert spec is not None and spec.origin is not None
-    found = [*(Path(spec.origin).parent / "__pycache__").glob("_jit.*.nb[ic]")]
-    if os.environ.get("NUMBA_CACHE_DIR"):
-        found += [*Path(os.environ["NUMBA_CACHE_DIR"]).rglob("_jit.*.nb[ic]")]
+    found = []
+    for module in ("pipeline.stages.detect._jit", "pipeline.stages.image._edge_jit"):
+        spec = importlib.util.find_spec(module)
+        assert spec is not None and spec.origin is not None
+        stem = module.rsplit(".", 1)[1]
+        found += [*(Path(spec.origin).parent / "__pycache__").glob(f"{stem}.*.nb[ic]")]
+        if os.environ.get("NUMBA_CACHE_DIR"):
+            found += [*Path(os.environ["NUMBA_CACHE_DIR"]).rglob(f"{stem}.*.nb[ic]")]
     return found
 
 

@@ -89,11 +89,12 @@ def test_no_compile_for_an_editable_install_or_when_asked(
 ):
     cmd, calls = build_command
     cmd.build_lib = str(tmp_path)
-    stale = (
-        tmp_path / "pipeline" / "stages" / "detect" / "__pycache__" / "_jit.fine_stage-1.py311.nbi"
-    )
-    stale.parent.mkdir(parents=True)
-    stale.write_bytes(b"an earlier build's")
+    stages = tmp_path / "pipeline" / "stages"
+    stale = stages / "detect" / "__pycache__" / "_jit.fine_stage-1.py311.nbi"
+    stale_fit = stages / "image" / "__pycache__" / "_edge_jit.edge_residual_jacobian-1.py311.nbc"
+    for f in (stale, stale_fit):
+        f.parent.mkdir(parents=True)
+        f.write_bytes(b"an earlier build's")
     if how == "editable":
         cmd.editable_mode = True
     else:
@@ -101,4 +102,4 @@ def test_no_compile_for_an_editable_install_or_when_asked(
     cmd.run()
     assert calls == []
     # asked not to: an earlier build's cache in the build tree is not shipped either
-    assert stale.exists() == (how == "editable")
+    assert stale.exists() == stale_fit.exists() == (how == "editable")

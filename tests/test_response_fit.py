@@ -3,7 +3,8 @@
 The camera-response estimate fits model (R1)-(R2) some 250 times a recording;
 MINPACK used to difference the residual for its Jacobian. These tests hold the
 analytic Jacobian to finite differences, the fit to the differenced fit, and the
-estimate's figures to the estimate made with the differenced fits.
+estimate's figures to the estimate made with the differenced fits, and the
+compiled kernel (``_edge_jit``) to the NumPy reference.
 """
 
 from __future__ import annotations
@@ -16,7 +17,7 @@ from test_response import renders, srgb_encode
 
 import pipeline.stages.image.response_estimate as rest
 from pipeline.stages.image.response import Response
-from pipeline.stages.image.response_fit import EdgeFit, edge_spread, fit_edge
+from pipeline.stages.image.response_fit import CompiledEdgeFit, EdgeFit, edge_spread, fit_edge
 
 
 def profile(seed: int = 1, n: int = 900):
@@ -106,3 +107,46 @@ def test_a_profile_is_fitted_once_per_curve(monkeypatch):
     assert est.n_images == 4
     assert len(fits) >= 4 * 13  # the grid of 10, the bounded search, linear and sRGB
     assert len(fits) == len(set(fits))
+
+
+@pytest.mark.parametrize("curve", [Response("linear"), Response("srgb"), Response("gamma", 1.7)])
+@pytest.mark.parametrize(
+    "x",
+    [(0.1, 0.7, 0.03, 0.01), (-0.3, -1.2, -0.05, 0.02), (0.2, 0.9), (0.0, 0.01, 0.01, 0.0)],
+)
+def test_compiled_kernel_equals_the_numpy_reference(curve, x):
+    """Residual and Jacobian (J) of the compiled kernel: the reference's to 1e-9 (a clipped
+    sigma, 0.01 < MIN_SIGMA, included), and (J) to finite differences."""
+    d, du, dv, g = profile(seed=4)
+    w = 1.0 / np.maximum(curve.slope(g), 1e-6)
+    y = curve.to_linear(g) * w
+    ref, fast = EdgeFit(d, du, dv, y, w), CompiledEdgeFit(d, du, dv, y, w)
+    x = np.array(x)
+    r, J = fast.residual(x), fast.jacobian(x)
+    assert np.abs(r - ref.residual(x)).max() < 1e-9 * np.abs(y).max()
+    assert np.abs(J - ref.jacobian(x)).max() < 1e-9 * np.abs(J).max()
+    Jn = approx_derivative(fast.residual, x, method="3-point")
+    assert np.abs(J - Jn).max() < 1e-7 * np.abs(Jn).max()
+
+
+def test_compiled_fit_equals_the_numpy_fit():
+    """The same MINPACK steps either way: residual sums to 1e-12, solutions to 1e-9."""
+    d, du, dv, g = profile(seed=5)
+    for curve in (Response("linear"), Response("srgb"), Response("gamma", 0.7)):
+        E, w = curve.to_linear(g), 1.0 / np.maximum(curve.slope(g), 1e-6)
+        x0 = np.array([0.0, 0.8, 0.0, 0.0])
+        rss, x = fit_edge(d, du, dv, E, w, x0)
+        rss_np, x_np = fit_edge(d, du, dv, E, w, x0, compiled=False)
+        assert rss == pytest.approx(rss_np, rel=1e-12)
+        assert np.allclose(x, x_np, rtol=0, atol=1e-9)
+
+
+def test_minpack_without_the_wrapper_takes_the_same_steps():
+    """``leastsq`` with ``least_squares(method="lm")``'s settings: bit-identical results."""
+    d, du, dv, g = profile(seed=6)
+    E, w = g, np.ones_like(g)
+    x0 = np.array([0.0, 0.8, 0.0, 0.0])
+    rss, x = fit_edge(d, du, dv, E, w, x0, compiled=False)
+    fit = EdgeFit(d, du, dv, E * w, w)
+    sol = least_squares(fit.residual, x0, jac=fit.jacobian, method="lm", xtol=1e-10)
+    assert np.array_equal(x, sol.x) and rss == float(np.sum(sol.fun**2))

@@ -9,7 +9,9 @@ image of the same kind as a recording's (8-bit grey, a dark disc on a light
 plate), and calls ``on_slow`` once when it has lasted ``after_s`` seconds, so the
 command line can say what is happening and show it progressing instead of
 sitting silent. The synthetic detection's result is discarded; the recording's
-own detections are the same with or without it (same compiled code).
+own detections are the same with or without it (same compiled code). The
+camera-response estimate's compiled edge fit (:mod:`pipeline.stages.image._edge_jit`)
+is warmed the same way, on a synthetic edge.
 
 Where numba keeps the cache: ``__pycache__`` beside ``_jit.py`` when that
 folder is writable, else numba's user cache folder; ``NUMBA_CACHE_DIR`` moves it.
@@ -32,6 +34,7 @@ import cv2
 import numpy as np
 
 from pipeline.stages.detect.detector import DetectConfig, detect_target
+from pipeline.stages.image.response_fit import warm_edge_fit
 
 
 def synthetic_target(size: int = 96, radius: float = 18.0) -> np.ndarray:
@@ -73,6 +76,7 @@ def compile_detector(
         timer.start()
     try:
         detect_target(synthetic_target(), cfg)
+        warm_edge_fit()
     finally:
         if timer is not None:
             timer.cancel()

@@ -40,10 +40,15 @@ import math
 
 import numpy as np
 from scipy.linalg import solve_triangular
-from scipy.optimize import least_squares
+from scipy.optimize import leastsq
 from scipy.special import ndtr
 
 from pipeline.kinematics.se3 import F64
+
+try:  # the compiled residual and Jacobian (same model, one pass per term)
+    from pipeline.stages.image import _edge_jit
+except ImportError:  # pragma: no cover - numba missing: the NumPy path
+    _edge_jit = None  # type: ignore[assignment]
 
 _INV_SQRT_2PI = 1.0 / math.sqrt(2.0 * math.pi)
 #: the smallest edge width the model takes (px): below it ``sigma`` is clipped
@@ -167,22 +172,105 @@ class EdgeFit:
         return J
 
 
+class CompiledEdgeFit:
+    """:class:`EdgeFit` (no harmonics) through :mod:`pipeline.stages.image._edge_jit`.
+
+    The residual and the Jacobian of one ``x`` come from one call of the compiled
+    kernel (MINPACK asks for both at each accepted step); the two latest are kept.
+    Falls back to :class:`EdgeFit` at an ``x`` where the kernel's Gram matrix is
+    singular.
+    """
+
+    def __init__(self, d: F64, du: F64, dv: F64, y: F64, w: F64) -> None:
+        self.d, self.du, self.dv, self.y, self.w = d, du, dv, y, w
+        self._cache: list[tuple[bytes, tuple[F64, F64]]] = []
+
+    def _parts(self, x: F64) -> tuple[F64, F64]:
+        key = x.tobytes()
+        for k, parts in self._cache:
+            if k == key:
+                return parts
+        n = len(self.d)
+        r, J = np.empty(n), np.empty((n, len(x)))
+        ok = _edge_jit.edge_residual_jacobian(
+            self.d, self.du, self.dv, self.y, self.w, np.ascontiguousarray(x), MIN_SIGMA, r, J
+        )
+        if not ok:
+            ref = EdgeFit(self.d, self.du, self.dv, self.y, self.w)
+            r, J = ref.residual(x), ref.jacobian(x)
+        self._cache = [(key, (r, J)), *self._cache[:1]]
+        return r, J
+
+    def residual(self, x: F64) -> F64:
+        """``r(x) = A c - w E``, (N,)."""
+        return self._parts(x)[0]
+
+    def jacobian(self, x: F64) -> F64:
+        """``dr/dx`` (N, len(x)) by (J)."""
+        return self._parts(x)[1]
+
+
 def fit_edge(
-    d: F64, du: F64, dv: F64, E: F64, w: F64, x0: F64, xtol: float = 1e-10
+    d: F64,
+    du: F64,
+    dv: F64,
+    E: F64,
+    w: F64,
+    x0: F64,
+    xtol: float = 1e-10,
+    compiled: bool = True,
 ) -> tuple[float, F64]:
     """Fit model (R1)-(R2) to one profile: residual sum (weighted grey^2) and ``x``.
+
+    Levenberg-Marquardt by MINPACK's ``lmder`` (``scipy.optimize.leastsq``, the
+    routine ``least_squares(method="lm")`` wraps, with its settings: ``ftol = gtol =
+    1e-8``, at most ``100 len(x)`` evaluations, ``factor`` 100, scaling from the
+    Jacobian's columns), without that wrapper's per-call checks.
 
     Parameters
     ----------
     d, du, dv, E, w : (N,) as :class:`EdgeFit` (``E`` linearised grey, unweighted)
     x0 : (2 + n_shape,) start ``(delta, sigma[, b3, b5])``
     xtol : MINPACK's relative step tolerance
+    compiled : the residual and Jacobian from the compiled kernel
+        (:class:`CompiledEdgeFit`; the NumPy :class:`EdgeFit` when False or numba is missing)
 
     Returns
     -------
     rss : float, ``|r|^2`` at the solution
     x : the solution (``sigma`` may come back negative: its sign is immaterial)
     """
-    fit = EdgeFit(d, du, dv, E * w, w)
-    sol = least_squares(fit.residual, x0, jac=fit.jacobian, method="lm", xtol=xtol)
-    return float(np.sum(sol.fun**2)), np.asarray(sol.x, dtype=float)
+    y = E * w
+    fit: EdgeFit | CompiledEdgeFit
+    if compiled and _edge_jit is not None:
+        fit = CompiledEdgeFit(d, du, dv, y, w)
+    else:
+        fit = EdgeFit(d, du, dv, y, w)
+    x0 = np.asarray(x0, dtype=float)
+    x, _, info, _, _ = leastsq(
+        fit.residual,
+        x0,
+        Dfun=fit.jacobian,
+        full_output=True,
+        xtol=xtol,
+        ftol=1e-8,
+        gtol=1e-8,
+        maxfev=100 * len(x0),
+        factor=100.0,
+    )
+    r = info["fvec"]
+    return float(np.sum(r**2)), np.asarray(x, dtype=float)
+
+
+def warm_edge_fit() -> None:
+    """One compiled fit of a small synthetic edge, so the kernel is compiled (or loaded).
+
+    Called by :func:`pipeline.stages.detect.precompile.compile_detector` (at install and
+    before a run's first image) beside the detector's own warm-up.
+    """
+    if _edge_jit is None:
+        return
+    d = np.linspace(-5.0, 5.0, 64)
+    du, dv = np.cos(3.0 * d), np.sin(2.0 * d)
+    E = 0.2 + 0.6 * ndtr(d / 0.8)
+    fit_edge(d, du, dv, E, np.ones_like(d), np.array([0.1, 0.7, 0.0, 0.0]))
