@@ -54,7 +54,7 @@ from pipeline.runner import (
     run_stages,
     write_run,
 )
-from pipeline.withdraw import snapshot, withdraw
+from pipeline.withdraw import release, snapshot, withdraw
 
 #: the stage names, in run order (``--until`` takes one)
 STAGES = STAGE_NAMES
@@ -171,6 +171,8 @@ def run_pipeline(
         if created:  # a run that wrote nothing leaves no empty run folder behind
             _remove_if_empty(out)
         raise
+    finally:  # the previous files' links (a refusal has put them back already)
+        release(out)
 
 
 def _remove_if_empty(folder: Path) -> None:
