@@ -50,8 +50,10 @@ def _files(folder: Path) -> dict[Path, Stamp]:
 def snapshot(folder: Path, keep: bool = True) -> dict[Path, Stamp] | None:
     """Every file under ``folder`` with its :data:`Stamp`; None when the folder does not exist.
 
-    With ``keep``, each file is also hard-linked into ``folder / BACKUP`` (a stale one,
-    from a run that was killed, is dropped first), so :func:`withdraw` can put it back.
+    With ``keep``, each file directly in ``folder`` (where a run writes its artefacts;
+    not the files of subfolders) is also hard-linked into ``folder / BACKUP`` (a stale
+    one, from a run that was killed, is dropped first), so :func:`withdraw` can put it
+    back.
     """
     if not folder.is_dir():
         return None
@@ -59,9 +61,11 @@ def snapshot(folder: Path, keep: bool = True) -> dict[Path, Stamp] | None:
     out = _files(folder)
     if keep:
         for p in out:
-            dst = folder / BACKUP / p.relative_to(folder)
+            if p.parent != folder:
+                continue
+            dst = folder / BACKUP / p.name
             try:
-                dst.parent.mkdir(parents=True, exist_ok=True)
+                dst.parent.mkdir(exist_ok=True)
                 os.link(p, dst)
             except OSError:  # no hard links here: withdraw removes a rewritten file
                 continue
@@ -88,8 +92,8 @@ def withdraw(folder: Path, before: dict[Path, Stamp] | None) -> list[Path]:
     # a file the run deleted: put back too (not a killed run's hidden temporary)
     removed += [p for p in old if p not in now and not p.name.startswith(".")]
     for p in removed:
-        kept = folder / BACKUP / p.relative_to(folder)
-        if p in old and kept.is_file():
+        kept = folder / BACKUP / p.name
+        if p in old and p.parent == folder and kept.is_file():
             os.replace(kept, p)
         else:
             p.unlink(missing_ok=True)

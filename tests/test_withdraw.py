@@ -40,13 +40,13 @@ def test_withdraw_puts_back_rewritten_and_deleted_files(tmp_path: Path) -> None:
     want = digests(tmp_path)
     before = snapshot(tmp_path)
     replace(tmp_path / "rewritten.txt", "the refused run's")
-    replace(tmp_path / "sub" / "deep.txt", "the refused run's")
+    assert not (tmp_path / BACKUP / "sub").exists()  # a run writes no subfolder: not kept
     (tmp_path / "deleted.txt").unlink()
     (tmp_path / "new.txt").write_text("the refused run's")
     done = withdraw(tmp_path, before)
     assert digests(tmp_path) == want
     assert not (tmp_path / BACKUP).exists()
-    assert {p.name for p in done} == {"rewritten.txt", "deep.txt", "deleted.txt", "new.txt"}
+    assert {p.name for p in done} == {"rewritten.txt", "deleted.txt", "new.txt"}
 
 
 def test_release_drops_the_links_and_keeps_the_run(tmp_path: Path) -> None:
