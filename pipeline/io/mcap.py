@@ -1,7 +1,8 @@
 """Streaming MCAP access for recordings (../shared/spec/recording.md).
 
 One linear pass over the file with :class:`mcap.stream_reader.StreamReader`
-(chunks are decompressed one at a time, so memory is bounded by one chunk),
+(chunks are decompressed one at a time, so memory is bounded by one chunk, and
+read by :func:`pipeline.io.mcap_chunk.chunk_records`),
 and small hand-written decoders for the few message types a recording holds:
 
 - ROS 2 CDR (``ros2msg`` schemas): ``std_msgs/String``, ``sensor_msgs/JointState``,
@@ -29,9 +30,10 @@ from typing import Any
 import cv2
 import numpy as np
 from mcap.records import Channel, Chunk, Message, Metadata, Schema
-from mcap.stream_reader import StreamReader, breakup_chunk
+from mcap.stream_reader import StreamReader
 
 from pipeline.errors import BadInput
+from pipeline.io.mcap_chunk import chunk_records
 
 # an image that does not decode is reported by vtcal (frame flagged, one warning line):
 # OpenCV's own warnings on stderr would only repeat it
@@ -126,7 +128,7 @@ def iter_messages(path: str | os.PathLike[str], state: StreamState) -> Iterator[
             for outer in reader.records:
                 if isinstance(outer, Chunk):
                     try:
-                        inner = breakup_chunk(outer, validate_crc=True)
+                        inner = chunk_records(outer)
                     except Exception as exc:  # noqa: BLE001 - CRC, zstd/lz4, record parse
                         state.bad_chunks.append(
                             f"chunk ending at byte {cf.count} (log time {outer.message_start_time}"
