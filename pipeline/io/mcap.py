@@ -1,8 +1,8 @@
 """Streaming MCAP access for recordings (../shared/spec/recording.md).
 
-One linear pass over the file with :class:`mcap.stream_reader.StreamReader`
-(chunks are decompressed one at a time, so memory is bounded by one chunk, and
-read by :func:`pipeline.io.mcap_chunk.chunk_records`),
+One linear pass over the file (:func:`pipeline.io.mcap_records.file_records`;
+chunks are decompressed one at a time, so memory is bounded by one chunk, and
+read by :func:`pipeline.io.mcap_records.chunk_records`),
 and small hand-written decoders for the few message types a recording holds:
 
 - ROS 2 CDR (``ros2msg`` schemas): ``std_msgs/String``, ``sensor_msgs/JointState``,
@@ -30,10 +30,9 @@ from typing import Any
 import cv2
 import numpy as np
 from mcap.records import Channel, Chunk, Message, Metadata, Schema
-from mcap.stream_reader import StreamReader
 
 from pipeline.errors import BadInput
-from pipeline.io.mcap_chunk import chunk_records
+from pipeline.io.mcap_records import chunk_records, file_records
 
 # an image that does not decode is reported by vtcal (frame flagged, one warning line):
 # OpenCV's own warnings on stderr would only repeat it
@@ -122,10 +121,12 @@ def iter_messages(path: str | os.PathLike[str], state: StreamState) -> Iterator[
         cf = _CountingFile(fh)
         # chunks are opened here, one at a time, so that one whose CRC fails (or that does
         # not decompress) is skipped and reported instead of ending the stream
-        reader = StreamReader(cf, emit_chunks=True, validate_crcs=False)  # type: ignore[arg-type]
         seen_footer = False
         try:
-            for outer in reader.records:
+            for outer in file_records(cf):  # type: ignore[arg-type]
+                if outer is None:  # an index or other record the pass does not need
+                    state.bytes_read = cf.count
+                    continue
                 if isinstance(outer, Chunk):
                     try:
                         inner = chunk_records(outer)
