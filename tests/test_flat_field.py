@@ -199,3 +199,22 @@ def test_ingest_finds_a_simulated_sensors_pattern_and_leaves_a_clean_one_alone(
     _, info0 = _simulated(tmp_path, "clean", {})
     ff0 = info0.camera["flat_field"]
     assert not ff0["applied"] and abs(ff0["z"]) < Z_MIN, ff0
+
+
+def test_each_crop_is_modelled_once_per_estimate(with_prnu: Any, monkeypatch) -> None:
+    """The edge profile's crops keep their model for the accumulation pass (stop 34)."""
+    import pipeline.stages.image.flat_field as ff
+
+    imgs, _ = with_prnu
+    store, _ = _ingest_like(imgs)
+    calls: list[int] = []
+    real = ff._model
+
+    def counting(c, resp):  # type: ignore[no-untyped-def]
+        calls.append(id(c))
+        return real(c, resp)
+
+    monkeypatch.setattr(ff, "_model", counting)
+    flat = estimate_flat_field(store, "linear", (H, W))
+    assert flat.summary["applied"]
+    assert len(calls) == len(set(calls)) == len(store.crops)

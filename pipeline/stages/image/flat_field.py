@@ -228,12 +228,16 @@ def _model(c: Crop, resp: Response | None) -> tuple[np.ndarray, np.ndarray, np.n
     return (L - m).astype(np.float32), m.astype(np.float32), i, float(coef[0] - coef[3])
 
 
-def _edge_profile(crops: list[Crop], resp: Response | None) -> np.ndarray:
-    """Mean residual per distance bin, as a fraction of the contrast: the model's shape error."""
+def _edge_profile(
+    models: list[tuple[np.ndarray, np.ndarray, np.ndarray, float]],
+) -> np.ndarray:
+    """Mean residual per distance bin, as a fraction of the contrast: the model's shape error.
+
+    ``models``: :func:`_model` of the crops it is taken over.
+    """
     sums = np.zeros(_BINS.size + 1)
     cnt = np.zeros(_BINS.size + 1)
-    for c in crops:
-        e, _, i, C = _model(c, resp)
+    for e, _, i, C in models:
         if abs(C) < 1e-9:
             continue
         sums += np.bincount(i.ravel(), weights=e.ravel() / C, minlength=sums.size)
@@ -265,9 +269,11 @@ def _accumulate(
     bv, bu, bv1, bu1 = box
     acc = np.zeros((2, 2, 2, bv1 - bv, bu1 - bu))
     step = max(len(crops) // _PROFILE_CROPS, 1)
-    prof = _edge_profile(crops[::step], resp)
+    # the profile's crops' models are kept for the pass below (each crop modelled once)
+    models = {i: _model(crops[i], resp) for i in range(0, len(crops), step)}
+    prof = _edge_profile(list(models.values()))
     for i, c in enumerate(crops):
-        e0, m, bins, C = _model(c, resp)
+        e0, m, bins, C = models.pop(i) if i in models else _model(c, resp)
         em = (e0 - C * prof[bins]) * m
         mm = m * m
         flat = _FLAT_BIN[bins]
