@@ -48,45 +48,14 @@ def _chol_solve(L, b):  # type: ignore[no-untyped-def]
 
 
 @njit(cache=True)
-def edge_residual_jacobian(d, du, dv, y, w, x, min_sigma, r, J):  # type: ignore[no-untyped-def]
-    """Fill ``r`` (N,) and ``J`` (N, len(x)) of model (R1)-(R2) at ``x = (delta, sigma, b...)``.
-
-    ``d, du, dv, y, w`` as :class:`~pipeline.stages.image.response_fit.EdgeFit` (``y = w E``);
-    ``len(x) - 2`` (0, 1 or 2) odd shape terms. Returns False when the Gram matrix is
-    singular (the caller then takes the NumPy path).
-
-    With ``e = (1, u, v)`` (the offsets scaled), ``p = w (1 - F)`` and ``q = w F`` a
-    row of ``A`` is ``(p e, q e)``, so ``G`` is three 3 x 3 blocks of ``e e^T``
-    weighted by ``p^2, p q, q^2``; and since ``A_k = w F_k (-e, e)``, the two
-    right-hand sides of (J) sum to ``(sum alpha_k e, sum beta_k e)`` with
-    ``alpha_k = w F_k (p g - r)``, ``beta_k = w F_k (q g + r)``, ``g = (c_q - c_p) . e``.
-    """
+def _profile_and_gram(d, du, dv, y, w, x, s, su, sv, F, dFdt, he3, he5, t):  # type: ignore[no-untyped-def]
+    """Pass 1: ``F``, ``dF/dt``, ``He3 phi``, ``He5 phi``, ``t`` per pixel; ``G`` and ``A^T y``."""
     n = d.shape[0]
     nb = x.shape[0] - 2
-    nk = 2 + nb
     b3 = x[2] if nb > 0 else 0.0
     b5 = x[3] if nb > 1 else 0.0
-    s = abs(x[1])
-    clipped = s < min_sigma
-    if clipped:
-        s = min_sigma
-    sgn = 1.0 if x[1] > 0.0 else (-1.0 if x[1] < 0.0 else 0.0)
-    su = 0.0
-    sv = 0.0
-    for i in range(n):
-        su += du[i] * du[i]
-        sv += dv[i] * dv[i]
-    su = 1.0 / math.sqrt(su / n) if su > 0.0 else 1.0
-    sv = 1.0 / math.sqrt(sv / n) if sv > 0.0 else 1.0
-    F = np.empty(n)
-    dFdt = np.empty(n)
-    he3 = np.empty(n)
-    he5 = np.empty(n)
-    t = np.empty(n)
     # the Gram blocks: sum of weight * (1, u, v, uu, uv, vv) for weights p^2, p q, q^2
-    gpp = np.zeros(6)
-    gpq = np.zeros(6)
-    gqq = np.zeros(6)
+    g = np.zeros((3, 6))
     h = np.zeros(6)
     for i in range(n):
         ti = (d[i] - x[0]) / s
@@ -111,30 +80,14 @@ def edge_residual_jacobian(d, du, dv, y, w, x, min_sigma, r, J):  # type: ignore
         q = w[i] * Fi
         u = du[i] * su
         v = dv[i] * sv
-        uu = u * u
-        uv = u * v
-        vv = v * v
+        e = (1.0, u, v, u * u, u * v, v * v)
         pp = p * p
         pq = p * q
         qq = q * q
-        gpp[0] += pp
-        gpp[1] += pp * u
-        gpp[2] += pp * v
-        gpp[3] += pp * uu
-        gpp[4] += pp * uv
-        gpp[5] += pp * vv
-        gpq[0] += pq
-        gpq[1] += pq * u
-        gpq[2] += pq * v
-        gpq[3] += pq * uu
-        gpq[4] += pq * uv
-        gpq[5] += pq * vv
-        gqq[0] += qq
-        gqq[1] += qq * u
-        gqq[2] += qq * v
-        gqq[3] += qq * uu
-        gqq[4] += qq * uv
-        gqq[5] += qq * vv
+        for m in range(6):
+            g[0, m] += pp * e[m]
+            g[1, m] += pq * e[m]
+            g[2, m] += qq * e[m]
         py = p * y[i]
         qy = q * y[i]
         h[0] += py
@@ -144,29 +97,41 @@ def edge_residual_jacobian(d, du, dv, y, w, x, min_sigma, r, J):  # type: ignore
         h[4] += qy * u
         h[5] += qy * v
     G = np.empty((6, 6))
-    # e e^T entries (row, col) -> index into (1, u, v, uu, uv, vv)
-    idx = np.array([[0, 1, 2], [1, 3, 4], [2, 4, 5]])
+    idx = np.array([[0, 1, 2], [1, 3, 4], [2, 4, 5]])  # e e^T (row, col) -> (1, u, v, ...)
     for j in range(3):
         for k in range(3):
             m = idx[j, k]
-            G[j, k] = gpp[m]
-            G[j, 3 + k] = gpq[m]
-            G[3 + j, k] = gpq[m]
-            G[3 + j, 3 + k] = gqq[m]
+            G[j, k] = g[0, m]
+            G[j, 3 + k] = g[1, m]
+            G[3 + j, k] = g[1, m]
+            G[3 + j, 3 + k] = g[2, m]
+    return G, h
+
+
+@njit(cache=True)
+def _cholesky(G):  # type: ignore[no-untyped-def]
+    """Lower ``L`` with ``L L^T = G`` (6 x 6), or an empty array when ``G`` is not positive."""
     L = np.zeros((6, 6))
     for j in range(6):
         sjj = G[j, j]
         for k in range(j):
             sjj -= L[j, k] * L[j, k]
         if not sjj > 0.0:
-            return False
+            return np.zeros((0, 0))
         L[j, j] = math.sqrt(sjj)
         for i in range(j + 1, 6):
             sij = G[i, j]
             for k in range(j):
                 sij -= L[i, k] * L[j, k]
             L[i, j] = sij / L[j, j]
-    c = _chol_solve(L, h)
+    return L
+
+
+@njit(cache=True)
+def _residual_and_rhs(du, dv, y, w, c, s, su, sv, clipped, sgn, F, dFdt, he3, he5, t, r, J):  # type: ignore[no-untyped-def]
+    """Pass 2: ``r``, ``J = A_k c`` (before the projections) and (J)'s summed right-hand side."""
+    n = du.shape[0]
+    nk = J.shape[1]
     c0, c1, c2, c3, c4, c5 = c[0], c[1], c[2], c[3], c[4], c[5]
     d0, d1, d2 = c3 - c0, c4 - c1, c5 - c2
     RHS = np.zeros((6, nk))
@@ -183,15 +148,15 @@ def edge_residual_jacobian(d, du, dv, y, w, x, min_sigma, r, J):  # type: ignore
         g = d0 + d1 * u + d2 * v
         dF[0] = -dFdt[i] / s
         dF[1] = 0.0 if clipped else -dFdt[i] * t[i] / s * sgn
-        if nb > 0:
+        if nk > 2:
             dF[2] = he3[i]
-        if nb > 1:
+        if nk > 3:
             dF[3] = he5[i]
         pg = p * g - ri
         qg = q * g + ri
         for k in range(nk):
             wf = wi * dF[k]
-            J[i, k] = wf * g  # A_k c, the projections taken off below
+            J[i, k] = wf * g  # A_k c, the projections taken off in pass 3
             al = wf * pg
             be = wf * qg
             RHS[0, k] += al
@@ -200,9 +165,52 @@ def edge_residual_jacobian(d, du, dv, y, w, x, min_sigma, r, J):  # type: ignore
             RHS[3, k] += be
             RHS[4, k] += be * u
             RHS[5, k] += be * v
+    return RHS
+
+
+@njit(cache=True)
+def edge_residual_jacobian(d, du, dv, y, w, x, min_sigma, r, J):  # type: ignore[no-untyped-def]
+    """Fill ``r`` (N,) and ``J`` (N, len(x)) of model (R1)-(R2) at ``x = (delta, sigma, b...)``.
+
+    ``d, du, dv, y, w`` as :class:`~pipeline.stages.image.response_fit.EdgeFit` (``y = w E``);
+    ``len(x) - 2`` (0, 1 or 2) odd shape terms. Returns False when the Gram matrix is
+    singular (the caller then takes the NumPy path).
+
+    With ``e = (1, u, v)`` (the offsets scaled), ``p = w (1 - F)`` and ``q = w F`` a
+    row of ``A`` is ``(p e, q e)``, so ``G`` is three 3 x 3 blocks of ``e e^T``
+    weighted by ``p^2, p q, q^2``; and since ``A_k = w F_k (-e, e)``, the two
+    right-hand sides of (J) sum to ``(sum alpha_k e, sum beta_k e)`` with
+    ``alpha_k = w F_k (p g - r)``, ``beta_k = w F_k (q g + r)``, ``g = (c_q - c_p) . e``.
+    """
+    n = d.shape[0]
+    nk = x.shape[0]
+    s = abs(x[1])
+    clipped = s < min_sigma
+    if clipped:
+        s = min_sigma
+    sgn = 1.0 if x[1] > 0.0 else (-1.0 if x[1] < 0.0 else 0.0)
+    su = 0.0
+    sv = 0.0
+    for i in range(n):
+        su += du[i] * du[i]
+        sv += dv[i] * dv[i]
+    su = 1.0 / math.sqrt(su / n) if su > 0.0 else 1.0
+    sv = 1.0 / math.sqrt(sv / n) if sv > 0.0 else 1.0
+    F = np.empty(n)
+    dFdt = np.empty(n)
+    he3 = np.empty(n)
+    he5 = np.empty(n)
+    t = np.empty(n)
+    G, h = _profile_and_gram(d, du, dv, y, w, x, s, su, sv, F, dFdt, he3, he5, t)
+    L = _cholesky(G)
+    if L.shape[0] == 0:
+        return False
+    c = _chol_solve(L, h)
+    RHS = _residual_and_rhs(du, dv, y, w, c, s, su, sv, clipped, sgn, F, dFdt, he3, he5, t, r, J)
     P = np.empty((6, nk))
     for k in range(nk):
         P[:, k] = _chol_solve(L, RHS[:, k].copy())
+    # pass 3: J_k = A_k c - A P_k
     for i in range(n):
         Fi = F[i]
         p = w[i] * (1.0 - Fi)
