@@ -40,7 +40,7 @@ import pyarrow.parquet as pq
 
 from pipeline import __version__, resources
 from pipeline.errors import BadInput, VtcalError
-from pipeline.fileio import atomic_write_bytes, config_hash, file_hash
+from pipeline.fileio import atomic_write_bytes, bytes_hash, config_hash, file_hash
 
 __all__ = [
     "SCHEMA_DIR",
@@ -235,8 +235,9 @@ def write_artefact(
     table = table.replace_schema_metadata({**(table.schema.metadata or {}), **meta})
     sink = pa.BufferOutputStream()
     pq.write_table(table, sink, compression="zstd")
-    atomic_write_bytes(path, sink.getvalue().to_pybytes())
-    return file_hash(path)
+    blob = sink.getvalue().to_pybytes()
+    atomic_write_bytes(path, blob)
+    return bytes_hash(blob)  # the file's hash (inside a write group the file lands later)
 
 
 def read_artefact_table(path: str | os.PathLike[str], schema: str) -> pa.Table:

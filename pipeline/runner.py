@@ -42,7 +42,7 @@ from pipeline import __version__
 from pipeline.catalog import BY_KEY, STAGE, STAGE_NAMES, STAGES, Artefact, Parquet, Stage, run_paths
 from pipeline.code_key import stage_code_digest
 from pipeline.errors import BadInput
-from pipeline.fileio import atomic_write_bytes, config_hash, file_hash
+from pipeline.fileio import atomic_write_bytes, config_hash, file_hash, write_group
 from pipeline.jsonio import json_bytes, jsonable
 
 #: Reports progress of a long stage: ``(stage, done, total or None)``.
@@ -279,12 +279,13 @@ def write_output(
 def _write_changed(outputs: Mapping[str, Any], out: Path) -> bool:
     """Write the outputs of an always-computed stage whose bytes changed; True if any did."""
     changed = False
-    for key, value in outputs.items():
-        path = out / BY_KEY[key].file
-        blob = json_bytes(value) if path.suffix == ".json" else value.encode()
-        if not path.is_file() or path.read_bytes() != blob:
-            atomic_write_bytes(path, blob)
-            changed = True
+    with write_group():  # fsync-ed together, moved into place in this order
+        for key, value in outputs.items():
+            path = out / BY_KEY[key].file
+            blob = json_bytes(value) if path.suffix == ".json" else value.encode()
+            if not path.is_file() or path.read_bytes() != blob:
+                atomic_write_bytes(path, blob)
+                changed = True
     return changed
 
 
@@ -447,8 +448,9 @@ def run_stage(name: str, context: Context, names: list[str]) -> None:
     # Parquet first, then the rest: a side file present means the stage finished
     order = sorted(stage.outputs, key=lambda k: BY_KEY[k].schema is None)  # stable: declared order
     written: list[Path] = []
-    for k in order:
-        written += write_output(k, result[k], out, stage=name, config=key, inputs=inputs)
+    with write_group():  # fsync-ed together, moved into place in this order
+        for k in order:
+            written += write_output(k, result[k], out, stage=name, config=key, inputs=inputs)
     files = [p.name for p in output_paths(stage, out)]
     context.records.append(StageRecord(name, "ran", files, time.perf_counter() - t0))
 
