@@ -230,6 +230,23 @@ class Inputs(Mapping[str, Any]):
             self._cache[key] = given[key] if key in given else load_input(key, self._context.out)
         return self._cache[key]
 
+    def __contains__(self, key: object) -> bool:
+        return key in self._keys  # without reading it (Mapping's would)
+
+    def meta(self, key: str) -> dict[str, str]:
+        """The ``vtcal.*`` metadata of Parquet input ``key`` (its table's ``attrs["vtcal"]``),
+        without reading its rows: a stage that needs only a figure its writer recorded
+        (identify: the touch-ups' implied target size; choose: the capture noise and the
+        cross-validation summary) does not read and check the whole table again."""
+        if key not in self._keys:
+            raise KeyError(key)
+        table = self._cache.get(key, self._context.given.get(key))
+        if table is not None:
+            return dict(table.attrs.get("vtcal", {}))
+        from pipeline.artefacts import read_meta
+
+        return read_meta(self._context.out / BY_KEY[key].file)
+
     def __iter__(self) -> Iterator[str]:
         return iter(self._keys)
 
