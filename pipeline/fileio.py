@@ -172,9 +172,10 @@ def write_group() -> Iterator[None]:
     writes are waited for and the files moved into place in the order they were
     written (so "the last file present means its writer finished" still holds).
     The ``fsync``-s of a group overlap, and the file system commits them together:
-    on this project's 2-core machine nine 30 kB files took 7-10 ms against 19-58 ms
-    one after another (``benchmarks/bench_run_stages.py`` has what it saves a run,
-    docs/speed.md). Inside the block a written path still holds its previous
+    the identify stage's nine files no longer wait for nine commits one after another
+    when the disk is busy (``benchmarks/bench_write_group.py``, docs/speed.md: on a
+    quiet disk an ``fsync`` is cheap and the group changes little). Inside the block a
+    written path still holds its previous
     content (or does not exist), so nothing inside may read back what it wrote. When the
     block raises, or a write fails, none of its files land (their temporaries are removed).
     Groups nest (an inner group's files land when it ends); a group holds the writes of
