@@ -40,7 +40,7 @@ import pyarrow.parquet as pq
 
 from pipeline import __version__, resources
 from pipeline.errors import BadInput, VtcalError
-from pipeline.fileio import atomic_write_bytes, config_hash, file_hash
+from pipeline.fileio import atomic_write_bytes, bytes_hash, config_hash, file_hash
 
 __all__ = [
     "SCHEMA_DIR",
@@ -55,7 +55,9 @@ __all__ = [
     "read_artefact",
     "read_artefact_table",
     "read_meta",
+    "table_meta",
     "write_artefact",
+    "write_artefact_table",
 ]
 
 SCHEMA_DIR = resources.SCHEMA_DIR
@@ -210,6 +212,26 @@ def write_artefact(
 ) -> str:
     """Validate and atomically write a Parquet artefact; return its file hash.
 
+    Parameters as :func:`write_artefact_table`.
+    """
+    return write_artefact_table(
+        path, data, schema, stage=stage, config=config, inputs=inputs, extra_meta=extra_meta
+    )[0]
+
+
+def write_artefact_table(
+    path: str | os.PathLike[str],
+    data: pd.DataFrame | pa.Table,
+    schema: str,
+    *,
+    stage: str,
+    config: Mapping[str, Any] | None = None,
+    inputs: Mapping[str, str] | None = None,
+    extra_meta: Mapping[str, str] | None = None,
+) -> tuple[str, pa.Table]:
+    """Validate and atomically write a Parquet artefact; its file hash and the Arrow table
+    written (checked, with its metadata: what :func:`read_artefact_table` reads back).
+
     Parameters
     ----------
     path : destination ``.parquet``
@@ -235,8 +257,9 @@ def write_artefact(
     table = table.replace_schema_metadata({**(table.schema.metadata or {}), **meta})
     sink = pa.BufferOutputStream()
     pq.write_table(table, sink, compression="zstd")
-    atomic_write_bytes(path, sink.getvalue().to_pybytes())
-    return file_hash(path)
+    blob = sink.getvalue().to_pybytes()
+    atomic_write_bytes(path, blob)
+    return bytes_hash(blob), table  # the file's hash (in a write group the file lands later)
 
 
 def read_artefact_table(path: str | os.PathLike[str], schema: str) -> pa.Table:
@@ -259,7 +282,12 @@ def read_artefact(path: str | os.PathLike[str], schema: str) -> pd.DataFrame:
 
 def read_meta(path: str | os.PathLike[str]) -> dict[str, str]:
     """The ``vtcal.*`` metadata of an artefact, keys without the prefix."""
-    md = pq.read_schema(path).metadata or {}
+    return table_meta(pq.read_schema(path))
+
+
+def table_meta(schema: pa.Schema) -> dict[str, str]:
+    """:func:`read_meta` of a table's ``schema``."""
+    md = schema.metadata or {}
     return {
         k.decode()[len("vtcal.") :]: v.decode() for k, v in md.items() if k.startswith(b"vtcal.")
     }

@@ -57,8 +57,14 @@ ENTRY_POINTS: dict[str, tuple[str, ...]] = {s.name: s.code for s in STAGES}
 DYNAMIC_PACKAGES = ("pipeline.models",)
 
 
+@cache
 def _module_path(name: str) -> Path | None:
-    """The source file of ``pipeline`` module ``name`` (package -> its ``__init__``)."""
+    """The source file of ``pipeline`` module ``name`` (package -> its ``__init__``).
+
+    Looked up once per process, as :func:`module_closure` is (every stage's closure
+    asks for its modules, their parents and their imports: 360 lookups of two
+    ``stat`` calls each for the outliers stage alone, 5 ms of a run).
+    """
     parts = name.split(".")
     if parts[0] != "pipeline":
         return None

@@ -95,10 +95,17 @@ def identify(data: dict[str, Any], config: Any, context: Any) -> dict[str, Any]:
 
     urdf, base_link, flange_link = context.robot
     if "touchups" in data:
-        implied = _finite(data["touchups"].attrs["vtcal"].get("implied_target_diameter_m"))
+        implied = _finite(_meta(data, "touchups").get("implied_target_diameter_m"))
         config = dataclasses.replace(config, implied_target_diameter_m=implied)
     results = stage.identify(data["inliers"], urdf, base_link, flange_link, config)
     return stage.fit_outputs(results)
+
+
+def _meta(data: Any, key: str) -> dict[str, str]:
+    """The ``vtcal.*`` metadata of Parquet input ``key``; from the runner's inputs without
+    reading the table's rows (:meth:`pipeline.runner.Inputs.meta`)."""
+    meta = getattr(data, "meta", None)
+    return dict(meta(key)) if meta is not None else dict(data[key].attrs["vtcal"])
 
 
 def _finite(text: str | None) -> float | None:
@@ -157,11 +164,11 @@ def choose(data: dict[str, Any], config: Any, context: Any) -> dict[str, Any]:
     from pipeline.stages.crossval import choose as stage
     from pipeline.stages.trust.adequacy import trust
 
-    cv = data.get("crossval")
-    summary = None if cv is None else json.loads(cv.attrs["vtcal"]["summary"])
+    # the cross-validation summary and the capture noise ride in their tables' metadata
+    summary = json.loads(_meta(data, "crossval")["summary"]) if "crossval" in data else None
     urdf, shipped = stage.choose_model(data["models"], data["model_urdfs"], summary, context.source)
-    tu = data.get("touchups")
-    noise = json.loads(tu.attrs["vtcal"].get("capture_noise") or "{}") if tu is not None else None
+    tu = _meta(data, "touchups") if "touchups" in data else None
+    noise = json.loads(tu.get("capture_noise") or "{}") if tu is not None else None
     rec = data.get("recording")
     shipped["trust"] = trust(shipped, noise, rec if isinstance(rec, dict) else None)
     return {"calibrated_urdf": urdf, "identify": shipped}

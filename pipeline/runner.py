@@ -42,7 +42,7 @@ from pipeline import __version__
 from pipeline.catalog import BY_KEY, STAGE, STAGE_NAMES, STAGES, Artefact, Parquet, Stage, run_paths
 from pipeline.code_key import stage_code_digest
 from pipeline.errors import BadInput
-from pipeline.fileio import atomic_write_bytes, config_hash, file_hash
+from pipeline.fileio import atomic_write_bytes, config_hash, file_hash, write_group
 from pipeline.jsonio import json_bytes, jsonable
 
 #: Reports progress of a long stage: ``(stage, done, total or None)``.
@@ -83,6 +83,9 @@ class Context:
     after_stage : ``{stage: [callable(run folder), ...]}`` called in order once the stage
         has run or been found fresh (the warm report reads its frames after the
         touch-ups stage)
+    written : ``{path: (file hash, Arrow table)}`` of the Parquet artefacts this run wrote:
+        a later stage reading one takes the table instead of reading the file back while
+        the file still has that hash (:func:`load_input`)
     """
 
     out: Path
@@ -99,6 +102,7 @@ class Context:
     records: list[StageRecord] = field(default_factory=list)
     warm_report: Any = None
     after_stage: dict[str, list[Callable[[Path], None]]] = field(default_factory=dict)
+    written: dict[Path, tuple[str, Any]] = field(default_factory=dict)
 
 
 def plan(until: str | None, *, leave_out: tuple[str, ...] = ()) -> list[str]:
@@ -192,11 +196,14 @@ def output_paths(stage: Stage, out: Path) -> list[Path]:
     return paths
 
 
-def load_input(key: str, out: Path) -> Any:
+def load_input(key: str, out: Path, written: Mapping[Path, tuple[str, Any]] | None = None) -> Any:
     """Artefact ``key`` of run folder ``out`` as a stage takes it.
 
     Parquet: a DataFrame (schema checked) with its ``vtcal.*`` metadata in
     ``attrs["vtcal"]``; JSON: a dict; the per-model URDFs: ``{model: text}``.
+    ``written`` (:attr:`Context.written`): tables this run wrote, taken instead of
+    reading the file back when the file's hash is still the one written (the file's
+    bytes are that table: the same frame, without decoding and checking it again).
     """
     art = BY_KEY[key]
     if art.per_model:
@@ -204,8 +211,13 @@ def load_input(key: str, out: Path) -> Any:
         return {m: p.read_text() for m, p in zip(names, _per_model(art, out, names), strict=True)}
     path = out / art.file
     if art.schema is not None:
-        from pipeline.artefacts import read_artefact, read_meta
+        from pipeline.artefacts import read_artefact, read_meta, table_meta
 
+        kept = (written or {}).get(path)
+        if kept is not None and path.is_file() and file_hash(path) == kept[0]:
+            frame = kept[1].to_pandas()
+            frame.attrs["vtcal"] = table_meta(kept[1].schema)
+            return frame
         table = read_artefact(path, art.schema)
         table.attrs["vtcal"] = read_meta(path)
         return table
@@ -227,8 +239,29 @@ class Inputs(Mapping[str, Any]):
             raise KeyError(key)
         if key not in self._cache:
             given = self._context.given
-            self._cache[key] = given[key] if key in given else load_input(key, self._context.out)
+            self._cache[key] = (
+                given[key]
+                if key in given
+                else load_input(key, self._context.out, self._context.written)
+            )
         return self._cache[key]
+
+    def __contains__(self, key: object) -> bool:
+        return key in self._keys  # without reading it (Mapping's would)
+
+    def meta(self, key: str) -> dict[str, str]:
+        """The ``vtcal.*`` metadata of Parquet input ``key`` (its table's ``attrs["vtcal"]``),
+        without reading its rows: a stage that needs only a figure its writer recorded
+        (identify: the touch-ups' implied target size; choose: the capture noise and the
+        cross-validation summary) does not read and check the whole table again."""
+        if key not in self._keys:
+            raise KeyError(key)
+        table = self._cache.get(key, self._context.given.get(key))
+        if table is not None:
+            return dict(table.attrs.get("vtcal", {}))
+        from pipeline.artefacts import read_meta
+
+        return read_meta(self._context.out / BY_KEY[key].file)
 
     def __iter__(self) -> Iterator[str]:
         return iter(self._keys)
@@ -238,12 +271,20 @@ class Inputs(Mapping[str, Any]):
 
 
 def write_output(
-    key: str, value: Any, out: Path, *, stage: str, config: Mapping[str, Any], inputs: Any
+    key: str,
+    value: Any,
+    out: Path,
+    *,
+    stage: str,
+    config: Mapping[str, Any],
+    inputs: Any,
+    written: dict[Path, tuple[str, Any]] | None = None,
 ) -> list[Path]:
     """Write one output of a stage by its artefact's kind; the paths written.
 
     Parquet (:class:`pipeline.catalog.Parquet` or a DataFrame): checked against
-    its schema, with the stage's key in the metadata. JSON: sorted keys
+    its schema, with the stage's key in the metadata (and, with ``written``, its hash and
+    Arrow table kept there: :attr:`Context.written`). JSON: sorted keys
     (:func:`pipeline.jsonio.json_bytes`). URDF: text. Per-model URDFs: one file each. A path (the report's
     files): already written by its writer.
     """
@@ -257,10 +298,10 @@ def write_output(
         return paths
     path = out / art.file
     if art.schema is not None:
-        from pipeline.artefacts import write_artefact
+        from pipeline.artefacts import write_artefact_table
 
         table = value if isinstance(value, Parquet) else Parquet(value)
-        write_artefact(
+        kept = write_artefact_table(
             path,
             table.data,
             art.schema,
@@ -269,6 +310,8 @@ def write_output(
             inputs=inputs,
             extra_meta=table.meta,
         )
+        if written is not None:
+            written[path] = kept
     elif path.suffix == ".json":
         atomic_write_bytes(path, json_bytes(value))
     else:
@@ -279,12 +322,13 @@ def write_output(
 def _write_changed(outputs: Mapping[str, Any], out: Path) -> bool:
     """Write the outputs of an always-computed stage whose bytes changed; True if any did."""
     changed = False
-    for key, value in outputs.items():
-        path = out / BY_KEY[key].file
-        blob = json_bytes(value) if path.suffix == ".json" else value.encode()
-        if not path.is_file() or path.read_bytes() != blob:
-            atomic_write_bytes(path, blob)
-            changed = True
+    with write_group():  # fsync-ed together, moved into place in this order
+        for key, value in outputs.items():
+            path = out / BY_KEY[key].file
+            blob = json_bytes(value) if path.suffix == ".json" else value.encode()
+            if not path.is_file() or path.read_bytes() != blob:
+                atomic_write_bytes(path, blob)
+                changed = True
     return changed
 
 
@@ -447,8 +491,11 @@ def run_stage(name: str, context: Context, names: list[str]) -> None:
     # Parquet first, then the rest: a side file present means the stage finished
     order = sorted(stage.outputs, key=lambda k: BY_KEY[k].schema is None)  # stable: declared order
     written: list[Path] = []
-    for k in order:
-        written += write_output(k, result[k], out, stage=name, config=key, inputs=inputs)
+    with write_group():  # fsync-ed together, moved into place in this order
+        for k in order:
+            written += write_output(
+                k, result[k], out, stage=name, config=key, inputs=inputs, written=context.written
+            )
     files = [p.name for p in output_paths(stage, out)]
     context.records.append(StageRecord(name, "ran", files, time.perf_counter() - t0))
 

@@ -136,6 +136,65 @@ def test_identify_declares_the_touchups_it_reads_the_implied_diameter_from(
     assert set(inputs) == {"inliers", "touchups"}
 
 
+def test_identify_and_choose_read_only_the_metadata_they_need(
+    sample_run: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """identify takes the touch-ups' implied target size, choose their capture noise and the
+    cross-validation summary, from the tables' metadata: neither table's rows are read
+    and checked again (4.2 + 4.4 + 1.4 ms on the 72-touch-up cell)."""
+    import shutil
+
+    from pipeline import artefacts
+
+    out = tmp_path / "run"
+    shutil.copytree(sample_run, out)
+    (out / "parameters.parquet").unlink()  # identify runs again, then choose
+    read: list[str] = []
+    real = artefacts.read_artefact
+
+    def read_artefact(path, schema):  # type: ignore[no-untyped-def]
+        read.append(Path(path).name)
+        return real(path, schema)
+
+    monkeypatch.setattr(artefacts, "read_artefact", read_artefact)
+    res = run_pipeline(SAMPLE, out, RunConfig(report=False), until="crossval")
+    status = {s.stage: s.status for s in res.stages}
+    assert status["identify"] == "ran" and status["choose"] in ("ran", "cached")
+    assert "inliers.parquet" in read  # identify's rows are read
+    assert "touchups.parquet" not in read and "crossval.parquet" not in read
+    shipped = json.loads((out / "identify.json").read_text())
+    assert shipped["crossval"] == json.loads((sample_run / "identify.json").read_text())["crossval"]
+
+
+def test_a_run_takes_the_tables_it_wrote_instead_of_reading_them_back(
+    sample_run: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Every Parquet input of a stage after ingest was written by this run: the stage takes
+    the written table (the same frame) instead of decoding and checking the file again;
+    a file changed since it was written is read."""
+    import shutil
+
+    from pipeline import artefacts, runner
+
+    out = tmp_path / "run"
+    shutil.copytree(sample_run, out)
+    read: list[str] = []
+    real = artefacts.read_artefact
+
+    def read_artefact(path, schema):  # type: ignore[no-untyped-def]
+        read.append(Path(path).name)
+        return real(path, schema)
+
+    monkeypatch.setattr(artefacts, "read_artefact", read_artefact)
+    run_pipeline(SAMPLE, out, RunConfig(report=False), until="crossval", force=True)
+    assert read == []  # the old runner read frames, detections, touchups, inliers (twice), ...
+    shipped, before = (json.loads((d / "identify.json").read_text()) for d in (out, sample_run))
+    assert shipped["crossval"] == before["crossval"]  # the same results
+    kept = {out / "inliers.parquet": ("0" * 16, None)}  # a hash the file does not have
+    frame = runner.load_input("inliers", out, kept)
+    assert read == ["inliers.parquet"] and len(frame) > 0
+
+
 def hand_typed_files(text: str, files: set[str]) -> list[tuple[int, str]]:
     """``(line, name)`` of each string (docstrings aside) in ``text`` that is a run-folder
     file name, or a path ending in one."""

@@ -156,11 +156,13 @@ def fresh_import_cache(tmp_path, monkeypatch):
         monkeypatch.setattr(code_key, "_USED", set())
         code_key._imports.cache_clear()
         code_key.module_closure.cache_clear()
+        code_key._module_path.cache_clear()
 
     reset()
     yield reset
     code_key._imports.cache_clear()
     code_key.module_closure.cache_clear()
+    code_key._module_path.cache_clear()
 
 
 def test_import_parses_are_kept_by_source_and_used_again(fresh_import_cache) -> None:
@@ -213,3 +215,23 @@ def test_the_reports_code_key_does_not_load_the_rerun_sdk() -> None:
     )
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
     assert out.stdout.strip() == "False"
+
+
+def test_the_stages_digests_look_each_module_file_up_once(fresh_import_cache, monkeypatch) -> None:
+    """The stages after ingest share most of their closures: a module's file is looked up
+    once per process, not once per stage and import (1474 lookups for these four stages,
+    of 405 paths, before: 5 ms of the outliers stage alone)."""
+    import pathlib
+
+    checked: list[str] = []
+    real = pathlib.Path.is_file
+
+    def is_file(self: pathlib.Path) -> bool:
+        if self.suffix == ".py":
+            checked.append(str(self))
+        return real(self)
+
+    monkeypatch.setattr(pathlib.Path, "is_file", is_file)
+    for stage in ("touchups", "outliers", "identify", "crossval"):
+        code_key.stage_code_digest(stage)
+    assert checked and len(checked) == len(set(checked))

@@ -203,3 +203,25 @@ def test_an_accepted_implausible_distance_still_gets_the_statistical_tests() -> 
     out = flag_outliers(tab, info, OutlierConfig())
     assert not out["note"].astype(str).str.contains("statistical check skipped").any()
     assert 4 in set(out.loc[~out["inlier"], "touchup_id"])
+
+
+def test_each_touchup_is_tested_alone_once_per_fit(monkeypatch: pytest.MonkeyPatch) -> None:
+    """The search's single-touch-up candidates and the final studentized residuals test the
+    same touch-ups against the same last fit: once each (twice each before), the same
+    figures."""
+    from pipeline.stages.trust import outliers
+
+    tab, _, _, info = make_cell(11)
+    before = flag_outliers(tab, info, OutlierConfig())
+    singles: list[tuple[int, int]] = []
+    real = outliers._group_test
+
+    def counted(f, pos, w):  # type: ignore[no-untyped-def]
+        if len(pos) == 1:
+            singles.append((id(f), int(pos[0])))
+        return real(f, pos, w)
+
+    monkeypatch.setattr(outliers, "_group_test", counted)
+    out = flag_outliers(tab, info, OutlierConfig())
+    assert singles and len(singles) == len(set(singles))
+    pd.testing.assert_frame_equal(out, before)

@@ -160,3 +160,30 @@ def test_vtcal_report_recreates_both_without_the_recording(demo_run: Path, tmp_p
     empty.mkdir()
     res = CliRunner().invoke(cli, ["report", str(empty)])
     assert res.exit_code != 0
+
+
+def test_both_outputs_derive_their_shared_figures_once(demo_run: Path, tmp_path: Path) -> None:
+    """report.html and run.rrd are built from one load: the held-out summary (accuracy table
+    and cross-validation section), the residual groups (verdict, plots, accuracy table) and
+    the convergence traces (HTML plot and run.rrd series) are derived once, not per use."""
+    from pipeline.report import touchup_views
+    from pipeline.report.data import RunData, load_run
+    from pipeline.report.html import build_report
+    from pipeline.report.rrd import build_rrd
+
+    reads: list[str] = []
+
+    class Counted(RunData):
+        def __getattribute__(self, name: str):  # type: ignore[no-untyped-def]
+            if name in ("crossval", "residuals"):
+                reads.append(name)
+            return super().__getattribute__(name)
+
+    data = load_run(demo_run)
+    data.__class__ = Counted
+    traces = touchup_views.convergence_traces(data)
+    build_report(demo_run, tmp_path / "report.html", data=data, images=None)
+    build_rrd(demo_run, tmp_path / "run.rrd", data=data, images=None)
+    assert reads.count("crossval") == 1  # the old report derived it twice
+    assert reads.count("residuals") <= 2  # three residual-group derivations before, + diagnosis
+    assert touchup_views.convergence_traces(data) is traces

@@ -59,3 +59,25 @@ def test_a_new_pose_in_the_same_orientation_after_a_servoed_touchup_is_a_new_tou
     b = [_pose(0.04, 0.035, 0.5)] + [_pose(0.04, 0.035 + 1e-4 / 10**k, 0.5) for k in range(3)]
     assert _split(a + b) == [len(a), len(b)]
     assert PROBE_SPAN_M < 0.03
+
+
+def test_relative_poses_are_relative_pose_pair_by_pair_to_the_bit() -> None:
+    """Steps 1-3 take the poses of consecutive captures apart in one stacked call: the same
+    angles and translations as one call per pair (dF enters the image Jacobian, so equal
+    to the last bit, not to a tolerance), also for an empty list."""
+    from pipeline.kinematics.se3 import matrix_from_rpy
+    from pipeline.stages.touchup.segments import relative_pose, relative_poses
+
+    rng = np.random.default_rng(11)
+    T = np.tile(np.eye(4), (40, 1, 1))
+    for k in range(40):
+        T[k, :3, :3] = matrix_from_rpy(rng.uniform(-np.pi, np.pi, 3))
+        T[k, :3, 3] = rng.uniform(-1.0, 1.0, 3)
+    T[5] = T[4]  # a pair at one pose: angle 0
+    a, b = np.arange(39), np.arange(1, 40)
+    angs, ds = relative_poses(T[a], T[b])
+    for k in range(39):
+        ang, d = relative_pose(T[a[k]], T[b[k]])
+        assert ang == angs[k] and np.array_equal(d, ds[k])
+    none = relative_poses(T[:0], T[:0])
+    assert none[0].shape == (0,) and none[1].shape == (0, 3)

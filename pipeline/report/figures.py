@@ -143,7 +143,16 @@ def residual_groups(data: RunData) -> dict[str, pd.DataFrame]:
     ``nominal`` is :func:`nominal_fit` (the nominal robot with its best pin and
     targets); the others come from residuals.parquet, one group per error model
     (rows with ``used``/``inlier`` false and rows without a residual left out).
+    Computed once per load (``data.derived``): the verdict, the residual plots and the
+    accuracy table share them.
     """
+    if "residual_groups" not in data.derived:
+        data.derived["residual_groups"] = _residual_groups(data)
+    got: dict[str, pd.DataFrame] = data.derived["residual_groups"]
+    return got
+
+
+def _residual_groups(data: RunData) -> dict[str, pd.DataFrame]:
     out: dict[str, pd.DataFrame] = {}
     nom = nominal_fit(data)
     if nom is not None and len(nom):
@@ -252,8 +261,16 @@ def crossval_summary(data: RunData) -> list[dict[str, Any]]:
     (``kfold``, ``loto``) ``s_rms_mm``, ``s_max_mm``, ``s_n`` (scored touch-ups)
     and ``s_unscored`` (rows with a status). Without a ``scheme`` column every
     row counts as ``kfold``; residual lengths come from ``error_mm`` or from the
-    residual vector columns (m).
+    residual vector columns (m). Computed once per load (``data.derived``): the accuracy
+    table and the cross-validation section share them.
     """
+    if "crossval_summary" not in data.derived:
+        data.derived["crossval_summary"] = _crossval_summary(data)
+    got: list[dict[str, Any]] = data.derived["crossval_summary"]
+    return got
+
+
+def _crossval_summary(data: RunData) -> list[dict[str, Any]]:
     df = data.crossval
     if df is None or not len(df):
         return []

@@ -224,6 +224,5 @@ def build_report(
         data = copy.copy(data)
         data.run = {**(data.run or {}), "tolerance_mm": tolerance_mm}
     html = render(report_context(data, images if loaded else _report_images(data)))
-    atomic_write_bytes(out, html.encode("utf-8"))
-    out.chmod(0o644)  # a report is for sharing (the temporary file was private)
+    atomic_write_bytes(out, html.encode("utf-8"), mode=0o644)  # a report is for sharing
     return out

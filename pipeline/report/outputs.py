@@ -17,6 +17,7 @@ from __future__ import annotations
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
+from pipeline.fileio import write_group
 from pipeline.report.data import RunData, load_run
 from pipeline.report.html import build_report, thumbnail_frames
 from pipeline.report.images import Frame, grey_images, recording_frames
@@ -90,17 +91,18 @@ def build_outputs(
         import pipeline.report.rrd_log  # noqa: F401 - the Rerun SDK, while the frames are read
 
         got = reading.result()
-    html = build_report(
-        run_dir,
-        html_path,
-        tolerance_mm,
-        data=data,
-        images=None if got is None else grey_images(got, thumbs),
-    )
-    rrd = build_rrd(
-        run_dir,
-        rrd_path,
-        data=data,
-        images=None if got is None else {k: got[k] for k in shots if k in got},
-    )
+    with write_group():  # both fsync-ed at once, moved into place when both are made
+        html = build_report(
+            run_dir,
+            html_path,
+            tolerance_mm,
+            data=data,
+            images=None if got is None else grey_images(got, thumbs),
+        )
+        rrd = build_rrd(
+            run_dir,
+            rrd_path,
+            data=data,
+            images=None if got is None else {k: got[k] for k in shots if k in got},
+        )
     return html, rrd

@@ -119,8 +119,16 @@ def convergence_traces(data: RunData) -> dict[int, np.ndarray]:
     From the list-valued history columns of the touch-up table when it has them
     (``e_u_history``, ``e_v_history``, ``e_s_history``), else rebuilt from
     the detections of each touch-up's captures: ``du = u - u0``, ``dv = v - v0``,
-    ``ds = s - s0`` against the designated values (recording.md).
+    ``ds = s - s0`` against the designated values (recording.md). Computed once per
+    load (``data.derived``): report.html and run.rrd both show them.
     """
+    if "convergence_traces" not in data.derived:
+        data.derived["convergence_traces"] = _convergence_traces(data)
+    got: dict[int, np.ndarray] = data.derived["convergence_traces"]
+    return got
+
+
+def _convergence_traces(data: RunData) -> dict[int, np.ndarray]:
     tu = data.touchup_table()
     out: dict[int, np.ndarray] = {}
     if tu is not None:

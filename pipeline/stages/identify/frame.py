@@ -18,10 +18,10 @@ from pipeline.estimation.correction_frame import (
     frame_deviation,
     translation_map,
 )
-from pipeline.kinematics.chain import Chain
 from pipeline.kinematics.se3 import F64
 from pipeline.measurement.data import FitData
-from pipeline.stages.identify.types import AUTO_ORDER, IdentifyConfig, IdentifyResult
+from pipeline.stages.identify.first_fit import first_fit
+from pipeline.stages.identify.types import AUTO_ORDER, IdentifyConfig, IdentifyResult, Robot
 
 
 @dataclass
@@ -33,7 +33,7 @@ class Frame:
 
 
 def correction_frame(
-    chain: Chain,
+    robot: Robot,
     data: FitData,
     config: IdentifyConfig,
     fit_one: Callable[[str, IdentifyConfig], IdentifyResult],
@@ -50,8 +50,11 @@ def correction_frame(
        when no first fit is possible or when its map is more than
        :data:`pipeline.estimation.correction_frame.MAX_FRAME_DEVIATION` off the identity; ``config.correction_map`` replaces 1-2.
     ``fit_one(model, config)`` fits one error model to ``data``
-    (:func:`pipeline.stages.identify.stage._identify_one`).
+    (:func:`pipeline.stages.identify.stage._identify_one`) of ``robot``; the first fit is
+    made once per process for the same rows and settings
+    (:func:`pipeline.stages.identify.first_fit.first_fit`: the outliers stage made it).
     """
+    chain = robot.chain
     eye = np.eye(3)
     if config.correction_frame == "nominal":
         return data, Frame(eye, {"method": "nominal", "note": "corrections as the table has them"})
@@ -68,7 +71,7 @@ def correction_frame(
     first = None
     for name in AUTO_ORDER:
         try:
-            first = fit_one(name, first_cfg)
+            first = first_fit(fit_one, name, robot, data, first_cfg)
             break
         except (BadInput, CalibrationFailed):
             continue

@@ -192,7 +192,7 @@ def fit_prepared(
             + " (rerun with --accept-implausible if it is right)"
         )
     data, frame = correction_frame(
-        chain, data, config, lambda name, cfg: _identify_one(name, robot, data, cfg)
+        robot, data, config, lambda name, cfg: _identify_one(name, robot, data, cfg)
     )
     out = _identify_models(robot, data, config, implausible)
     for r in out.values() if isinstance(out, dict) else [out]:

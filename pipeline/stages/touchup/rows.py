@@ -93,7 +93,6 @@ def measurement(
             dy_flange=float(d[1]),
             dz_flange=float(d[2]),
         )
-    df = c.df
     e_u, e_v, e_sinv = image_error(mu, mv, ms, u0, v0, s0)
     row.update(
         u=mu,
@@ -103,13 +102,9 @@ def measurement(
         e_v=float(e_v),
         e_s_px=ms - s0,
         e_sinv=float(e_sinv) if np.isfinite(ms) else float("nan"),
-        fit_residual_px=float(np.max(df["residual_px"].to_numpy(float)[use]))
-        if use
-        else float("nan"),
-        border_contact=bool(np.any(df["border_contact"].fillna(False).to_numpy(bool)[use]))
-        if use
-        else False,
-        ambiguous=bool(np.any(df["ambiguous"].fillna(False).to_numpy(bool)[use])) if use else False,
+        fit_residual_px=float(np.max(c.column("residual_px", float)[use])) if use else float("nan"),
+        border_contact=bool(np.any(c.column("border_contact", bool, False)[use])) if use else False,
+        ambiguous=bool(np.any(c.column("ambiguous", bool, False)[use])) if use else False,
         weight=1.0,
     )
     return row
@@ -160,7 +155,7 @@ def touchup_row(
     q = c.Q[ref].mean(axis=0)
     for j, nm in enumerate(c.names):
         row[nm] = float(q[j])
-    row["stamp_ns"] = int(c.df["stamp_ns"].iloc[ref[-1]])
+    row["stamp_ns"] = int(c.column("stamp_ns", np.int64)[ref[-1]])
     row["jacobian_source"] = J[1]
     row.update(measurement(use, m, c, des, J[0], tilt.bias[k], depth_scaled))
     row.update(

@@ -76,7 +76,7 @@ from pipeline.measurement.image import diameter_from_jacobian, pair_change, view
 from pipeline.stages.touchup.jacobian import estimate_jacobian, pair_scatters, size_row_scales
 from pipeline.stages.touchup.noise import capture_noise
 from pipeline.stages.touchup.rows import final_shapes, touchup_row
-from pipeline.stages.touchup.segments import final_block, loop_starts, relative_pose, segments
+from pipeline.stages.touchup.segments import final_block, loop_starts, relative_poses, segments
 from pipeline.stages.touchup.targets import group_targets
 from pipeline.stages.touchup.tilt import tilt_bias
 from pipeline.stages.touchup.types import Captures, Designated, Tilt
@@ -235,18 +235,22 @@ def _jacobian_pairs(
     """
     pairs: list[tuple[int, np.ndarray, np.ndarray]] = []
     u, v, s = c.u, c.v, c.s
+    cand = []  # (segment, a, b): consecutive still, good captures of one segment
     for k, fr in enumerate(seg_frames):
         st = [i for i in fr if c.still[i] and c.good[i]]
-        for a, b in zip(st[:-1], st[1:], strict=False):
-            ang, d = relative_pose(c.T[a], c.T[b])
-            step = float(np.linalg.norm(d))
-            if ang < config.pure_translation_rad and config.min_step_m < step < config.max_step_m:
-                # the translation of the flange point at the target (the pin estimate)
-                d = d + (c.T[a][:3, :3].T @ c.T[b][:3, :3] - np.eye(3)) @ p_pin
-                dm = pair_change(
-                    (u[a], v[a], s[a]), (u[b], v[b], s[b]), des, config.depth_scaled_jacobian
-                )
-                pairs.append((k, d, dm))
+        cand += [(k, a, b) for a, b in zip(st[:-1], st[1:], strict=False)]
+    at = np.array([(a, b) for _, a, b in cand], dtype=np.int64).reshape(-1, 2)
+    angs, ds = relative_poses(c.T[at[:, 0]], c.T[at[:, 1]])
+    for j, (k, a, b) in enumerate(cand):
+        ang, d = float(angs[j]), ds[j]
+        step = float(np.linalg.norm(d))
+        if ang < config.pure_translation_rad and config.min_step_m < step < config.max_step_m:
+            # the translation of the flange point at the target (the pin estimate)
+            d = d + (c.T[a][:3, :3].T @ c.T[b][:3, :3] - np.eye(3)) @ p_pin
+            dm = pair_change(
+                (u[a], v[a], s[a]), (u[b], v[b], s[b]), des, config.depth_scaled_jacobian
+            )
+            pairs.append((k, d, dm))
     if not pairs:
         raise BadInput(
             f"{path}: no two still captures differ by a small pure flange translation: "

@@ -6,8 +6,8 @@ Shared by :mod:`pipeline.stages.touchup.stage` (steps 1-4) and
 
 from __future__ import annotations
 
-from dataclasses import dataclass
-from typing import NamedTuple
+from dataclasses import dataclass, field
+from typing import Any, NamedTuple
 
 import numpy as np
 import pandas as pd
@@ -27,6 +27,18 @@ class Captures:
     u: np.ndarray
     v: np.ndarray
     s: np.ndarray
+    _columns: dict[tuple[str, str, str], np.ndarray] = field(
+        default_factory=dict, repr=False, compare=False
+    )
+
+    def column(self, name: str, dtype: Any, fill: Any = None) -> np.ndarray:
+        """Column ``name`` of :attr:`df` as an array of ``dtype`` (missing values ``fill``),
+        converted once: every touch-up's row reads the same few columns."""
+        key = (name, repr(dtype), repr(fill))
+        if key not in self._columns:
+            col = self.df[name] if fill is None else self.df[name].fillna(fill)
+            self._columns[key] = col.to_numpy(dtype)
+        return self._columns[key]
 
 
 class Designated(NamedTuple):

@@ -297,6 +297,7 @@ class _Fit:
     targets: dict[int, F64]
     tcol: dict[int, int]
     M: F64  # (3, 3) the fit's correction map (IdentifyResult.correction_map)
+    singles: dict[int, tuple[float, float, int, F64]] = field(default_factory=dict)  # _test's
 
 
 def _fit(out: pd.DataFrame, info: Any, model: str, config: OutlierConfig) -> _Fit:
@@ -410,6 +411,16 @@ def _group_test(f: _Fit, pos: np.ndarray, w: np.ndarray) -> tuple[float, float, 
     F = S / (r * s2)
     p = float(f_sf(F, r, f.dof - r))
     return p, float(np.sqrt(S / s2)), r, delta
+
+
+def _test(f: _Fit, pos: np.ndarray, w: np.ndarray) -> tuple[float, float, int, F64]:
+    """:func:`_group_test` at fit positions ``pos`` (``w`` every fit row's weight); a single
+    touch-up's kept on the fit (the search and the final figures test it again)."""
+    if len(pos) != 1:
+        return _group_test(f, pos, w[pos])
+    if int(pos[0]) not in f.singles:
+        f.singles[int(pos[0])] = _group_test(f, pos, w[pos])
+    return f.singles[int(pos[0])]
 
 
 def _prediction_test(f: _Fit, out: pd.DataFrame, i: int, info: Any) -> tuple[float, float]:
@@ -551,7 +562,7 @@ def _statistical(out: pd.DataFrame, info: Any, config: OutlierConfig) -> pd.Data
         at = out.index.get_indexer(pd.Index(np.asarray(f.rows, dtype=np.int64)))  # 1 write/column
         levc, stud = np.full(len(out), np.nan), out["studentized"].to_numpy(float).copy()
         for k in range(len(f.rows)):
-            _, sig, rk, _ = _group_test(f, np.array([k]), w[[k]])
+            _, sig, rk, _ = _test(f, np.array([k]), w)
             levc[at[k]], stud[at[k]] = lev[k], sig if rk else np.nan
         out["leverage"], out["studentized"] = levc, stud
     out["note"] = ["; ".join(n) for n in notes]
@@ -567,7 +578,7 @@ def _candidates(
     pos_of = {int(r): k for k, r in enumerate(f.rows)}
     # single touch-ups
     for k, r in enumerate(f.rows):
-        p, sig, rk, delta = _group_test(f, np.array([k]), w[[k]])
+        p, sig, rk, delta = _test(f, np.array([k]), w)
         if rk and np.linalg.norm(delta) >= config.min_shift_m:
             cands.append((p, 1, "single", int(r), sig, delta))
     # knocks: change point in time per target
@@ -579,7 +590,7 @@ def _candidates(
             for c in range(config.min_before, len(rows_t)):
                 after = rows_t[c:]
                 pos = np.array([pos_of[r] for r in after])
-                p, sig, rk, delta = _group_test(f, pos, w[pos])
+                p, sig, rk, delta = _test(f, pos, w)  # a last touch-up alone: its single test
                 if rk and np.linalg.norm(delta) >= config.min_shift_m:
                     cands.append((p, 0, "split", (t, rows_t[c - 1], after), sig, delta))
     return cands
