@@ -48,6 +48,7 @@ from pipeline.stages.detect.detector import DetectConfig
 from pipeline.stages.image.binning import unbin
 from pipeline.stages.image.flat_field import CropStore, correct_flat_field
 from pipeline.stages.image.response import Response, parse_response
+from pipeline.stages.ingest.image_worker import ImageWorker
 from pipeline.stages.ingest.joints import (
     arm_joint_names,
     chain_joint_states,
@@ -230,8 +231,18 @@ def ingest_recording(
     )
     state = StreamState(path)
     s = Streamed(image_topic=image_topic, dcfg=dcfg, probing=[] if resp_fixed is None else None)
-    for msg, pre in prefetch_images(iter_recording(layout, state), _ahead_wanted(state, s)):
-        take_message(path, layout.path, msg, state, config, s, progress, n_total, pre)
+    with ImageWorker() as images:  # images taken on a second thread, in order
+        try:
+            for msg, pre in prefetch_images(
+                iter_recording(layout, state), _ahead_wanted(state, s), ahead=8
+            ):
+                take_message(
+                    path, layout.path, msg, state, config, s, progress, n_total, pre, images
+                )
+        except Exception:
+            images.drain()  # an image before the failing message failed first: its error
+            raise
+        images.drain()
     if s.probing is not None:
         got = resolve_response(s.probing, s.rows, s.dcfg, s.crops, final=True, raw=s.probe_raw)
         assert got is not None

@@ -38,6 +38,7 @@ from pipeline.stages.detect.detector import RESULT_KEYS, DetectConfig, detect_ta
 from pipeline.stages.image.binning import bin_image, choose_binning
 from pipeline.stages.image.flat_field import CropStore
 from pipeline.stages.image.response_estimate import ResponseEstimate, estimate_response
+from pipeline.stages.ingest.image_worker import ImageWorker
 from pipeline.stages.ingest.joints import JointGroups, strip_prefix
 from pipeline.stages.ingest.prefetch import Decoded, decode_image
 from pipeline.stages.ingest.row_buffer import RowBuffer
@@ -119,10 +120,13 @@ def take_message(
     progress: Progress | None,
     n_total: int | None,
     pre: Future[Decoded] | None = None,
+    images: ImageWorker | None = None,
 ) -> None:
     """One message of the stream: an image, a joint state, the URDF or touch-up metadata.
 
     ``pre``: the image's decoding started ahead (:mod:`pipeline.stages.ingest.prefetch`).
+    ``images``: the worker that takes the images, in order, while the stream is read
+    (:mod:`pipeline.stages.ingest.image_worker`); None: taken here.
     """
     topic, sname, menc = state.topic_type(msg.channel_id)
     if menc != "cdr" and sname.startswith(("sensor_msgs/", "std_msgs/")):
@@ -134,7 +138,10 @@ def take_message(
     if s.image_topic is None and sname in IMAGE_TYPES:
         s.image_topic = topic  # no index (truncated file): the first image topic seen
     if topic == s.image_topic:
-        _take_image(path, topic, sname, menc, msg, s, progress, n_total, pre)
+        if images is None:
+            _take_image(path, topic, sname, menc, msg, s, progress, n_total, pre)
+        else:
+            images.submit(_take_image, path, topic, sname, menc, msg, s, progress, n_total, pre)
     elif sname in IMAGE_TYPES:
         s.seen_image_topics.add(topic)
     elif topic == config.joint_topic:
