@@ -5,14 +5,15 @@ Ingest takes a recording's messages one at a time, in file order
 image (PNG/JPEG, ``cv2.imdecode``) is a third of it on the LR Mate-like cells
 and OpenCV releases the GIL while it decodes, so :func:`prefetch_images` reads
 the stream a little ahead and hands the next images' decoding to one worker
-thread while this thread detects the current image and takes the joint states
-between them. The messages still come out in file order, each image with its
+thread while the current image is detected (on the image worker,
+:mod:`pipeline.stages.ingest.image_worker`) and the joint states between them
+are taken. The messages still come out in file order, each image with its
 decoded result (:func:`decode_image`), and an error (of the decoding or of
 reading the file) surfaces where it would have without the read-ahead: a
 decoding error when its message is taken, a read error after every message
 read before it. An image whose decoding has not started when its message is
-taken (the other core busy) is taken back and decoded inline
-(``ingest_stream._take_image``), so a loaded machine waits no longer than
+taken by the image worker (the other core busy) is taken back and decoded
+there (``ingest_stream._take_image``), so a loaded machine waits no longer than
 without the thread. The results are the same with or without it; there is no
 switch (``tests/test_ingest_prefetch.py``).
 """

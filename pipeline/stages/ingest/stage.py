@@ -3,8 +3,9 @@
 The recording contract is ../shared/spec/recording.md. The file is read once,
 in file order (:func:`pipeline.io.recording.iter_recording`: an MCAP file or a
 ROS bag); every image is decoded
-and handed to :func:`pipeline.stages.detect.detector.detect_target` at once, so only one
-image is in memory at a time. Joint states (small) are kept, and after the
+and handed to :func:`pipeline.stages.detect.detector.detect_target` in order, on a worker
+thread while the records after it are read (:mod:`pipeline.stages.ingest.image_worker`),
+so only a few images are in memory at a time. Joint states (small) are kept, and after the
 pass every image stamp gets the joint vector interpolated at its
 ``header.stamp``, a stillness measure and the gap between the bracketing joint
 states (:mod:`pipeline.stages.ingest.joints` states the maths). A small crop
@@ -233,9 +234,7 @@ def ingest_recording(
     s = Streamed(image_topic=image_topic, dcfg=dcfg, probing=[] if resp_fixed is None else None)
     with ImageWorker() as images:  # images taken on a second thread, in order
         try:
-            for msg, pre in prefetch_images(
-                iter_recording(layout, state), _ahead_wanted(state, s), ahead=8
-            ):
+            for msg, pre in prefetch_images(iter_recording(layout, state), _ahead_wanted(state, s)):
                 take_message(
                     path, layout.path, msg, state, config, s, progress, n_total, pre, images
                 )

@@ -1,8 +1,9 @@
 """Ingest's streaming pass: every message of a recording once, in file order.
 
 :func:`take_message` takes one message into a :class:`Streamed`: an image is
-decoded and handed to :func:`pipeline.stages.detect.detector.detect_target` at once (so
-only one image is in memory at a time), each clean detection steering the
+decoded and handed to :func:`pipeline.stages.detect.detector.detect_target` (at once, or
+in order on the worker thread of :mod:`pipeline.stages.ingest.image_worker`: either way
+only a few images are in memory at a time), each clean detection steering the
 next one's (``expected``); the first :data:`RESPONSE_PROBE_IMAGES` images are
 held back when the camera response is to be estimated, and detected once it
 is (:func:`resolve_response`). Joint states (small) are kept grouped by their
