@@ -21,6 +21,7 @@ import os
 import statistics
 import sys
 import time
+from concurrent.futures import Future
 from pathlib import Path
 from typing import Any
 
@@ -33,10 +34,15 @@ prefer_one_thread()
 
 
 class _Inline:
-    """Every image taken at once on the reading thread (ingest before the worker)."""
+    """Every image decoded and taken at once on the reading thread (no overlap)."""
 
     def __init__(self, *a: object) -> None:
         pass
+
+    def decode(self, fn: Any, *args: Any) -> Future[Any]:
+        fut: Future[Any] = Future()
+        fut.set_result(fn(*args))
+        return fut
 
     def submit(self, fn: Any, *args: Any) -> None:
         fn(*args)

@@ -1,15 +1,18 @@
 """Images taken on a worker thread while the stream is read (ingest, issue 38).
 
 Ingest reads a recording's messages in file order on one thread; each image
-is then decoded (:mod:`pipeline.stages.ingest.prefetch`), detected and, at
-the start, held back for the camera-response estimate
+is then decoded (:func:`pipeline.stages.ingest.prefetch.decode_image`), detected
+and, at the start, held back for the camera-response estimate
 (``ingest_stream._take_image``). Detection steers each image by the last
 clean one, so the images are taken one after the other, in order; but they
 need nothing the other messages carry, and the other messages nothing they
 produce. :class:`ImageWorker` takes the images on one worker thread, in the
 order they are handed to it, while the caller goes on reading records and
 joint states: the compiled detector (``nogil``), OpenCV and the decoder run
-without Python's global lock, so the two overlap on two cores.
+without Python's global lock, so the two overlap on two cores. Each image's
+decoding starts on a third thread when its message is read
+(:meth:`ImageWorker.decode`), so the next images decode while this one is
+detected.
 
 The results are those of taking each image inline, in order (one thread
 takes them all, first come first taken). What differs is only when an
@@ -19,7 +22,7 @@ happened, and an error of a later message waits for the images before it
 (:meth:`ImageWorker.drain` first), so the first error in file order wins.
 After an image failed, the images after it are not taken. At most ``depth``
 images wait for the worker: the reader then waits for it (the decoded images
-held stay bounded however long the recording).
+held stay bounded however long the recording: ``tests/test_ingest_memory.py``).
 """
 
 from __future__ import annotations
@@ -29,7 +32,9 @@ from collections import deque
 from collections.abc import Callable
 from concurrent.futures import Future, ThreadPoolExecutor
 from types import TracebackType
-from typing import Any
+from typing import Any, TypeVar
+
+T = TypeVar("T")
 
 #: images handed to the worker and not yet taken, at most
 DEPTH = 8
@@ -43,14 +48,19 @@ class ImageWorker:
     depth : images waiting for the worker at most; :meth:`submit` blocks beyond it
 
     Use as a context manager: leaving it (normally or by an error) stops the
-    thread, and images not yet taken are dropped.
+    threads, and images not yet taken are dropped.
     """
 
     def __init__(self, depth: int = DEPTH) -> None:
         self.depth = max(int(depth), 1)
         self._pool = ThreadPoolExecutor(1, thread_name_prefix="vtcal-detect")
+        self._decoder = ThreadPoolExecutor(1, thread_name_prefix="vtcal-decode")
         self._pending: deque[Future[None]] = deque()
         self._stop = threading.Event()
+
+    def decode(self, fn: Callable[..., T], *args: Any) -> Future[T]:
+        """Start ``fn(*args)`` (an image's decoding) on the decoding thread now."""
+        return self._decoder.submit(fn, *args)
 
     def submit(self, fn: Callable[..., None], *args: Any) -> None:
         """Take an image with ``fn(*args)`` after those submitted before it.
@@ -86,3 +96,4 @@ class ImageWorker:
     ) -> None:
         self._stop.set()
         self._pool.shutdown(wait=True, cancel_futures=True)
+        self._decoder.shutdown(wait=True, cancel_futures=True)

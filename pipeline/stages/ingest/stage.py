@@ -28,7 +28,6 @@ from __future__ import annotations
 
 import math
 import os
-from collections.abc import Callable
 from typing import Any
 
 import numpy as np
@@ -56,7 +55,6 @@ from pipeline.stages.ingest.joints import (
     frame_table,
     other_joints,
 )
-from pipeline.stages.ingest.prefetch import prefetch_images
 from pipeline.stages.ingest.stream import (
     RESPONSE_FIT_IMAGES,
     RESPONSE_PROBE_IMAGES,
@@ -156,25 +154,6 @@ def infer_links(
     return base, tip, f"{tip} ({why})"
 
 
-def _ahead_wanted(state: StreamState, s: Streamed) -> Callable[[Any], tuple[str, str] | None]:
-    """The messages :func:`prefetch_images` decodes ahead: images of the image topic.
-
-    Before the image topic is known (a file without a summary) any image-typed
-    message is decoded ahead; one of another topic is then dropped undecoded.
-    """
-
-    def wants(msg: Any) -> tuple[str, str] | None:
-        try:
-            topic, sname, menc = state.topic_type(msg.channel_id)
-        except KeyError:  # take_message says what is wrong, in order
-            return None
-        if sname not in IMAGE_TYPES or s.image_topic not in (None, topic):
-            return None
-        return sname, menc
-
-    return wants
-
-
 def ingest_recording(
     path: str | os.PathLike[str],
     config: IngestConfig,
@@ -234,10 +213,8 @@ def ingest_recording(
     s = Streamed(image_topic=image_topic, dcfg=dcfg, probing=[] if resp_fixed is None else None)
     with ImageWorker() as images:  # images taken on a second thread, in order
         try:
-            for msg, pre in prefetch_images(iter_recording(layout, state), _ahead_wanted(state, s)):
-                take_message(
-                    path, layout.path, msg, state, config, s, progress, n_total, pre, images
-                )
+            for msg in iter_recording(layout, state):
+                take_message(path, layout.path, msg, state, config, s, progress, n_total, images)
         except Exception:
             images.drain()  # an image before the failing message failed first: its error
             raise

@@ -120,14 +120,13 @@ def take_message(
     s: Streamed,
     progress: Progress | None,
     n_total: int | None,
-    pre: Future[Decoded] | None = None,
     images: ImageWorker | None = None,
 ) -> None:
     """One message of the stream: an image, a joint state, the URDF or touch-up metadata.
 
-    ``pre``: the image's decoding started ahead (:mod:`pipeline.stages.ingest.prefetch`).
     ``images``: the worker that takes the images, in order, while the stream is read
-    (:mod:`pipeline.stages.ingest.image_worker`); None: taken here.
+    (:mod:`pipeline.stages.ingest.image_worker`), each image's decoding started at
+    once on its decoding thread; None: decoded and taken here.
     """
     topic, sname, menc = state.topic_type(msg.channel_id)
     if menc != "cdr" and sname.startswith(("sensor_msgs/", "std_msgs/")):
@@ -140,8 +139,9 @@ def take_message(
         s.image_topic = topic  # no index (truncated file): the first image topic seen
     if topic == s.image_topic:
         if images is None:
-            _take_image(path, topic, sname, menc, msg, s, progress, n_total, pre)
+            _take_image(path, topic, sname, menc, msg, s, progress, n_total)
         else:
+            pre = images.decode(decode_image, sname, menc, msg.data)
             images.submit(_take_image, path, topic, sname, menc, msg, s, progress, n_total, pre)
     elif sname in IMAGE_TYPES:
         s.seen_image_topics.add(topic)
