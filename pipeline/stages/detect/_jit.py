@@ -19,12 +19,12 @@ from numba import njit
 _SQRT2 = math.sqrt(2.0)
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _phi(x: float) -> float:
     return 0.5 * math.erfc(-x / _SQRT2)
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _noise_bias(mu: float, eps: float) -> float:
     """``E[c (1 - c)] - mu (1 - mu)``, ``c = clip(mu + eps Z, 0, 1)`` (detect.noise_bias_pq)."""
     if eps <= 0.0:
@@ -52,7 +52,7 @@ def _noise_bias(mu: float, eps: float) -> float:
     return m1 - m2 - mu * (1.0 - mu)
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _moments(roi, core, outer, u0, v0):  # type: ignore[no-untyped-def]
     """Sums over the core (row 0) and outer (row 1) pixels, one pass over the window.
 
@@ -92,7 +92,7 @@ def _moments(roi, core, outer, u0, v0):  # type: ignore[no-untyped-def]
     return M
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _plane3(m):  # type: ignore[no-untyped-def]
     """Plane ``g = c0 + c1 du + c2 dv`` from one row of :func:`_moments`; count."""
     A = np.empty((3, 3))
@@ -121,7 +121,7 @@ def _plane3(m):  # type: ignore[no-untyped-def]
     return out, n
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _level_surfaces(roi, core, outer, u0, v0):  # type: ignore[no-untyped-def]
     """Target and plate level surfaces with one shared vignetting term (detect_edges.level_surfaces).
 
@@ -184,7 +184,7 @@ def _level_surfaces(roi, core, outer, u0, v0):  # type: ignore[no-untyped-def]
     return GI, a[0], GO, b[0]
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _fit(px, py, n):  # type: ignore[no-untyped-def]
     """Algebraic conic fit -> (ok, u, v, a, b, theta) (see detect.fit_conic / conic_to_params)."""
     if n < 6:
@@ -262,13 +262,13 @@ def _fit(px, py, n):  # type: ignore[no-untyped-def]
     return True, x0, y0, a_long, b_short, th
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _foot(x_, y_, u0, v0, a, b, th):  # type: ignore[no-untyped-def]
     """Signed distance (outside +), foot angle, curvature, outward normal (nx, ny)."""
     return _foot_cs(x_, y_, u0, v0, a, b, math.cos(th), math.sin(th))
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def _foot_cs(x_, y_, u0, v0, a, b, c, s):  # type: ignore[no-untyped-def]
     """:func:`_foot` with ``c, s = cos(theta), sin(theta)`` given (hoisted out of loops)."""
     du = x_ - u0
@@ -298,7 +298,7 @@ def _foot_cs(x_, y_, u0, v0, a, b, c, s):  # type: ignore[no-untyped-def]
     return d, t, kap, c * nx - s * ny, s * nx + c * ny
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def fine_stage(roi, core, outer, u0, v0, cont_x, cont_y, near_tol, correct, max_sigma, min_step):  # type: ignore[no-untyped-def]
     """Levels, crossings, fits and corrections on one window.
 
@@ -543,7 +543,7 @@ def fine_stage(roi, core, outer, u0, v0, cont_x, cont_y, near_tol, correct, max_
     return out
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def coarse_uint8(img, k):  # type: ignore[no-untyped-def]
     """Subsampled copy and levels of a uint8 image for the coarse blob search.
 

@@ -1,28 +1,21 @@
-"""Images decoded ahead of the stream in a second thread (ingest, issue 38).
+"""An image message decoded to grey pixels, on a thread of its own (ingest, issue 38).
 
-Ingest takes a recording's messages one at a time, in file order
-(:func:`pipeline.stages.ingest.stream.take_message`). Decoding a compressed
-image (PNG/JPEG, ``cv2.imdecode``) is a third of it on the LR Mate-like cells
-and OpenCV releases the GIL while it decodes, so :func:`prefetch_images` reads
-the stream a little ahead and hands the next images' decoding to one worker
-thread while this thread detects the current image and takes the joint states
-between them. The messages still come out in file order, each image with its
-decoded result (:func:`decode_image`), and an error (of the decoding or of
-reading the file) surfaces where it would have without the read-ahead: a
-decoding error when its message is taken, a read error after every message
-read before it. An image whose decoding has not started when its message is
-taken (the other core busy) is taken back and decoded inline
-(``ingest_stream._take_image``), so a loaded machine waits no longer than
-without the thread. The results are the same with or without it; there is no
-switch (``tests/test_ingest_prefetch.py``).
+Ingest reads a recording's messages in file order on one thread and hands
+the images to the image worker (:mod:`pipeline.stages.ingest.image_worker`),
+which detects them in order. Decoding a compressed image (PNG/JPEG,
+``cv2.imdecode``) is a third of ingest on the LR Mate-like cells and OpenCV
+releases the GIL while it decodes, so each image's :func:`decode_image` is
+started on the worker's decoding thread as soon as its message is read
+(``ImageWorker.decode``): the next images decode while the worker detects
+this one and the reader takes the joint states between them. A decoding error
+keeps apart which step failed and surfaces when its image is taken, in file
+order. An image whose decoding has not started when the worker takes it (the
+other core busy) is taken back and decoded there (``ingest_stream._take_image``),
+so a loaded machine waits no longer than without the thread. The results are
+the same with or without it (``tests/test_ingest_prefetch.py``).
 """
 
 from __future__ import annotations
-
-from collections import deque
-from collections.abc import Callable, Iterator
-from concurrent.futures import Future, ThreadPoolExecutor
-from typing import Any
 
 import numpy as np
 
@@ -48,53 +41,3 @@ def decode_image(sname: str, menc: str, data: bytes) -> Decoded:
         return enc, image_to_gray(enc), None, None
     except ValueError as exc:
         return enc, None, None, exc
-
-
-def prefetch_images(
-    messages: Iterator[Any],
-    wants: Callable[[Any], tuple[str, str] | None],
-    ahead: int = 2,
-    max_buffer: int = 50_000,
-) -> Iterator[tuple[Any, Future[Decoded] | None]]:
-    """``messages`` in order, each image's decoding started ``ahead`` images early.
-
-    Parameters
-    ----------
-    messages : the stream (mcap ``Message``-like: ``.data``)
-    wants : ``(schema name, message encoding)`` of a message to decode ahead, else None
-    ahead : images decoding (or decoded) ahead of the one being taken
-    max_buffer : at most this many messages read ahead (joint states between images)
-
-    Yields
-    ------
-    (message, future of :func:`decode_image` or None)
-    """
-    pending = 0  # futures in the buffer
-    buf: deque[tuple[Any, Future[Decoded] | None]] = deque()
-    error: BaseException | None = None
-    done = False
-    with ThreadPoolExecutor(1, thread_name_prefix="vtcal-decode") as pool:
-        while True:
-            while not done and pending < ahead and len(buf) < max_buffer:
-                try:
-                    msg = next(messages)
-                except StopIteration:
-                    done = True
-                    break
-                except Exception as exc:  # noqa: BLE001 - raised after the messages before it
-                    error, done = exc, True
-                    break
-                kind = wants(msg)
-                if kind is None:
-                    buf.append((msg, None))
-                else:
-                    buf.append((msg, pool.submit(decode_image, kind[0], kind[1], msg.data)))
-                    pending += 1
-            if not buf:
-                break
-            msg, fut = buf.popleft()
-            if fut is not None:
-                pending -= 1
-            yield msg, fut
-    if error is not None:
-        raise error

@@ -3,8 +3,9 @@
 The recording contract is ../shared/spec/recording.md. The file is read once,
 in file order (:func:`pipeline.io.recording.iter_recording`: an MCAP file or a
 ROS bag); every image is decoded
-and handed to :func:`pipeline.stages.detect.detector.detect_target` at once, so only one
-image is in memory at a time. Joint states (small) are kept, and after the
+and handed to :func:`pipeline.stages.detect.detector.detect_target` in order, on a worker
+thread while the records after it are read (:mod:`pipeline.stages.ingest.image_worker`),
+so only a few images are in memory at a time. Joint states (small) are kept, and after the
 pass every image stamp gets the joint vector interpolated at its
 ``header.stamp``, a stillness measure and the gap between the bracketing joint
 states (:mod:`pipeline.stages.ingest.joints` states the maths). A small crop
@@ -27,7 +28,6 @@ from __future__ import annotations
 
 import math
 import os
-from collections.abc import Callable
 from typing import Any
 
 import numpy as np
@@ -48,13 +48,13 @@ from pipeline.stages.detect.detector import DetectConfig
 from pipeline.stages.image.binning import unbin
 from pipeline.stages.image.flat_field import CropStore, correct_flat_field
 from pipeline.stages.image.response import Response, parse_response
+from pipeline.stages.ingest.image_worker import ImageWorker
 from pipeline.stages.ingest.joints import (
     arm_joint_names,
     chain_joint_states,
     frame_table,
     other_joints,
 )
-from pipeline.stages.ingest.prefetch import prefetch_images
 from pipeline.stages.ingest.stream import (
     RESPONSE_FIT_IMAGES,
     RESPONSE_PROBE_IMAGES,
@@ -154,25 +154,6 @@ def infer_links(
     return base, tip, f"{tip} ({why})"
 
 
-def _ahead_wanted(state: StreamState, s: Streamed) -> Callable[[Any], tuple[str, str] | None]:
-    """The messages :func:`prefetch_images` decodes ahead: images of the image topic.
-
-    Before the image topic is known (a file without a summary) any image-typed
-    message is decoded ahead; one of another topic is then dropped undecoded.
-    """
-
-    def wants(msg: Any) -> tuple[str, str] | None:
-        try:
-            topic, sname, menc = state.topic_type(msg.channel_id)
-        except KeyError:  # take_message says what is wrong, in order
-            return None
-        if sname not in IMAGE_TYPES or s.image_topic not in (None, topic):
-            return None
-        return sname, menc
-
-    return wants
-
-
 def ingest_recording(
     path: str | os.PathLike[str],
     config: IngestConfig,
@@ -230,8 +211,14 @@ def ingest_recording(
     )
     state = StreamState(path)
     s = Streamed(image_topic=image_topic, dcfg=dcfg, probing=[] if resp_fixed is None else None)
-    for msg, pre in prefetch_images(iter_recording(layout, state), _ahead_wanted(state, s)):
-        take_message(path, layout.path, msg, state, config, s, progress, n_total, pre)
+    with ImageWorker() as images:  # images taken on a second thread, in order
+        try:
+            for msg in iter_recording(layout, state):
+                take_message(path, layout.path, msg, state, config, s, progress, n_total, images)
+        except Exception:
+            images.drain()  # an image before the failing message failed first: its error
+            raise
+        images.drain()
     if s.probing is not None:
         got = resolve_response(s.probing, s.rows, s.dcfg, s.crops, final=True, raw=s.probe_raw)
         assert got is not None

@@ -1,8 +1,9 @@
 """Ingest's streaming pass: every message of a recording once, in file order.
 
 :func:`take_message` takes one message into a :class:`Streamed`: an image is
-decoded and handed to :func:`pipeline.stages.detect.detector.detect_target` at once (so
-only one image is in memory at a time), each clean detection steering the
+decoded and handed to :func:`pipeline.stages.detect.detector.detect_target` (at once, or
+in order on the worker thread of :mod:`pipeline.stages.ingest.image_worker`: either way
+only a few images are in memory at a time), each clean detection steering the
 next one's (``expected``); the first :data:`RESPONSE_PROBE_IMAGES` images are
 held back when the camera response is to be estimated, and detected once it
 is (:func:`resolve_response`). Joint states (small) are kept grouped by their
@@ -38,6 +39,7 @@ from pipeline.stages.detect.detector import RESULT_KEYS, DetectConfig, detect_ta
 from pipeline.stages.image.binning import bin_image, choose_binning
 from pipeline.stages.image.flat_field import CropStore
 from pipeline.stages.image.response_estimate import ResponseEstimate, estimate_response
+from pipeline.stages.ingest.image_worker import ImageWorker
 from pipeline.stages.ingest.joints import JointGroups, strip_prefix
 from pipeline.stages.ingest.prefetch import Decoded, decode_image
 from pipeline.stages.ingest.row_buffer import RowBuffer
@@ -118,11 +120,13 @@ def take_message(
     s: Streamed,
     progress: Progress | None,
     n_total: int | None,
-    pre: Future[Decoded] | None = None,
+    images: ImageWorker | None = None,
 ) -> None:
     """One message of the stream: an image, a joint state, the URDF or touch-up metadata.
 
-    ``pre``: the image's decoding started ahead (:mod:`pipeline.stages.ingest.prefetch`).
+    ``images``: the worker that takes the images, in order, while the stream is read
+    (:mod:`pipeline.stages.ingest.image_worker`), each image's decoding started at
+    once on its decoding thread; None: decoded and taken here.
     """
     topic, sname, menc = state.topic_type(msg.channel_id)
     if menc != "cdr" and sname.startswith(("sensor_msgs/", "std_msgs/")):
@@ -134,7 +138,11 @@ def take_message(
     if s.image_topic is None and sname in IMAGE_TYPES:
         s.image_topic = topic  # no index (truncated file): the first image topic seen
     if topic == s.image_topic:
-        _take_image(path, topic, sname, menc, msg, s, progress, n_total, pre)
+        if images is None:
+            _take_image(path, topic, sname, menc, msg, s, progress, n_total)
+        else:
+            pre = images.decode(decode_image, sname, menc, msg.data)
+            images.submit(_take_image, path, topic, sname, menc, msg, s, progress, n_total, pre)
     elif sname in IMAGE_TYPES:
         s.seen_image_topics.add(topic)
     elif topic == config.joint_topic:
