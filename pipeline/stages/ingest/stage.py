@@ -211,18 +211,7 @@ def ingest_recording(
     )
     state = StreamState(path)
     s = Streamed(image_topic=image_topic, dcfg=dcfg, probing=[] if resp_fixed is None else None)
-    with ImageWorker() as images:  # images taken on a second thread, in order
-        try:
-            for msg in iter_recording(layout, state):
-                take_message(path, layout.path, msg, state, config, s, progress, n_total, images)
-        except Exception:
-            images.drain()  # an image before the failing message failed first: its error
-            raise
-        images.drain()
-    if s.probing is not None:
-        got = resolve_response(s.probing, s.rows, s.dcfg, s.crops, final=True, raw=s.probe_raw)
-        assert got is not None
-        s.dcfg, s.response_est, s.expected = got
+    _stream(path, layout, state, config, s, progress, n_total)
     flat = correct_flat_field(s.crops, s.rows, s.dcfg, (s.height, s.width))
     s.crops = CropStore()  # the crops are done with: free them before the tables
     if progress is not None:
@@ -259,6 +248,32 @@ def ingest_recording(
         },
     )
     return frames, det_df, info
+
+
+def _stream(
+    path: str,
+    layout: Any,
+    state: StreamState,
+    config: IngestConfig,
+    s: Streamed,
+    progress: Progress | None,
+    n_total: int | None,
+) -> None:
+    """The streaming pass: every message taken into ``s``, images on a second thread in
+    order (:class:`~pipeline.stages.ingest.image_worker.ImageWorker`), then the response
+    estimated from the images still held back when the file ended."""
+    with ImageWorker() as images:
+        try:
+            for msg in iter_recording(layout, state):
+                take_message(path, layout.path, msg, state, config, s, progress, n_total, images)
+        except Exception:
+            images.drain()  # an image before the failing message failed first: its error
+            raise
+        images.drain()
+    if s.probing is not None:
+        got = resolve_response(s.probing, s.rows, s.dcfg, s.crops, final=True, raw=s.probe_raw)
+        assert got is not None
+        s.dcfg, s.response_est, s.expected = got
 
 
 def _detect_settings(
