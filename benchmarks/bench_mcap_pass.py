@@ -17,36 +17,22 @@ from __future__ import annotations
 import argparse
 import math
 import os
+import sys
 import time
-import tomllib
 from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
 
 ROOT = Path(__file__).resolve().parents[1]
 SAMPLE = ROOT / "datasets" / "samples" / "sample_lrmate.mcap"
-CELLS = (
-    ("lrmate-36", "standard.toml", 12),
-    ("ur5e-36", "ur.toml", 12),
-    ("lrmate-72", "standard.toml", 24),
-)
-SEED = 7
 
 
 def recordings(workdir: Path) -> dict[str, Path]:
-    """The shipped sample and the standard cells (simulated into ``workdir`` once)."""
-    from pipeline.sim.scenario import scenario_from_dict
-    from pipeline.sim.simulator import write_recording
+    """The shipped sample and ``bench_run_stages``' standard cells (simulated there once)."""
+    sys.path.insert(0, str(ROOT / "benchmarks"))
+    import bench_run_stages
 
-    recs = {"sample": SAMPLE}
-    for label, scenario, per_target in CELLS:
-        rec = workdir / f"{label}_s{SEED}.mcap"
-        if not rec.exists():
-            raw = tomllib.loads((ROOT / "datasets" / "scenarios" / scenario).read_text())
-            raw.setdefault("poses", {})["per_target"] = per_target
-            write_recording(scenario_from_dict(raw, where=label, base_dir=str(ROOT)), SEED, rec)
-        recs[label] = rec
-    return recs
+    return {"sample": SAMPLE, **bench_run_stages.simulate(workdir)}
 
 
 def library_messages(path: Path) -> Iterator[Any]:

@@ -30,8 +30,8 @@ os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 import argparse  # noqa: E402
 import copy  # noqa: E402
 import math  # noqa: E402
+import sys  # noqa: E402
 import time  # noqa: E402
-import tomllib  # noqa: E402
 from pathlib import Path  # noqa: E402
 from typing import Any  # noqa: E402
 
@@ -39,25 +39,14 @@ import numpy as np  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 SAMPLE = ROOT / "datasets" / "samples" / "sample_lrmate.mcap"
-#: (label, scenario, poses per target, seed): the standard cells of bench_run_stages
-CELLS = (("lrmate-36", "standard.toml", 12), ("ur5e-36", "ur.toml", 12))
-SEED = 7
 
 
 def recordings(workdir: Path) -> dict[str, Path]:
-    """The shipped sample and the standard cells (simulated into ``workdir`` once)."""
-    from pipeline.sim.scenario import scenario_from_dict
-    from pipeline.sim.simulator import write_recording
+    """The shipped sample and ``bench_run_stages``' standard cells (simulated there once)."""
+    sys.path.insert(0, str(ROOT / "benchmarks"))
+    import bench_run_stages
 
-    recs = {"sample": SAMPLE}
-    for label, scenario, per_target in CELLS:
-        rec = workdir / f"{label}_s{SEED}.mcap"
-        if not rec.exists():
-            raw = tomllib.loads((ROOT / "datasets" / "scenarios" / scenario).read_text())
-            raw.setdefault("poses", {})["per_target"] = per_target
-            write_recording(scenario_from_dict(raw, where=label, base_dir=str(ROOT)), SEED, rec)
-        recs[label] = rec
-    return recs
+    return {"sample": SAMPLE, **bench_run_stages.simulate(workdir)}
 
 
 def profiles_of(rec: Path) -> list[Any]:
