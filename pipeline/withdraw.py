@@ -12,8 +12,8 @@ previous run's cached artefacts) stay. So a forced re-run of a finished run
 folder that is refused leaves the previous run whole, not a mix of its
 calibration and nothing under it.
 
-Putting back: :func:`snapshot` hard-links every file it finds into
-:data:`BACKUP` inside the folder (no copy; every artefact is written through
+Putting back: :func:`snapshot` hard-links every file directly in the folder
+(where a run writes; not those of subfolders) into :data:`BACKUP` inside it (no copy; every artefact is written through
 a temporary and ``os.replace``, so a rewrite gives the path a new file and
 the link keeps the old one); :func:`release` drops the links when the run
 ends any other way. Where the file system has no hard links, a rewritten file

@@ -25,7 +25,7 @@ thousands of joint-state messages, so :func:`chunk_records` reads a message's
 header with one ``struct.unpack_from`` on the decompressed bytes instead and
 hands Schema and Channel records (a few per file) to the library's own
 readers. The records are the library's classes, equal to what ``breakup_chunk``
-returns (``tests/test_mcap_chunk.py``); a CRC that does not match, a
+returns (``tests/test_mcap_records.py``); a CRC that does not match, a
 compression it does not know, or a record that runs past the chunk's end
 raise, as the library's reader does, and the caller skips the chunk.
 """
@@ -45,6 +45,18 @@ from mcap.records import Channel, Chunk, Footer, Header, McapRecord, Message, Me
 
 _RECORD = struct.Struct("<BQ")
 _MESSAGE = struct.Struct("<HIQQ")
+
+
+def _message(buf: bytes, pos: int, end: int) -> Message:
+    """The Message record whose content is ``buf[pos:end]`` (at least 22 bytes)."""
+    ch, seq, log_time, publish_time = _MESSAGE.unpack_from(buf, pos)
+    return Message(
+        channel_id=ch,
+        sequence=seq,
+        log_time=log_time,
+        publish_time=publish_time,
+        data=buf[pos + 22 : end],
+    )
 
 
 class ChunkError(ValueError):
@@ -78,7 +90,7 @@ def chunk_records(chunk: Chunk) -> list[McapRecord]:
     """The Schema, Channel and Message records of ``chunk`` in order (others skipped)."""
     data = chunk_bytes(chunk)
     out: list[McapRecord] = []
-    head, message = _RECORD.unpack_from, _MESSAGE.unpack_from
+    head = _RECORD.unpack_from
     pos, end = 0, len(data)
     while pos < end:
         if pos + 9 > end:
@@ -90,16 +102,7 @@ def chunk_records(chunk: Chunk) -> list[McapRecord]:
         if op == Opcode.MESSAGE:
             if length < 22:
                 raise ChunkError(f"message record at byte {pos - 9} is {length} bytes long")
-            ch, seq, log_time, publish_time = message(data, pos)
-            out.append(
-                Message(
-                    channel_id=ch,
-                    sequence=seq,
-                    log_time=log_time,
-                    publish_time=publish_time,
-                    data=data[pos + 22 : pos + length],
-                )
-            )
+            out.append(_message(data, pos, pos + length))
         elif op == Opcode.CHANNEL:
             out.append(Channel.read(ReadDataStream(BytesIO(data[pos : pos + length]))))
         elif op == Opcode.SCHEMA:
@@ -178,14 +181,7 @@ def file_records(f: IO[bytes]) -> Iterator[McapRecord | None]:
             continue
         body = _read(f, length)
         if op == Opcode.MESSAGE:
-            ch, seq, log_time, publish_time = _MESSAGE.unpack_from(body, 0)
-            yield Message(
-                channel_id=ch,
-                sequence=seq,
-                log_time=log_time,
-                publish_time=publish_time,
-                data=body[22:],
-            )
+            yield _message(body, 0, length)
             continue
         parse = _PARSED.get(op)
         if parse is None:

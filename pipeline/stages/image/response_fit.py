@@ -126,6 +126,12 @@ class EdgeFit:
         for k, parts in self._cache:
             if k == key:
                 return parts
+        parts = self._compute(x)
+        self._cache = [(key, parts), *self._cache[:1]]
+        return parts
+
+    def _compute(self, x: F64) -> tuple[F64, ...]:
+        """The residual (first) and what (J) needs at ``x``."""
         s = abs(x[1])
         clipped = s < MIN_SIGMA
         s = max(s, MIN_SIGMA)
@@ -141,9 +147,7 @@ class EdgeFit:
         Q, R = np.linalg.qr(A)
         c = solve_triangular(R, Q.T @ self.y, check_finite=False)
         r = A @ c - self.y
-        parts = (r, Q, R, c, t, dFdt, *dFdb, np.array([s, float(clipped), np.sign(x[1])]))
-        self._cache = [(key, parts), *self._cache[:1]]
-        return parts
+        return (r, Q, R, c, t, dFdt, *dFdb, np.array([s, float(clipped), np.sign(x[1])]))
 
     def residual(self, x: F64) -> F64:
         """``r(x) = A c - w E``, (N,)."""
@@ -172,24 +176,16 @@ class EdgeFit:
         return J
 
 
-class CompiledEdgeFit:
+class CompiledEdgeFit(EdgeFit):
     """:class:`EdgeFit` (no harmonics) through :mod:`pipeline.stages.image._edge_jit`.
 
     The residual and the Jacobian of one ``x`` come from one call of the compiled
-    kernel (MINPACK asks for both at each accepted step); the two latest are kept.
-    Falls back to :class:`EdgeFit` at an ``x`` where the kernel's Gram matrix is
-    singular.
+    kernel (MINPACK asks for both at each accepted step), kept as :class:`EdgeFit`
+    keeps its parts. Falls back to :class:`EdgeFit`'s at an ``x`` where the kernel's
+    Gram matrix is singular.
     """
 
-    def __init__(self, d: F64, du: F64, dv: F64, y: F64, w: F64) -> None:
-        self.d, self.du, self.dv, self.y, self.w = d, du, dv, y, w
-        self._cache: list[tuple[bytes, tuple[F64, F64]]] = []
-
-    def _parts(self, x: F64) -> tuple[F64, F64]:
-        key = x.tobytes()
-        for k, parts in self._cache:
-            if k == key:
-                return parts
+    def _compute(self, x: F64) -> tuple[F64, ...]:
         n = len(self.d)
         r, J = np.empty(n), np.empty((n, len(x)))
         ok = _edge_jit.edge_residual_jacobian(
@@ -197,13 +193,8 @@ class CompiledEdgeFit:
         )
         if not ok:
             ref = EdgeFit(self.d, self.du, self.dv, self.y, self.w)
-            r, J = ref.residual(x), ref.jacobian(x)
-        self._cache = [(key, (r, J)), *self._cache[:1]]
+            return ref.residual(x), ref.jacobian(x)
         return r, J
-
-    def residual(self, x: F64) -> F64:
-        """``r(x) = A c - w E``, (N,)."""
-        return self._parts(x)[0]
 
     def jacobian(self, x: F64) -> F64:
         """``dr/dx`` (N, len(x)) by (J)."""
