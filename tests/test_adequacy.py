@@ -188,3 +188,61 @@ def test_a_curve_neither_linear_nor_srgb_and_a_clipped_edge_make_a_lower_bound()
     assert "doubtful camera_response, saturation: the figure is a lower bound" in v["line"]
     fine = {"camera": {"response": "srgb", "response_source": "estimated", "note": "srgb (x)"}}
     assert assumptions(fine) == []
+
+
+def _pairs_with_pose_component(rng, sd_cap, sd_pose, n_pairs=300):
+    """Pairs a small translation apart: each pose has its own bias ``sd_pose`` and each
+    capture its own noise ``sd_cap`` (u, v px; 1/s), on a known Jacobian."""
+    J = np.array([[4.7e3, -2.0e2, 3.0e2], [1.6e2, 4.7e3, 3.2e2], [0.0, 0.0, -9.5e-2]])
+    dF = rng.normal(scale=2e-4, size=(n_pairs, 3))
+    bias = sd_pose * rng.normal(size=(n_pairs, 2, 3))
+    noise = sd_cap * rng.normal(size=(n_pairs, 2, 3))
+    dm = dF @ J.T + (bias[:, 1] - bias[:, 0]) + (noise[:, 1] - noise[:, 0])
+    return J, dF, dm
+
+
+def test_the_pose_component_is_recovered_from_the_loop_steps_beside_the_captures():
+    """(N3)-(N4): a bias the same at every capture of one pose is invisible to the
+    repeated captures; the pairs a step apart recover it (seeded, known truth)."""
+    from pipeline.stages.touchup.noise import pose_noise
+
+    rng = np.random.default_rng(11)
+    s0 = 47.77
+    sd_cap = np.array([0.004, 0.004, 0.0075 / s0**2])
+    sd_pose = np.array([0.003, 0.003, 0.0104 / s0**2])
+    J, dF, dm = _pairs_with_pose_component(rng, sd_cap, sd_pose)
+    Ji = np.linalg.inv(J)
+    capture = {
+        "sd_px": [sd_cap[0], sd_cap[1], sd_cap[2] * s0**2],
+        "n_eff": 3.0,
+        "cov_flange_m2": (Ji @ np.diag(sd_cap**2) @ Ji.T).tolist(),
+        "rms_touchup_um": 1e6 * math.sqrt(np.trace(Ji @ np.diag(sd_cap**2) @ Ji.T) / 3),
+    }
+    got = pose_noise(dF, dm, J, capture, s0)
+    assert 250 <= got["n_pose_pairs"] <= 300  # a pair beyond max_change_px is left out
+    assert got["pose_sd_px"][2] == pytest.approx(0.0104, rel=0.2)
+    want = Ji @ np.diag(sd_pose**2) @ Ji.T + Ji @ np.diag(sd_cap**2) @ Ji.T / 3
+    assert got["rms_touchup_um"] == pytest.approx(1e6 * math.sqrt(np.trace(want)), rel=0.2)
+    assert got["rms_touchup_um"] > 2 * capture["rms_touchup_um"]  # the captures' share alone
+    # without a pose component nothing is added beyond the captures' share
+    J, dF, dm = _pairs_with_pose_component(rng, sd_cap, 0.0 * sd_pose)
+    none = pose_noise(dF, dm, J, capture, s0)
+    assert none["pose_sd_px"][2] < 0.004
+    assert none["rms_touchup_um"] < 1.3 * capture["rms_touchup_um"]
+
+
+def test_single_captures_take_the_whole_noise_from_the_loop_steps():
+    from pipeline.stages.touchup.noise import capture_noise, pose_noise
+
+    rng = np.random.default_rng(12)
+    s0 = 47.77
+    J, dF, dm = _pairs_with_pose_component(rng, np.array([0.004, 0.004, 3e-6]), 0.0)
+    capture = capture_noise([[0], [1]], np.ones(2), np.ones(2), np.ones(2), J, s0)
+    got = pose_noise(dF, dm, J, capture, s0)
+    Ji = np.linalg.inv(J)
+    want = 1e6 * math.sqrt(np.trace(Ji @ np.diag([0.004**2, 0.004**2, 3e-6**2]) @ Ji.T))
+    assert math.isnan(got["rms_capture_um"])
+    assert got["rms_touchup_um"] == pytest.approx(want, rel=0.2)
+    assert adequacy({"rms_mm": want * 1e-3, "dof": 30, "n_rows": 18}, got)["tested"]
+    few = pose_noise(dF[:5], dm[:5], J, capture, s0)
+    assert few["n_pose_pairs"] == 0 and math.isnan(few["rms_touchup_um"])

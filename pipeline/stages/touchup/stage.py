@@ -74,7 +74,7 @@ from pipeline.estimation.correction_frame import scatter_columns
 from pipeline.kinematics.chain import fk, load_chain
 from pipeline.measurement.image import diameter_from_jacobian, pair_change, view_geometry
 from pipeline.stages.touchup.jacobian import estimate_jacobian, pair_scatters, size_row_scales
-from pipeline.stages.touchup.noise import capture_noise
+from pipeline.stages.touchup.noise import capture_noise, pose_noise
 from pipeline.stages.touchup.rows import final_shapes, touchup_row
 from pipeline.stages.touchup.segments import final_block, loop_starts, relative_poses, segments
 from pipeline.stages.touchup.targets import group_targets
@@ -400,6 +400,8 @@ def extract_touchups(
     }
     table.attrs["n_jacobian_pairs"] = len(pair_seg)
     table.attrs["settle"] = settled
-    table.attrs["capture_noise"] = capture_noise(uses, c.u, c.v, c.s, J_global, des.s0)
+    captured = capture_noise(uses, c.u, c.v, c.s, J_global, des.s0)
+    pose = pose_noise(dF_all, dm_all, J_global, captured, des.s0)
+    table.attrs["capture_noise"] = {**captured, **pose}
     table.attrs["implied_target_diameter_m"] = diameter_from_jacobian(J_global, des.s0)
     return table

@@ -7,9 +7,11 @@ view, a print's shape the model does not hold) bends every touch-up a little
 differently; the fit absorbs part of it and the held-out figure sees only the
 rest. What it cannot hide is the size of the fit's residual: with detection
 noise as the only error, the training residual's RMS is predicted by the
-repeated captures' scatter (:mod:`pipeline.stages.touchup.noise`, (N1)-(N2))::
+touch-ups' measured noise (:mod:`pipeline.stages.touchup.noise`): the repeated
+captures' scatter (N1)-(N2) plus the pose component the loop's small steps show
+(N3)-(N4), which the captures at one pose cannot see::
 
-    E |r|^2 = tr(Sigma_dbar) (3N - p) / (3N),      rms_pred = sqrt(E |r|^2)           (A1)
+    E |r|^2 = tr(Sigma_touchup) (3N - p) / (3N),   rms_pred = sqrt(E |r|^2)           (A1)
 
 (``3N`` residual components, ``p`` unknowns: the fit's ``dof = 3N - p``). The
 ratio ``rho = rms_fit / rms_pred`` is near 1 when the touch-ups hold nothing
@@ -71,8 +73,8 @@ def adequacy(summary: Mapping[str, Any], noise: Mapping[str, Any] | None) -> dic
     }
     if rms_touchup is None:
         out["note"] = (
-            "model adequacy not tested: the recording has no repeated captures at a touch-up's "
-            "final pose to measure the detection noise from"
+            "model adequacy not tested: the recording has neither repeated captures at a "
+            "touch-up's final pose nor enough small steps to measure the touch-ups' noise from"
         )
         return out
     if fit is None or dof is None or n is None or dof <= 0 or n <= 0:
@@ -85,14 +87,16 @@ def adequacy(summary: Mapping[str, Any], noise: Mapping[str, Any] | None) -> dic
     if systematic:
         out["note"] = (
             f"systematic error likely: the fit's residual ({fit:.4f} mm) is {ratio:.1f}x what "
-            f"the detection noise of the repeated captures predicts ({pred:.4f} mm); an error "
+            f"the touch-ups' measured noise predicts ({pred:.4f} mm: repeated captures and the "
+            "loop's small steps); an error "
             "that changes from pose to pose (camera curve, focus, light, print) is in the "
             "touch-ups, and the figure is a lower bound"
         )
     else:
         out["note"] = (
             f"model adequate: the fit's residual ({fit:.4f} mm) is {ratio:.2f}x what the "
-            f"detection noise of the repeated captures predicts ({pred:.4f} mm; "
+            f"touch-ups' measured noise predicts ({pred:.4f} mm: repeated captures and the "
+            "loop's small steps; "
             f"<= {RATIO_MAX:g}x)"
         )
     return out
