@@ -152,9 +152,10 @@ def _run(rec, out, overrides):
 def test_a_wrong_camera_curve_is_found_by_the_adequacy_test(wrong_curve_cell, tmp_path):
     """sRGB images read as linear, with defocus and uneven light that change the size
     bias from pose to pose (seed 7: 0.78 mm off the truth where the run's figure said
-    0.14 mm). The fit's residual is 4.1x what the repeated captures' noise predicts: the
-    verdict says the figure is a lower bound and a tolerance fails. The same images with
-    the curve estimated (sRGB: 0.031 mm true, 0.029 claimed) stay quiet (1.14)."""
+    0.14 mm). The fit's residual is 3.5x what the measured noise (captures and loop
+    steps) predicts (4.1x the captures' share alone): the verdict says the figure is a
+    lower bound and a tolerance fails. The same images with the curve estimated (sRGB:
+    0.031 mm true, 0.029 claimed) stay quiet (0.64)."""
     wrong = _run(wrong_curve_cell, tmp_path / "linear", {"camera_response": "linear"})
     v = verdict(wrong, tolerance_mm=1.0)
     assert wrong["trust"]["adequacy"]["ratio"] > RATIO_MAX, wrong["trust"]
