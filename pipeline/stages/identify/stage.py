@@ -429,7 +429,7 @@ def _uncertainty(s: _Setup, f: _Solved, config: IdentifyConfig) -> Uncertainty:
     nom = model.nominal
     q_out = widened_poses(data.q, nom.lower, nom.upper, config.n_workspace, rng)
     pred["beyond"] = predicted_over(*at, q_out, ("shape",))["shape"]
-    return Uncertainty(std_z, corr, sigma2, int(dof), obs, pred)
+    return Uncertainty(std_z, corr, sigma2, int(dof), obs, pred, cov)
 
 
 def _identify_one(name: str, robot: Robot, data: FitData, config: IdentifyConfig) -> IdentifyResult:
@@ -484,7 +484,16 @@ def _identify_one(name: str, robot: Robot, data: FitData, config: IdentifyConfig
         error_model=model,
         target_xyz=_target_xyz(data, tg),
         print_shape=f.shape_fit,
+        covariance=u.cov,
+        covariance_names=_covariance_names(model, kept, data),
     )
+
+
+def _covariance_names(model: Any, kept: np.ndarray, data: FitData) -> list[str]:
+    """Names of the covariance's unknowns: the kept parameters, ``pin.x/y/z``, then
+    ``target.LABEL.x/y/z`` in the fit's target order."""
+    names = [model.param_names[int(j)] for j in kept] + [f"pin.{c}" for c in "xyz"]
+    return names + [f"target.{lab}.{c}" for lab in data.target_labels for c in "xyz"]
 
 
 def _target_xyz(data: FitData, tg: F64) -> dict[int, F64]:

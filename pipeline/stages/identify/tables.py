@@ -34,6 +34,7 @@ class Uncertainty:
     dof : ``m - p``
     obs : observability indices and condition number of the reduced Jacobian
     pred : ``{"shape"|"absolute"|"raw": (W,) predicted pin errors (m)}`` over workspace poses
+    cov : (Z, Z) the covariance itself, in the order of ``std_z`` (kinematic, pin, targets)
     """
 
     std_z: F64
@@ -42,6 +43,7 @@ class Uncertainty:
     dof: int
     obs: dict[str, float]
     pred: dict[str, F64]
+    cov: F64 | None = None
 
 
 @dataclass

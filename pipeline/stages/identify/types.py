@@ -176,6 +176,9 @@ class IdentifyResult:
         also where a prediction-only fit makes no targets table
     print_shape : the fitted print shape (:class:`pipeline.stages.identify.print_shape.ShapeFit`),
         None when the fit kept perfect circles of one size
+    covariance : (Z, Z) the fit's covariance ``sigma^2 (J^T J)^-1`` of its estimated
+        unknowns (:func:`pipeline.estimation.uncertainty.covariance`), None where none was
+        made ; covariance_names : (Z,) their names (:func:`pipeline.stages.identify.stage._covariance_names`)
     """
 
     model: str
@@ -191,6 +194,8 @@ class IdentifyResult:
     correction_map: F64 = field(repr=False, default_factory=lambda: np.eye(3))
     target_xyz: dict[int, F64] = field(repr=False, default_factory=dict)
     print_shape: ShapeFit | None = field(repr=False, default=None)
+    covariance: F64 | None = field(repr=False, default=None)
+    covariance_names: list[str] = field(repr=False, default_factory=list)
 
     def predict(self, q: F64, d: F64, shape: PrintRows | None = None) -> F64:
         """Pin positions of the fitted model, (N, 3):
