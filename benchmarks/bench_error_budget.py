@@ -133,9 +133,16 @@ def evaluate(path: Path) -> dict[str, Any]:
         # the centre at this touch-up (a knocked target's history), the plate's normal
         tgt = {**targets[t["target"]], "centre": t["target_centre"]}
         trues = [_true_image(truth, chain, np.array(images[k]["q_true"]), tgt) for k in caps]
-        err = np.array([_m(det.loc[k, ["u", "v", "s"]].to_numpy(float)) - _m(e) for k, (e, _, _) in zip(caps, trues, strict=True)])
+        err = np.array(
+            [
+                _m(det.loc[k, ["u", "v", "s"]].to_numpy(float)) - _m(e)
+                for k, (e, _, _) in zip(caps, trues, strict=True)
+            ]
+        )
         if len(caps) > 1:
-            rows["within"].append((err - err.mean(axis=0)) @ -Ji.T * np.sqrt(len(caps) / (len(caps) - 1)))
+            rows["within"].append(
+                (err - err.mean(axis=0)) @ -Ji.T * np.sqrt(len(caps) / (len(caps) - 1))
+            )
         rows["mean"].append(err.mean(axis=0) @ -Ji.T)
         n_caps.append(len(caps))
         ell, flat, proj = trues[-1]
@@ -148,14 +155,18 @@ def evaluate(path: Path) -> dict[str, Any]:
         rows["lens"].append((_m(ell) - _m(flat)) @ -Ji.T)
         q = r[info.joint_names].to_numpy(float)
         Tm, Tt = fk(chain, q), fk(chain, np.array(t["q"]))
-        rows["enc"].append(Tt[:3, :3].T @ ((Tm[:3, :3] - Tt[:3, :3]) @ p_pin + Tm[:3, 3] - Tt[:3, 3]))
+        rows["enc"].append(
+            Tt[:3, :3].T @ ((Tm[:3, :3] - Tt[:3, :3]) @ p_pin + Tm[:3, 3] - Tt[:3, 3])
+        )
         d = r[["dx_flange", "dy_flange", "dz_flange"]].to_numpy(float)
         e_total = Tm[:3, :3] @ (p_pin + d) + Tm[:3, 3] - np.array(t["target_centre"])
         total.append(Tm[:3, :3].T @ e_total)
     W = np.concatenate(rows["within"]) if rows["within"] else np.zeros((0, 3))
     M = np.array(rows["mean"])
     n_eff = len(n_caps) / float(np.sum(1.0 / np.array(n_caps)))
-    cov_within = W.T @ W / max(len(W) - len(rows["within"]), 1) / n_eff if len(W) else np.zeros((3, 3))
+    cov_within = (
+        W.T @ W / max(len(W) - len(rows["within"]), 1) / n_eff if len(W) else np.zeros((3, 3))
+    )
     cov_between = np.cov(M.T)
     cov_pose = cov_between - cov_within
     E = np.array(total)
@@ -170,9 +181,18 @@ def evaluate(path: Path) -> dict[str, Any]:
         X = np.asarray(X, dtype=float)
         mean = X.mean(axis=0)
         sd_a, sd_x = split(np.cov(X.T) if len(X) > 1 else np.zeros((3, 3)))
-        return {"mean_along": 1e6 * float(mean @ view), "mean_across": 1e6 * float(np.linalg.norm(mean - (mean @ view) * view)), "sd_along": sd_a, "sd_across": sd_x}
+        return {
+            "mean_along": 1e6 * float(mean @ view),
+            "mean_across": 1e6 * float(np.linalg.norm(mean - (mean @ view) * view)),
+            "sd_along": sd_a,
+            "sd_across": sd_x,
+        }
 
-    pa, px = split(np.array(noise["cov_flange_m2"]) / noise["n_eff"]) if np.isfinite(noise["n_eff"]) else (float("nan"),) * 2
+    pa, px = (
+        split(np.array(noise["cov_flange_m2"]) / noise["n_eff"])
+        if np.isfinite(noise["n_eff"])
+        else (float("nan"),) * 2
+    )
     qa, qx = split(np.array(noise["cov_pose_flange_m2"]))
     wa, wx = split(cov_within)
     ba, bx = split(cov_pose)
@@ -194,7 +214,11 @@ def evaluate(path: Path) -> dict[str, Any]:
 
 
 def table(results: list[dict[str, Any]]) -> str:
-    head = "| source (um of pin, along / across the view) | " + " | ".join(f"{r['name']} ({r['n']})" for r in results) + " |"
+    head = (
+        "| source (um of pin, along / across the view) | "
+        + " | ".join(f"{r['name']} ({r['n']})" for r in results)
+        + " |"
+    )
     out = [head, "|---|" + "---|" * len(results)]
 
     def cell(pair: tuple[float, float]) -> str:
@@ -203,33 +227,72 @@ def table(results: list[dict[str, Any]]) -> str:
     def row(label: str, f: Any) -> None:
         out.append(f"| {label} | " + " | ".join(f(r) for r in results) + " |")
 
-    row("detection noise per capture at one pose, predicted (N1-N2, n-averaged)", lambda r: cell(r["predicted"]["capture"]))
+    row(
+        "detection noise per capture at one pose, predicted (N1-N2, n-averaged)",
+        lambda r: cell(r["predicted"]["capture"]),
+    )
     row("the same, measured against the true ellipses", lambda r: cell(r["measured_capture"]))
     row("pose component of detection, predicted (N3)", lambda r: cell(r["predicted"]["pose"]))
-    row("the same, measured (scatter of per-pose means beyond the captures')", lambda r: cell(r["measured_pose"]))
-    row("constant detection bias (mean; the pin absorbs it)", lambda r: f"{r['detection']['mean_along']:+.1f} / {r['detection']['mean_across']:.1f}")
-    for key, label in (("encoder", "joint encoder + interpolation at the stamp, sd"), ("perspective", "perspective offset left after the tilt correction, sd"), ("lens", "lens distortion around the designated point, sd"), ("chain", "correction and convergence chain (the rest), sd")):
+    row(
+        "the same, measured (scatter of per-pose means beyond the captures')",
+        lambda r: cell(r["measured_pose"]),
+    )
+    row(
+        "constant detection bias (mean; the pin absorbs it)",
+        lambda r: f"{r['detection']['mean_along']:+.1f} / {r['detection']['mean_across']:.1f}",
+    )
+    for key, label in (
+        ("encoder", "joint encoder + interpolation at the stamp, sd"),
+        ("perspective", "perspective offset left after the tilt correction, sd"),
+        ("lens", "lens distortion around the designated point, sd"),
+        ("chain", "correction and convergence chain (the rest), sd"),
+    ):
         row(label, lambda r, k=key: f"{r[k]['sd_along']:.1f} / {r[k]['sd_across']:.1f}")
-    for key, label in (("perspective", "perspective, mean"), ("lens", "lens distortion, mean"), ("chain", "correction chain, mean")):
+    for key, label in (
+        ("perspective", "perspective, mean"),
+        ("lens", "lens distortion, mean"),
+        ("chain", "correction chain, mean"),
+    ):
         row(label, lambda r, k=key: f"{r[k]['mean_along']:+.1f} / {r[k]['mean_across']:.1f}")
-    row("**total, sd** (the corrected pin against the true centre)", lambda r: f"**{r['total']['sd_along']:.1f} / {r['total']['sd_across']:.1f}**")
-    row("**total, mean**", lambda r: f"**{r['total']['mean_along']:+.1f} / {r['total']['mean_across']:.1f}**")
-    row("noise model per touch-up, RMS: captures alone -> captures + pose (N4)", lambda r: f"{r['rms_capture_um']:.1f} -> {r['rms_touchup_um']:.1f}")
-    row("observed sd RMS / (N4)", lambda r: f"{np.hypot(r['total']['sd_along'], r['total']['sd_across']) / r['rms_touchup_um']:.2f}")
+    row(
+        "**total, sd** (the corrected pin against the true centre)",
+        lambda r: f"**{r['total']['sd_along']:.1f} / {r['total']['sd_across']:.1f}**",
+    )
+    row(
+        "**total, mean**",
+        lambda r: f"**{r['total']['mean_along']:+.1f} / {r['total']['mean_across']:.1f}**",
+    )
+    row(
+        "noise model per touch-up, RMS: captures alone -> captures + pose (N4)",
+        lambda r: f"{r['rms_capture_um']:.1f} -> {r['rms_touchup_um']:.1f}",
+    )
+    row(
+        "observed sd RMS / (N4)",
+        lambda r: (
+            f"{np.hypot(r['total']['sd_along'], r['total']['sd_across']) / r['rms_touchup_um']:.2f}"
+        ),
+    )
     return "\n".join(out)
 
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("recordings", nargs="*", type=Path)
-    ap.add_argument("--write", action="store_true", help="write the table into docs/error-budget.md")
+    ap.add_argument(
+        "--write", action="store_true", help="write the table into docs/error-budget.md"
+    )
     a = ap.parse_args()
     results = [evaluate(p) for p in (a.recordings or DEFAULT)]
     text = table(results)
     print(text)
     if a.write:
         doc = DOC.read_text()
-        new = re.sub(r"(<!-- budget -->\n).*?(\n<!-- /budget -->)", lambda m: m.group(1) + text + m.group(2), doc, flags=re.S)
+        new = re.sub(
+            r"(<!-- budget -->\n).*?(\n<!-- /budget -->)",
+            lambda m: m.group(1) + text + m.group(2),
+            doc,
+            flags=re.S,
+        )
         DOC.write_text(new)
         print(f"written: {DOC}")
 

@@ -93,9 +93,10 @@ def estimate_of(
     e = Estimate(
         names, z, np.zeros((0, 0)), tg.reset_index(drop=True), result, q, tk, labels, gauge
     )
-    e.cov = fit_covariance(result, e.names)
-    if e.cov is None:  # a fit that made no covariance of its own (prediction only)
-        e.cov = covariance(e, distances, np.zeros((len(q), 3)) if d is None else np.asarray(d))
+    own = fit_covariance(result, e.names)
+    if own is None:  # a fit that made no covariance of its own (prediction only)
+        own = covariance(e, distances, np.zeros((len(q), 3)) if d is None else np.asarray(d))
+    e.cov = own
     return e
 
 
