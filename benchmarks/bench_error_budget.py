@@ -32,7 +32,11 @@ covariance must hold). ``--write`` puts the table into docs/error-budget.md.
 
 Usage::
 
-    python benchmarks/bench_error_budget.py [REC.mcap ...] [--write]
+    python benchmarks/bench_error_budget.py [REC.mcap ...] [--simulate SEED ...] [--write]
+
+``--simulate SEED`` adds our own simulator's standard LR Mate-like cell
+(``datasets/scenarios/standard.toml``, that seed, 36 touch-ups, three captures each),
+simulated into a temporary folder.
 """
 
 from __future__ import annotations
@@ -40,6 +44,7 @@ from __future__ import annotations
 import argparse
 import json
 import re
+import tempfile
 from pathlib import Path
 from typing import Any
 
@@ -56,6 +61,7 @@ DEFAULT = [
     SHARED / "foreign" / "lrmate51_day0.mcap",
     SHARED / "foreign" / "lrmate51_day7.mcap",
 ]
+SCENARIO = Path(__file__).resolve().parents[1] / "datasets" / "scenarios" / "standard.toml"
 DOC = Path(__file__).resolve().parents[1] / "docs" / "error-budget.md"
 _PHI = np.linspace(0.0, 2.0 * np.pi, 1440, endpoint=False)
 
@@ -281,8 +287,25 @@ def main() -> None:
     ap.add_argument(
         "--write", action="store_true", help="write the table into docs/error-budget.md"
     )
+    ap.add_argument(
+        "--simulate",
+        type=int,
+        nargs="*",
+        default=[],
+        metavar="SEED",
+        help="add our simulator's standard cell at these seeds",
+    )
     a = ap.parse_args()
-    results = [evaluate(p) for p in (a.recordings or DEFAULT)]
+    recordings = list(a.recordings or DEFAULT)
+    with tempfile.TemporaryDirectory() as tmp:
+        for seed in a.simulate:
+            from pipeline.sim.scenario import load_scenario
+            from pipeline.sim.simulator import write_recording
+
+            rec = Path(tmp) / f"our_simulator_standard_s{seed}.mcap"
+            write_recording(load_scenario(SCENARIO), seed, rec)
+            recordings.append(rec)
+        results = [evaluate(p) for p in recordings]
     text = table(results)
     print(text)
     if a.write:
