@@ -80,9 +80,11 @@ from pipeline.stages.identify.structure import design_jacobian, exact_touchups, 
 from pipeline.stages.identify.tables import (
     FitFigures,
     Uncertainty,
+    covariance_names,
     fit_summary,
     parameter_table,
     residual_table,
+    strict_json,
     target_table,
     weighted_rms,
 )
@@ -485,15 +487,8 @@ def _identify_one(name: str, robot: Robot, data: FitData, config: IdentifyConfig
         target_xyz=_target_xyz(data, tg),
         print_shape=f.shape_fit,
         covariance=u.cov,
-        covariance_names=_covariance_names(model, kept, data),
+        covariance_names=covariance_names(model.param_names, kept, data.target_labels),
     )
-
-
-def _covariance_names(model: Any, kept: np.ndarray, data: FitData) -> list[str]:
-    """Names of the covariance's unknowns: the kept parameters, ``pin.x/y/z``, then
-    ``target.LABEL.x/y/z`` in the fit's target order."""
-    names = [model.param_names[int(j)] for j in kept] + [f"pin.{c}" for c in "xyz"]
-    return names + [f"target.{lab}.{c}" for lab in data.target_labels for c in "xyz"]
 
 
 def _target_xyz(data: FitData, tg: F64) -> dict[int, F64]:
@@ -582,28 +577,8 @@ def fit_outputs(results: IdentifyResult | dict[str, IdentifyResult]) -> dict[str
         "order": list(many),  # the order fitted (JSON files sort their keys)
         "best_model": best.model,
     }
-    text = json.dumps(_finite(doc), default=_json_default, allow_nan=False)
     return {
         **tables,
         "model_urdfs": {n: r.calibrated_urdf for n, r in many.items()},
-        "models": json.loads(text),
+        "models": strict_json(doc),
     }
-
-
-def _finite(o: Any) -> Any:
-    """NaN/inf floats -> None, recursively (strict JSON)."""
-    if isinstance(o, float | np.floating):
-        return float(o) if math.isfinite(o) else None
-    if isinstance(o, dict):
-        return {k: _finite(v) for k, v in o.items()}
-    if isinstance(o, list | tuple):
-        return [_finite(v) for v in o]
-    return o
-
-
-def _json_default(o: Any) -> Any:
-    if isinstance(o, np.generic):
-        return o.item()
-    if isinstance(o, np.ndarray):
-        return o.tolist()
-    return str(o)

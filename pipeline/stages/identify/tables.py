@@ -72,6 +72,13 @@ class FitFigures:
     Lc: float
 
 
+def covariance_names(param_names: list[str], kept: Any, target_labels: list[str]) -> list[str]:
+    """Names of :attr:`Uncertainty.cov`'s unknowns: the kept parameters, ``pin.x/y/z``, then
+    ``target.LABEL.x/y/z`` in the fit's target order."""
+    names = [param_names[int(j)] for j in kept] + [f"pin.{c}" for c in "xyz"]
+    return names + [f"target.{lab}.{c}" for lab in target_labels for c in "xyz"]
+
+
 def parameter_table(f: FitFigures, u: Uncertainty) -> pd.DataFrame:
     """``parameters`` rows: every kinematic parameter (held ones with the reason), then the pin."""
     model, kept, x, dof = f.model, f.kept, f.x, u.dof
@@ -328,3 +335,29 @@ def _solver_fields(f: FitFigures) -> dict[str, Any]:
         "initial_rms_mm": f.initial_rms * 1e3,
         "characteristic_length_m": f.Lc,
     }
+
+
+def strict_json(doc: Any) -> Any:
+    """``doc`` as strict JSON data: NaN and inf as None, numpy values as Python ones."""
+    import json
+
+    return json.loads(json.dumps(_finite(doc), default=_json_default, allow_nan=False))
+
+
+def _finite(o: Any) -> Any:
+    """NaN/inf floats -> None, recursively (strict JSON)."""
+    if isinstance(o, float | np.floating):
+        return float(o) if math.isfinite(o) else None
+    if isinstance(o, dict):
+        return {k: _finite(v) for k, v in o.items()}
+    if isinstance(o, list | tuple):
+        return [_finite(v) for v in o]
+    return o
+
+
+def _json_default(o: Any) -> Any:
+    if isinstance(o, np.generic):
+        return o.item()
+    if isinstance(o, np.ndarray):
+        return o.tolist()
+    return str(o)

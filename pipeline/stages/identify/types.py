@@ -178,7 +178,7 @@ class IdentifyResult:
         None when the fit kept perfect circles of one size
     covariance : (Z, Z) the fit's covariance ``sigma^2 (J^T J)^-1`` of its estimated
         unknowns (:func:`pipeline.estimation.uncertainty.covariance`), None where none was
-        made ; covariance_names : (Z,) their names (:func:`pipeline.stages.identify.stage._covariance_names`)
+        made ; covariance_names : (Z,) their names (:func:`pipeline.stages.identify.tables.covariance_names`)
     """
 
     model: str

@@ -128,7 +128,10 @@ def pose_noise(
     dm : (N, 3) their changes of ``(u, v, 1/s)``
     J : (3, 3) the image Jacobian fitted to them
     capture : :func:`capture_noise` of the same recording (its ``sd_px`` and ``n_eff``;
-        NaN without repeated captures: then (N3) gives one capture's whole noise)
+        NaN without repeated captures: then (N3) gives one capture's whole noise, reported
+        as ``pose_sd_px``, and ``rms_touchup_um`` stays NaN: the adequacy test of
+        :mod:`pipeline.stages.trust.adequacy` stays untested, as before (on the truncated
+        conformance sample the loop steps alone gave a ratio of 21, unexamined))
     s0 : designated long axis, px
     max_change_px : pairs whose predicted centre change exceeds this are left out
     min_pairs : fewer usable pairs leave the component unknown
@@ -165,7 +168,7 @@ def pose_noise(
     Ji = np.linalg.inv(J)
     Sp = Ji @ np.diag(var_pose) @ Ji.T
     Sc = np.asarray(capture.get("cov_flange_m2"), dtype=float) / float(capture.get("n_eff", 1.0))
-    total = Sp + (Sc if repeated and np.all(np.isfinite(Sc)) else 0.0)
+    total = Sp + Sc if repeated and np.all(np.isfinite(Sc)) else np.full((3, 3), np.nan)
     out.update(
         n_pose_pairs=int(use.sum()),
         pose_sd_px=[
@@ -174,6 +177,6 @@ def pose_noise(
             float(np.sqrt(var_pose[2])) * s0 * s0,
         ],
         cov_pose_flange_m2=Sp.tolist(),
-        rms_touchup_um=float(1e6 * np.sqrt(max(np.trace(total), 0.0))),
+        rms_touchup_um=float(1e6 * np.sqrt(np.trace(total))),
     )
     return out

@@ -73,8 +73,8 @@ def adequacy(summary: Mapping[str, Any], noise: Mapping[str, Any] | None) -> dic
     }
     if rms_touchup is None:
         out["note"] = (
-            "model adequacy not tested: the recording has neither repeated captures at a "
-            "touch-up's final pose nor enough small steps to measure the touch-ups' noise from"
+            "model adequacy not tested: the recording has no repeated captures at a touch-up's "
+            "final pose to measure the detection noise from"
         )
         return out
     if fit is None or dof is None or n is None or dof <= 0 or n <= 0:
