@@ -89,14 +89,21 @@ def identify(data: dict[str, Any], config: Any, context: Any) -> dict[str, Any]:
     """Every asked-for error model fitted: the three tables, models.json, one URDF per model.
 
     With the touch-ups stage in the run, the target diameter its image Jacobian implies
-    (their ``implied_target_diameter_m`` metadata) is checked by the guardrails.
+    (their ``implied_target_diameter_m`` metadata) is checked by the guardrails, and the
+    covariance of their pose component (``capture_noise``) enters the predicted errors as
+    the pin offset no residual sees (:func:`pipeline.estimation.uncertainty.with_pin_offset`).
     """
     from pipeline.stages.identify import stage
 
     urdf, base_link, flange_link = context.robot
     if "touchups" in data:
-        implied = _finite(_meta(data, "touchups").get("implied_target_diameter_m"))
-        config = dataclasses.replace(config, implied_target_diameter_m=implied)
+        tu = _meta(data, "touchups")
+        implied = _finite(tu.get("implied_target_diameter_m"))
+        # the pose component's unseen mean: a pin offset in the predicted errors (P1)
+        pose = json.loads(tu.get("capture_noise") or "{}").get("cov_pose_flange_m2")
+        config = dataclasses.replace(
+            config, implied_target_diameter_m=implied, pin_offset_cov_m2=pose
+        )
     results = stage.identify(data["inliers"], urdf, base_link, flange_link, config)
     return stage.fit_outputs(results)
 

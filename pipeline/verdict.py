@@ -8,13 +8,14 @@ its own measurement error (:func:`own_noise_mm`), so the figure is
 
     validated = max(pred, sqrt((held^2 - e^2) (k - 1) / k))                        (V2)
 
-the covariance-predicted shape error ``pred`` (the random error the fit leaves,
+the covariance-predicted error ``pred`` (absolute with a known distance, shape
+without: :func:`predicted_kind`) (the random error the fit leaves,
 valid when the model is adequate: :mod:`pipeline.stages.trust.adequacy`) or, when the
 held-out touch-ups miss by more than that beyond their own noise ``e``, that
 (the ``(k-1)/k``: each fold's fit had that share of the touch-ups). The raw
 held-out RMS overstated the error by up to 3.5x where the touch-ups' own noise
 was comparable to the robot's error (bench_optics, docs/identification.md). Without
-cross-validation it is the covariance-predicted shape error, labelled as such.
+cross-validation it is the covariance-predicted error, labelled as such.
 It is compared with the nominal robot's error on the same touch-ups (the nominal
 kinematics with their best pin and targets, ``solver.initial_rms_mm``). A run is
 *improved* only when the validated error is below ``IMPROVED_BELOW`` times the
@@ -66,6 +67,18 @@ def own_noise_mm(summary: dict[str, Any]) -> float | None:
     return fit * math.sqrt(3.0 * n / dof)
 
 
+def predicted_kind(summary: dict[str, Any]) -> str:
+    """Which covariance-predicted figure the verdict takes: ``absolute`` or ``shape``.
+
+    With a known distance the length scale is identified (``scale_held`` False) and the
+    pin's error after a best-fit rigid motion (the base frame, never identifiable, is
+    registered) is what a user meets: ``absolute``. It also carries the pin offset of
+    (P1) (:func:`pipeline.estimation.uncertainty.with_pin_offset`), which a similarity
+    partly hides. Without one the scale is a gauge and only ``shape`` applies.
+    """
+    return "absolute" if summary.get("scale_held") is False else "shape"
+
+
 def tolerance_from_metadata(meta: dict[str, Any] | None) -> float | None:
     """The recording's ``tolerance_mm`` metadata key (mm) if it holds a positive number."""
     try:
@@ -103,7 +116,8 @@ def verdict(
     model = str(summary.get("best_model") or summary.get("model") or "")
     cv = ((summary.get("crossval") or {}).get("models") or {}).get(model) or {}
     held = _num(cv.get("kfold_rms_mm"))
-    pred = _num(summary.get("predicted_shape_rms_mm"))
+    kind = predicted_kind(summary)
+    pred = _num(summary.get(f"predicted_{kind}_rms_mm"))
     own = own_noise_mm(summary)
     if held is not None and pred is not None and own is not None:
         k = float((summary.get("crossval") or {}).get("k") or 5)
@@ -112,14 +126,14 @@ def verdict(
         how = (
             f"held-out (k-fold, {cv.get('kfold_n', '?')} touch-ups: {held:.4f} mm each, "
             f"{beyond:.4f} mm less their own {own:.4f} mm noise; covariance-predicted "
-            f"{pred:.4f} mm)"
+            f"{pred:.4f} mm {kind})"
         )
     elif held is not None:
         validated, vmax = held, _num(cv.get("kfold_max_mm"))
         how = f"held-out (k-fold, {cv.get('kfold_n', '?')} touch-ups)"
     elif pred is not None:
-        validated, vmax = pred, _num(summary.get("predicted_shape_max_mm"))
-        how = "predicted from the parameter covariance (not cross-validated)"
+        validated, vmax = pred, _num(summary.get(f"predicted_{kind}_max_mm"))
+        how = f"predicted from the parameter covariance, {kind} (not cross-validated)"
     else:
         validated, vmax, how = None, None, "not available"
     nominal = (
@@ -160,6 +174,7 @@ def verdict(
         "validated_how": how,
         "fit_mm": fit,
         "predicted_mm": pred,
+        "predicted_kind": kind,
         "nominal_mm": nominal,
         "ratio": ratio,
         "improved": improved,

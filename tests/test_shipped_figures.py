@@ -76,7 +76,9 @@ def test_identify_json_is_the_shipped_models_rows(run_dir: Path) -> None:
     own = s["rms_mm"] * np.sqrt(3 * s["n_rows"] / s["dof"])
     k = s["crossval"]["k"]
     beyond = np.sqrt(max(own_cv["kfold_rms_mm"] ** 2 - own**2, 0.0) * (k - 1) / k)
-    want = max(s["predicted_shape_rms_mm"], beyond)
+    # absolute with a known distance (the scale identified), shape without
+    kind = "shape" if s["scale_held"] else "absolute"
+    want = max(s[f"predicted_{kind}_rms_mm"], beyond)
     assert v is not None and v["validated_mm"] == pytest.approx(want, rel=1e-12)
 
 

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from typing import Any
+
 import numpy as np
 
 from pipeline.kinematics.se3 import F64
@@ -32,6 +34,40 @@ def predicted_errors(Jw: F64, cov: F64, p: F64, kind: str) -> F64:
         G = G - Q @ (Q.T @ G)
     var = np.einsum("ij,jk,ik->i", G, cov, G).reshape(N, 3).sum(axis=1)
     return np.asarray(np.sqrt(np.clip(var, 0.0, None)))
+
+
+def with_pin_offset(cov_e: F64, pin_offset_cov: Any) -> F64:
+    """The kinematic-and-pin covariance with the touch-ups' unseen constant pin offset added.
+
+    The pose component of a touch-up's error (:func:`pipeline.stages.touchup.noise.
+    pose_noise`, covariance ``Sigma_pose`` in the flange frame) varies from pose to pose
+    around a mean no residual can see: a constant offset of every touch-up's pin is
+    absorbed by the pin itself. Taking that mean as one more draw of the pose component,
+    the pin's estimate carries it in full:
+
+        cov_e[pin, pin] <- cov_e[pin, pin] + Sigma_pose                              (P1)
+
+    (the pin is the last three of the ``E`` columns of ``cov_e``). On the independent
+    generator's recordings the pin sat 44-47 um off along the view, against a pose
+    component of 39-55 um (docs/error-budget.md).
+
+    Parameters
+    ----------
+    cov_e : (E, E) covariance of the identified kinematic columns and the pin (m^2)
+    pin_offset_cov : (3, 3) ``Sigma_pose`` (m^2, flange frame), or None / non-finite: nothing
+
+    Returns
+    -------
+    (E, E) covariance
+    """
+    if pin_offset_cov is None:
+        return cov_e
+    S = np.asarray(pin_offset_cov, dtype=float)
+    if S.shape != (3, 3) or not np.all(np.isfinite(S)) or not np.all(np.isfinite(cov_e)):
+        return cov_e
+    out = np.array(cov_e, dtype=float, copy=True)
+    out[-3:, -3:] += 0.5 * (S + S.T)
+    return out
 
 
 def residual_variance(r: F64, n_unknowns: int) -> tuple[float, int]:

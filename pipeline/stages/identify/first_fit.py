@@ -36,6 +36,7 @@ NOT_READ = frozenset(
         "n_workspace",
         "target_diameter_m",
         "implied_target_diameter_m",
+        "pin_offset_cov_m2",
         "accept_implausible",
         "check_plausibility",
         "workers",

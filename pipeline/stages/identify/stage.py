@@ -62,7 +62,12 @@ from pipeline.errors import BadInput, CalibrationFailed
 from pipeline.estimation.identifiability import select_columns
 from pipeline.estimation.loss import partial_loss
 from pipeline.estimation.region import predicted_over, widened_poses
-from pipeline.estimation.uncertainty import covariance, predicted_errors, residual_variance
+from pipeline.estimation.uncertainty import (
+    covariance,
+    predicted_errors,
+    residual_variance,
+    with_pin_offset,
+)
 from pipeline.estimation.whitening import flange_whitening
 from pipeline.evaluate import workspace_poses
 from pipeline.kinematics.se3 import F64
@@ -424,6 +429,7 @@ def _uncertainty(s: _Setup, f: _Solved, config: IdentifyConfig) -> Uncertainty:
     Ared = project_out(Jfull[:, :P][:, kept] * s.pscale[kept], Jfull[:, P:])
     obs = indices_from_singular_values(np.linalg.svd(Ared, compute_uv=False), prob.m)
 
+    cov_e = with_pin_offset(cov_e, config.pin_offset_cov_m2)
     rng = np.random.default_rng(config.seed)
     at = (model, f.x, f.pin, kept, cov_e)
     pred = predicted_over(*at, workspace_poses(data.q, config.n_workspace, rng))

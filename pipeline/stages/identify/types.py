@@ -60,6 +60,11 @@ class IdentifyConfig:
     implied_target_diameter_m : the diameter the touch-up stage's image Jacobian implies
         (:func:`pipeline.measurement.image.diameter_from_jacobian`), checked against
         ``target_diameter_m`` by the guardrails; None for a table without images
+    pin_offset_cov_m2 : (3 x 3 nested list, m^2, flange frame) the covariance of the
+        touch-ups' pose component (:func:`pipeline.stages.touchup.noise.pose_noise`): its
+        mean over the recording is a constant pin offset no residual sees, added to the
+        pin's covariance before the predicted errors (P1 of docs/identification.md);
+        None (single captures, a table without images): nothing added
     accept_implausible : identify even where :mod:`pipeline.stages.trust.plausibility` finds an
         input the nominal robot contradicts (joint values outside the URDF's limits, a
         known distance off by more than the nominal robot's own error); the lines are
@@ -104,6 +109,7 @@ class IdentifyConfig:
     shape_min_touchups: int = 6
     target_diameter_m: float | None = None
     implied_target_diameter_m: float | None = None
+    pin_offset_cov_m2: list[list[float]] | None = None
     accept_implausible: bool = False
     check_plausibility: bool = True
     prediction_only: bool = False
