@@ -94,13 +94,14 @@ def identify(data: dict[str, Any], config: Any, context: Any) -> dict[str, Any]:
     the pin offset no residual sees (:func:`pipeline.estimation.uncertainty.with_pin_offset`).
     """
     from pipeline.stages.identify import stage
+    from pipeline.stages.touchup.noise import pin_offset_cov
 
     urdf, base_link, flange_link = context.robot
     if "touchups" in data:
         tu = _meta(data, "touchups")
         implied = _finite(tu.get("implied_target_diameter_m"))
         # the pose component's unseen mean: a pin offset in the predicted errors (P1)
-        pose = json.loads(tu.get("capture_noise") or "{}").get("cov_pose_flange_m2")
+        pose = pin_offset_cov(json.loads(tu.get("capture_noise") or "{}"))
         config = dataclasses.replace(
             config, implied_target_diameter_m=implied, pin_offset_cov_m2=pose
         )

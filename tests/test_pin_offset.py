@@ -15,6 +15,7 @@ import pytest
 from pipeline.estimation.uncertainty import predicted_errors, with_pin_offset
 from pipeline.evaluate import registered_errors
 from pipeline.kinematics.se3 import matrix_from_axis_angle
+from pipeline.stages.touchup.noise import pin_offset_cov
 from pipeline.verdict import predicted_kind, verdict
 
 
@@ -97,3 +98,13 @@ def test_verdict_takes_the_absolute_figure_with_a_known_distance() -> None:
     assert v is not None and v["validated_mm"] == 0.04 and v["predicted_kind"] == "absolute"
     v = verdict({**base, "scale_held": True})
     assert v is not None and v["validated_mm"] == 0.02 and "shape" in v["validated_how"]
+
+
+def test_the_offset_only_where_the_pose_component_was_told_apart() -> None:
+    """One capture per touch-up: the loop steps' component is one capture's whole noise,
+    which averages over the touch-ups, so no pin offset is taken from it."""
+    cov = (np.eye(3) * 1e-10).tolist()
+    assert pin_offset_cov({"rms_touchup_um": 44.3, "cov_pose_flange_m2": cov}) == cov
+    assert pin_offset_cov({"rms_touchup_um": float("nan"), "cov_pose_flange_m2": cov}) is None
+    assert pin_offset_cov({"rms_touchup_um": 44.3, "cov_pose_flange_m2": [[1.0]]}) is None
+    assert pin_offset_cov(None) is None and pin_offset_cov({}) is None

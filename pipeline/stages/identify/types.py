@@ -63,7 +63,8 @@ class IdentifyConfig:
     pin_offset_cov_m2 : (3 x 3 nested list, m^2, flange frame) the covariance of the
         touch-ups' pose component (:func:`pipeline.stages.touchup.noise.pose_noise`): its
         mean over the recording is a constant pin offset no residual sees, added to the
-        pin's covariance before the predicted errors (P1 of docs/identification.md);
+        pin's covariance before the predicted errors (P1 of
+        :func:`pipeline.estimation.uncertainty.with_pin_offset`);
         None (single captures, a table without images): nothing added
     accept_implausible : identify even where :mod:`pipeline.stages.trust.plausibility` finds an
         input the nominal robot contradicts (joint values outside the URDF's limits, a

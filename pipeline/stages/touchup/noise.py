@@ -41,6 +41,7 @@ is nearly the same at two poses a step apart, so (N3) leaves it to the adequacy 
 
 from __future__ import annotations
 
+import math
 from typing import Any
 
 import numpy as np
@@ -180,3 +181,22 @@ def pose_noise(
         rms_touchup_um=float(1e6 * np.sqrt(np.trace(total))),
     )
     return out
+
+
+def pin_offset_cov(noise: dict[str, Any] | None) -> list[list[float]] | None:
+    """The pose component's covariance (m^2, flange frame) for (P1), or None.
+
+    Only where the pose component was told apart from the repeated captures' noise
+    (``rms_touchup_um`` finite): with one capture per touch-up, :func:`pose_noise`'s
+    ``cov_pose_flange_m2`` holds one capture's whole noise, which averages over the
+    touch-ups and is no pin offset (:func:`pipeline.estimation.uncertainty.with_pin_offset`).
+    """
+    if not noise or not math.isfinite(float(noise.get("rms_touchup_um", float("nan")))):
+        return None
+    cov = noise.get("cov_pose_flange_m2")
+    a = np.asarray(cov, dtype=float) if cov is not None else np.full(1, np.nan)
+    return (
+        [list(map(float, row)) for row in a]
+        if a.shape == (3, 3) and np.all(np.isfinite(a))
+        else None
+    )
