@@ -85,6 +85,16 @@ def test_each_event_read_as_its_one_cause(small_history, small_estimates):
     assert readings[3] is not None and readings[3].kind == "base"
 
 
+def test_a_change_below_the_tolerance_is_detectable_within_tolerance():
+    from pipeline.audit.audit import significance
+
+    assert significance(False, "none", float("nan"), 0.1) == "none"
+    assert significance(True, "arm", 0.0109, 0.1) == "within_tolerance"
+    assert significance(True, "arm", 0.245, 0.1) == "beyond_tolerance"
+    assert significance(True, "several", float("nan"), 0.1) == "beyond_tolerance"
+    assert significance(True, "different_robot", 0.01, 0.1) == "beyond_tolerance"
+
+
 def test_two_robots_of_one_model_read_as_different_robots(small_estimates):
     d = compare_estimates(small_estimates[0], small_estimates[5])
     r = attribute(d, small_estimates[5])
@@ -107,6 +117,11 @@ def test_cli_audit_end_to_end(small_history, tmp_path):
     assert p.returncode == 0, p.stderr
     ch = pd.read_parquet(out / "audit_changes.parquet")
     assert ch["kind"].tolist() == ["none", "arm", "camera"]
+    # joint 3's 0.05 deg and the camera's 0.1 mm move this cell's registered pin by 0.039 and
+    # 0.023 mm: seen, and said to be within the 0.1 mm tolerance
+    assert ch["read_drift_mm"][1:].max() < 0.1, ch["read_drift_mm"]
+    assert ch["significance"].tolist() == ["none", "within_tolerance", "within_tolerance"]
+    assert ch["text"][1].startswith("detectable, within tolerance")
     rec = pd.read_parquet(out / "audit_recordings.parquet")
     assert rec["recording"].tolist() == [f"A-r0{i}" for i in range(4)]
     assert rec.loc[2, "drift_mm"] > 2 * rec.loc[1, "drift_mm"] and rec.loc[1, "passed"]

@@ -42,15 +42,42 @@ class AuditResult:
     estimates: dict[str, Estimate] = field(default_factory=dict, repr=False)
 
 
+def significance(changed: bool, kind: str, read_mm: float, tolerance_mm: float) -> str:
+    """``none``, ``within_tolerance`` or ``beyond_tolerance`` of one comparison.
+
+    A change the test sees (``changed``) whose read drift (the pin's RMS move over the
+    later recording's poses, :func:`pipeline.audit.drift.read_drift_m`) is at most the
+    tolerance is *detectable, within tolerance*: real, and not worth a page. Without a
+    drift figure (NaN) or read as different robots, it matters.
+    """
+    if not changed:
+        return "none"
+    if kind != "different_robot" and np.isfinite(read_mm) and read_mm <= tolerance_mm:
+        return "within_tolerance"
+    return "beyond_tolerance"
+
+
 def _change_row(
-    kind: str, a: AuditItem, b: AuditItem, ea: Estimate, eb: Estimate, alpha: float
+    kind: str,
+    a: AuditItem,
+    b: AuditItem,
+    ea: Estimate,
+    eb: Estimate,
+    alpha: float,
+    tolerance_mm: float = TOLERANCE_MM,
 ) -> dict[str, Any]:
     diff = compare_estimates(ea, eb)
     reading = attribute(diff, eb, alpha) if diff.changed(alpha) else Reading("none", "", "")
     read_mm = read_drift_m(eb, diff, reading) * 1e3
+    sig = significance(diff.changed(alpha), reading.kind, read_mm, tolerance_mm)
     if not reading.text:
         reading.text = (
             f"no change: chi2 {diff.T:.1f} on {diff.dof} dof (p = {diff.p:.2g} >= {alpha:g})"
+        )
+    elif sig == "within_tolerance":
+        reading.text = (
+            f"detectable, within tolerance ({read_mm:.4f} mm <= {tolerance_mm:g} mm): "
+            + reading.text
         )
     return {
         "comparison": kind,
@@ -75,6 +102,7 @@ def _change_row(
         "alternatives": list(reading.alternatives),
         "text": reading.text,
         "read_drift_mm": read_mm,
+        "significance": sig,
     }
 
 
@@ -118,7 +146,13 @@ def run_audit(
             }
             if i:
                 c = _change_row(
-                    "history", runs[i - 1], it, est[runs[i - 1].name], est[it.name], alpha
+                    "history",
+                    runs[i - 1],
+                    it,
+                    est[runs[i - 1].name],
+                    est[it.name],
+                    alpha,
+                    tolerance_mm,
                 )
                 v = validate_previous(
                     est[runs[i - 1].name], est[it.name], it, tolerance_mm, c["read_drift_mm"]
@@ -136,7 +170,7 @@ def run_audit(
         by_model.setdefault(runs[0].model, []).append(runs[0])
     for firsts in by_model.values():
         for a, b in zip(firsts, firsts[1:], strict=False):
-            c = _change_row("robots", a, b, est[a.name], est[b.name], alpha)
+            c = _change_row("robots", a, b, est[a.name], est[b.name], alpha, tolerance_mm)
             ch_rows.append(c)
             lines.append(f"robots {a.robot_id} vs {b.robot_id}: {c['text']}")
     matrix = model_matrix(flat, models, workers)
@@ -158,4 +192,5 @@ CHANGE_COLUMNS = [
     "comparison", "robot_id", "from_robot_id", "from_recording", "to_recording", "stamp_ns",
     "chi2", "dof", "p_value", "alpha", "changed", "kind", "cause", "columns", "size",
     "size_std", "residual_chi2", "residual_dof", "groups", "alternatives", "text", "read_drift_mm",
+    "significance",
 ]  # fmt: skip
