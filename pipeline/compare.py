@@ -50,6 +50,7 @@ COLUMNS = [
     "shipped",
     "heldout_rms_mm",
     "loto_rms_mm",
+    "heldout_z_vs_shipped",
     "train_rms_mm",
     "predicted_rms_mm",
     "cond",
@@ -220,6 +221,7 @@ def _run_rows(
             "shipped": str(model) == shipped,
             "heldout_rms_mm": _num((cvm.get(model) or {}).get("kfold_rms_mm")),
             "loto_rms_mm": _num((cvm.get(model) or {}).get("loto_rms_mm")),
+            "heldout_z_vs_shipped": _num(((cv.get("paired") or {}).get(model) or {}).get("z")),
             "train_rms_mm": _num(ms.get("rms_mm")),
             "predicted_rms_mm": _num(
                 ms.get("predicted_absolute_rms_mm", ms.get("predicted_rms_mm"))
@@ -366,6 +368,17 @@ tr.moved td{background:#fde2e2} .ok{color:#176b2c} .bad{color:#a11}
 #: what every table says for a model without a held-out figure (e.g. elastic, which the
 #: run fits but does not cross-validate unless asked): never ``nan`` here and ``-`` there
 NOT_CROSS_VALIDATED = "not cross-validated"
+
+
+def told_apart_text(z: Any) -> str:
+    """'' or "  (not told apart from the shipped model: z = +0.4)", (T1) of
+    :mod:`pipeline.stages.crossval.told_apart`; '' where it was not made or told them apart."""
+    from pipeline.stages.crossval.told_apart import Z_APART
+
+    zf = _num(z)
+    if not math.isfinite(zf) or abs(zf) >= Z_APART:
+        return ""
+    return f"  (not told apart from the shipped model: z = {zf:+.1f})"
 
 
 def heldout_text(v: Any) -> str:

@@ -39,7 +39,7 @@ def command(
     moved by more than its uncertainty is flagged.
     """
     from pipeline.artefacts import atomic_write_bytes, write_artefact
-    from pipeline.compare import compare_runs, heldout_text, render_html
+    from pipeline.compare import compare_runs, heldout_text, render_html, told_apart_text
     from pipeline.errors import BadInput
 
     if not k_sigma > 0:
@@ -54,6 +54,7 @@ def command(
             f"{r.run:24s} {r.model:8s} held-out {heldout_text(r.heldout_rms_mm)}  training "
             f"{r.train_rms_mm:.4f} mm  cond {r.cond:.3g}  rejected {r.n_rejected}"
             + ("  (shipped)" if r.shipped else "")
+            + told_apart_text(r.heldout_z_vs_shipped)
         )
     click.echo(res.summary["verdict"])
     for f in res.summary["flags"]:

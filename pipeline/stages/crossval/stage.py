@@ -55,6 +55,7 @@ from pipeline.errors import BadInput, CalibrationFailed
 from pipeline.kinematics.se3 import F64
 from pipeline.stages.crossval.predict import held_rows, joints_and_corrections, predict_pins
 from pipeline.stages.crossval.refit import RefitTable, refit, refit_config, refit_table
+from pipeline.stages.crossval.told_apart import not_told_apart, sentence
 from pipeline.stages.identify.stage import IdentifyConfig
 from pipeline.stages.identify.types import Robot
 from pipeline.stages.parallel_map import parallel_map
@@ -206,6 +207,9 @@ def cross_validate(
     trained = {m: f.get("rms_mm") for m, f in known.items() if isinstance(f, Mapping)}
     chosen, choice = _choose(summary_models, trained)
     summary = _summary(s.k, config, summary_models, chosen, choice)
+    if chosen is not None:  # (T1): which models the held-out errors cannot tell apart
+        summary["paired"] = not_told_apart(out, chosen, list(summary_models))
+        summary["choice"] = choice + sentence(chosen, summary["paired"])
     return CrossvalResult(table=out, chosen_model=chosen, summary=_strict(summary))
 
 
