@@ -81,3 +81,39 @@ def test_compare_carries_the_paired_z(tmp_path: Path) -> None:
     assert math.isnan(runs.loc["full", "heldout_z_vs_shipped"])
     assert "not told apart" in told_apart_text(0.4) and told_apart_text(3.0) == ""
     shutil.rmtree(run)
+
+
+def test_the_fleet_ranks_on_the_runs_own_kfold_and_ties_what_it_cannot_tell_apart(
+    tmp_path: Path,
+) -> None:
+    """The audit's models x recordings matrix takes each run's k-fold figures (one home with
+    the run's choice) and gives the models its paired test did not tell apart the chosen
+    model's rank; the fleet line names them."""
+    from pipeline.audit.audit import _tied_text
+    from pipeline.audit.fleet import model_matrix, ranking
+    from pipeline.audit.identity import AuditItem
+
+    items = []
+    for r, (poe, full) in enumerate([(0.0417, 0.0420), (0.0661, 0.0660)]):
+        run = tmp_path / f"r{r}"
+        run.mkdir()
+        kfold = {"offsets": 1.2, "mdh": full, "full": full, "poe": poe}
+        cv = {
+            "k": 5,
+            "chosen_model": "poe",
+            "models": {m: {"kfold_rms_mm": e, "kfold_failed_folds": 0} for m, e in kfold.items()},
+            "paired": {
+                "offsets": {"z": 3.9, "n": 36, "told_apart": True},
+                "mdh": {"z": 1.0, "n": 36, "told_apart": False},
+                "full": {"z": 1.0, "n": 36, "told_apart": False},
+            },
+        }
+        (run / "identify.json").write_text(json.dumps({"crossval": cv}))
+        items.append(AuditItem(f"r{r}", run, "A", "m", "", "b", "f", r, pd.DataFrame()))
+    mat = model_matrix(items)
+    assert set(mat["note"]) == {"k-fold of the run (5 folds)"}
+    r0 = mat[mat["recording"] == "r0"].set_index("model")["rank"]
+    assert r0.to_dict() == {"offsets": 4, "mdh": 1, "full": 1, "poe": 1}
+    rank = ranking(mat)
+    assert _tied_text(rank) == "; not told apart by held-out error: " + ", ".join(rank["model"][:3])
+    assert rank["model"].iloc[3] == "offsets"

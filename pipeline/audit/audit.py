@@ -181,11 +181,21 @@ def run_audit(
             f"{r.model} (median rank {r.median_rank:g}, RMS {r.rms_heldout_mm:.4f} mm)"
             for r in rank.itertuples()
         )
+        + _tied_text(rank)
     )
     return AuditResult(
         pd.DataFrame(rec_rows), pd.DataFrame(ch_rows, columns=CHANGE_COLUMNS), matrix, rank,
         lines, est,
     )  # fmt: skip
+
+
+def _tied_text(rank: pd.DataFrame) -> str:
+    """'' or "; not told apart by held-out error: poe, full, mdh" (the models sharing the
+    best median rank: the runs' paired tests tied them, :mod:`pipeline.audit.fleet`)."""
+    if rank.empty:
+        return ""
+    best = rank[rank["median_rank"] == rank["median_rank"].iloc[0]]["model"].tolist()
+    return "; not told apart by held-out error: " + ", ".join(best) if len(best) > 1 else ""
 
 
 CHANGE_COLUMNS = [

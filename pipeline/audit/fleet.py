@@ -1,11 +1,15 @@
 """Which error model predicts best across the fleet: a models x recordings matrix.
 
-Per recording and error model, the two-fold held-out consistency
-(:func:`pipeline.audit.fit.heldout_mm`: fitted on every other touch-up of each
-target, judged on the rest, and the other way round). Per recording the models
-are ranked (1 = lowest held-out error); overall, by the median of their ranks,
-then by the RMS of their held-out errors over the recordings where every model
-could be fitted.
+Per recording and error model, the held-out error the run itself shipped on: its
+k-fold cross-validation (``identify.json["crossval"]``, one home with the run's
+choice of model). Where the run did not cross-validate a model, the two-fold
+held-out consistency (:func:`pipeline.audit.fit.heldout_mm`: fitted on every
+other touch-up of each target, judged on the rest, and the other way round),
+said in the row's ``note``. Per recording the models are ranked (1 = lowest
+held-out error); a model the run's paired test (T1 of
+:mod:`pipeline.stages.crossval.told_apart`) does not tell apart from the run's
+chosen model shares its rank. Overall, by the median of their ranks, then by the
+RMS of their held-out errors over the recordings where every model could be fitted.
 """
 
 from __future__ import annotations
@@ -30,14 +34,19 @@ def model_matrix(
     """
     from pipeline.stages.parallel_map import parallel_map
 
-    tasks = [(i, m) for i in range(len(items)) for m in models]
+    runs = [run_crossval(it) for it in items]
+    tasks = [(i, m) for i in range(len(items)) for m in models if m not in runs[i][0]]
     res = parallel_map(lambda t: heldout_mm(items[t[0]], t[1]), tasks, workers)
     got = dict(zip(tasks, res, strict=True))
     rows = []
     for i, it in enumerate(items):
-        errs = {m: got[(i, m)] for m in models}
+        kfold, chosen, tied = runs[i]
+        errs = {m: kfold[m] if m in kfold else got[(i, m)] for m in models}
         vals = pd.Series({m: e for m, (e, _) in errs.items()})
         ranks = vals.rank(method="min", na_option="keep")
+        group = [m for m in [chosen, *tied] if m in ranks and np.isfinite(ranks[m])]
+        if chosen in group:  # the chosen model and those not told apart from it: one rank
+            ranks[group] = min(ranks[m] for m in group)
         for m, (e, note) in errs.items():
             r = ranks[m]
             rows.append(
@@ -51,6 +60,28 @@ def model_matrix(
                 }
             )
     return pd.DataFrame(rows)
+
+
+def run_crossval(item: AuditItem) -> tuple[dict[str, tuple[float, str]], str, list[str]]:
+    """The run folder's own k-fold figures: ``({model: (kfold_rms_mm, note)}, chosen,
+    [models not told apart from it])``; empty where the run has no cross-validation."""
+    import json
+
+    try:
+        s = json.loads((item.path / "identify.json").read_text())
+    except (OSError, ValueError):
+        return {}, "", []
+    cv = s.get("crossval") or {}
+    out: dict[str, tuple[float, str]] = {}
+    for m, v in (cv.get("models") or {}).items():
+        e = v.get("kfold_rms_mm")
+        if v.get("kfold_failed_folds", 1) == 0 and isinstance(e, (int, float)) and np.isfinite(e):
+            out[str(m)] = (float(e), f"k-fold of the run ({cv.get('k', '?')} folds)")
+    paired = cv.get("paired") or {}
+    tied = [
+        str(m) for m, t in paired.items() if isinstance(t, dict) and t.get("told_apart") is False
+    ]
+    return out, str(cv.get("chosen_model") or ""), tied
 
 
 def ranking(matrix: pd.DataFrame) -> pd.DataFrame:
