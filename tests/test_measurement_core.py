@@ -92,6 +92,102 @@ def test_the_measurement_model_is_defined_once() -> None:
     assert found == []
 
 
+#: the core's modules whose functions may not be copied under other names: the measurement
+#: model and the covariance of a fit (pipeline/estimation/uncertainty.py)
+SHAPE_CORE = [*sorted(CORE.glob("*.py")), PACKAGE / "estimation" / "uncertainty.py"]
+#: statements a copied run must hold to count (shorter runs are idioms, not the model)
+SHAPE_MIN = 4
+
+
+class _Shape(ast.NodeTransformer):
+    """An AST with its names, arguments and constants blanked: what is left is its shape
+    (the calls, attributes and operators), so a copy under other names matches."""
+
+    def visit_Name(self, node: ast.Name) -> ast.AST:
+        return ast.copy_location(ast.Name(id="_", ctx=node.ctx), node)
+
+    def visit_arg(self, node: ast.arg) -> ast.AST:
+        return ast.copy_location(ast.arg(arg="_"), node)
+
+    def visit_Constant(self, node: ast.Constant) -> ast.AST:
+        return ast.copy_location(ast.Constant(value=0), node)
+
+
+def _runs(body: list[ast.stmt]) -> list[tuple[str, int]]:
+    """Each window of ``SHAPE_MIN`` consecutive statements of ``body`` (and of every nested
+    block) as its shape, with the first statement's line; docstrings left out."""
+    out = []
+    stmts = [b for b in body if not (isinstance(b, ast.Expr) and isinstance(b.value, ast.Constant))]
+    for i in range(len(stmts) - SHAPE_MIN + 1):
+        window = stmts[i : i + SHAPE_MIN]
+        text = "".join(ast.dump(_Shape().visit(ast.parse(ast.unparse(w)))) for w in window)
+        out.append((text, window[0].lineno))
+    for b in stmts:
+        for field in ("body", "orelse", "finalbody"):
+            inner = getattr(b, field, None)
+            if isinstance(inner, list) and inner and isinstance(inner[0], ast.stmt):
+                out += _runs(inner)
+    return out
+
+
+def _function_runs(text: str) -> list[tuple[str, int]]:
+    """:func:`_runs` of every function body of a module's source."""
+    out = []
+    for node in ast.walk(ast.parse(text)):
+        if isinstance(node, ast.FunctionDef):
+            out += _runs(node.body)
+    return out
+
+
+def shape_copies(text: str, core_shapes: dict[str, str]) -> list[str]:
+    """Runs of one module's statements that are a core run under other names (one line each)."""
+    seen = {}
+    for shape, line in _function_runs(text):
+        if shape in core_shapes and line not in seen:
+            seen[line] = f"line {line}: the shape of {core_shapes[shape]}"
+    return [seen[k] for k in sorted(seen)]
+
+
+def _core_shapes() -> dict[str, str]:
+    out: dict[str, str] = {}
+    for p in SHAPE_CORE:
+        for shape, line in _function_runs(p.read_text()):
+            out.setdefault(shape, f"{p.relative_to(PACKAGE.parent)}:{line}")
+    return out
+
+
+def test_the_core_is_not_copied_under_other_names() -> None:
+    """No module repeats a run of the core's statements with other names and values."""
+    core = _core_shapes()
+    assert len(core) > 20
+    found = []
+    for p in sorted(PACKAGE.rglob("*.py")):
+        if p in SHAPE_CORE or p in APART:
+            continue
+        found += [f"{p.relative_to(PACKAGE.parent)} {d}" for d in shape_copies(p.read_text(), core)]
+    assert found == []
+
+
+def test_the_shape_check_finds_a_renamed_copy() -> None:
+    """A negative control: the covariance routine copied with every name changed is found,
+    and the same statements reordered are not."""
+    import inspect
+
+    from pipeline.estimation.uncertainty import covariance
+
+    src = inspect.getsource(covariance)
+    for old, new in (("covariance", "my_cov"), ("sigma2", "s2"), ("scale", "w"), ("good", "k")):
+        src = src.replace(old, new)
+    src = src.replace("1e-12", "1e-10")
+    found = shape_copies(src, _core_shapes())
+    assert found and "uncertainty.py" in found[0]
+    fn = ast.parse(src).body[0]
+    assert isinstance(fn, ast.FunctionDef)
+    fn.body = list(reversed(fn.body[1:]))  # the docstring out, the statements reversed
+    shuffled = ast.unparse(fn)
+    assert shape_copies(shuffled, _core_shapes()) == []
+
+
 def _importers() -> set[str]:
     """Paths (under ``pipeline/`` and ``benchmarks/``) of the modules importing the core."""
     out = set()
