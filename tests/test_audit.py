@@ -42,6 +42,27 @@ def test_change_test_false_alarm_rate_on_known_covariances():
     assert d.changed(0.05)
 
 
+def test_the_f_test_holds_the_rate_where_the_variance_factors_are_estimated():
+    """Covariances scaled by variance factors estimated on 12 residual dof each (a 3 x 6
+    touch-up recording with the full model): the chi-square test alarms at several times
+    alpha, (C3)'s F test with the Welch-Satterthwaite dof at alpha."""
+    rng = np.random.default_rng(4)
+    E, n, f = 30, 3000, 12
+    L = rng.normal(size=(E, E))
+    A = L @ L.T * 1e-8
+    chi_alarms = f_alarms = 0
+    for _ in range(n):
+        za, zb = rng.multivariate_normal(np.zeros(E), A, 2)
+        sa, sb = rng.chisquare(f, 2) / f  # each fit's sigma^2-hat / sigma^2
+        names = [f"p{i}" for i in range(E)]
+        chi_alarms += difference_test(za, sa * A, zb, sb * A, names).changed(0.01)
+        d = difference_test(za, sa * A, zb, sb * A, names, f, f)
+        f_alarms += d.changed(0.01)
+    assert 12 < d.f_dof < 24  # between one fit's dof and both together
+    assert chi_alarms / n > 0.05, chi_alarms / n
+    assert abs(f_alarms / n - 0.01) < 3 * np.sqrt(0.01 * 0.99 / n) + 0.003, f_alarms / n
+
+
 @pytest.fixture(scope="session")
 def small_history():
     """One robot, five recordings: nothing, joint 3's zero +0.05 deg, the camera 0.1 mm,

@@ -63,9 +63,8 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 import numpy as np
-from scipy.stats import chi2
 
-from pipeline.audit.change import ALPHA, Difference, difference_test
+from pipeline.audit.change import ALPHA, Difference, difference_test, isf, sf
 from pipeline.audit.fit import Estimate, constraint_rows, point_columns
 from pipeline.kinematics.se3 import F64
 from pipeline.stages.identify.types import IdentifyConfig
@@ -228,7 +227,7 @@ def group_changes(diff: Difference, alpha: float = ALPHA) -> list[str]:
             np.zeros(len(idx)), np.zeros((len(idx),) * 2), diff.delta[idx],
             diff.cov[np.ix_(idx, idx)], [diff.names[i] for i in idx],
         )  # fmt: skip
-        if d.dof and d.p < alpha / len(groups):
+        if d.dof and sf(d.T, d.dof, diff.f_dof) < alpha / len(groups):
             out.append(g)
     return out
 
@@ -287,8 +286,8 @@ def attribute(diff: Difference, est: Estimate, alpha: float = ALPHA) -> Reading:
             best = (score, c, beta, std, resid, dof, A @ beta)
     if best is not None:
         _, c, beta, std, resid, dof, explained = best
-        p = float(chi2.sf(resid, dof)) if dof > 0 else 1.0
-        bound = (float(chi2.isf(ALPHA_EXPLAINED, dof)) if dof > 0 else 0.0) + LINEAR_SHARE * diff.T
+        p = sf(resid, dof, diff.f_dof)
+        bound = isf(ALPHA_EXPLAINED, dof, diff.f_dof) + LINEAR_SHARE * diff.T
         if resid <= bound:
             alts = [n for sc, n in scores if n != c.name and sc - best[0] < EQUALLY_WELL]
             also = f"; as well explained by: {', '.join(alts)}" if alts else ""

@@ -72,7 +72,8 @@ def _change_row(
     sig = significance(diff.changed(alpha), reading.kind, read_mm, tolerance_mm)
     if not reading.text:
         reading.text = (
-            f"no change: chi2 {diff.T:.1f} on {diff.dof} dof (p = {diff.p:.2g} >= {alpha:g})"
+            f"no change: chi2 {diff.T:.1f} on {diff.dof} dof{_f_text(diff.f_dof)} "
+            f"(p = {diff.p:.2g} >= {alpha:g})"
         )
     elif sig == "within_tolerance":
         reading.text = (
@@ -88,6 +89,7 @@ def _change_row(
         "stamp_ns": b.stamp_ns,
         "chi2": diff.T,
         "dof": diff.dof,
+        "f_dof": diff.f_dof if np.isfinite(diff.f_dof) else None,
         "p_value": diff.p,
         "alpha": alpha,
         "changed": diff.changed(alpha),
@@ -189,6 +191,11 @@ def run_audit(
     )  # fmt: skip
 
 
+def _f_text(f: float) -> str:
+    """'' or ", variance factors on 47 dof" (the F test of (C3) in pipeline.audit.change)."""
+    return f", variance factors on {f:.0f} dof" if np.isfinite(f) else ""
+
+
 def _tied_text(rank: pd.DataFrame) -> str:
     """'' or "; not told apart by held-out error: poe, full, mdh" (the models sharing the
     best median rank: the runs' paired tests tied them, :mod:`pipeline.audit.fleet`)."""
@@ -200,7 +207,7 @@ def _tied_text(rank: pd.DataFrame) -> str:
 
 CHANGE_COLUMNS = [
     "comparison", "robot_id", "from_robot_id", "from_recording", "to_recording", "stamp_ns",
-    "chi2", "dof", "p_value", "alpha", "changed", "kind", "cause", "columns", "size",
+    "chi2", "dof", "f_dof", "p_value", "alpha", "changed", "kind", "cause", "columns", "size",
     "size_std", "residual_chi2", "residual_dof", "groups", "alternatives", "text", "read_drift_mm",
     "significance",
 ]  # fmt: skip

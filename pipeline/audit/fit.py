@@ -53,6 +53,8 @@ class Estimate:
     q : (N, n) the usable touch-ups' joint vectors ; tk : (N,) their target index
     labels : K target labels (text) of ``tk``
     gauge : (P,) the scale gauge row ``g . x = 0`` the fit held (no known distance), else None
+    dof : the fit's residual degrees of freedom, on which ``cov``'s variance factor was
+        estimated (0: unknown; :mod:`pipeline.audit.change` (C3))
     """
 
     names: list[str]
@@ -64,6 +66,7 @@ class Estimate:
     tk: np.ndarray
     labels: list[str]
     gauge: F64 | None = None
+    dof: int = 0
 
     def index(self) -> dict[str, int]:
         return {n: i for i, n in enumerate(self.names)}
@@ -96,6 +99,8 @@ def estimate_of(
     own = fit_covariance(result, e.names)
     if own is None:  # a fit that made no covariance of its own (prediction only)
         own = covariance(e, distances, np.zeros((len(q), 3)) if d is None else np.asarray(d))
+    else:  # identification's covariance: its variance factor on the fit's residual dof
+        e.dof = int(result.summary.get("dof") or 0)
     e.cov = own
     return e
 
