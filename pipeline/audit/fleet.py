@@ -67,8 +67,10 @@ def run_crossval(item: AuditItem) -> tuple[dict[str, tuple[float, str]], str, li
     [models not told apart from it])``; empty where the run has no cross-validation."""
     import json
 
+    from pipeline.catalog import RUN_FILES
+
     try:
-        s = json.loads((item.path / "identify.json").read_text())
+        s = json.loads((item.path / RUN_FILES["identify"]).read_text())
     except (OSError, ValueError):
         return {}, "", []
     cv = s.get("crossval") or {}
