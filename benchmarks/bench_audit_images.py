@@ -31,6 +31,8 @@ import tempfile
 import time
 from pathlib import Path
 
+import numpy as np
+
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
@@ -48,7 +50,9 @@ PLAN = [
 ]
 
 
-def scenario(cell_seed: int, rid: str, dm: float, dc: float, per_target: int) -> str:
+def scenario(
+    cell_seed: int, rid: str, dm: float, dc: float, per_target: int, change: str = ""
+) -> str:
     m = (MOUNT[0] + dm, MOUNT[1], MOUNT[2])
     c = (CENTRE[0] + dc, CENTRE[1], CENTRE[2])
     return f"""name = "audit_images"
@@ -56,6 +60,7 @@ def scenario(cell_seed: int, rid: str, dm: float, dc: float, per_target: int) ->
 name = "lrmate"
 robot_id = "{rid}"
 cell_seed = {cell_seed}
+{change}
 [camera]
 mount_xyz_m = [{m[0]!r}, {m[1]!r}, {m[2]!r}]
 [targets]
@@ -69,6 +74,109 @@ per_target = {per_target}
 """
 
 
+#: --histories cases: (name, [robot] lines of the event, mount shift m, the reading's test)
+def _link_change() -> str:
+    """joint 3's origin 0.1 mm along its nominal offset (bench_audit's link case)."""
+    import numpy as np
+
+    from pipeline.kinematics.chain import load_chain
+    from pipeline.robots import builtin_urdf
+
+    j = {j.name: j for j in load_chain(builtin_urdf("lrmate"), "base_link", "flange").actuated}
+    t = np.asarray(j["joint_3"].T_parent_joint[:3, 3], dtype=float)
+    d = [float(v) for v in 1e-4 * t / np.linalg.norm(t)]
+    return f'change_joint = "joint_3"\nchange_dxyz_m = [{d[0]!r}, {d[1]!r}, {d[2]!r}]'
+
+
+CASES = {
+    "none": ("", 0.0, lambda r: r.kind == "none"),
+    "joint 3 zero 0.05 deg": (
+        f'change_joint = "joint_3"\nchange_dq0_rad = {0.05 * 3.141592653589793 / 180!r}',
+        0.0,
+        lambda r: r.kind == "arm" and r.cause == "joint_3 zero offset",
+    ),
+    "link 0.1 mm": (
+        "LINK",
+        0.0,
+        lambda r: r.kind == "arm" and r.cause.startswith("link before joint_3"),
+    ),
+    "camera 0.1 mm": ("", 1e-4, lambda r: r.kind == "camera"),
+}
+
+
+def _one_recording(job: tuple[Path, str, int]) -> Path:
+    """Simulate and run one recording (its scenario text, seed) unless already there."""
+    work, text, seed = job
+    import hashlib
+
+    key = hashlib.sha256(f"{text}{seed}".encode()).hexdigest()[:12]
+    rec, run = work / f"{key}.mcap", work / "runs" / key
+    if not (run / "inliers.parquet").is_file():
+        toml = work / f"{key}.toml"
+        toml.write_text(text)
+        vtcal("simulate", "--scenario", str(toml), "--seed", str(seed), "--out", str(rec),
+              "--quiet")  # fmt: skip
+        vtcal("run", str(rec), "--out", str(run), "--until", "outliers", "-q")
+    return run
+
+
+def histories(work: Path, n: int, per_target: int, workers: int) -> None:
+    """``n`` image-level histories per case, each a new robot (cell seed) recorded twice
+    (``--seed 1`` and ``2``, the case's event before the second): found, read right, and
+    different robots (each history's first recording against the next history's)."""
+    from concurrent.futures import ProcessPoolExecutor
+
+    from pipeline.audit.attribute import Reading, attribute
+    from pipeline.audit.change import compare_estimates
+    from pipeline.audit.fit import fit_item
+    from pipeline.audit.identity import load_item
+
+    link = _link_change()
+    jobs, keys = [], []
+    for ci, (case, (change, dm, _)) in enumerate(CASES.items()):
+        change = link if change == "LINK" else change
+        for h in range(n):
+            cs, rid = 1000 + 100 * ci + h, f"{ci}-{h}"
+            jobs.append((work, scenario(cs, rid, 0.0, 0.0, per_target), 1))
+            jobs.append((work, scenario(cs, rid, dm, 0.0, per_target, change), 2))
+            keys.append((case, h))
+    t0 = time.perf_counter()
+    with ProcessPoolExecutor(workers) as ex:
+        runs = list(ex.map(_one_recording, jobs))
+    est = [fit_item(load_item(r)) for r in runs]
+    print(f"bench_audit_images --histories {n}: {len(runs)} recordings, 3 targets x "
+          f"{per_target} poses, one capture each, alpha 0.01 per comparison")  # fmt: skip
+    firsts = []
+    for i, (case, h) in enumerate(keys):
+        a, b = est[2 * i], est[2 * i + 1]
+        firsts.append(a)
+        d = compare_estimates(a, b)
+        r = attribute(d, b) if d.changed() else Reading("none", "", "no change")
+        keys[i] = (case, h, d, r)
+    for case, (_, _, ok) in CASES.items():
+        rows = [(d, r) for c, _, d, r in keys if c == case]
+        found = sum(d.changed() for d, _ in rows)
+        right = sum(bool(ok(r)) for _, r in rows)
+        chis = [d.T / d.dof for d, _ in rows]
+        if case == "none":
+            print(f"{case:<22} false alarms {found}/{len(rows)} comparisons"
+                  f" ({100 * found / len(rows):.1f} %); chi2/dof median {np.median(chis):.2f}"
+                  f" (f_dof median {np.median([d.f_dof for d, _ in rows]):.0f})")  # fmt: skip
+        else:
+            print(f"{case:<22} found {found}/{len(rows)} ({100 * found / len(rows):.0f} %),"
+                  f" read right {right}/{len(rows)} ({100 * right / len(rows):.0f} %)")  # fmt: skip
+    diff_ok = 0
+    pairs = list(zip(firsts[:-1], firsts[1:], strict=True))
+    for a, b in pairs:
+        d = compare_estimates(a, b)
+        r = attribute(d, b) if d.changed() else Reading("none", "", "")
+        diff_ok += r.kind == "different_robot"
+    same_as_diff = sum(r.kind == "different_robot" for _, _, _, r in keys)
+    print(f"different robots       read as different robots {diff_ok}/{len(pairs)};"
+          f" one robot read as different robots {same_as_diff}/{len(keys)}")  # fmt: skip
+    print(f"time {time.perf_counter() - t0:.0f} s; recordings in {work}")
+
+
 def vtcal(*args: str) -> None:
     subprocess.run([sys.executable, "-m", "pipeline", *args], check=True, cwd=ROOT,
                    stdout=subprocess.DEVNULL)  # fmt: skip
@@ -79,7 +187,20 @@ def main() -> None:
     ap.add_argument("--workdir", type=Path, default=None, help="keep recordings here")
     ap.add_argument("--per-target", type=int, default=6)
     ap.add_argument("--extra", type=int, default=0, help="no-event recordings added")
+    ap.add_argument(
+        "--histories",
+        type=int,
+        default=0,
+        help="instead: this many histories per case (none, joint 3 zero 0.05 deg, link 0.1 mm, "
+        "camera 0.1 mm), each a new robot recorded twice",
+    )
+    ap.add_argument("--workers", type=int, default=2)
     a = ap.parse_args()
+    if a.histories:
+        work = a.workdir or Path(tempfile.mkdtemp(prefix="bench_audit_images_"))
+        (work / "runs").mkdir(parents=True, exist_ok=True)
+        histories(work, a.histories, a.per_target, a.workers)
+        return
     plan = PLAN + [(100, "img-A", 1e-4, 1e-3, "none")] * a.extra
     from pipeline.audit.attribute import Reading, attribute
     from pipeline.audit.change import compare_estimates

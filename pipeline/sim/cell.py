@@ -163,6 +163,15 @@ def build_cell(sc: Scenario, rng: np.random.Generator) -> Cell:
     deviations = draw_deviations(
         nominal, rng, sc.robot.sigma_xyz_m, sc.robot.sigma_rpy_rad, sc.robot.sigma_q0_rad
     )
+    r = sc.robot
+    if r.change_joint:  # an event on top of the drawn robot (the audit's image histories)
+        if r.change_joint not in deviations:
+            raise ValueError(f"[robot] change_joint {r.change_joint!r}: not an actuated joint")
+        dev = deviations[r.change_joint]
+        dev["dq0_rad"] = float(dev["dq0_rad"]) + float(r.change_dq0_rad)
+        dev["dxyz_m"] = [
+            float(a) + float(b) for a, b in zip(dev["dxyz_m"], r.change_dxyz_m, strict=True)
+        ]
     origins = deviated_origins(nominal, deviations)
     true_urdf = urdf_with_origins(nominal_urdf, origins, name_suffix="_true")
     true = load_chain(true_urdf, sc.robot.base_link, sc.robot.flange_link)

@@ -7,7 +7,9 @@ and keys (see ``docs/simulator.md`` for the meaning of each)::
     [robot]    name | urdf, base_link, flange_link, sigma_xyz_m, sigma_rpy_rad, sigma_q0_rad,
                robot_id (written as the recording's robot_id), cell_seed (draw the robot,
                camera and targets from this seed, the session from --seed: the same
-               robot re-recorded; -1, the default, draws all from --seed)
+               robot re-recorded; -1, the default, draws all from --seed), change_joint,
+               change_dq0_rad, change_dxyz_m (that joint's zero and origin changed by
+               these on top of the drawn robot: an event between two recordings)
     [camera]   width, height, f_px, f_jitter, pp_jitter_px, k1, k2, standoff_m,
                mount_xyz_m, mount_jitter_m, mount_tilt_rad, image ("png"|"raw"),
                blur_sigma_px, noise_sigma, vignetting, exposure_s, latency_s, subsamples
@@ -51,6 +53,9 @@ class RobotCfg:
     home: tuple[float, ...] | None = None
     robot_id: str = ""
     cell_seed: int = -1
+    change_joint: str = ""
+    change_dq0_rad: float = 0.0
+    change_dxyz_m: tuple[float, float, float] = (0.0, 0.0, 0.0)
 
 
 @dataclass(frozen=True)
