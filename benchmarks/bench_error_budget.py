@@ -311,8 +311,8 @@ def main() -> None:
     if a.write:
         doc = DOC.read_text()
         new = re.sub(
-            r"(<!-- budget -->\n).*?(\n<!-- /budget -->)",
-            lambda m: m.group(1) + text + m.group(2),
+            r"(<!-- budget -->\n).*?(<!-- /budget -->)",
+            lambda m: m.group(1) + text.rstrip("\n") + "\n" + m.group(2),
             doc,
             flags=re.S,
         )
