@@ -165,15 +165,24 @@ def histories(work: Path, n: int, per_target: int, workers: int) -> None:
         else:
             print(f"{case:<22} found {found}/{len(rows)} ({100 * found / len(rows):.0f} %),"
                   f" read right {right}/{len(rows)} ({100 * right / len(rows):.0f} %)")  # fmt: skip
+    for case, h, d, r in keys:  # every miss, to read
+        if not CASES[case][2](r):
+            print(f"  miss: {case} history {h}: chi2 {d.T:.1f} on {d.dof} dof, f {d.f_dof:.0f},"
+                  f" p {d.p:.2g}; {r.kind}: {r.text[:150]}")  # fmt: skip
     diff_ok = 0
+    ratios: list[float] = []
     pairs = list(zip(firsts[:-1], firsts[1:], strict=True))
     for a, b in pairs:
         d = compare_estimates(a, b)
         r = attribute(d, b) if d.changed() else Reading("none", "", "")
         diff_ok += r.kind == "different_robot"
+        ratios.append(d.T / max(d.dof, 1))
     same_as_diff = sum(r.kind == "different_robot" for _, _, _, r in keys)
+    one = [d.T / max(d.dof, 1) for _, _, d, _ in keys]
     print(f"different robots       read as different robots {diff_ok}/{len(pairs)};"
-          f" one robot read as different robots {same_as_diff}/{len(keys)}")  # fmt: skip
+          f" one robot read as different robots {same_as_diff}/{len(keys)};"
+          f" chi2/dof of two robots: min {min(ratios):.3g}, median {np.median(ratios):.3g};"
+          f" of one robot (events included): max {max(one):.3g}")  # fmt: skip
     print(f"time {time.perf_counter() - t0:.0f} s; recordings in {work}")
 
 

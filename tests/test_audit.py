@@ -116,6 +116,20 @@ def test_a_change_below_the_tolerance_is_detectable_within_tolerance():
     assert significance(True, "different_robot", 0.01, 0.1) == "beyond_tolerance"
 
 
+def test_different_robots_only_far_beyond_a_re_recording():
+    """Several groups changed at a chi2 a re-recording can show (image-level histories: up
+    to 9.8e3 per dof) is 'several'; only far beyond it, different robots."""
+    from pipeline.audit.attribute import different_robots
+
+    names = ["joint_2.dq0", "joint_3.dq0", "joint_5.dq0", "pin.x"]
+    groups = ["joint_2", "joint_3", "joint_5", "pin"]
+    near = difference_test(np.zeros(4), np.eye(4), np.full(4, 150.0), np.eye(4) * 0, names)
+    far = difference_test(np.zeros(4), np.eye(4), np.full(4, 1e3), np.eye(4) * 0, names)
+    assert near.T / near.dof == pytest.approx(22500) and not different_robots(near, groups)
+    assert far.T / far.dof == pytest.approx(1e6) and different_robots(far, groups)
+    assert not different_robots(far, groups[:2])  # two groups: several changes
+
+
 def test_two_robots_of_one_model_read_as_different_robots(small_estimates):
     d = compare_estimates(small_estimates[0], small_estimates[5])
     r = attribute(d, small_estimates[5])

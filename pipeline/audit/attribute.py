@@ -50,7 +50,9 @@ the residual; seen on a 0.05 deg zero offset, T = 153,798 on 30 dof, read right
 with R_c = 60.4 on 29 dof). When none is, no
 single cause explains the change: the quantities are tested per group (each
 joint's, the pin's; (C2) on the group, Bonferroni ``alpha / G``) and when
-:data:`DIFFERENT_GROUPS` or more groups changed the two calibrations are read
+:data:`DIFFERENT_GROUPS` or more groups changed, and the whitened difference is
+far beyond what a re-recording of one robot shows (``T >= DIFFERENT_MIN_RATIO r``,
+an empirical null), the two calibrations are read
 as **different robots of one model** (or an arm rebuilt), else as several
 changes, named. A base that moved is not an arm change: it moves the fitted
 targets together and leaves the kinematics and the pin alone. Joint 1's zero
@@ -79,6 +81,11 @@ LINEAR_SHARE = 1e-3
 VISIBLE = 1e-6
 #: this many parameter groups changed at once: different robots, not one event
 DIFFERENT_GROUPS = 3
+#: and the whitened difference at least this many times its degrees of freedom: far beyond
+#: what a re-recording of one robot shows (an empirical null, bench_audit_images.py
+#: --histories 20: one robot, events included, chi2/dof up to 9.8e3; two robots of one
+#: model from 3.6e6, median 3.9e7)
+DIFFERENT_MIN_RATIO = 1e5
 #: reading kind -> what it is (the table's ``kind`` column)
 KINDS = {
     "none": "no change beyond the covariances",
@@ -232,6 +239,12 @@ def group_changes(diff: Difference, alpha: float = ALPHA) -> list[str]:
     return out
 
 
+def different_robots(diff: Difference, groups: list[str]) -> bool:
+    """Read as different robots: :data:`DIFFERENT_GROUPS` or more groups changed and the
+    whitened difference far beyond a re-recording's (``T >= DIFFERENT_MIN_RATIO r``)."""
+    return len(groups) >= DIFFERENT_GROUPS and diff.T >= DIFFERENT_MIN_RATIO * max(diff.dof, 1)
+
+
 def display_unit(column: str) -> tuple[float, str]:
     """How a cause's column is shown: ``(factor from SI, unit)``: deg, ppm or mm."""
     if column.endswith(("dq0", ".rx", ".ry", ".rz")):
@@ -298,7 +311,7 @@ def attribute(diff: Difference, est: Estimate, alpha: float = ALPHA) -> Reading:
                 explained=[float(v) for v in explained], alternatives=alts,
             )  # fmt: skip
     groups = group_changes(diff, alpha)
-    if len(groups) >= DIFFERENT_GROUPS:
+    if different_robots(diff, groups):
         return Reading(
             "different_robot", "",
             f"different robots of one model (or an arm rebuilt): {len(groups)} of the parameter "
