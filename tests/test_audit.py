@@ -116,6 +116,40 @@ def test_a_change_below_the_tolerance_is_detectable_within_tolerance():
     assert significance(True, "different_robot", 0.01, 0.1) == "beyond_tolerance"
 
 
+def test_a_fit_below_its_measured_noise_takes_the_noise(tmp_path):
+    """(F2): a residual below the noise the touch-up stage measured raises the covariance
+    by the ratio of the two variances; above it, or without a measured noise, nothing."""
+    import pandas as pd
+
+    from pipeline.audit.fit import noise_floor
+    from pipeline.audit.identity import capture_noise
+
+    # e = rms sqrt(3N / dof) = 3.4 um sqrt(54 / 25) = 5.0 um against 20 um measured
+    s = {"rms_mm": 0.0034, "n_rows": 18, "dof": 25}
+    k = noise_floor(s, {"rms_touchup_um": 20.0})
+    assert k == pytest.approx((20.0 / (3.4 * np.sqrt(54 / 25))) ** 2)
+    assert noise_floor({**s, "rms_mm": 0.019}, {"rms_touchup_um": 20.0}) == 1.0
+    cov = (np.diag([2e-6, 2e-6, 20e-6]) ** 2).tolist()  # one capture: the loop steps' noise
+    loop = {"rms_touchup_um": float("nan"), "cov_pose_flange_m2": cov}
+    assert noise_floor(s, loop) == pytest.approx(408 / (3.4**2 * 54 / 25))
+    assert noise_floor(s, None) == 1.0 and noise_floor({}, {"rms_touchup_um": 20.0}) == 1.0
+    # the reader: a touch-ups table with the key, one without, no file
+    t = pd.DataFrame({"a": [1]})
+    import pyarrow as pa
+    import pyarrow.parquet as pq
+
+    tab = pa.Table.from_pandas(t).replace_schema_metadata(
+        {b"vtcal.capture_noise": json.dumps({"rms_touchup_um": 20.0}).encode()}
+    )
+    pq.write_table(tab, tmp_path / "with.parquet")
+    pq.write_table(pa.Table.from_pandas(t), tmp_path / "without.parquet")
+    assert capture_noise(tmp_path / "with.parquet") == {"rms_touchup_um": 20.0}
+    assert capture_noise(tmp_path / "without.parquet") is None
+    assert capture_noise(tmp_path / "none.parquet") is None
+    (tmp_path / "bad.parquet").write_bytes(b"not parquet")
+    assert capture_noise(tmp_path / "bad.parquet") is None
+
+
 def test_different_robots_only_far_beyond_a_re_recording():
     """Several groups changed at a chi2 a re-recording can show (image-level histories: up
     to 9.8e3 per dof) is 'several'; only far beyond it, different robots."""

@@ -259,13 +259,45 @@ def fit_table(
 
 
 def fit_item(item: AuditItem, model: str = CHANGE_MODEL) -> Estimate:
-    """The recording's own calibration with ``model`` and its estimate (F1)."""
+    """The recording's own calibration with ``model`` and its estimate, its covariance
+    raised to the recording's measured noise where the fit's residual is below it (F2)."""
     from pipeline.validate import usable_touchups
 
     res = fit_table(item.table, item.urdf, item.base_link, item.flange_link, model, item.distances)
     data = usable_touchups(item.table, list(res.chain.joint_names), item.name)
     gauge = scale_gauge(res, item, bool(item.distances))
-    return estimate_of(res, data.q, data.tk, data.labels, item.distances, gauge, data.d)
+    est = estimate_of(res, data.q, data.tk, data.labels, item.distances, gauge, data.d)
+    est.cov = est.cov * noise_floor(res.summary, item.noise)
+    return est
+
+
+def noise_floor(summary: dict[str, Any], noise: dict[str, Any] | None) -> float:
+    """(F2) the factor a fit's covariance takes where its residual is below the noise the
+    recording measured:
+
+        k = max(1, (s_noise / e)^2)                                                    (F2)
+
+    ``e`` one touch-up's own error as the fit's residual estimates it ((V1) of
+    :func:`pipeline.verdict.own_noise_mm`), ``s_noise`` the touch-up stage's measured
+    noise per touch-up (``rms_touchup_um`` of (N4), else the loop steps' whole noise of
+    one capture, ``sqrt(tr cov_pose_flange_m2)``). A fit of 30 unknowns on 18 touch-ups
+    has 25 residual dof; on image-level recordings of one robot its residual was up to
+    6x below the noise the loop measured (3 um against 20 um), its covariance 40x too
+    small, and re-recordings alarmed (bench_audit_images --histories 20: 2 of 20; none
+    with F2). 1 where either figure is unknown.
+    """
+    from pipeline.verdict import own_noise_mm
+
+    own = own_noise_mm(summary)
+    if not noise or own is None or not own > 0:
+        return 1.0
+    s = noise.get("rms_touchup_um")
+    if not (isinstance(s, (int, float)) and np.isfinite(s)):
+        cov = np.asarray(noise.get("cov_pose_flange_m2", np.nan), dtype=float)
+        s = float(np.sqrt(np.trace(cov)) * 1e6) if cov.shape == (3, 3) else float("nan")
+    if not np.isfinite(s):
+        return 1.0
+    return float(max(1.0, (float(s) * 1e-3 / own) ** 2))
 
 
 def scale_gauge(res: IdentifyResult, item: AuditItem, has_dist: bool) -> F64 | None:

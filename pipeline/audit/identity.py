@@ -31,6 +31,7 @@ from pipeline.errors import BadInput
 
 RECORDING = RUN_FILES["recording"]
 INLIERS = RUN_FILES["inliers"]
+TOUCHUPS = RUN_FILES["touchups"]
 
 
 @dataclass
@@ -46,6 +47,8 @@ class AuditItem:
     table : its touch-ups (``inliers.parquet``)
     distances : known distances ``(a, b, metres)`` from its metadata
     truth : ``truth.json`` beside it when simulated (None otherwise; the benchmark reads it)
+    noise : the touch-up stage's measured noise (``capture_noise`` of ``touchups.parquet``,
+        :mod:`pipeline.stages.touchup.noise`), None where the folder lacks it
     """
 
     name: str
@@ -59,6 +62,7 @@ class AuditItem:
     table: pd.DataFrame
     distances: list[tuple[Any, Any, float]] = field(default_factory=list)
     truth: dict[str, Any] | None = None
+    noise: dict[str, Any] | None = None
 
 
 def robot_name(urdf: str) -> str:
@@ -157,7 +161,24 @@ def load_item(
         table=table,
         distances=metadata_distances(meta),
         truth=json.loads(truth_path.read_text()) if truth_path.is_file() else None,
+        noise=capture_noise(folder / TOUCHUPS),
     )
+
+
+def capture_noise(path: Path) -> dict[str, Any] | None:
+    """The ``capture_noise`` metadata of a run folder's ``touchups.parquet`` (the touch-up
+    stage's measured noise), None where the file or the key is missing or unreadable."""
+    if not path.is_file():
+        return None
+    import pyarrow as pa
+    import pyarrow.parquet as pq
+
+    try:
+        raw = (pq.read_schema(path).metadata or {}).get(b"vtcal.capture_noise")
+        out = json.loads(raw) if raw else None
+    except (OSError, ValueError, pa.ArrowInvalid):
+        return None
+    return out if isinstance(out, dict) else None
 
 
 def histories(items: list[AuditItem]) -> dict[str, list[AuditItem]]:
