@@ -295,8 +295,17 @@ def main() -> None:
         metavar="SEED",
         help="add our simulator's standard cell at these seeds",
     )
+    ap.add_argument(
+        "--also",
+        type=Path,
+        nargs="*",
+        default=[],
+        metavar="MCAP",
+        help="recordings added after the defaults, e.g. bench_render.py's Mitsuba renders "
+        "(its cache: /work/renders/lrmate_linear_s201.mcap ...)",
+    )
     a = ap.parse_args()
-    recordings = list(a.recordings or DEFAULT)
+    recordings = list(a.recordings or DEFAULT) + list(a.also)
     with tempfile.TemporaryDirectory() as tmp:
         for seed in a.simulate:
             from pipeline.sim.scenario import load_scenario
