@@ -89,6 +89,7 @@ def main() -> None:
     )
     firsts = []
     seed = 0
+    all_fa = all_other = 0
     for case, (event, right) in CASES.items():
         found = named = 0
         fa = n_other = hist_fa = 0
@@ -125,6 +126,7 @@ def main() -> None:
                     fa += d.changed()
                     any_fa |= d.changed()
             hist_fa += any_fa
+        all_fa, all_other = all_fa + fa, all_other + n_other
         line = f"{case:24s}"
         if event is not None:
             line += (
@@ -145,6 +147,10 @@ def main() -> None:
                 f"{'':24s} drift / {what}: median {np.median(r):.3f}, range "
                 f"{r.min():.3f}-{r.max():.3f}, within 20 %: {within}/{len(r)}"
             )
+    print(
+        f"{'every case':24s} false alarms {all_fa}/{all_other} comparisons without an event "
+        f"({100 * all_fa / max(all_other, 1):.2f} %, alpha {100 * ALPHA:.0f} %)"
+    )
     diff_ok = 0
     pairs = list(zip(firsts, firsts[1:], strict=False))
     for ea, eb in pairs:

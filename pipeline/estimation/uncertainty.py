@@ -87,10 +87,10 @@ def residual_variance(r: F64, n_unknowns: int) -> tuple[float, int]:
     return (float(r @ r / dof) if dof > 0 else float("nan")), int(dof)
 
 
-def covariance(J: F64, scale: F64, r: F64) -> tuple[F64, float, int]:
+def covariance(J: F64, scale: F64, r: F64, n_extra: int = 0) -> tuple[F64, float, int]:
     """Covariance of the estimated unknowns of a least-squares fit.
 
-    ``cov = sigma^2 (J^T J)^-1`` with ``sigma^2 = |r|^2 / (m - p)``, computed by
+    ``cov = sigma^2 (J^T J)^-1`` with ``sigma^2 = |r|^2 / (m - p - k)``, computed by
     the SVD of the column-scaled ``J S = U diag(s) V^T`` as
     ``S V diag(s^-2) V^T S sigma^2`` (singular values below ``1e-12 s_max``
     dropped: a pseudo-inverse), so that columns in radians and metres are
@@ -101,15 +101,17 @@ def covariance(J: F64, scale: F64, r: F64) -> tuple[F64, float, int]:
     J : (m, p) Jacobian at the solution, columns of the estimated unknowns
     scale : (p,) column scale ``S`` (diagonal)
     r : (m,) residual vector at the solution
+    n_extra : ``k``, unknowns estimated from the same residuals outside ``J``: the
+        flange whitening's shape (:data:`pipeline.estimation.whitening.SHAPE_PARAMS`)
 
     Returns
     -------
-    cov : (p, p); NaN when ``m <= p``
-    sigma2 : ``|r|^2 / (m - p)``, NaN when ``m <= p``
-    dof : ``m - p``
+    cov : (p, p); NaN when ``m <= p + k``
+    sigma2 : ``|r|^2 / (m - p - k)``, NaN when ``m <= p + k``
+    dof : ``m - p - k``
     """
     U, sv, Vt = np.linalg.svd(J * scale, full_matrices=False)
-    sigma2, dof = residual_variance(r, J.shape[1])
+    sigma2, dof = residual_variance(r, J.shape[1] + int(n_extra))
     good = sv > sv[0] * 1e-12
     Vs = Vt[good].T / sv[good]
     cov = (scale[:, None] * (Vs @ Vs.T)) * scale[None, :] * sigma2

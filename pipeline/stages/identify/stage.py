@@ -68,7 +68,7 @@ from pipeline.estimation.uncertainty import (
     residual_variance,
     with_pin_offset,
 )
-from pipeline.estimation.whitening import flange_whitening
+from pipeline.estimation.whitening import flange_whitening, whitening_params
 from pipeline.evaluate import workspace_poses
 from pipeline.kinematics.se3 import F64
 from pipeline.kinematics.urdf_write import write_calibrated_urdf
@@ -419,7 +419,7 @@ def _uncertainty(s: _Setup, f: _Solved, config: IdentifyConfig) -> Uncertainty:
     Jfull = f.J
     Jz = Jfull[:, prob.columns()]
     zscale = np.concatenate([s.pscale[kept], np.ones(prob.layout.n_nuisance)])
-    cov, sigma2, dof = covariance(Jz, zscale, f.r)
+    cov, sigma2, dof = covariance(Jz, zscale, f.r, whitening_params(prob.W))
     std_z = np.sqrt(np.clip(np.diag(cov), 0, None))
     ne = len(kept) + 3
     cov_e = cov[:ne, :ne]
@@ -520,7 +520,7 @@ def _prediction_only(name: str, s: _Setup, f: _Solved, t0: float) -> IdentifyRes
     without the covariance, the tables and the URDF (about 30 % of a refit): the
     targets are :attr:`IdentifyResult.target_xyz` alone."""
     model, data = s.model, f.data
-    sigma2, dof = residual_variance(f.r, len(s.prob.columns()))
+    sigma2, dof = residual_variance(f.r, len(s.prob.columns()) + whitening_params(s.prob.W))
     summary = {
         "rms_mm": weighted_rms(_pin_distances(model, f), data.sw) * 1e3,
         "sigma_mm": math.sqrt(sigma2) * 1e3 if dof > 0 else float("nan"),
