@@ -104,23 +104,40 @@ CASES = {
 }
 
 
-def _one_recording(job: tuple[Path, str, int]) -> Path:
-    """Simulate and run one recording (its scenario text, seed) unless already there."""
-    work, text, seed = job
+def _one_recording(job: tuple[Path, str, int, str]) -> Path:
+    """Simulate (or render with Mitsuba: ``renderer`` "mitsuba", its linear effects) and run
+    one recording (its scenario text, seed) unless already there."""
+    work, text, seed, renderer = job
     import hashlib
 
-    key = hashlib.sha256(f"{text}{seed}".encode()).hexdigest()[:12]
+    tag = "" if renderer == "sim" else renderer
+    key = hashlib.sha256(f"{text}{seed}{tag}".encode()).hexdigest()[:12]
     rec, run = work / f"{key}.mcap", work / "runs" / key
     if not (run / "inliers.parquet").is_file():
         toml = work / f"{key}.toml"
         toml.write_text(text)
-        vtcal("simulate", "--scenario", str(toml), "--seed", str(seed), "--out", str(rec),
-              "--quiet")  # fmt: skip
+        if renderer == "mitsuba":
+            _render(toml, seed, rec)
+        else:
+            vtcal("simulate", "--scenario", str(toml), "--seed", str(seed), "--out", str(rec),
+                  "--quiet")  # fmt: skip
         vtcal("run", str(rec), "--out", str(run), "--until", "outliers", "-q")
     return run
 
 
-def histories(work: Path, n: int, per_target: int, workers: int) -> None:
+def _render(toml: Path, seed: int, rec: Path) -> None:
+    """The scenario's recording with images Mitsuba formed (``PbrEffects.linear()``: a
+    linear camera, no print or lens effects, so one robot's two recordings share their
+    targets exactly), as ``benchmarks/bench_render.py`` renders its linear rows."""
+    from pipeline.sim.render_pbr import PbrEffects, pbr_scenario, pbr_source
+    from pipeline.sim.scenario import load_scenario
+    from pipeline.sim.simulator import write_recording
+
+    eff = PbrEffects.linear()
+    write_recording(pbr_scenario(load_scenario(toml), eff), seed, rec, image_source=pbr_source(eff))
+
+
+def histories(work: Path, n: int, per_target: int, workers: int, renderer: str = "sim") -> None:
     """``n`` image-level histories per case, each a new robot (cell seed) recorded twice
     (``--seed 1`` and ``2``, the case's event before the second): found, read right, and
     different robots (each history's first recording against the next history's)."""
@@ -137,14 +154,14 @@ def histories(work: Path, n: int, per_target: int, workers: int) -> None:
         change = link if change == "LINK" else change
         for h in range(n):
             cs, rid = 1000 + 100 * ci + h, f"{ci}-{h}"
-            jobs.append((work, scenario(cs, rid, 0.0, 0.0, per_target), 1))
-            jobs.append((work, scenario(cs, rid, dm, 0.0, per_target, change), 2))
+            jobs.append((work, scenario(cs, rid, 0.0, 0.0, per_target), 1, renderer))
+            jobs.append((work, scenario(cs, rid, dm, 0.0, per_target, change), 2, renderer))
             keys.append((case, h))
     t0 = time.perf_counter()
     with ProcessPoolExecutor(workers) as ex:
         runs = list(ex.map(_one_recording, jobs))
     est = [fit_item(load_item(r)) for r in runs]
-    print(f"bench_audit_images --histories {n}: {len(runs)} recordings, 3 targets x "
+    print(f"bench_audit_images --histories {n} --renderer {renderer}: {len(runs)} recordings, 3 targets x "
           f"{per_target} poses, one capture each, alpha 0.01 per comparison")  # fmt: skip
     firsts = []
     for i, (case, h) in enumerate(keys):
@@ -204,11 +221,18 @@ def main() -> None:
         "camera 0.1 mm), each a new robot recorded twice",
     )
     ap.add_argument("--workers", type=int, default=2)
+    ap.add_argument(
+        "--renderer",
+        choices=["sim", "mitsuba"],
+        default="sim",
+        help="--histories' images: vtcal simulate's, or Mitsuba's (bench_render's linear "
+        "effects; about 0.25 s a capture more)",
+    )
     a = ap.parse_args()
     if a.histories:
         work = a.workdir or Path(tempfile.mkdtemp(prefix="bench_audit_images_"))
         (work / "runs").mkdir(parents=True, exist_ok=True)
-        histories(work, a.histories, a.per_target, a.workers)
+        histories(work, a.histories, a.per_target, a.workers, a.renderer)
         return
     plan = PLAN + [(100, "img-A", 1e-4, 1e-3, "none")] * a.extra
     from pipeline.audit.attribute import Reading, attribute
