@@ -108,3 +108,20 @@ def test_the_offset_only_where_the_pose_component_was_told_apart() -> None:
     assert pin_offset_cov({"rms_touchup_um": float("nan"), "cov_pose_flange_m2": cov}) is None
     assert pin_offset_cov({"rms_touchup_um": 44.3, "cov_pose_flange_m2": [[1.0]]}) is None
     assert pin_offset_cov(None) is None and pin_offset_cov({}) is None
+
+
+def test_pin_offset_left_keeps_what_the_residual_still_shows() -> None:
+    """(P2): along each principal axis of the pose component, no more than the residual."""
+    from pipeline.estimation.uncertainty import pin_offset_left
+
+    rng = np.random.default_rng(3)
+    Q, _ = np.linalg.qr(rng.normal(size=(3, 3)))
+    P = (Q * np.array([1e-12, 2e-12, 9e-10])) @ Q.T  # 1, 1.4, 30 um along the view
+    big = (Q * np.array([4e-12, 4e-12, 4e-9])) @ Q.T
+    assert np.allclose(pin_offset_left(P, big), P, rtol=1e-9, atol=1e-24)
+    small = (Q * np.array([4e-12, 4e-12, 1e-10])) @ Q.T  # the print shape took the rest
+    left = np.asarray(pin_offset_left(P, small))
+    lam = np.sort(np.linalg.eigvalsh(left))
+    assert np.allclose(lam, [1e-12, 2e-12, 1e-10], rtol=1e-6)
+    assert pin_offset_left(None, small) is None
+    assert pin_offset_left(P, np.full((3, 3), np.nan)) is P

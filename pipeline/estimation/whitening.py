@@ -41,19 +41,12 @@ def whitening_params(W: F64 | None) -> int:
     return SHAPE_PARAMS if W is not None else 0
 
 
-def flange_whitening(prob: Problem, z: F64, n_free: int) -> tuple[F64 | None, F64 | None]:
-    """Whitening matrix of the pin residual in the flange frame, from the current fit.
+def flange_residual_cov(prob: Problem, z: F64, n_free: int) -> F64 | None:
+    """The pin residuals' covariance in the flange frame at ``z``, (3, 3) m^2.
 
     ``e_i = R_i^T (p_i - t_k)`` over the used rows; ``S = cov(e) m / (m - p)``
-    (weighted, centred: a constant flange-frame offset is the pin's). The returned
-    ``W = s S^(-1/2)`` (eigenvalues floored at 1e-4 of the largest) keeps residuals
-    in metres (``s^2`` is the mean variance). None when the residuals vanish
-    (exact data) or fewer than 15 residual degrees of freedom remain.
-
-    Returns
-    -------
-    W : (3, 3) or None
-    sigma : (3,) standard deviations along the principal flange-frame axes, m
+    (weighted, centred: a constant flange-frame offset is the pin's). None when fewer
+    than 15 residual degrees of freedom remain (a 3x3 covariance from fewer is noise).
     """
     D = prob.data
     x, pin, tg = prob.split(z)
@@ -63,10 +56,28 @@ def flange_whitening(prob: Problem, z: F64, n_free: int) -> tuple[F64 | None, F6
     mu = (w[:, None] * e).sum(axis=0) / w.sum()
     c = e - mu
     dof = 3 * len(e) - (n_free + prob.layout.n_nuisance)
-    if dof < 15:  # a 3x3 covariance from fewer residual degrees of freedom is noise
-        return None, None
+    if dof < 15:
+        return None
     S = (w[:, None, None] * c[:, :, None] * c[:, None, :]).sum(axis=0) / w.sum()
-    S *= 3 * len(e) / dof
+    return np.asarray(S * (3 * len(e) / dof))
+
+
+def flange_whitening(prob: Problem, z: F64, n_free: int) -> tuple[F64 | None, F64 | None]:
+    """Whitening matrix of the pin residual in the flange frame, from the current fit.
+
+    ``S`` of :func:`flange_residual_cov`; the returned ``W = s S^(-1/2)`` (eigenvalues
+    floored at 1e-4 of the largest) keeps residuals in metres (``s^2`` is the mean
+    variance). None when the residuals vanish (exact data) or fewer than 15 residual
+    degrees of freedom remain.
+
+    Returns
+    -------
+    W : (3, 3) or None
+    sigma : (3,) standard deviations along the principal flange-frame axes, m
+    """
+    S = flange_residual_cov(prob, z, n_free)
+    if S is None:
+        return None, None
     lam, V = np.linalg.eigh(S)
     if lam.max() < (1e-9) ** 2:  # exact data: nothing to weigh
         return None, None

@@ -64,11 +64,16 @@ from pipeline.estimation.loss import partial_loss
 from pipeline.estimation.region import predicted_over, widened_poses
 from pipeline.estimation.uncertainty import (
     covariance,
+    pin_offset_left,
     predicted_errors,
     residual_variance,
     with_pin_offset,
 )
-from pipeline.estimation.whitening import flange_whitening, whitening_params
+from pipeline.estimation.whitening import (
+    flange_residual_cov,
+    flange_whitening,
+    whitening_params,
+)
 from pipeline.evaluate import workspace_poses
 from pipeline.kinematics.se3 import F64
 from pipeline.kinematics.urdf_write import write_calibrated_urdf
@@ -429,7 +434,11 @@ def _uncertainty(s: _Setup, f: _Solved, config: IdentifyConfig) -> Uncertainty:
     Ared = project_out(Jfull[:, :P][:, kept] * s.pscale[kept], Jfull[:, P:])
     obs = indices_from_singular_values(np.linalg.svd(Ared, compute_uv=False), prob.m)
 
-    cov_e = with_pin_offset(cov_e, config.pin_offset_cov_m2)
+    offset = config.pin_offset_cov_m2
+    if offset is not None and f.shape is not None and f.shape.get("fitted"):
+        S_res = flange_residual_cov(prob, f.sol.x, len(kept))
+        offset = offset if S_res is None else pin_offset_left(offset, S_res)
+    cov_e = with_pin_offset(cov_e, offset)
     rng = np.random.default_rng(config.seed)
     at = (model, f.x, f.pin, kept, cov_e)
     pred = predicted_over(*at, workspace_poses(data.q, config.n_workspace, rng))
