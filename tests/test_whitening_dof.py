@@ -31,3 +31,14 @@ def test_whitened_fit_spends_five_degrees_of_freedom() -> None:
     assert iso.summary["dof"] - flange.summary["dof"] == SHAPE_PARAMS
     # the variance factor is the whitened residual over those degrees of freedom
     assert np.isfinite(flange.summary["sigma_mm"]) and flange.summary["sigma_mm"] > 0
+
+
+def test_a_fitted_print_shape_is_paid_for_too() -> None:
+    """(W2): the print shape's parameters, once fitted, leave the variance factor's dof."""
+    from pipeline.stages.identify.shape import spent_unknowns
+
+    fitted = {"fitted": True, "n_params": 8}
+    assert spent_unknowns(None, None) == 0
+    assert spent_unknowns(np.eye(3), {"fitted": False, "n_params": 8}) == SHAPE_PARAMS
+    assert spent_unknowns(None, fitted) == 8
+    assert spent_unknowns(np.eye(3), fitted) == SHAPE_PARAMS + 8

@@ -10,6 +10,7 @@ from typing import Any, NamedTuple
 import numpy as np
 
 from pipeline.estimation.distributions import f_sf
+from pipeline.estimation.whitening import whitening_params
 from pipeline.kinematics.se3 import F64
 from pipeline.measurement.data import FitData
 from pipeline.measurement.pin import ParamLayout, Problem
@@ -18,6 +19,19 @@ from pipeline.stages.identify.types import IdentifyConfig
 
 #: joint Gauss-Newton steps of the print-shape test without a refit (:func:`_linear_test`)
 LINEAR_STEPS = 2
+
+
+def spent_unknowns(W: F64 | None, shape: dict[str, Any] | None) -> int:
+    """Unknowns a fit estimated from its residuals outside its Jacobian's columns: the
+    flange whitening's shape ((W1) of :mod:`pipeline.estimation.whitening`) and a fitted
+    print shape's parameters (``shape["n_params"]``, held fixed once fitted). Both are
+    taken from the residual degrees of freedom of the variance factor::
+
+        f = m - p - 5 [whitened] - n_shape [print shape fitted]                    (W2)
+    """
+    fitted = bool(shape and shape.get("fitted"))
+    n_shape = int(shape.get("n_params") or 0) if shape and fitted else 0
+    return whitening_params(W) + n_shape
 
 
 def fit_print_shape(

@@ -72,7 +72,6 @@ from pipeline.estimation.uncertainty import (
 from pipeline.estimation.whitening import (
     flange_residual_cov,
     flange_whitening,
-    whitening_params,
 )
 from pipeline.evaluate import workspace_poses
 from pipeline.kinematics.se3 import F64
@@ -85,7 +84,7 @@ from pipeline.stages.identify.data import implausible_rows, prepare_data, refuse
 from pipeline.stages.identify.frame import correction_frame
 from pipeline.stages.identify.notes import COND_WARN, conditioning_note
 from pipeline.stages.identify.print_shape import ShapeFit
-from pipeline.stages.identify.shape import fit_print_shape
+from pipeline.stages.identify.shape import fit_print_shape, spent_unknowns
 from pipeline.stages.identify.structure import design_jacobian, exact_touchups, structure
 from pipeline.stages.identify.tables import (
     FitFigures,
@@ -424,7 +423,7 @@ def _uncertainty(s: _Setup, f: _Solved, config: IdentifyConfig) -> Uncertainty:
     Jfull = f.J
     Jz = Jfull[:, prob.columns()]
     zscale = np.concatenate([s.pscale[kept], np.ones(prob.layout.n_nuisance)])
-    cov, sigma2, dof = covariance(Jz, zscale, f.r, whitening_params(prob.W))
+    cov, sigma2, dof = covariance(Jz, zscale, f.r, spent_unknowns(prob.W, f.shape))
     std_z = np.sqrt(np.clip(np.diag(cov), 0, None))
     ne = len(kept) + 3
     cov_e = cov[:ne, :ne]
@@ -529,7 +528,7 @@ def _prediction_only(name: str, s: _Setup, f: _Solved, t0: float) -> IdentifyRes
     without the covariance, the tables and the URDF (about 30 % of a refit): the
     targets are :attr:`IdentifyResult.target_xyz` alone."""
     model, data = s.model, f.data
-    sigma2, dof = residual_variance(f.r, len(s.prob.columns()) + whitening_params(s.prob.W))
+    sigma2, dof = residual_variance(f.r, len(s.prob.columns()) + spent_unknowns(s.prob.W, f.shape))
     summary = {
         "rms_mm": weighted_rms(_pin_distances(model, f), data.sw) * 1e3,
         "sigma_mm": math.sqrt(sigma2) * 1e3 if dof > 0 else float("nan"),
