@@ -122,7 +122,7 @@ def test_a_fit_below_its_measured_noise_takes_the_noise(tmp_path):
     import pandas as pd
 
     from pipeline.audit.fit import noise_floor
-    from pipeline.audit.identity import capture_noise
+    from pipeline.audit.identity import measured_noise
 
     # e = rms sqrt(3N / dof) = 3.4 um sqrt(54 / 25) = 5.0 um against 20 um measured
     s = {"rms_mm": 0.0034, "n_rows": 18, "dof": 25}
@@ -143,11 +143,11 @@ def test_a_fit_below_its_measured_noise_takes_the_noise(tmp_path):
     )
     pq.write_table(tab, tmp_path / "with.parquet")
     pq.write_table(pa.Table.from_pandas(t), tmp_path / "without.parquet")
-    assert capture_noise(tmp_path / "with.parquet") == {"rms_touchup_um": 20.0}
-    assert capture_noise(tmp_path / "without.parquet") is None
-    assert capture_noise(tmp_path / "none.parquet") is None
+    assert measured_noise(tmp_path / "with.parquet") == {"rms_touchup_um": 20.0}
+    assert measured_noise(tmp_path / "without.parquet") is None
+    assert measured_noise(tmp_path / "none.parquet") is None
     (tmp_path / "bad.parquet").write_bytes(b"not parquet")
-    assert capture_noise(tmp_path / "bad.parquet") is None
+    assert measured_noise(tmp_path / "bad.parquet") is None
 
 
 def test_different_robots_only_far_beyond_a_re_recording():

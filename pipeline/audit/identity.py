@@ -161,20 +161,22 @@ def load_item(
         table=table,
         distances=metadata_distances(meta),
         truth=json.loads(truth_path.read_text()) if truth_path.is_file() else None,
-        noise=capture_noise(folder / TOUCHUPS),
+        noise=measured_noise(folder / TOUCHUPS),
     )
 
 
-def capture_noise(path: Path) -> dict[str, Any] | None:
+def measured_noise(path: Path) -> dict[str, Any] | None:
     """The ``capture_noise`` metadata of a run folder's ``touchups.parquet`` (the touch-up
-    stage's measured noise), None where the file or the key is missing or unreadable."""
+    stage's measured noise, :mod:`pipeline.stages.touchup.noise`), None where the file or
+    the key is missing or unreadable."""
     if not path.is_file():
         return None
     import pyarrow as pa
-    import pyarrow.parquet as pq
+
+    from pipeline.artefacts import read_meta
 
     try:
-        raw = (pq.read_schema(path).metadata or {}).get(b"vtcal.capture_noise")
+        raw = read_meta(path).get("capture_noise")
         out = json.loads(raw) if raw else None
     except (OSError, ValueError, pa.ArrowInvalid):
         return None

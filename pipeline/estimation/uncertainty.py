@@ -138,7 +138,8 @@ def covariance(J: F64, scale: F64, r: F64, n_extra: int = 0) -> tuple[F64, float
     scale : (p,) column scale ``S`` (diagonal)
     r : (m,) residual vector at the solution
     n_extra : ``k``, unknowns estimated from the same residuals outside ``J``: the
-        flange whitening's shape (:data:`pipeline.estimation.whitening.SHAPE_PARAMS`)
+        flange whitening's shape and a fitted print shape
+        (:func:`pipeline.stages.identify.shape.spent_unknowns`)
 
     Returns
     -------

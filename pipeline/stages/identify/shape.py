@@ -29,8 +29,7 @@ def spent_unknowns(W: F64 | None, shape: dict[str, Any] | None) -> int:
 
         f = m - p - 5 [whitened] - n_shape [print shape fitted]                    (W2)
     """
-    fitted = bool(shape and shape.get("fitted"))
-    n_shape = int(shape.get("n_params") or 0) if shape and fitted else 0
+    n_shape = int(shape.get("n_params") or 0) if shape and shape.get("fitted") else 0
     return whitening_params(W) + n_shape
 
 
