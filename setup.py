@@ -11,8 +11,11 @@ edge fit) into the built tree's ``__pycache__`` folders, so an installed vtcal's
 loads machine code instead of waiting ~15-20 s for the compiler. numba keys that cache on the source's
 content (sha256), its own version, the Python version and the CPU, so it serves the
 machine the package was built on (a local install); elsewhere, or with another numba,
-the first run compiles as before (announced). ``VTCAL_NO_PRECOMPILE=1`` skips the step;
-an editable install never runs it. A failed compile only leaves the cache out.
+the first run compiles as before (announced). An editable install (``pip install -e .``,
+the README's set-up line) imports the checkout itself, so there the code is compiled into
+the checkout's own ``__pycache__`` folders (where a run would write it; an up-to-date cache
+is loaded, not compiled again). ``VTCAL_NO_PRECOMPILE=1`` skips the step. A failed compile
+only leaves the cache out.
 """
 
 import os
@@ -44,6 +47,8 @@ class BuildWithDetector(build_py):
     def run(self) -> None:
         super().run()
         if getattr(self, "editable_mode", False):
+            # the editable install imports the checkout: compile into it, keep its cache
+            self._compile(os.path.dirname(os.path.abspath(__file__)))
             return
         build_lib = os.path.abspath(self.build_lib)
         # an earlier build's cache (pip builds in the tree's build/): made again or left out
@@ -52,6 +57,11 @@ class BuildWithDetector(build_py):
             for name in os.listdir(cache) if os.path.isdir(cache) else ():
                 if name.startswith(prefix) and name.endswith((".nbi", ".nbc")):
                     os.remove(os.path.join(cache, name))
+        self._compile(build_lib)
+
+    @staticmethod
+    def _compile(build_lib: str) -> None:
+        """Compile the detector of the tree ``build_lib`` in a child interpreter."""
         if os.environ.get("VTCAL_NO_PRECOMPILE"):
             return
         env = {k: v for k, v in os.environ.items() if k != "NUMBA_CACHE_DIR"}
