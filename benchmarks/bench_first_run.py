@@ -1,10 +1,18 @@
-"""Benchmark: the first ``vtcal run`` after a fresh install against a warm run (issue 38).
+"""Benchmark: the first ``vtcal run`` after a fresh install against a warm run.
 
 Builds a fresh virtual environment under ``--workdir`` (``python -m venv``, no
-system site-packages), ``pip install``s this checkout into it (dependencies from
-the configured indexes or the local wheel cache; the build compiles the
-detector into the wheel, ``setup.py``), then, as fresh processes of the venv's
-own ``vtcal`` from a scratch folder (so this checkout is not imported):
+system site-packages) and installs vtcal into it in one of two ways (dependencies
+from the configured indexes or the local wheel cache):
+
+- ``--setup-line`` (what a new user does): ``git clone`` of this checkout's HEAD,
+  then the README's set-up line exactly as written (read from README.md's
+  "Set-up" section, run in the clone with the venv first on ``PATH``); the
+  editable install compiles the detector into the clone (``setup.py``), and the
+  runs below are the README's main command, run in the clone;
+- default: ``pip install`` of this checkout (the build compiles the detector into
+  the wheel, ``setup.py``), runs from a scratch folder (so no checkout is imported);
+
+then, as fresh processes of the venv's own ``vtcal``:
 
 1. the first ``vtcal run`` of the shipped sample, with an empty cache home
    (``XDG_CACHE_HOME``: vtcal's code-key and template caches, numba's user
@@ -19,7 +27,8 @@ other) differ from the warm run's (``pandas.DataFrame.equals``). ``--no-precompi
 with ``VTCAL_NO_PRECOMPILE=1`` (the package without its compiled detector: the
 state before), for the comparison. The load average is printed before and after.
 
-    python benchmarks/bench_first_run.py [--workdir /tmp/first_run] [--repeat 3] [--no-precompile]
+    python benchmarks/bench_first_run.py [--setup-line] [--workdir /tmp/first_run] [--repeat 3]
+                                         [--no-precompile]
 """
 
 from __future__ import annotations
@@ -27,6 +36,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import re
 import shutil
 import statistics
 import subprocess
@@ -51,6 +61,39 @@ def clean_env(cache_home: Path) -> dict[str, str]:
     return e
 
 
+def readme_setup_line() -> str:
+    """The README's set-up line: the first indented command of its "Set-up" section."""
+    text = (ROOT / "README.md").read_text()
+    m = re.search(r"^## Set-up.*?^    (\S.*)$", text, re.S | re.M)
+    if m is None:
+        raise SystemExit("README.md: no indented command under a '## Set-up' heading")
+    return m.group(1).strip()
+
+
+def install_setup_line(venv: Path, clone: Path, precompile: bool) -> tuple[str, float]:
+    """A fresh clone of HEAD and a fresh venv, then the README's set-up line in the clone.
+
+    Returns the line and the seconds it took.
+    """
+    for d in (venv, clone):
+        if d.exists():
+            shutil.rmtree(d)
+    subprocess.run(["git", "clone", "-q", str(ROOT), str(clone)], check=True)
+    subprocess.run([sys.executable, "-m", "venv", str(venv)], check=True)
+    env = {k: v for k, v in os.environ.items() if k not in ("PYTHONPATH", "NUMBA_CACHE_DIR")}
+    env["PATH"] = f"{venv / 'bin'}:{env.get('PATH', '')}"
+    env["VIRTUAL_ENV"] = str(venv)
+    if not precompile:
+        env["VTCAL_NO_PRECOMPILE"] = "1"
+    line = readme_setup_line()
+    t0 = time.perf_counter()
+    proc = subprocess.run(["bash", "-c", line], cwd=clone, env=env, capture_output=True, text=True)
+    took = time.perf_counter() - t0
+    if proc.returncode != 0:
+        raise SystemExit(f"{line!r} failed: {proc.stderr[-2000:]}")
+    return line, took
+
+
 def install(venv: Path, precompile: bool) -> float:
     """A fresh venv with this checkout installed; seconds of the ``pip install``."""
     if venv.exists():
@@ -73,10 +116,21 @@ def install(venv: Path, precompile: bool) -> float:
 
 
 def run(venv: Path, out: Path, cache_home: Path, scratch: Path) -> tuple[float, str]:
-    """Wall time and output (stdout and stderr) of one ``vtcal run SAMPLE --out OUT --force``."""
+    """Wall time and output (stdout and stderr) of one ``vtcal run SAMPLE --out OUT --force``.
+
+    ``scratch`` is the working folder; the sample is read from it when it is a clone.
+    """
+    sample = scratch / SAMPLE.relative_to(ROOT)
     t0 = time.perf_counter()
     proc = subprocess.run(
-        [str(venv / "bin" / "vtcal"), "run", str(SAMPLE), "--out", str(out), "--force"],
+        [
+            str(venv / "bin" / "vtcal"),
+            "run",
+            str(sample if sample.exists() else SAMPLE),
+            "--out",
+            str(out),
+            "--force",
+        ],  # fmt: skip
         env=clean_env(cache_home),
         cwd=scratch,
         capture_output=True,
@@ -109,6 +163,11 @@ def main() -> None:
     ap.add_argument(
         "--no-precompile", action="store_true", help="install without the compiled detector"
     )
+    ap.add_argument(
+        "--setup-line",
+        action="store_true",
+        help="a fresh clone, then the README's set-up line in it (what a new user does)",
+    )
     args = ap.parse_args()
     tmp = None
     if args.workdir is None:
@@ -120,13 +179,24 @@ def main() -> None:
         workdir.mkdir(parents=True)
     print(f"load before: {load()}  (cores: {os.cpu_count()})", flush=True)
     venv, cache_home, scratch = workdir / "venv", workdir / "cache", workdir / "scratch"
-    scratch.mkdir()
-    took = install(venv, precompile=not args.no_precompile)
-    print(
-        f"pip install of {ROOT.name} into a fresh venv ("
-        f"{'without' if args.no_precompile else 'with'} the detector precompiled): {took:.1f} s",
-        flush=True,
-    )
+    if args.setup_line:
+        scratch = workdir / "clone"
+        line, took = install_setup_line(venv, scratch, precompile=not args.no_precompile)
+        print(
+            f"fresh clone, then the README's set-up line {line!r} in a fresh venv ("
+            f"{'without' if args.no_precompile else 'with'} the detector precompiled): "
+            f"{took:.1f} s",
+            flush=True,
+        )
+    else:
+        scratch.mkdir()
+        took = install(venv, precompile=not args.no_precompile)
+        print(
+            f"pip install of {ROOT.name} into a fresh venv ("
+            f"{'without' if args.no_precompile else 'with'} the detector precompiled): "
+            f"{took:.1f} s",
+            flush=True,
+        )
     first, said = run(venv, workdir / "run_first", cache_home, scratch)
     announced = "compiling the detector" in said
     warm = []
