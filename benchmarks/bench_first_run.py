@@ -156,12 +156,36 @@ def differing_tables(a: Path, b: Path) -> list[str]:
     return [f for f in files if not pd.read_parquet(a / f).equals(pd.read_parquet(b / f))]
 
 
+def write_readme(first: float, warm: float) -> None:
+    """README.md's ``<!-- first-run -->`` block: the figures this run measured."""
+    readme = ROOT / "README.md"
+    line = (
+        f"first run of the sample {first:.1f} s, warm runs {warm:.1f} s (x{first / warm:.2f}; "
+        "`benchmarks/bench_first_run.py --setup-line`, a fresh clone and venv)"
+    )
+    text, n = re.subn(
+        r"(<!-- first-run -->\n).*?(\n<!-- /first-run -->)",
+        lambda m: m.group(1) + line + m.group(2),
+        readme.read_text(),
+        flags=re.S,
+    )
+    if n != 1:
+        raise SystemExit("README.md: no <!-- first-run --> block")
+    readme.write_text(text)
+    print(f"written: {readme}")
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--workdir", type=Path, default=None, help="venv and runs (under /tmp)")
     ap.add_argument("--repeat", type=int, default=3, help="warm runs")
     ap.add_argument(
         "--no-precompile", action="store_true", help="install without the compiled detector"
+    )
+    ap.add_argument(
+        "--write",
+        action="store_true",
+        help="with --setup-line: write the figures into README.md's first-run block",
     )
     ap.add_argument(
         "--setup-line",
@@ -213,6 +237,8 @@ def main() -> None:
         f"every other): {differing_tables(workdir / 'run_first', workdir / 'run_warm0') or 'none'}"
     )
     print(f"load after: {load()}")
+    if args.write and args.setup_line:
+        write_readme(first, w)
     if tmp is not None:
         shutil.rmtree(workdir, ignore_errors=True)
 
