@@ -83,10 +83,28 @@ def test_the_build_compiles_the_detector_into_the_built_tree(build_command, tmp_
     assert "compile_detector" in args[2] and "NUMBA_CACHE_DIR" not in env  # into the tree
 
 
-@pytest.mark.parametrize("how", ["editable", "env"])
-def test_no_compile_for_an_editable_install_or_when_asked(
-    build_command, tmp_path, monkeypatch, how
+def test_an_editable_install_compiles_into_the_checkout_and_keeps_its_cache(
+    build_command, tmp_path, monkeypatch
 ):
+    """The README's set-up line is an editable install: it imports the checkout, so the
+    detector is compiled there (not into the throw-away build tree), and the checkout's
+    numba cache stays (numba reuses it when it is current)."""
+    cmd, calls = build_command
+    monkeypatch.delenv("VTCAL_NO_PRECOMPILE", raising=False)
+    cmd.build_lib = str(tmp_path)
+    stale = tmp_path / "pipeline" / "stages" / "detect" / "__pycache__" / "_jit.x-1.py311.nbi"
+    stale.parent.mkdir(parents=True)
+    stale.write_bytes(b"an earlier build's")
+    cmd.editable_mode = True
+    cmd.run()
+    ((args, env),) = calls
+    assert args[-1] == str(REPO) and args[-1] != cmd.build_lib
+    assert "compile_detector" in args[2] and "NUMBA_CACHE_DIR" not in env
+    assert stale.exists()
+
+
+@pytest.mark.parametrize("how", ["editable", "env"])
+def test_no_compile_when_asked(build_command, tmp_path, monkeypatch, how):
     cmd, calls = build_command
     cmd.build_lib = str(tmp_path)
     stages = tmp_path / "pipeline" / "stages"
@@ -97,8 +115,7 @@ def test_no_compile_for_an_editable_install_or_when_asked(
         f.write_bytes(b"an earlier build's")
     if how == "editable":
         cmd.editable_mode = True
-    else:
-        monkeypatch.setenv("VTCAL_NO_PRECOMPILE", "1")
+    monkeypatch.setenv("VTCAL_NO_PRECOMPILE", "1")
     cmd.run()
     assert calls == []
     # asked not to: an earlier build's cache in the build tree is not shipped either
