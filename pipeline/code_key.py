@@ -1,7 +1,7 @@
 """The code part of a stage's cache key: a digest of what computes the stage.
 
 A stage's outputs are fresh when they were made from the same inputs, the same
-configuration *and the same code* (issue 15: a changed stage must not answer
+configuration *and the same code* (a changed stage must not answer
 "cached" with its old artefacts). The code of a stage is
 
 * the source of every ``pipeline`` module its entry points can import, found

@@ -4,7 +4,7 @@ A calibration is validated where it was measured. Its error model predicts
 everywhere, but the parameters the touch-ups determined only as combinations
 that cancel inside the covered joint ranges can grow apart outside them (a
 Kinova Gen3 lite calibrated on one placement was 9.2 mm off on others, against
-6.9 mm for the nominal arm with a fitted pin: issue 33). The covariance says
+6.9 mm for the nominal arm with a fitted pin). The covariance says
 how much: the predicted shape error over poses drawn from the covered box
 (:func:`pipeline.evaluate.workspace_poses`) against poses from the box widened
 by half its span on each side, clipped to the joint limits::

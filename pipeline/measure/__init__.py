@@ -1,4 +1,4 @@
-"""Measurement on a robot: the visual touch-up loop as a library (issue 18).
+"""Measurement on a robot: the visual touch-up loop as a library.
 
 One loop serves every client: the simulator's recorder, ``vtcal measure`` on a
 live cell through an adapter, and the tests. The loop sees the robot and the

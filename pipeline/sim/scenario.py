@@ -157,8 +157,8 @@ class OpticsCfg:
         oscillation of the camera after each move (:class:`pipeline.sim.optics.Vibration`);
         noise_domain : where ``[camera] noise_sigma`` enters when the response is not
         linear: ``sensor`` (before the curve, as a real sensor's read and shot noise do;
-        the default) or ``output`` (added to the encoded grey levels, vtcal's simulator
-        before stop 28). A linear response gives the same image either way.
+        the default) or ``output`` (added to the encoded grey levels, vtcal's simulator's
+        earlier default). A linear response gives the same image either way.
     """
 
     response: str = "linear"

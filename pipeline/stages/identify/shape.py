@@ -53,7 +53,7 @@ def fit_print_shape(
     tests' cells and to four digits on the standard ones); only a significant one (or
     ``target_shape = "fit"``) is refitted, and the refit's test decides. On the
     standard cells no print shape is significant and identification takes half the
-    time it took with every test refitted (docs/speed.md "Stop 29").
+    time it took with every test refitted (docs/speed.md, "The after-ingest goal met").
 
     Returns
     -------
@@ -162,7 +162,7 @@ def _linear_test(
     reach. Near ``z0`` the problem in ``theta`` is linear (the rows' corrections are
     ``d_i + g_i (B_i . theta)``) and ``z0`` is already the minimum for ``theta = 0``,
     so the steps land where the refit does (the F of both, measured on the standard
-    cells: docs/speed.md "Stop 29"). A significant result (or ``target_shape = "fit"``)
+    cells: docs/speed.md, "The after-ingest goal met"). A significant result (or ``target_shape = "fit"``)
     is refitted by :func:`_attempt` before anything of it is used: the refit's test is
     the one kept.
 

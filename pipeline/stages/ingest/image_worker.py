@@ -1,4 +1,4 @@
-"""Images taken on a worker thread while the stream is read (ingest, issue 38).
+"""Images taken on a worker thread while the stream is read (ingest).
 
 Ingest reads a recording's messages in file order on one thread; each image
 is then decoded (:func:`pipeline.stages.ingest.prefetch.decode_image`), detected

@@ -1,4 +1,4 @@
-"""An image message decoded to grey pixels, on a thread of its own (ingest, issue 38).
+"""An image message decoded to grey pixels, on a thread of its own (ingest).
 
 Ingest reads a recording's messages in file order on one thread and hands
 the images to the image worker (:mod:`pipeline.stages.ingest.image_worker`),
