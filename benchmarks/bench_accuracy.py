@@ -1,4 +1,4 @@
-"""End-to-end calibration accuracy against simulated truth (issue: identification).
+"""End-to-end calibration accuracy against simulated truth.
 
 For each robot family and pose count: simulate a recording with a calibration bar
 (``vtcal simulate``), run the whole pipeline on it (``vtcal run``), and measure the

@@ -1,4 +1,4 @@
-"""Benchmark: are a run's artefacts the same as before a refactor? (issue 20)
+"""Benchmark: are a run's artefacts the same as before a refactor?
 
 A refactor of the runner changes the shape of the code, not its results. This
 script makes three run folders and prints one SHA-256 per artefact:

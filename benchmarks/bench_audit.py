@@ -11,7 +11,7 @@ robot; every robot is a new seed (deviations, camera mount, cell). Cases:
   history (any alarm in it), at ``alpha = 0.01``;
 * one event before recording 3: **joint offset** (joint 3's zero +0.05 deg),
   **link** (joint 3's origin +0.1 mm along the upper arm), **camera** remount
-  (pin moved 0.1 mm), **base** moved (1 mm, 1 mrad), and beyond the issue's list
+  (pin moved 0.1 mm), **base** moved (1 mm, 1 mrad), and beyond those
   joint 5's zero +0.05 deg and a **thermal** growth of every link by 100 ppm
   (seen through the calibration bar): detection (the event's
   comparison flagged), the reading right (arm: that joint's zero / that link;
@@ -22,7 +22,7 @@ robot; every robot is a new seed (deviations, camera mount, cell). Cases:
 * **different robots**: the first recording of robot ``i`` against robot ``i+1``'s.
 
 Every figure is printed with its counts. Three robots x six recordings is one
-history per robot here; the issue's goal: >= 95 % found, <= 5 % false alarms.
+history per robot here; the goal: >= 95 % found, <= 5 % false alarms.
 """
 
 from __future__ import annotations

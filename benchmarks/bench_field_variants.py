@@ -1,4 +1,4 @@
-"""Field-recording variants against their reference (issue 34): shape error ratio per variant.
+"""Field-recording variants against their reference: shape error ratio per variant.
 
 For each seed: simulate a small LR Mate recording (160x128 PNG, 3 targets x 6
 poses), rewrite it message by message as another recorder would

@@ -21,7 +21,7 @@ poses, 320 x 256 PNG images, seeds 1..N; two simulations at a time, kept in
    Parquet artefact of every recording is byte-identical between the process
    pool, 1 Dask worker and 2 Dask workers.
 
-Issue 19's goal: 2 workers >= 1.7x the throughput of one on a quiet machine.
+Goal: 2 workers >= 1.7x the throughput of one on a quiet machine.
 
     python benchmarks/bench_fleet.py [--recordings 64] [--workdir DIR] [--repeat 1]
 """

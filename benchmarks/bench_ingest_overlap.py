@@ -1,4 +1,4 @@
-"""Benchmark: ingest with its images taken on a worker thread against taken inline (issue 38).
+"""Benchmark: ingest with its images taken on a worker thread against taken inline.
 
 Ingest reads records and joint states on one thread and hands the images (decode,
 detection, the camera-response estimate) to a worker thread

@@ -1,4 +1,4 @@
-"""The live loop against the offline pipeline with every optical effect on (issue 33).
+"""The live loop against the offline pipeline with every optical effect on.
 
 For the LR Mate-like cell (``standard.toml``) and the UR5e-like cell
 (``ur.toml``), 3 targets x 12 poses with a calibration bar, every optical

@@ -1,7 +1,7 @@
 """Benchmark: one streaming pass over every message of a recording, vtcal's reader against mcap's.
 
 Ingest reads a recording once, record by record (``pipeline.io.mcap.iter_messages``).
-Until stop 34 that pass was the ``mcap`` library's ``StreamReader`` (which parses
+Before, that pass was the ``mcap`` library's ``StreamReader`` (which parses
 every Message Index entry by entry) and ``breakup_chunk`` (five stream reads per
 message); now it is ``pipeline.io.mcap_records`` (index records read past whole,
 one ``struct`` call per message). For the shipped sample and the standard cells
@@ -36,7 +36,7 @@ def recordings(workdir: Path) -> dict[str, Path]:
 
 
 def library_messages(path: Path) -> Iterator[Any]:
-    """Every message, as vtcal's pass read them before stop 34 (the mcap library's readers)."""
+    """Every message, as vtcal's pass read them before (the mcap library's readers)."""
     from mcap.records import Chunk, Message
     from mcap.stream_reader import StreamReader, breakup_chunk
 

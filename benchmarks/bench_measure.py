@@ -1,4 +1,4 @@
-"""Measuring on a cell (issues 18, 38): robot time per touch-up and per calibration, where it
+"""Measuring on a cell: robot time per touch-up and per calibration, where it
 goes (travel, settle, servo, capture), captures per converged touch-up, and the accuracy of
 the calibration each loop's recording gives.
 
@@ -11,7 +11,7 @@ scenario's own plan measured four ways:
    convergence), large moves at ``--speed 0.5``;
 2. the same over TCP against ``vtcal cell-server`` in another process (a real socket on
    127.0.0.1): the recording must be byte-identical to 1;
-3. ``vtcal measure --order plan --gain 0.9``: the loop before issue 38, on the plan's order;
+3. ``vtcal measure --order plan --gain 0.9``: the earlier loop, on the plan's order;
 4. the paper's loop in process: the plan's order, the scenario's own settings (its gain,
    the Jacobian probed once per target and never updated), the loop the simulator records
    with.

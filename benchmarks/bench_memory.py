@@ -22,7 +22,7 @@ and its run folder are deleted at the end (``--keep`` keeps them).
 
     python benchmarks/bench_memory.py [--gb 2.05] [--width 2048 --height 1536] [--dir /tmp]
 
-Goal (issue 19): ingest peak RSS under 1 GB on a >= 2 GB recording.
+Goal: ingest peak RSS under 1 GB on a >= 2 GB recording.
 """
 
 from __future__ import annotations

@@ -7,7 +7,7 @@ response, each with its noise placed in one of two ways:
 
 * **after the curve**: ``DN = 255 f(E) + N(0, 2^2)``, the simulator's ``[camera]
   noise_sigma`` with ``[optics] noise_domain = "output"`` (every row of
-  ``bench_optics.py`` before stop 28; the simulator's default is now ``sensor``);
+  ``bench_optics.py`` before the default changed; the simulator's default is now ``sensor``);
 * **before the curve**: read noise of the same 2 grey levels on the irradiance,
   ``DN = 255 f(E + N(0, (2/255)^2))``, as a real sensor's read and shot noise
   enter before the camera encodes its output.
@@ -17,7 +17,7 @@ axis and its scatter per capture, and the scatter's ratio to the linear image's
 with the same placement. After the curve, an encoding's slope at the halfway
 contour (``f'`` ~0.68 for sRGB at the contour's 47 % irradiance) scales the noise
 seen on the irradiance by ``1 / f'``: that was the excess of the sRGB rows of
-``bench_optics.py`` up to stop 27, not the detector's. Before the curve the ratio is ~1.
+``bench_optics.py`` with noise after the curve, not the detector's. Before the curve the ratio is ~1.
 
     python benchmarks/bench_noise_placement.py [--n 200]
 """

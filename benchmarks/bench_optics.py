@@ -1,4 +1,4 @@
-"""Accuracy on images formed as real cameras form them (issue 14).
+"""Accuracy on images formed as real cameras form them.
 
 For the standard LR Mate-like cell (``standard.toml``) and the UR5e-like cell
 (``ur.toml``), 3 targets x 12 poses with a calibration bar: one recording per
@@ -12,7 +12,7 @@ volume the touch-ups covered) and printed next to the linear-image figure
 
 The simulator's 2 grey levels of noise (``[camera] noise_sigma``) enter before
 the response curve, as a real sensor's read and shot noise do (``[optics]
-noise_domain = "sensor"``, the default since stop 28). "srgb, output noise" adds
+noise_domain = "sensor"``, the default). "srgb, output noise" adds
 them after the curve instead, as every row did before
 (``benchmarks/bench_noise_placement.py`` has what that does to an encoded image).
 
@@ -70,12 +70,12 @@ BINARY_CONTROLLER = {"uneven light", "all"}
 DECLARED = {"gamma2.2 declared": "gamma2.2", "curve declared": "curve"}
 EFFECTS["gamma2.2 declared"] = EFFECTS["gamma2.2"]
 EFFECTS["curve declared"] = EFFECTS["curve"]
-#: everything a good real camera does at once (the issue's "all of these together"):
+#: everything a good real camera does at once ("all of these together"):
 #: sRGB output, uneven light, imperfect prints, defocus, sensor noise, Bayer, JPEG, vibration
 ALL_OF = ["srgb", "defocus", "uneven light", "sensor noise", "bayer", "jpeg q90", "print"]
 EFFECTS["all"] = {k: v for e in ALL_OF + ["vibration"] for k, v in EFFECTS[e].items()}
 #: the simulator's noise added to the encoded grey levels instead of before the curve
-#: (vtcal's simulator before stop 28; not how a camera's noise enters)
+#: (vtcal's simulator's earlier default; not how a camera's noise enters)
 EFFECTS["srgb, output noise"] = {"response": "srgb", "noise_domain": "output"}
 #: effects vtcal cannot undo from the images alone; it must say so (the "warned" column)
 LIMITS = {"gamma2.2", "curve", "saturated"}

@@ -1,4 +1,4 @@
-"""Real robots: vtcal against MUKCa on real Franka Panda point-constraint data (issue 16).
+"""Real robots: vtcal against MUKCa on real Franka Panda point-constraint data.
 
 Data: ``datasets/real/mukca/`` (see ``datasets/real/README.md``): a ball fixed
 to the Panda's hand seated by hand in two sockets 50 mm apart on a tool put at
@@ -36,7 +36,7 @@ on the rest.
     python benchmarks/bench_real.py --floors         # also: what more data buys (below)
 
 ``--floors`` asks how far a model of each kind can get on a held-out placement at
-all, with the two figures issue 16's goal is judged against. Per held-out
+all, with the two figures the goal (20 % below MUKCa) is judged against. Per held-out
 placement ``p`` of the named split and per model (``full``, ``elastic``):
 
 * **trained on every other placement** (``vtcal identify`` on all placements but

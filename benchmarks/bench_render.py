@@ -1,4 +1,4 @@
-"""Accuracy on images a renderer the team did not write formed (issue 33).
+"""Accuracy on images a renderer the team did not write formed.
 
 For the standard LR Mate-like cell (``standard.toml``) and the UR5e-like cell
 (``ur.toml``), 3 targets x 12 poses with the calibration bar, the simulated

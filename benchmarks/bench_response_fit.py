@@ -8,7 +8,7 @@ curve). For each recording this script collects the edge profiles the estimate
 sees in ``vtcal run`` (an in-process ingest, the estimate's input recorded),
 then times ``estimate_from_profiles`` on copies of them two ways, in one run:
 
-- ``reference``: each fit as before stop 34, ``least_squares(method="lm")``
+- ``reference``: each fit as before it was compiled, ``least_squares(method="lm")``
   on the NumPy residual and Jacobian (:class:`EdgeFit`, one QR per call);
 - ``compiled``: :func:`pipeline.stages.image.response_fit.fit_edge` as it is
   (one compiled pass per residual and Jacobian, ``leastsq``);
@@ -74,7 +74,7 @@ def profiles_of(rec: Path) -> list[Any]:
 
 
 def reference_fit(d, du, dv, E, w, x0, xtol=1e-10):  # type: ignore[no-untyped-def]
-    """The fit before stop 34: ``least_squares`` on the NumPy :class:`EdgeFit`."""
+    """The fit before it was compiled: ``least_squares`` on the NumPy :class:`EdgeFit`."""
     from scipy.optimize import least_squares
 
     from pipeline.stages.image.response_fit import EdgeFit

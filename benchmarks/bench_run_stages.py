@@ -1,4 +1,4 @@
-"""Benchmark: where the user waits in ``vtcal run`` (issue 19, the single-run part).
+"""Benchmark: where the user waits in ``vtcal run`` (a single run).
 
 Simulates the standard cells once (LR Mate-like ``standard.toml`` and UR5e-like
 ``ur.toml`` at 36 touch-ups, LR Mate-like at 72; seed 7, into ``--workdir``,
@@ -11,7 +11,7 @@ reused when already there), then measures in this one run:
    those runs (a fresh process each, its imports not timed), the read floor:
    the stock readers (``mcap`` + ``mcap_ros2``) reading the same file and
    decoding every message (images to pixels, joint states), with the ratios
-   whole run (the stages' seconds) / floor (issue 38's goal <= 1.5), ingest /
+   whole run (the stages' seconds) / floor (goal <= 1.5), ingest /
    floor and the process's wall time / floor;
 2. the report stage (``pipeline.report.outputs.build_outputs``) in this process
    with warm imports, and its cProfile on the first cell's run folder, top
@@ -160,7 +160,7 @@ def bench_stages(recs: dict[str, Path], workdir: Path, repeat: int) -> None:
     print(f"\n== vtcal run --force, fresh process, median of {repeat} (load {load()})")
     from pipeline.catalog import STAGES
 
-    # every stage the runner declares (the choose stage came with issue 20), then the report
+    # every stage the runner declares (the choose stage included), then the report
     names = tuple(dict.fromkeys([*(st.name for st in STAGES), "report"]))
     print(
         f"{'cell':<10}" + "".join(f"{n:>9}" for n in names) + f"{'after':>8}{'after/ingest':>13}"
@@ -213,7 +213,7 @@ def bench_stages(recs: dict[str, Path], workdir: Path, repeat: int) -> None:
             f"{wall / fl:12.2f}{fcpu:11.3f}{rcpu:9.3f}"
         )
     print(
-        "goal (issue 38): whole run (the stages' seconds) / floor <= 1.5. CPU: the floor's "
+        "goal: whole run (the stages' seconds) / floor <= 1.5. CPU: the floor's "
         "read+decode, and the run's whole process tree (imports, the warm report process, "
         "forked fits: it counts both cores)"
     )

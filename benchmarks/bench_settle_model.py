@@ -1,4 +1,4 @@
-"""Can a touch-up's three final captures tell the camera's swing after a move? (issue 14)
+"""Can a touch-up's three final captures tell the camera's swing after a move?
 
 A flange camera still swinging after the last move of a touch-up puts an offset
 into its final captures that the encoders do not see. ``touchup_settle`` weighs

@@ -1,4 +1,4 @@
-"""vtcal validate on a second recording of the same simulated cell (issue 15).
+"""vtcal validate on a second recording of the same simulated cell.
 
 Two recordings of the standard LR Mate-like cell with the same seed (hence the
 same true robot, camera and targets): the first with the scenario's own poses,
