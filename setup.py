@@ -1,8 +1,9 @@
-"""Packaging beyond pyproject.toml: the top-level ``schemas/`` and ``reports/`` in the wheel,
-and the detector compiled into the wheel.
+"""Packaging beyond pyproject.toml: the top-level ``schemas/``, ``reports/`` and ``spec/``
+in the wheel, and the detector compiled into the wheel.
 
-The repository keeps ``schemas/`` and ``reports/`` beside ``pipeline/``; a wheel carries
-them inside the package as ``pipeline/_data/schemas`` and ``pipeline/_data/reports``,
+The repository keeps ``schemas/``, ``reports/`` and ``spec/`` (the file contracts:
+recording, touch-up table, outputs) beside ``pipeline/``; a wheel carries them inside the
+package as ``pipeline/_data/schemas``, ``pipeline/_data/reports`` and ``pipeline/_data/spec``,
 where :mod:`pipeline.resources` looks when no checkout is beside the package.
 
 Building the package (``pip install .``, ``pip wheel .``) also compiles the detector's
@@ -28,7 +29,11 @@ from setuptools.command.build_py import build_py
 #: the numba modules (folder under pipeline/stages, cache file prefix) compiled into the build
 JIT_MODULES = (("detect", "_jit."), ("image", "_edge_jit."))
 
-DATA = {"pipeline._data.schemas": "schemas", "pipeline._data.reports": "reports"}
+DATA = {
+    "pipeline._data.schemas": "schemas",
+    "pipeline._data.reports": "reports",
+    "pipeline._data.spec": "spec",
+}
 
 #: run in a child interpreter on the built tree (its stages/detect/_jit.py is the one installed)
 _COMPILE = """
@@ -91,6 +96,7 @@ setup(
         "pipeline": ["robots/*.urdf", "py.typed"],
         "pipeline._data.schemas": ["*.json", "ros2/*/msg/*.msg"],
         "pipeline._data.reports": ["*.j2", "*.css"],
+        "pipeline._data.spec": ["*.md"],
     },
     cmdclass={"build_py": BuildWithDetector},
 )

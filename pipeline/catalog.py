@@ -1,6 +1,6 @@
 """The declared pipeline: every run-folder file and every stage, each declared once.
 
-:data:`ARTEFACTS` names each file of a run folder (``../shared/spec/outputs.md``),
+:data:`ARTEFACTS` names each file of a run folder (``spec/outputs.md``),
 its schema (``schemas/NAME.json`` for Parquet) and the one stage that writes
 it. :data:`STAGES` is the pipeline as a table of :class:`Stage`: the function
 that computes it, the artefacts it reads and those it writes, and the config
@@ -74,7 +74,7 @@ ARTEFACTS: list[Artefact] = [
     Artefact("run", "run.json", "runner"),
 ]
 
-#: artefact key -> file name inside a run folder (``../shared/spec/outputs.md``);
+#: artefact key -> file name inside a run folder (``spec/outputs.md``);
 #: the per-model URDFs (``Artefact.per_model``) are named by the models fitted
 RUN_FILES = {a.key: a.file for a in ARTEFACTS if "{" not in a.file}
 

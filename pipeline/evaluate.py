@@ -1,4 +1,4 @@
-"""Accuracy the way a laser-tracker check judges it (``../shared/spec/outputs.md``).
+"""Accuracy the way a laser-tracker check judges it (``spec/outputs.md``).
 
 Over joint vectors spread through the working volume the touch-ups covered,
 the virtual-pin positions a model predicts are registered to the true ones and
@@ -298,7 +298,7 @@ def synthetic_touchups(
 
 
 def judge_run(out: Any, truth: dict[str, Any], n_poses: int, seed: int) -> dict[str, Any]:
-    """A finished run folder judged against its simulation truth (``../shared/spec/outputs.md``).
+    """A finished run folder judged against its simulation truth (``spec/outputs.md``).
 
     The shipped ``calibrated.urdf`` (to ``virtual_pin``) and the nominal robot with the
     true pin, each against the true robot over ``n_poses`` poses in the volume the

@@ -1,6 +1,6 @@
 """Known distances between targets: the ``known_distances`` metadata and ``--distance``.
 
-The form is ``A:B=METRES`` items joined by ``;`` (``../shared/spec/recording.md``);
+The form is ``A:B=METRES`` items joined by ``;`` (``spec/recording.md``);
 labels are the targets' first-touch order 0, 1, 2, ..., or, when the metadata
 has ``target_order`` (the cell's own names of the targets in first-touch order,
 joined by ``,``), those names: a cell can name its bar before the plan that

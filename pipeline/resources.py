@@ -1,9 +1,10 @@
-"""Where the project's data folders are: ``schemas/`` and ``reports/`` (templates).
+"""Where the project's data folders are: ``schemas/``, ``reports/`` (templates) and
+``spec/`` (the file contracts: ``recording.md``, ``touchups.md``, ``outputs.md``).
 
 They live at the top of the repository (the brief's layout), beside ``pipeline/``.
 An editable install or a checkout finds them there; a built wheel carries copies
-inside the package as ``pipeline/_data/schemas`` and ``pipeline/_data/reports``
-(``setup.py`` maps them), so a plain ``pip install .`` runs too.
+inside the package as ``pipeline/_data/schemas``, ``pipeline/_data/reports`` and
+``pipeline/_data/spec`` (``setup.py`` maps them), so a plain ``pip install .`` runs too.
 """
 
 from __future__ import annotations
@@ -15,7 +16,8 @@ PACKAGE_DIR = Path(__file__).resolve().parent
 
 
 def data_dir(name: str) -> Path:
-    """The folder ``name`` (``"schemas"`` or ``"reports"``): the checkout's, else the wheel's."""
+    """The folder ``name`` (``"schemas"``, ``"reports"`` or ``"spec"``): the checkout's, else
+    the wheel's."""
     checkout = PACKAGE_DIR.parent / name
     if checkout.is_dir():
         return checkout
@@ -24,6 +26,7 @@ def data_dir(name: str) -> Path:
 
 SCHEMA_DIR = data_dir("schemas")
 TEMPLATE_DIR = data_dir("reports")
+SPEC_DIR = data_dir("spec")
 
 
 def user_cache_dir(name: str) -> Path:

@@ -1,6 +1,7 @@
-"""A built wheel carries what ``vtcal run`` reads besides the code: schemas, report templates, robots.
+"""A built wheel carries what ``vtcal run`` reads besides the code: schemas, report templates,
+robots, and the file contracts its help points to (``spec/``).
 
-They live at the top of the repository (``schemas/``, ``reports/``); ``setup.py``
+They live at the top of the repository (``schemas/``, ``reports/``, ``spec/``); ``setup.py``
 maps them into the wheel as ``pipeline/_data/...`` and :mod:`pipeline.resources`
 finds them there when no checkout is beside the package. Before, a plain
 ``pip install .`` failed at the first artefact ("no schema declared").
@@ -33,12 +34,36 @@ def test_the_wheel_carries_schemas_templates_and_robots(tmp_path: Path) -> None:
     for folder, inside in (
         ("schemas", "pipeline/_data/schemas"),
         ("reports", "pipeline/_data/reports"),
+        ("spec", "pipeline/_data/spec"),  # the contracts `vtcal run --help` points to
     ):
         for f in (REPO / folder).rglob("*"):
             if f.is_file():
                 assert f"{inside}/{f.relative_to(REPO / folder).as_posix()}" in names, f
     assert {f"pipeline/robots/{p.name}" for p in (REPO / "pipeline/robots").glob("*.urdf")} <= names
     assert not any(n.startswith(("tests/", "benchmarks/", "datasets/")) for n in names)
+
+
+def test_the_contracts_ship_and_the_helps_point_to_them() -> None:
+    """``spec/`` holds the three contracts, and no help text, docstring or doc points to
+    ``shared/spec/`` (a folder neither the repository nor the package has)."""
+    from pipeline import resources
+
+    assert {p.name for p in resources.data_dir("spec").glob("*.md")} == {
+        "recording.md", "touchups.md", "outputs.md",
+    }  # fmt: skip
+    stale = [
+        f"{p.relative_to(REPO)}:{i}"
+        for p in [*sorted((REPO / "pipeline").rglob("*.py")), *sorted((REPO / "docs").glob("*.md"))]
+        for i, line in enumerate(p.read_text().splitlines(), 1)
+        if "shared/spec" in line
+    ]
+    assert not stale, f"points to shared/spec/ instead of spec/: {stale}"
+    from click.testing import CliRunner
+
+    from pipeline.cli import cli
+
+    out = CliRunner().invoke(cli, ["run", "--help"], terminal_width=200).output
+    assert "spec/recording.md" in out and "shared/spec" not in out
 
 
 def test_resources_fall_back_to_the_wheels_copy(tmp_path: Path, monkeypatch) -> None:

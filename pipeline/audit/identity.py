@@ -4,7 +4,7 @@ A run folder (``vtcal run``, ``vtcal batch``, or :func:`pipeline.sim.history.wri
 holds ``recording.json`` and ``inliers.parquet``. Its robot is
 
 * **identity**: the recording's ``robot_id`` metadata key
-  (``shared/spec/recording.md``), else the ``robot_id`` of its entry in the batch
+  (``spec/recording.md``), else the ``robot_id`` of its entry in the batch
   manifest (the entry whose run folder name it has), else the ``--robot-id``
   given for all inputs;
 * **model**: the nominal URDF's ``<robot name>``, its chain ends and joint names
@@ -141,7 +141,7 @@ def load_item(
     if not rid:
         raise BadInput(
             f"{folder / RECORDING}: no robot_id (the recording's metadata key robot_id, "
-            "shared/spec/recording.md, or its batch manifest entry's); give --manifest "
+            "spec/recording.md, or its batch manifest entry's); give --manifest "
             "FILE.toml or --robot-id NAME"
         )
     table = read_artefact(folder / INLIERS, "inliers")

@@ -86,7 +86,7 @@ def command(
     tolerance_mm: float | None,
     quiet: bool,
 ) -> None:
-    """Calibrate from RECORDING: an MCAP file per shared/spec/recording.md, or a ROS bag
+    """Calibrate from RECORDING: an MCAP file per spec/recording.md, or a ROS bag
     (rosbag2 directory of .mcap or .db3 files, a .db3 file, a ROS 1 .bag; docs/ros-bags.md).
 
     Writes into --out one Parquet artefact per stage (frames, detections,

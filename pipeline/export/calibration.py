@@ -2,7 +2,7 @@
 
 This module is the disk edge of :mod:`pipeline.export`; the format modules are
 pure functions of a :class:`RunCalibration`. Everything comes from three files
-of the run folder (``../shared/spec/outputs.md``):
+of the run folder (``spec/outputs.md``):
 
 * ``calibrated.urdf``: the shipped model's chain (base link to flange link), the
   virtual pin (the ``virtual_pin_joint`` origin) and the provenance block;

@@ -1,4 +1,4 @@
-"""Streaming MCAP access for recordings (../shared/spec/recording.md).
+"""Streaming MCAP access for recordings (spec/recording.md).
 
 One linear pass over the file (:func:`pipeline.io.mcap_records.file_records`;
 chunks are decompressed one at a time, so memory is bounded by one chunk, and

@@ -2,7 +2,7 @@
 
 vtcal reads (see docs/ros-bags.md):
 
-- ``mcap``: one MCAP file (../shared/spec/recording.md), streamed by
+- ``mcap``: one MCAP file (spec/recording.md), streamed by
   :mod:`pipeline.io.mcap`;
 - ``rosbag2-mcap``: a rosbag2 bag directory (``metadata.yaml`` and one or more
   split ``.mcap`` files), each file streamed by :mod:`pipeline.io.mcap` in the

@@ -1,6 +1,6 @@
 """Everything the report and the Rerun recording show, read from a run folder only.
 
-A run folder (``../shared/spec/outputs.md``) holds one artefact per stage. The
+A run folder (``spec/outputs.md``) holds one artefact per stage. The
 report never re-solves anything: it reads what is there, and a section whose
 artefact is missing (an interrupted run, ``--until``, a stage not built yet)
 says "not available" instead of failing. :func:`load_run` gathers every

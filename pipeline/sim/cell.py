@@ -103,7 +103,7 @@ def virtual_pin_camera(
 ) -> F64:
     """Where a perfect touch-up puts the centre of an untilted target (camera frame).
 
-    The spec (``shared/spec/recording.md``) drives the ellipse fitted to the
+    The spec (``spec/recording.md``) drives the ellipse fitted to the
     target contour to the designated centre ``(u0, v0)`` and long axis ``s0``.
     For a target whose plate is parallel to the image plane (no tilt: its
     perspective image is a circle) the pin is the circle centre ``p = (X, Y, Z)``

@@ -1,7 +1,7 @@
 """The simulated touch-up cell: a true robot, a camera, targets, a controller, a recorder.
 
 :func:`simulate` runs one calibration session as the paper describes it and
-streams what a real cell would record (``shared/spec/recording.md``) into an
+streams what a real cell would record (``spec/recording.md``) into an
 MCAP file, returning the ground truth (written beside it as
 ``NAME.mcap.truth.json`` by :func:`write_recording`).
 

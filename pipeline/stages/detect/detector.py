@@ -1,6 +1,6 @@
 """Sub-pixel detection of the circular target's image ellipse.
 
-The measuring data of one image (../shared/spec/recording.md) are the centre
+The measuring data of one image (spec/recording.md) are the centre
 ``(u, v)`` and the full long axis ``s`` of the ellipse fitting the target
 contour, the contour being the boundary at the grey level halfway between
 target and plate. :func:`detect_target` estimates them in four steps:

@@ -6,7 +6,7 @@ Measurement model (one row ``i`` per converged touch-up of target ``k``)::
 
 with ``x`` the error model's kinematic corrections (:mod:`pipeline.models`),
 ``p_flange_pin`` the virtual pin, ``d_i`` the residual correction
-``(dx, dy, dz)_flange`` of the touch-up (``../shared/spec/touchups.md``) and
+``(dx, dy, dz)_flange`` of the touch-up (``spec/touchups.md``) and
 every target position unknown. A known distance ``D`` between targets ``A``
 and ``B`` adds the residual ``w_D (|p_A - p_B| - D)`` with a strong weight
 ``w_D``. Rows are weighted by ``sqrt(weight)``.
@@ -139,7 +139,7 @@ def identify(
     Parameters
     ----------
     touchups : DataFrame
-        A touch-up table (``../shared/spec/touchups.md``; the touchups and
+        A touch-up table (``spec/touchups.md``; the touchups and
         inliers artefacts are ones). Rows used: ``converged`` (if the column
         exists), ``inlier`` (if it exists), ``weight > 0`` and finite joints.
     urdf : nominal URDF XML

@@ -1,6 +1,6 @@
 """Ingest: one streaming pass over a recording -> frames, detections, recording info.
 
-The recording contract is ../shared/spec/recording.md. The file is read once,
+The recording contract is spec/recording.md. The file is read once,
 in file order (:func:`pipeline.io.recording.iter_recording`: an MCAP file or a
 ROS bag); every image is decoded
 and handed to :func:`pipeline.stages.detect.detector.detect_target` in order, on a worker
@@ -169,7 +169,7 @@ def ingest_recording(
 
     Parameters
     ----------
-    path : recording (../shared/spec/recording.md): an MCAP file or a ROS bag
+    path : recording (spec/recording.md): an MCAP file or a ROS bag
         (:mod:`pipeline.io.recording`, docs/ros-bags.md)
     config : IngestConfig
     detect_config : DetectConfig

@@ -1,7 +1,7 @@
 """Touch-up extraction: from frames + detections to the touch-up table.
 
 Nothing in a recording marks where a touch-up starts or ends
-(../shared/spec/recording.md); this stage finds them from the streams alone,
+(spec/recording.md); this stage finds them from the streams alone,
 with the flange poses of the NOMINAL model (URDF in the recording, FK at the
 joint vector interpolated at each image stamp):
 

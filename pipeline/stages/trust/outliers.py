@@ -207,7 +207,7 @@ def flag_outliers(table: pd.DataFrame, info: Any, config: OutlierConfig) -> pd.D
     Parameters
     ----------
     table : touchups artefact (``schemas/touchups.json``), or any touch-up table
-        (``../shared/spec/touchups.md``)
+        (``spec/touchups.md``)
     info : RecordingInfo: ``joint_names``; for the statistics also ``urdf``,
         ``base_link``, ``flange_link`` and ``metadata["known_distances"]``
     config : OutlierConfig
