@@ -21,7 +21,7 @@ prefer_one_thread()  # before numpy loads: see pipeline/threads.py
 import click  # noqa: E402
 
 from pipeline import __version__  # noqa: E402
-from pipeline.errors import VtcalError  # noqa: E402
+from pipeline.errors import EXIT_INTERNAL, EXIT_INTERRUPTED, VtcalError  # noqa: E402
 
 #: command name -> (module, one-line help shown in ``vtcal --help``)
 COMMANDS: dict[str, tuple[str, str]] = {
@@ -111,8 +111,8 @@ def _interrupted(standalone: bool) -> None:
     if standalone:
         sys.stdout.flush()
         sys.stderr.flush()
-        os._exit(130)
-    sys.exit(130)
+        os._exit(EXIT_INTERRUPTED)
+    sys.exit(EXIT_INTERRUPTED)
 
 
 def one_line(text: str) -> str:
@@ -154,7 +154,7 @@ def main(argv: list[str] | None = None) -> Any:
             "set VTCAL_DEBUG=1 for the traceback and please report it",
             err=True,
         )
-        sys.exit(70)
+        sys.exit(EXIT_INTERNAL)
 
 
 if __name__ == "__main__":  # python -m pipeline.cli, as python -m pipeline

@@ -127,7 +127,7 @@ def run_pipeline(
 
     Parameters
     ----------
-    recording : MCAP file (``../shared/spec/recording.md``) or ROS bag (docs/ros-bags.md)
+    recording : MCAP file (``spec/recording.md``) or ROS bag (docs/ros-bags.md)
     out : run folder (created)
     config : stage options; defaults are the embedded defaults
     until : last stage to run (one of :data:`STAGES`)
@@ -162,17 +162,28 @@ def run_pipeline(
         if hit is not None:
             return hit
 
-    created = not out.exists()
+    created = _first_missing(out)  # the folder this run makes (with any parent it makes)
     before = snapshot(out)
     out.mkdir(parents=True, exist_ok=True)
     try:
         return _run_in(out, recording, cfg, names, fp, force, progress, before)
     except BaseException:
-        if created:  # a run that wrote nothing leaves no empty run folder behind
-            _remove_if_empty(out)
+        if created is not None:  # a run that wrote nothing leaves no empty folder behind
+            _remove_if_empty(created)
         raise
     finally:  # the previous files' links (a refusal has put them back already)
         release(out)
+
+
+def _first_missing(folder: Path) -> Path | None:
+    """The outermost of ``folder`` and its parents that does not exist (None: it exists):
+    what ``folder.mkdir(parents=True)`` creates."""
+    missing = None
+    for p in (folder, *folder.parents):
+        if p.exists():
+            break
+        missing = p
+    return missing
 
 
 def _remove_if_empty(folder: Path) -> None:

@@ -98,7 +98,26 @@ def test_cli_writes_table_and_page(runs: dict[str, Path], tmp_path: Path) -> Non
     assert (tmp_path / "audit.html").read_text().startswith("<!DOCTYPE html>")
     with pytest.raises(SystemExit) as exc:
         main(["compare", str(runs["a1"]), str(runs["b"]), "--out", str(out), "--fail-on-drift"])
-    assert exc.value.code == 1
+    assert exc.value.code == 5  # its own code: 1 is an unclassified error (README's table)
+    main(["compare", str(runs["a1"]), str(runs["a2"]), "--out", str(out), "--fail-on-drift"])
+
+
+def test_cli_writes_into_a_folder_of_its_own_by_default(
+    runs: dict[str, Path], tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Not compare.parquet and compare.html loose in the current folder: compare/ holds
+    them; --out DIR names another folder; a refused comparison makes no folder."""
+    monkeypatch.chdir(tmp_path)
+    main(["compare", str(runs["a1"]), str(runs["a2"])])
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["compare"]
+    assert sorted(p.name for p in (tmp_path / "compare").iterdir()) == [
+        "compare.html", "compare.parquet",
+    ]  # fmt: skip
+    main(["compare", str(runs["a1"]), "--out", "cmp/a1"])
+    assert (tmp_path / "cmp" / "a1" / "compare.parquet").is_file()
+    with pytest.raises(SystemExit) as exc:
+        main(["compare", str(tmp_path / "compare"), "--out", "refused"])
+    assert exc.value.code == 2 and not (tmp_path / "refused").exists()
 
 
 def test_not_a_run_folder_is_one_line_bad_input(tmp_path: Path) -> None:

@@ -176,11 +176,38 @@ def echo_verdict(
     return v
 
 
+class PositiveFloat(click.types.FloatParamType):
+    """A finite number > 0 (a tolerance, a length): anything else refused in one line
+    before any work (``click.FloatRange(min=0, min_open=True)`` lets ``nan`` through)."""
+
+    name = "float"
+
+    def convert(
+        self, value: Any, param: click.Parameter | None, ctx: click.Context | None
+    ) -> float:
+        import math
+
+        if isinstance(value, float):
+            x = value
+        else:
+            try:
+                x = float(value)
+            except (TypeError, ValueError):
+                self.fail(f"{value!r} is not a number", param, ctx)
+        if not (math.isfinite(x) and x > 0):
+            self.fail(f"{value}: must be a positive number", param, ctx)
+        return x
+
+
+#: the type of every ``--tolerance-mm``
+POSITIVE = PositiveFloat()
+
+
 def tolerance_option(fn: Callable[..., Any]) -> Callable[..., Any]:
     """``--tolerance-mm T``: PASS / FAIL of the validated error, exit 3 on FAIL."""
     return click.option(
         "--tolerance-mm",
-        type=float,
+        type=POSITIVE,
         default=None,
         help="Accuracy the calibration must reach: PASS when the shipped model's validated "
         "(held-out) RMS is at most this and it improved on the nominal robot, else FAIL and "

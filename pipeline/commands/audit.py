@@ -7,13 +7,15 @@ from pathlib import Path
 
 import click
 
+from pipeline.commands._common import POSITIVE
+
 
 @click.command(
     "audit",
     epilog="""\b
 Examples:
   vtcal audit runs/sample --robot-id sample --out audit/   # one run: its models ranked
-  vtcal batch fleet.toml --out fleet_runs/ --until outliers  # recordings, Dask if asked
+  vtcal batch --manifest fleet.toml --out fleet_runs/ --until outliers  # Dask if asked
   vtcal audit fleet_runs/ --out audit/              # every run folder under fleet_runs/
   vtcal audit fleet_runs/cell3-* --tolerance-mm 0.05 --fail-on-change
 """,
@@ -22,7 +24,7 @@ Examples:
 @click.option("--out", "out", type=click.Path(file_okay=False, path_type=Path),
               default=Path("audit"), show_default=True,
               help="Folder for audit_{recordings,changes,models}.parquet, audit.html, audit.rrd.")  # fmt: skip
-@click.option("--tolerance-mm", type=float, default=0.1, show_default=True,
+@click.option("--tolerance-mm", type=POSITIVE, default=0.1, show_default=True,
               help="PASS when the previous calibration's drift and consistency are within it.")  # fmt: skip
 @click.option("--alpha", type=float, default=0.01, show_default=True,
               help="False-alarm rate of the change test per comparison.")  # fmt: skip
@@ -34,7 +36,8 @@ Examples:
               help="Error models ranked across the fleet (comma-separated).")  # fmt: skip
 @click.option("--workers", type=int, default=0, show_default=True,
               help="Processes for the fits (0: the free cores; 1: serial).")  # fmt: skip
-@click.option("--fail-on-change", is_flag=True, help="Exit with status 1 when a robot changed.")
+@click.option("--fail-on-change", is_flag=True,
+              help="Exit with status 5 when a robot changed (the audit's files are written).")  # fmt: skip
 def command(
     run_dirs: tuple[Path, ...], out: Path, tolerance_mm: float, alpha: float,
     manifest: Path | None, robot_id: str | None, models: str, workers: int,
@@ -57,8 +60,6 @@ def command(
     from pipeline.audit.rrd import write_rrd
     from pipeline.errors import BadInput
 
-    if not tolerance_mm > 0:
-        raise BadInput(f"--tolerance-mm {tolerance_mm}: must be > 0")
     if not 0 < alpha < 1:
         raise BadInput(f"--alpha {alpha}: must be between 0 and 1")
     names = tuple(m.strip() for m in models.split(",") if m.strip())
@@ -81,4 +82,9 @@ def command(
         click.echo(line)
     click.echo(f"tables: {out}/audit_*.parquet   page: {page}   Rerun: {out}/audit.rrd")
     if fail_on_change and bool(res.changes["changed"].any()):
-        sys.exit(1)
+        from pipeline.errors import EXIT_CHANGED
+
+        n = int(res.changes["changed"].sum())
+        click.echo(f"vtcal audit: {n} change(s) found; exit {EXIT_CHANGED} (--fail-on-change)",
+                   err=True)  # fmt: skip
+        sys.exit(EXIT_CHANGED)

@@ -17,6 +17,18 @@ from pipeline.commands._common import (
 from pipeline.errors import BadInput
 
 
+def _not_a_manifest(
+    ctx: click.Context, param: click.Parameter, value: tuple[Path, ...]
+) -> tuple[Path, ...]:
+    """Refuse a manifest given as a recording (it would be read as one, and fail late)."""
+    for p in value:
+        if p.suffix.lower() == ".toml":
+            raise click.UsageError(
+                f"{p} looks like a manifest (TOML), not a recording: use --manifest {p}", ctx
+            )
+    return value
+
+
 @click.command(
     "batch",
     epilog="""\b
@@ -28,7 +40,7 @@ Examples:
   vtcal batch --manifest fleet.toml --out /shared/runs --executor dask --scheduler tcp://head:8786
 """,
 )
-@click.argument("recordings", nargs=-1, type=click.Path(path_type=Path))
+@click.argument("recordings", nargs=-1, type=click.Path(path_type=Path), callback=_not_a_manifest)
 @click.option(
     "--manifest",
     "-m",

@@ -7,6 +7,7 @@ from pathlib import Path
 import click
 
 from pipeline.catalog import RUN_FILES
+from pipeline.commands._common import POSITIVE
 from pipeline.errors import BadInput
 
 
@@ -26,7 +27,7 @@ Examples:
               help="Where to write the Rerun recording (default RUN_DIR/run.rrd).")  # fmt: skip
 @click.option("--no-html", is_flag=True, help="Do not write the HTML report.")
 @click.option("--no-rrd", is_flag=True, help="Do not write the Rerun recording.")
-@click.option("--tolerance-mm", type=click.FloatRange(min=0, min_open=True), default=None,
+@click.option("--tolerance-mm", type=POSITIVE, default=None,
               help="Judge the verdict against this tolerance (default: the one the run was "
               "given, else the recording's tolerance_mm key).")  # fmt: skip
 def command(

@@ -17,7 +17,7 @@ from typing import TYPE_CHECKING, Any
 
 import click
 
-from pipeline.commands._common import distance_option, progress_bars
+from pipeline.commands._common import POSITIVE, distance_option, progress_bars
 from pipeline.errors import BadInput, CalibrationFailed
 
 if TYPE_CHECKING:
@@ -116,7 +116,7 @@ Examples:
 )
 @click.option(
     "--tolerance-mm",
-    type=float,
+    type=POSITIVE,
     default=None,
     help="PASS when the calibrated robot's consistency on the new touch-ups and every "
     "known-distance error are at most this and it improved on the nominal robot, else FAIL "

@@ -57,10 +57,81 @@ def locate(path: str | os.PathLike[str]) -> Layout:
     if not p.is_file():
         raise BadInput(f"{p}: no such recording file or bag directory")
     if p.suffix == ".bag":
-        return Layout(p, "ros1", (p,))
-    if p.suffix == ".db3":
-        return Layout(p, "rosbag2-sqlite3", (p,))
-    return Layout(p, "mcap", (p,))
+        kind = "ros1"
+    elif p.suffix == ".db3":
+        kind = "rosbag2-sqlite3"
+    else:
+        kind = "mcap"
+    check_content(p, kind)
+    return Layout(p, kind, (p,))
+
+
+#: the first bytes of each kind of recording file, and what the kind is called
+RECORDING_MAGIC = {
+    "mcap": (b"\x89MCAP", "an MCAP file"),
+    "ros1": (b"#ROSBAG V2.0", "a ROS 1 bag"),
+    "rosbag2-sqlite3": (b"SQLite format 3\x00", "a rosbag2 SQLite file"),
+}
+#: what a file named so is expected to be
+EXPECTED = {
+    "mcap": "an MCAP recording or a ROS bag",
+    "ros1": "a ROS 1 bag (#ROSBAG V2.0)",
+    "rosbag2-sqlite3": "a rosbag2 .db3 file (SQLite)",
+}
+#: the first bytes of files often given by mistake, and what they are
+OTHER_MAGIC = (
+    (b"PK\x03\x04", "a ZIP archive"),
+    (b"\x1f\x8b", "a gzip file"),
+    (b"\x28\xb5\x2f\xfd", "a zstd-compressed file"),
+    (b"BZh", "a bzip2 file"),
+    (b"\x89PNG", "a PNG image"),
+    (b"\xff\xd8\xff", "a JPEG image"),
+    (b"%PDF", "a PDF document"),
+    (b"PAR1", "a Parquet file"),
+    (b"\x7fELF", "an executable"),
+)
+
+
+def check_content(path: Path, kind: str) -> None:
+    """Refuse a recording file whose first bytes are not its kind's (an empty file, a
+    CSV, an archive, a bag under an MCAP name), in one line naming what was expected and
+    what was found: before any numeric library is imported (the refusal takes a blink,
+    and the run folder is not made)."""
+    try:
+        size = path.stat().st_size
+        with open(path, "rb") as fh:
+            head = fh.read(64)
+    except OSError as exc:
+        raise BadInput(f"{path}: cannot open: {exc.strerror}") from exc
+    magic, name = RECORDING_MAGIC[kind]
+    if head.startswith(magic):
+        return
+    expected = EXPECTED[kind]
+    if size == 0:
+        raise BadInput(f"{path}: not {name}: empty file (0 bytes); expected {expected}")
+    for other, (m, other_name) in RECORDING_MAGIC.items():
+        if other != kind and head.startswith(m):
+            suffix = {"mcap": ".mcap", "ros1": ".bag", "rosbag2-sqlite3": ".db3"}[other]
+            raise BadInput(
+                f"{path}: not {name}: {other_name} by its content; name it {suffix} "
+                f"(the file name says which reader is used)"
+            )
+    raise BadInput(f"{path}: not {name}: {_what_it_is(head, size)}; expected {expected}")
+
+
+def _what_it_is(head: bytes, size: int) -> str:
+    """A few words on a file from its first bytes."""
+    for m, what in OTHER_MAGIC:
+        if head.startswith(m):
+            return f"{what} ({size} bytes)"
+    try:
+        text = head.decode("utf-8")
+    except UnicodeDecodeError:
+        text = ""
+    if text and all(ch.isprintable() or ch in "\t\r\n" for ch in text):
+        first = text.splitlines()[0] if text.strip() else text
+        return f"text starting {first[:40]!r} ({size} bytes)"
+    return f"{size} bytes starting {head[:8]!r}"
 
 
 def _bag_directory(d: Path) -> Layout:
