@@ -115,7 +115,7 @@ def _label(v: Any) -> str | None:
 
 
 def usable_touchups(df: pd.DataFrame, joint_names: list[str], source: str) -> Touchups:
-    """The rows of a touch-up table (``shared/spec/touchups.md``) that are judged.
+    """The rows of a touch-up table (``spec/touchups.md``) that are judged.
 
     A row is usable when it is converged and an inlier (where those columns exist,
     as in ``inliers.parquet``), its weight is positive (where given) and its joints

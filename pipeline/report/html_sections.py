@@ -406,12 +406,12 @@ def conditioning_section(data: RunData) -> dict[str, Any]:
                 )
             )
     solver = idf.get("solver")
-    if isinstance(solver, dict):
+    if isinstance(solver, dict):  # scipy's own words stay in identify.json's solver.message
         summary.append(
             (
                 "solver",
-                f"{solver.get('method', '')}, {solver.get('message', '')} "
-                f"({solver.get('nfev', '?')} evaluations)",
+                f"{solver_status(solver)} ({solver.get('method', '')}, "
+                f"{solver.get('nfev', '?')} evaluations)",
             )
         )
     raw = json.dumps(idf, indent=1, sort_keys=True, default=str)
@@ -423,6 +423,26 @@ def conditioning_section(data: RunData) -> dict[str, Any]:
         "summary": summary,
         "raw": raw,
     }
+
+
+#: ``scipy.optimize.least_squares`` status -> how the solve ended, in words
+SOLVER_STATUS = {
+    -1: "failed (improper input)",
+    0: "stopped: evaluation limit reached, not converged",
+    1: "converged (gradient small)",
+    2: "converged (cost change small)",
+    3: "converged (step small)",
+    4: "converged (cost change and step small)",
+}
+
+
+def solver_status(solver: dict[str, Any]) -> str:
+    """How identify.json's ``solver`` ended, in a few words (scipy's message is kept there)."""
+    try:
+        return SOLVER_STATUS[int(solver["status"])]
+    except (KeyError, TypeError, ValueError):
+        message = str(solver.get("message") or "").strip()
+        return message or "unknown"
 
 
 def _models_section(data: RunData) -> list[dict[str, str]]:
@@ -514,9 +534,12 @@ def run_section(data: RunData) -> dict[str, Any]:
     inferred = rec.get("inferred") or {}
     if isinstance(inferred, list):
         inferred = {str(k): "" for k in inferred}
+    # ingest fills what the recording did not declare into its metadata (the later stages
+    # read it there): listed once, as inferred, with how it was found
+    declared = {k: v for k, v in data.meta.items() if k not in inferred}
     return {
         "stages": stages,
-        "metadata": sorted(data.meta.items()),
+        "metadata": sorted(declared.items()),
         "inferred": sorted((str(k), str(v)) for k, v in inferred.items()),
         "warnings": [str(w) for w in rec.get("warnings", []) or []],
         "problems": data.problems,
