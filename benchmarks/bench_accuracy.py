@@ -2,7 +2,7 @@
 
 For each robot family and pose count: simulate a recording with a calibration bar
 (``vtcal simulate``), run the whole pipeline on it (``vtcal run``), and measure the
-shipped ``calibrated.urdf`` the way ``../shared/spec/outputs.md`` does: virtual-pin
+shipped ``calibrated.urdf`` the way ``spec/outputs.md`` does: virtual-pin
 positions over poses spread through the volume the touch-ups covered, registered to
 the true ones by a similarity (shape) and by a rigid motion (absolute). Printed
 beside them: the nominal robot (before), the covariance-predicted error and the

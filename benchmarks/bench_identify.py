@@ -5,7 +5,7 @@
 Synthetic touch-ups of a true robot (nominal URDF + per-joint origin deviations
 of the simulator's magnitudes: 1 mm, 3 mrad, 1.5 mrad zero offsets), 3 targets,
 the true pin exactly on the target up to a contact noise of 0.01 mm RMS (3D)
-and 1e-6 rad encoder noise. Accuracy as ``../shared/spec/outputs.md`` measures
+and 1e-6 rad encoder noise. Accuracy as ``spec/outputs.md`` measures
 it (pipeline.evaluate.pin_accuracy over poses spread through the touched
 volume). Prints:
 

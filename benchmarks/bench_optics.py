@@ -6,7 +6,7 @@ real-camera effect (scenario ``[optics]``, :mod:`pipeline.sim.optics`), one with
 all of them together and the linear-image twin (same seed: same robot, cell and
 plan), each run through the whole pipeline (``vtcal run`` to cross-validation).
 The shipped ``calibrated.urdf`` is judged against the truth as
-``../shared/spec/outputs.md`` says (shape and absolute RMS over 500 poses in the
+``spec/outputs.md`` says (shape and absolute RMS over 500 poses in the
 volume the touch-ups covered) and printed next to the linear-image figure
 (ratio; target <= 1.5x, and all effects together < 0.1 mm shape).
 

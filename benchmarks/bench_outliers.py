@@ -304,7 +304,7 @@ def heldout_truth(
 
     The same folds as the crossval stage; each fold's model is registered to the
     truth (one rigid motion, over every usable touch-up pose: the accuracy
-    definition of ``../shared/spec/outputs.md``) and judged at its held-out
+    definition of ``spec/outputs.md``) and judged at its held-out
     touch-ups in two ways:
 
     * against the true target centre the touch-up touched: the error the model makes

@@ -1,7 +1,7 @@
 """A small synthetic run folder, for tests and demos of the report and the Rerun recording.
 
 :func:`make_demo_run` writes every artefact a finished run leaves (see
-``../shared/spec/outputs.md``) for a built-in arm, with known geometry: a
+``spec/outputs.md``) for a built-in arm, with known geometry: a
 "true" robot (the nominal URDF with small origin errors), a virtual pin and a
 few targets; touch-ups are joint vectors that put the true pin on a target
 (solved by damped Gauss-Newton from varied starts), some of them rejected with

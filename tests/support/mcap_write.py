@@ -1,6 +1,6 @@
 """A tiny ROS 2 recording writer for ingest tests and benchmarks.
 
-Writes what ../shared/spec/recording.md describes (URDF, joint states, images,
+Writes what spec/recording.md describes (URDF, joint states, images,
 ``touchup`` metadata) with :mod:`mcap_ros2.writer`, with knobs to produce the
 bad inputs ingest must reject (no images, unknown encodings, ...). The schema
 texts name nested definitions ``MSG: pkg/Type`` (``short_names=True``) or
