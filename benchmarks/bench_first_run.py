@@ -64,10 +64,14 @@ def clean_env(cache_home: Path) -> dict[str, str]:
 def readme_setup_line() -> str:
     """The README's set-up line: the first indented command of its "Set-up" section."""
     text = (ROOT / "README.md").read_text()
-    m = re.search(r"^## Set-up.*?^    (\S.*)$", text, re.S | re.M)
-    if m is None:
-        raise SystemExit("README.md: no indented command under a '## Set-up' heading")
-    return m.group(1).strip()
+    lines = text.splitlines()
+    start = next((i for i, ln in enumerate(lines) if ln.startswith("## Set-up")), None)
+    for ln in lines[start + 1 :] if start is not None else []:
+        if ln.startswith("## "):
+            break
+        if ln.startswith("    ") and ln.strip():
+            return ln.strip()
+    raise SystemExit("README.md: no indented command under a '## Set-up' heading")
 
 
 def install_setup_line(venv: Path, clone: Path, precompile: bool) -> tuple[str, float]:
