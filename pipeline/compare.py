@@ -39,6 +39,7 @@ import pandas as pd
 
 from pipeline.catalog import RUN_FILES
 from pipeline.errors import BadInput
+from pipeline.numfmt import fmt, short
 
 #: columns of the compare table, in order (see ``schemas/compare.json``)
 COLUMNS = [
@@ -306,8 +307,9 @@ def _unique_names(runs: list[Path]) -> list[str]:
 
 
 def _fmt_delta(delta: float, unit: str) -> str:
+    """A parameter's change in the report's units: mm and deg."""
     if unit == "rad":
-        return f"{delta * 1e3:+.3f} mrad"
+        return f"{math.degrees(delta):+.4f} deg"
     if unit == "m":
         return f"{delta * 1e3:+.3f} mm"
     return f"{delta:+.3g} {unit}"
@@ -390,16 +392,17 @@ def heldout_text(v: Any) -> str:
 
 
 def _cell(v: Any, unit: str = "") -> str:
+    """A table cell: SI lengths in mm and angles in deg (as the report shows them), every
+    figure through :mod:`pipeline.numfmt`."""
     if isinstance(v, (bool, np.bool_)):
         return "yes" if v else ""
     if isinstance(v, (float, np.floating)):
         if not np.isfinite(v):
             return ""
-        if unit == "rad":
-            return f"{v * 1e3:.4f}"
-        if unit == "m":
-            return f"{v * 1e3:.4f}"
-        return f"{v:.4g}"
+        scale = {"rad": math.degrees(1.0), "m": 1e3}.get(unit)
+        if scale is not None:
+            return fmt(float(v) * scale, 4)
+        return short(float(v), 4)
     return html.escape(str(v))
 
 
@@ -422,7 +425,7 @@ def render_html(result: CompareResult) -> str:
         f"<p>A parameter <i>moved</i> when |delta| &gt; {s.get('k_sigma', 3):g} "
         "&times; sqrt(std<sub>1</sub><sup>2</sup> + std<sub>2</sub><sup>2</sup>) against the "
         "first run of the same robot and model (standard errors of identification: random "
-        "error only). Lengths in mm, angles in mrad. Held-out: k-fold cross-validation RMS.</p>"
+        "error only). Lengths in mm, angles in deg. Held-out: k-fold cross-validation RMS.</p>"
     )
     out.append("<h2>Runs and error models</h2><table><tr>")
     heads = [
@@ -468,7 +471,7 @@ def render_html(result: CompareResult) -> str:
                 held = "" if bool(x["identifiable"].iloc[0]) else " (held)"
                 cells.append(f"<td>{_cell(v, unit)} &plusmn; {_cell(sd, unit)}{held}</td>")
             ds = gp["delta_sigma"].max()
-            shown = "mrad" if unit == "rad" else ("mm" if unit == "m" else unit)
+            shown = "deg" if unit == "rad" else ("mm" if unit == "m" else unit)
             out.append(
                 f"<tr class='{'moved' if moved else ''}'><td class='l'>{html.escape(str(p))}</td>"
                 f"<td class='l'>{html.escape(shown)}</td>{''.join(cells)}<td>{_cell(ds)}</td></tr>"

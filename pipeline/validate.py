@@ -57,6 +57,7 @@ from pipeline.kinematics.se3 import F64
 from pipeline.kinematics.urdf import RobotDescription
 from pipeline.kinematics.urdf_write import PIN_JOINT
 from pipeline.measurement.pin import fit_pin_and_targets
+from pipeline.numfmt import short
 from pipeline.verdict import improvement
 
 #: a target needs this many usable touch-ups for a consistency (one point is always "consistent")
@@ -386,16 +387,16 @@ def _verdict(
     passed, why = None, ""
     if tolerance_mm is not None:
         if validated > tolerance_mm:
-            why = f"{validated:.4f} mm > {tolerance_mm:g} mm"
+            why = f"{validated:.4f} mm > {short(tolerance_mm)} mm"
         elif dist_err is not None and dist_err > tolerance_mm:
-            why = f"known-distance error {dist_err:.4f} mm > {tolerance_mm:g} mm"
+            why = f"known-distance error {dist_err:.4f} mm > {short(tolerance_mm)} mm"
         elif not improved:
             why = "not improved on the nominal robot"
         passed = not why
         if passed:
-            why = f"{validated:.4f} mm <= {tolerance_mm:g} mm"
+            why = f"{validated:.4f} mm <= {short(tolerance_mm)} mm"
             if dist_err is not None:
-                why += f", known-distance error {dist_err:.4f} mm <= {tolerance_mm:g} mm"
+                why += f", known-distance error {dist_err:.4f} mm <= {short(tolerance_mm)} mm"
         line += f" | {'PASS' if passed else 'FAIL'} ({why})"
     elif not improved:
         why = "not improved on the nominal robot"

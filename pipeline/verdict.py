@@ -32,6 +32,8 @@ from __future__ import annotations
 import math
 from typing import Any
 
+from pipeline.numfmt import short
+
 #: a validated error at or above this share of the nominal robot's is "not improved"
 IMPROVED_BELOW = 0.8
 
@@ -191,12 +193,12 @@ def _pass_fail(
     if validated is None:
         return False, "nothing validated"
     if validated > tolerance_mm:
-        return False, f"{validated:.4f} mm > {tolerance_mm:g} mm"
+        return False, f"{validated:.4f} mm > {short(tolerance_mm)} mm"
     if not improved:
         return False, "not improved on the nominal robot"
     if lower_bound:
         return False, "the figure is a lower bound"
-    return True, f"{validated:.4f} mm <= {tolerance_mm:g} mm"
+    return True, f"{validated:.4f} mm <= {short(tolerance_mm)} mm"
 
 
 def lower_bound_reason(trust: dict[str, Any]) -> str:

@@ -42,7 +42,7 @@ def test_report_opens_offline_without_errors(report: Path, tmp_path: Path) -> No
     assert res["leaving"] == [], res["leaving"]
     assert res["errors"] == [], res["errors"]
     assert "vtcal report" in res["title"]
-    assert res["n_svg"] >= 5  # histogram, per target, targets, convergence, cross-validation, ...
+    assert res["n_svg"] >= 5  # residuals, per target, targets, convergence, cross-validation, ...
     png = shot.read_bytes()
     assert png[:8] == b"\x89PNG\r\n\x1a\n" and len(png) > 20_000
 
@@ -196,29 +196,6 @@ def test_the_per_target_legend_covers_no_data() -> None:
     assert len(legend_dots) == 2, legend_dots  # only the keys' own dots
     assert len(data) == 15 + 18
     assert min(y for _, y in data) > y1, "a data point under the legend"
-
-
-def test_histogram_bars_do_not_hide_each_other() -> None:
-    """Five models whose residuals fall in the same first bin: each bar is seen."""
-    from pipeline.report import plots
-
-    groups = {"nominal": np.linspace(0.1, 1.2, 18)} | {
-        m: np.full(18, 0.02) for m in ("full", "elastic", "mdh", "poe")
-    }
-    svg = plots.histogram(groups, "residual distance (mm)")
-    x0, y0, x1, y1 = _legend_box(svg)
-    rects = [
-        tuple(map(float, r))
-        for r in re.findall(r'<rect x="([-\d.]+)" y="([-\d.]+)" width="([\d.]+)" '
-                            r'height="([\d.]+)" fill="#', svg)
-    ]  # fmt: skip
-    keys = [r for r in rects if x0 <= r[0] <= x1 and y0 <= r[1] <= y1]
-    bars = [r for r in rects if r not in keys]
-    assert len(keys) == 5 and len(bars) >= 5 + 4
-    assert min(y for _, y, _, _ in bars) > y1, "a bar under the legend"
-    spans = sorted((x, x + w) for x, _, w, _ in bars)
-    for (_, a1), (b0, _) in zip(spans, spans[1:], strict=False):
-        assert b0 >= a1 - 1e-6, "two bars on top of each other"
 
 
 def test_all_empty_target_columns_are_not_shown(lrmate_run: Path) -> None:

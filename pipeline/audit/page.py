@@ -6,9 +6,12 @@ canvas (:mod:`pipeline.report.svg`):
 
 * per robot, recordings left to right (their dates): the drift of the previous
   calibration and the validated and fresh consistencies (mm), the tolerance, and
-  below, each change read, its size with a 2-sigma error bar (mm or deg);
+  below, each change read, its size with a 2-sigma error bar (mm or deg), labelled
+  where no label covers another (:func:`pipeline.report.svg.place_labels`);
 * the fleet: one cell per (model, recording), coloured by the held-out error on
   a log scale, the best model of each recording outlined.
+
+Figures are written by :func:`pipeline.numfmt.fmt` (a chi-square of 4e10 as ``4.02e10``).
 """
 
 from __future__ import annotations
@@ -16,7 +19,6 @@ from __future__ import annotations
 import math
 from datetime import UTC, datetime
 from html import escape
-from typing import Any
 
 import numpy as np
 import pandas as pd
@@ -24,6 +26,7 @@ import pandas as pd
 from pipeline import __version__
 from pipeline.audit.attribute import display_unit
 from pipeline.audit.audit import AuditResult
+from pipeline.numfmt import fmt
 from pipeline.report.svg import Panel, canvas, legend_height, padded
 from pipeline.report.templates import render_template
 
@@ -42,12 +45,6 @@ def _date(ns: int) -> str:
     return datetime.fromtimestamp(ns / 1e9, tz=UTC).strftime("%Y-%m-%d")
 
 
-def _fmt(x: Any, digits: int = 3) -> str:
-    if x is None or (isinstance(x, float) and not math.isfinite(x)):
-        return "–"
-    return f"{float(x):.{digits}f}"
-
-
 def timeline_svg(recs: pd.DataFrame, changes: pd.DataFrame) -> str:
     """One robot's timeline (see the module docstring)."""
     n = len(recs)
@@ -59,7 +56,7 @@ def timeline_svg(recs: pd.DataFrame, changes: pd.DataFrame) -> str:
     vals = np.append(vals[np.isfinite(vals)], float(recs["tolerance_mm"].iloc[0]))
     lh = legend_height(5)
     top = Panel((70, 10 + lh, 620, 170), (-0.5, n - 0.5), (0.0, float(vals.max()) * 1.15 or 1.0))
-    top.legend_above = True
+    top.legend_at = "above"
     keys = {
         "drift": "drift of the previous calibration (the change read)",
         "raw": "previous vs own calibration (with their noise)",
@@ -81,6 +78,20 @@ def timeline_svg(recs: pd.DataFrame, changes: pd.DataFrame) -> str:
     for c in ch.to_dict("records"):
         top.text(pos[c["to_recording"]], 0, c["kind"].replace("_", " "), dy=-14)
     body = [top.render(ylabel="mm (drift, consistency)", xticks=ticks)]
+    bottom = _changes_panel(ch, pos, n, ticks, 240 + lh)
+    body += [bottom] if bottom else []
+    return canvas(720, (240 + CHANGES_HEIGHT + 40 if bottom else 220) + lh, body)
+
+
+#: height of the changes-read panel, px (room for its labels, stacked where they crowd)
+CHANGES_HEIGHT = 190
+
+
+def _changes_panel(
+    ch: pd.DataFrame, pos: dict[str, int], n: int, ticks: list[tuple[float, str]], top: float
+) -> str:
+    """The timeline's lower panel: each change read, its size with a 2-sigma bar, labelled
+    (cause and column) where no label covers another (:meth:`Panel.labels`)."""
     sizes, errs, labels, xs, kinds = [], [], [], [], []
     for c in ch.to_dict("records"):
         cols, size, std = list(c["columns"]), list(c["size"]), list(c["size_std"])
@@ -92,23 +103,19 @@ def timeline_svg(recs: pd.DataFrame, changes: pd.DataFrame) -> str:
             short = f"{col.rsplit('.', 1)[-1]} {unit}"
             labels.append(f"{c['cause']}: {short}" if k == 0 else short)
             kinds.append(c["kind"])
-    if sizes:
-        lo, hi = padded(
-            min(np.array(sizes) - errs + [0.0]), max(np.array(sizes) + errs + [0.0]), 0.15
-        )
-        bot = Panel((70, 240 + lh, 620, 150), (-0.5, n - 0.5), (lo, hi))
-        bot.line([-0.5, n - 0.5], [0, 0], COLOURS["tol"], width=0.8)
-        for xi, s, e, lab, kd in zip(xs, sizes, errs, labels, kinds, strict=True):
-            colour = KIND_COLOURS.get(kd, "#000")
-            bot.line([xi, xi], [s - e, s + e], colour, width=1.5)
-            bot.dots(np.array([xi]), np.array([s]), colour, 6)
-            bot.text(xi, s, lab, dx=-4, dy=-6 - 9 * (labels.index(lab) % 2), size=8)
-        body.append(
-            bot.render(
-                ylabel="size (mm, deg, ppm)", title="changes read (2-sigma bars)", xticks=ticks
-            )
-        )
-    return canvas(720, (420 if sizes else 220) + lh, body)
+    if not sizes:
+        return ""
+    lo, hi = padded(min(np.array(sizes) - errs + [0.0]), max(np.array(sizes) + errs + [0.0]), 0.15)
+    bot = Panel((70, top, 620, CHANGES_HEIGHT), (-0.5, n - 0.5), (lo, hi))
+    bot.line([-0.5, n - 0.5], [0, 0], COLOURS["tol"], width=0.8)
+    for xi, s, e, kd in zip(xs, sizes, errs, kinds, strict=True):
+        colour = KIND_COLOURS.get(kd, "#000")
+        bot.line([xi, xi], [s - e, s + e], colour, width=1.5)
+        bot.dots(np.array([xi]), np.array([s]), colour, 6)
+    bot.labels(xs, sizes, labels, size=8, bounds=(4.0, top, 716.0, top + CHANGES_HEIGHT))
+    return bot.render(
+        ylabel="size (mm, deg, ppm)", title="changes read (2-sigma bars)", xticks=ticks
+    )
 
 
 def heatmap_svg(matrix: pd.DataFrame) -> str:
@@ -132,7 +139,7 @@ def heatmap_svg(matrix: pd.DataFrame) -> str:
         parts.append(
             f'<rect x="{x:.1f}" y="{y:.1f}" width="{cw - 2:.1f}" height="{ch - 2:.1f}" '
             f'fill="{colour}"{stroke}><title>{escape(r["model"])} on {escape(r["recording"])}: '
-            f"{_fmt(r['heldout_mm'], 4)} mm</title></rect>"
+            f"{fmt(r['heldout_mm'], 4)} mm</title></rect>"
         )
     for j, m in enumerate(models):
         parts.append(
@@ -146,8 +153,8 @@ def heatmap_svg(matrix: pd.DataFrame) -> str:
         )
     w = left + len(recs) * cw + 20
     parts.append(
-        f'<text x="{left}" y="{top + len(models) * ch + 16}" font-size="10">blue {10**lo:.4f} mm '
-        f"&#8594; red {10**hi:.4f} mm (log); outlined: best on that recording</text>"
+        f'<text x="{left}" y="{top + len(models) * ch + 16}" font-size="10">blue {fmt(10**lo, 4)} mm '
+        f"&#8594; red {fmt(10**hi, 4)} mm (log); outlined: best on that recording</text>"
     )
     return canvas(max(w, 420), top + len(models) * ch + 30, parts)
 
@@ -170,7 +177,7 @@ def render_page(res: AuditResult) -> str:
         )
     cross = res.changes[res.changes["comparison"] == "robots"].to_dict("records")
     return render_template(
-        TEMPLATE, _fmt, robots=robots, cross=cross, heat=heatmap_svg(res.models),
+        TEMPLATE, fmt, robots=robots, cross=cross, heat=heatmap_svg(res.models),
         ranking=res.ranking.to_dict("records"), lines=res.lines, version=__version__,
         date=_date,
     )  # fmt: skip

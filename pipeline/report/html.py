@@ -8,7 +8,7 @@ recording. Layout (template ``reports/report.html.j2``, jinja2 with autoescape):
    cross-validated where the run has them), the robot, the recording, the
    date (from the recording's stamps, so the file is deterministic), whether
    the length scale was identified;
-2. residuals: histograms before/after and per target;
+2. residuals: their cumulative distribution per model (log scale) and per target;
 3. parameters with standard errors, and what was not identifiable and why;
 4. conditioning and observability;
 5. touch-ups: every rejected one with its reason and, when the recording is

@@ -5,7 +5,7 @@ returns the plain values its part of the template shows: the verdict (1), residu
 (2), targets and parameters (3), conditioning (4), cross-validation and the
 error-model comparison (6), the run (7), in the numbering of :mod:`pipeline.report.html`
 (whose page assembly adds the touch-up sections, 5, which need the recording's images).
-:func:`fmt` is the template's number filter.
+:func:`pipeline.numfmt.fmt` is the template's number filter.
 """
 
 from __future__ import annotations
@@ -20,6 +20,7 @@ import pandas as pd
 
 from pipeline import __version__
 from pipeline.measure.summary import from_metadata
+from pipeline.numfmt import fmt, short
 from pipeline.report import plots
 from pipeline.report.data import RunData, artefact_hashes, run_uuid
 from pipeline.report.figures import (
@@ -35,26 +36,6 @@ from pipeline.report.figures import (
 )
 
 NA = "not available"
-
-
-def fmt(x: Any, digits: int = 3) -> str:
-    if x is None:
-        return "–"
-    if isinstance(x, (bool, np.bool_)):
-        return "yes" if x else "no"
-    if isinstance(x, str):
-        return x
-    if isinstance(x, (int, np.integer)):
-        return str(int(x))
-    try:
-        f = float(x)
-    except (TypeError, ValueError):
-        return str(x)
-    if not math.isfinite(f):
-        return "–"
-    if f != 0 and (abs(f) < 1e-3 or abs(f) >= 1e5):
-        return f"{f:.{digits}g}"
-    return f"{f:.{digits}f}"
 
 
 def verdict_section(data: RunData) -> dict[str, Any]:
@@ -121,7 +102,7 @@ def verdict_section(data: RunData) -> dict[str, Any]:
         "ratio": v.get("ratio"),
         "improved": v.get("improved"),
         "improved_below": IMPROVED_BELOW,
-        "tolerance": tol,
+        "tolerance": short(tol),
         "tolerance_source": data.tolerance_source,
         "held_out": bool(validated and validated[2].startswith("held-out")),
         "passed": v.get("passed"),
@@ -218,7 +199,7 @@ def residual_section(data: RunData) -> dict[str, Any]:
                 ]
     out: dict[str, Any] = {"available": bool(hist)}
     if hist:
-        out["hist_svg"] = plots.histogram(hist, "residual distance (mm)")
+        out["hist_svg"] = plots.residual_ecdf(hist, "residual distance (mm, log scale)")
         if per_target and tids:
             out["target_svg"] = plots.per_target(tids, per_target, "residual (mm)")
     return out
@@ -253,7 +234,8 @@ def targets_section(data: RunData) -> dict[str, Any]:
             p = pin_positions(data, tu)
             if p is not None:
                 pts["pin at touch-ups"] = p
-        svg = plots.scatter_xy(pts, "x (m)", "y (m)", labels)
+        mm = {k: v * 1e3 for k, v in pts.items()}  # as the table beside it
+        svg = plots.scatter_xy(mm, "x (mm)", "y (mm)", labels)
     return {"available": True, "headers": headers, "rows": rows, "svg": svg, "empty": empty}
 
 

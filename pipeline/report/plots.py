@@ -14,7 +14,15 @@ from collections.abc import Mapping, Sequence
 
 import numpy as np
 
-from pipeline.report.svg import Panel, canvas, legend_height, padded
+from pipeline.numfmt import fmt
+from pipeline.report.svg import (
+    LEGEND_GAP,
+    Panel,
+    canvas,
+    legend_height,
+    legend_width,
+    padded,
+)
 
 #: colours: before / after / rejected / other
 BEFORE = "#b0b7c3"
@@ -23,6 +31,9 @@ REJECT = "#d1242f"
 COLORS = ["#1f6feb", "#e36209", "#2da44e", "#8250df", "#bf3989", "#0a7d8c", "#6e7781"]
 #: margins of a panel in px: left, right, top, bottom
 MARGIN = (62.0, 12.0, 22.0, 40.0)
+#: width of a target's cross and diameter of a pin's ring on the targets plot, px
+TARGET_CROSS = 8.0
+PIN_RING = 13.0
 
 
 def _box(
@@ -49,40 +60,44 @@ def _group_color(name: str, i: int) -> str:
 
 def _box_legend_above(width: float, height: float, rows: int) -> tuple[float, float, float, float]:
     """:func:`_box` with ``rows`` legend rows' height added to the top margin (the legend
-    goes there, :attr:`Panel.legend_above`); the canvas is that much taller."""
+    goes there, ``Panel.legend_at = "above"``); the canvas is that much taller."""
     left, top, w, h = _box(width, height)
     return (left, top + legend_height(rows), w, h)
 
 
-def histogram(groups: Mapping[str, np.ndarray], xlabel: str, title: str = "") -> str:
-    """Histograms of one quantity per group (e.g. residual mm, before/after), side by side.
+def residual_ecdf(groups: Mapping[str, np.ndarray], xlabel: str) -> str:
+    """Residuals (mm) per group as empirical cumulative distributions on a log x axis.
 
-    Each bin holds one bar per group, next to each other (width: the bin's over the number
-    of groups), so no group's bar hides another's; the legend sits above the axes.
+    One step curve per group (e.g. the nominal robot and each error model): at residual
+    ``x`` the share of the group's touch-ups whose residual is at most ``x``. The log axis
+    spreads the fitted models, whose residuals are tens of times below the nominal robot's
+    and would share a histogram's first bin; the curve further left is the better fit, and
+    its height at 0.5 is the median. The legend (with each group's median) sits to the right
+    of the axes, off the data.
     """
-    vals = {k: _finite([v]) for k, v in groups.items()}
-    allv = _finite(list(vals.values()))
-    hi = float(np.max(allv)) if allv.size else 1.0
-    bins = np.linspace(0.0, hi * 1.05 if hi > 0 else 1.0, 25)
-    counts = {k: np.histogram(v, bins=bins)[0] for k, v in vals.items()}
-    top = max([int(c.max()) for c in counts.values() if c.size] + [1])
-    W, H0 = 614.0, 269.0
-    box = _box_legend_above(W, H0, len(counts))
-    H = H0 + box[1] - _box(W, H0)[1]
-    p = Panel(box, (0.0, float(bins[-1])), (0.0, top * 1.15))
-    p.legend_above = True
-    ng = max(len(counts), 1)
-    step = (bins[1] - bins[0]) / ng
+    vals = {k: np.sort(_finite([v])) for k, v in groups.items()}
+    pos = _finite([v[v > 0] for v in vals.values()])
+    lo, hi = (float(pos.min()) / 1.5, float(pos.max()) * 1.5) if pos.size else (1e-3, 1.0)
+    names = [
+        f"{k}, median {fmt(float(np.median(v)) if len(v) else None)} mm" for k, v in vals.items()
+    ]
+    W, H = 614.0, 250.0
+    left, top, _, h = _box(W, H)
+    w = W - left - legend_width(names) - LEGEND_GAP - 6.0
+    p = Panel((left, top, w, h), (lo, hi), (0.0, 1.05), xlog=True)
+    p.legend_at = "right"
     ci = 0
-    for gi, (name, c) in enumerate(counts.items()):
+    for (name, v), text in zip(vals.items(), names, strict=True):
         color = _group_color(name, ci)
         ci += color != BEFORE
-        for b, n in enumerate(c):
-            if n:
-                x0 = float(bins[b]) + gi * step
-                p.rect(x0, x0 + step, 0.0, float(n), color)
-        p.key(f"{name} (n={len(vals[name])})", color, "box")
-    return canvas(W, H, [p.render(xlabel=xlabel, ylabel="touch-ups", title=title)])
+        if len(v):
+            x = np.clip(v, lo, hi)
+            share = np.arange(1, len(v) + 1) / len(v)
+            xs = np.r_[np.repeat(x, 2), hi]
+            ys = np.r_[0.0, np.repeat(share, 2)]
+            p.line(xs, ys, color, 1.8)
+        p.key(text, color, "line")
+    return canvas(W, H, [p.render(xlabel=xlabel, ylabel="share of touch-ups at or below")])
 
 
 def per_target(
@@ -96,7 +111,7 @@ def per_target(
     box = _box_legend_above(W, H0, len(values_mm) + 1)  # + its title row
     H = H0 + box[1] - _box(W, H0)[1]
     p = Panel(box, (-0.6, len(target_ids) - 0.4), (0.0, top * 1.1 if top > 0 else 1.0))
-    p.legend_above = True
+    p.legend_at = "above"
     ng = max(len(values_mm), 1)
     width = 0.7 / ng
     ci = 0
@@ -174,12 +189,18 @@ def convergence(
 def scatter_xy(
     points: Mapping[str, np.ndarray], xlabel: str, ylabel: str, labels: Mapping[str, list[str]]
 ) -> str:
-    """Top view (x, y) of point sets in the base frame, in m (targets, pin positions).
+    """Top view (x, y) of point sets in the base frame, in the units given (the report: mm,
+    as its tables), e.g. the targets and the pin at the touch-ups.
 
-    Equal scale on both axes (the limits widen to fill the panel).
+    Equal scale on both axes (the limits widen to fill the panel). The first set (the
+    targets) is drawn as crosses, the others as rings of :data:`PIN_RING` px drawn over
+    them: a pin touches its target, so a dot at a cross would hide it or be hidden, while
+    the cross shows inside the ring. The legend, its swatches drawn like the marks, sits
+    below the axes.
     """
-    W, H = 403.0, 346.0
-    box = _box(W, H)
+    W, H0 = 403.0, 346.0
+    box = _box(W, H0)
+    H = H0 + legend_height(len(points))
     sets = {k: np.asarray(v, dtype=float).reshape(-1, 3) for k, v in points.items()}
     allp = np.vstack(list(sets.values())) if sets else np.zeros((0, 3))
     allp = allp[np.all(np.isfinite(allp[:, :2]), axis=1)]
@@ -194,18 +215,23 @@ def scatter_xy(
     xlim = (cx - per_px * box[2] / 2, cx + per_px * box[2] / 2)
     ylim = (cy - per_px * box[3] / 2, cy + per_px * box[3] / 2)
     p = Panel(box, xlim, ylim)
+    p.legend_at = "below"
     names = list(sets)
     for i, name in enumerate(names):
-        p.key(name, COLORS[i % len(COLORS)], "line" if i == 0 else "dot")
-    for i in [*range(1, len(names)), 0][: len(names)]:  # the first set (targets) on top
-        name, pts = names[i], sets[names[i]]
         color = COLORS[i % len(COLORS)]
         if i == 0:
-            p.crosses(pts[:, 0], pts[:, 1], color)
+            p.key(name, color, "cross", TARGET_CROSS)
         else:
-            p.dots(pts[:, 0], pts[:, 1], color, 5.0)
-        for txt, (x, y) in zip(labels.get(name, []), pts[:, :2], strict=False):
-            p.text(float(x), float(y), txt)
+            p.key(name, color, "ring", PIN_RING)
+    for i, name in enumerate(names):  # the targets first, the rings over them
+        pts, color = sets[name], COLORS[i % len(COLORS)]
+        if i == 0:
+            p.crosses(pts[:, 0], pts[:, 1], color, TARGET_CROSS)
+        else:
+            p.rings(pts[:, 0], pts[:, 1], color, PIN_RING)
+    for name in names:
+        for txt, (x, y) in zip(labels.get(name, []), sets[name][:, :2], strict=False):
+            p.text(float(x), float(y), txt, dx=8, dy=-7)
     return canvas(W, H, [p.render(xlabel=xlabel, ylabel=ylabel)])
 
 

@@ -18,6 +18,8 @@ from html import escape
 
 import numpy as np
 
+from pipeline.numfmt import short
+
 FONT = 'font-family="sans-serif" font-size="11"'
 GRID = "#d0d7de"
 AXIS = "#57606a"
@@ -29,8 +31,8 @@ def _f(v: float) -> str:
 
 
 def label(v: float) -> str:
-    """A tick value as a short plain number (``0.25``, ``10``, ``1e-05``)."""
-    return f"{float(f'{v:.6g}'):g}"
+    """A tick value as a short plain number (``0.25``, ``10``, ``1e-5``)."""
+    return short(v, 6)
 
 
 def nice_ticks(lo: float, hi: float, n: int = 5) -> list[float]:
@@ -80,19 +82,25 @@ class Panel:
         ylim: tuple[float, float],
         *,
         ylog: bool = False,
+        xlog: bool = False,
     ) -> None:
         self.left, self.top, self.width, self.height = box
-        self.xlim, self.ylim, self.ylog = xlim, ylim, ylog
+        self.xlim, self.ylim, self.ylog, self.xlog = xlim, ylim, ylog, xlog
         self.parts: list[str] = []
-        self.legend: list[tuple[str, str, str]] = []  # (label, colour, kind)
-        #: draw the legend in the margin above the axes (its rows' height, LEGEND_ROW px
-        #: each, reserved there by the caller: :func:`legend_height`), never over the data
-        self.legend_above = False
+        self.legend: list[tuple[str, str, str, float]] = []  # (label, colour, kind, size)
+        #: where the legend goes: ``inside`` (the axes' top right corner), or off the data:
+        #: ``above`` the axes, to their ``right`` or ``below`` them (under the x label); the
+        #: caller reserves the room there (:func:`legend_height`, :func:`legend_width`)
+        self.legend_at = "inside"
 
     def X(self, x: np.ndarray | float) -> np.ndarray:
-        """Data x to pixels."""
+        """Data x to pixels (log10 on a log axis)."""
+        v = np.asarray(x, dtype=float)
         x0, x1 = self.xlim
-        return np.asarray(self.left + (np.asarray(x, dtype=float) - x0) / (x1 - x0) * self.width)
+        if self.xlog:
+            with np.errstate(divide="ignore", invalid="ignore"):
+                v, x0, x1 = np.log10(v), math.log10(x0), math.log10(x1)
+        return np.asarray(self.left + (v - x0) / (x1 - x0) * self.width)
 
     def Y(self, y: np.ndarray | float) -> np.ndarray:
         """Data y to pixels (y up; log10 on a log axis)."""
@@ -158,14 +166,29 @@ class Panel:
     def crosses(self, x: np.ndarray, y: np.ndarray, color: str, size: float = 8.0) -> None:
         """``x`` markers of ``size`` px at the points."""
         px, py = self.X(x), self.Y(y)
-        h = size / 2
         d = "".join(
-            f"M{_f(a - h)} {_f(b - h)}l{size:g} {size:g}M{_f(a - h)} {_f(b + h)}l{size:g} {-size:g}"
+            cross_path(float(a), float(b), size)
             for a, b in zip(px, py, strict=True)
             if math.isfinite(a) and math.isfinite(b)
         )
         if d:
             self.parts.append(f'<path d="{d}" stroke="{color}" stroke-width="1.8"/>')
+
+    def rings(
+        self, x: np.ndarray, y: np.ndarray, color: str, size: float, width: float = 2.0
+    ) -> None:
+        """Open circles of diameter ``size`` px at the points (one path element for all):
+        what lies at a point, e.g. a target's cross, shows through a ring drawn over it."""
+        px, py = self.X(x), self.Y(y)
+        d = "".join(
+            ring_path(float(a), float(b), size)
+            for a, b in zip(px, py, strict=True)
+            if math.isfinite(a) and math.isfinite(b)
+        )
+        if d:
+            self.parts.append(
+                f'<path d="{d}" fill="none" stroke="{color}" stroke-width="{width:g}"/>'
+            )
 
     def rect(self, x0: float, x1: float, y0: float, y1: float, color: str) -> None:
         """A filled rectangle between data corners (a bar)."""
@@ -198,9 +221,38 @@ class Panel:
                 f'<text x="{_f(px + dx)}" y="{_f(py + dy)}" font-size="{size}">{escape(s)}</text>'
             )
 
-    def key(self, name: str, color: str, kind: str = "line") -> None:
-        """Add a legend entry (``kind``: line, dot, box)."""
-        self.legend.append((name, color, kind))
+    def labels(
+        self,
+        x: Sequence[float],
+        y: Sequence[float],
+        texts: Sequence[str],
+        size: int = 8,
+        bounds: tuple[float, float, float, float] | None = None,
+    ) -> None:
+        """Text labels at data points, none over another (:func:`place_labels`): a label
+        moved away from its point is tied to it by a thin leader line."""
+        px = [float(v) for v in self.X(np.asarray(x, dtype=float))]
+        py = [float(v) for v in self.Y(np.asarray(y, dtype=float))]
+        area = bounds or (self.left, self.top, self.left + self.width, self.top + self.height)
+        for (tx, ty, lead), s, ax, ay in zip(
+            place_labels(px, py, texts, size, area), texts, px, py, strict=True
+        ):
+            if lead:
+                w = text_width(s, size)
+                ex = min(max(ax, tx), tx + w)  # the leader ends on the label's nearer edge
+                ey = ty - size * 0.35
+                self.parts.append(
+                    f'<path d="M{_f(ax)} {_f(ay)}L{_f(ex)} {_f(ey)}" stroke="{AXIS}" '
+                    'stroke-width="0.6"/>'
+                )
+            self.parts.append(
+                f'<text x="{_f(tx)}" y="{_f(ty)}" font-size="{size}">{escape(s)}</text>'
+            )
+
+    def key(self, name: str, color: str, kind: str = "line", size: float = 6.0) -> None:
+        """Add a legend entry drawn like the marks it names (``kind``: line, dot, box,
+        cross, ring; ``size``: the dot's or ring's diameter or the cross's width, px)."""
+        self.legend.append((name, color, kind, size))
 
     def render(
         self,
@@ -218,7 +270,8 @@ class Panel:
             yt = log_ticks(*self.ylim)
         else:
             yt = nice_ticks(*self.ylim)
-        xt = xticks if xticks is not None else [(v, label(v)) for v in nice_ticks(*self.xlim)]
+        auto = log_ticks(*self.xlim) if self.xlog else nice_ticks(*self.xlim)
+        xt = xticks if xticks is not None else [(v, label(v)) for v in auto]
         for v in yt:
             y = float(self.Y(v))
             out.append(f'<path d="M{_f(L)} {_f(y)}h{_f(W)}" stroke="{GRID}"/>')
@@ -256,16 +309,20 @@ class Panel:
         return "".join(out)
 
     def _legend(self, title: str) -> str:
-        rows = ([(title, "", "title")] if title else []) + self.legend
-        width = 22 + 6.2 * max(len(n) for n, _, _ in rows)
+        rows = ([(title, "", "title", 0.0)] if title else []) + self.legend
+        width = legend_width([n for n, _, _, _ in rows])
         x, y = self.left + self.width - width, self.top + 4
-        if self.legend_above:
+        if self.legend_at == "above":
             y = self.top - legend_height(len(rows))
+        elif self.legend_at == "right":
+            x = self.left + self.width + LEGEND_GAP
+        elif self.legend_at == "below":
+            x, y = self.left, self.top + self.height + LEGEND_BELOW
         out = [
             f'<rect x="{_f(x - 4)}" y="{_f(y - 2)}" width="{_f(width + 4)}" '
             f'height="{_f(14 * len(rows) + 2)}" fill="white" fill-opacity="0.8"/>'
         ]
-        for i, (name, color, kind) in enumerate(rows):
+        for i, (name, color, kind, size) in enumerate(rows):
             cy = y + 14 * i + 7
             if kind == "box":
                 out.append(
@@ -273,8 +330,18 @@ class Panel:
                 )
             elif kind == "dot":
                 out.append(
-                    f'<path d="M{_f(x + 6)} {_f(cy)}h0" stroke="{color}" stroke-width="6" '
-                    'stroke-linecap="round"/>'
+                    f'<path d="M{_f(x + 6)} {_f(cy)}h0" stroke="{color}" '
+                    f'stroke-width="{min(size, 10.0):g}" stroke-linecap="round"/>'
+                )
+            elif kind == "cross":
+                out.append(
+                    f'<path d="{cross_path(x + 6, cy, min(size, 10.0))}" stroke="{color}" '
+                    'stroke-width="1.8"/>'
+                )
+            elif kind == "ring":
+                out.append(
+                    f'<path d="{ring_path(x + 6, cy, min(size, 12.0))}" fill="none" '
+                    f'stroke="{color}" stroke-width="2"/>'
                 )
             elif kind == "line":
                 out.append(f'<path d="M{_f(x)} {_f(cy)}h12" stroke="{color}" stroke-width="2"/>')
@@ -285,11 +352,104 @@ class Panel:
 
 #: height of one legend row, px
 LEGEND_ROW = 14.0
+#: gap between the axes and a legend to their right, px
+LEGEND_GAP = 14.0
+#: a legend below the axes starts this far under them (below the ticks and x label), px
+LEGEND_BELOW = 38.0
+#: side of the square a labelled point keeps free of labels, px
+POINT_BOX = 7.0
+#: estimated advance of one character, in font sizes (the page's sans-serif; wide side)
+CHAR_WIDTH = 0.6
 
 
 def legend_height(rows: int) -> float:
     """Pixels a legend of ``rows`` rows takes (its box and a gap below it)."""
     return LEGEND_ROW * rows + 6.0
+
+
+def legend_width(names: Sequence[str]) -> float:
+    """Pixels a legend with these entries takes across (swatch, gap and the longest name)."""
+    return 22 + 6.2 * max([len(n) for n in names] + [0])
+
+
+def cross_path(x: float, y: float, size: float) -> str:
+    """Path data of an ``x`` marker of ``size`` px centred at pixel ``(x, y)``."""
+    h = size / 2
+    return f"M{_f(x - h)} {_f(y - h)}l{size:g} {size:g}M{_f(x - h)} {_f(y + h)}l{size:g} {-size:g}"
+
+
+def ring_path(x: float, y: float, size: float) -> str:
+    """Path data of a circle of diameter ``size`` px centred at pixel ``(x, y)`` (two arcs)."""
+    r = size / 2
+    return f"M{_f(x - r)} {_f(y)}a{r:g} {r:g} 0 1 0 {size:g} 0a{r:g} {r:g} 0 1 0 {-size:g} 0"
+
+
+def text_width(s: str, size: float) -> float:
+    """Estimated width in px of ``s`` at font size ``size`` (:data:`CHAR_WIDTH` per char)."""
+    return CHAR_WIDTH * size * len(s)
+
+
+def text_box(x: float, y: float, s: str, size: float) -> tuple[float, float, float, float]:
+    """``(x0, y0, x1, y1)`` px of a start-anchored text at baseline ``(x, y)``: from the
+    ascender (one font size above the baseline) to the descender (a fifth below)."""
+    return (x, y - size, x + text_width(s, size), y + 0.2 * size)
+
+
+def _overlap(a: tuple[float, ...], b: tuple[float, ...], pad: float = 1.0) -> float:
+    """Area (px^2) shared by two boxes ``(x0, y0, x1, y1)``, each grown by ``pad``."""
+    w = min(a[2], b[2]) - max(a[0], b[0]) + 2 * pad
+    h = min(a[3], b[3]) - max(a[1], b[1]) + 2 * pad
+    return max(w, 0.0) * max(h, 0.0)
+
+
+def place_labels(
+    px: Sequence[float],
+    py: Sequence[float],
+    texts: Sequence[str],
+    size: float,
+    area: tuple[float, float, float, float],
+) -> list[tuple[float, float, bool]]:
+    """Greedy placement of text labels next to their points, no two on top of each other.
+
+    Each label (in order of its point's x) takes the first free spot in a fixed list:
+    just above its point, then below, then further above and below in steps of one line,
+    each to the right of the point and then to its left; a spot must keep the label
+    inside ``area`` ``(x0, y0, x1, y1)`` px and off every label already placed (boxes of
+    :func:`text_box`) and every point (a :data:`POINT_BOX` px square). When no spot is free
+    the one overlapping least is taken. Returns,
+    per label in the given order, its baseline start ``(x, y)`` and whether it is off its
+    point (then the caller ties it with a leader line).
+    """
+    line = size * 1.3
+    offsets = [-0.5 * size] + [
+        d for k in range(1, 12) for d in (-0.5 * size - k * line, 1.2 * size + (k - 1) * line)
+    ]
+    h = POINT_BOX / 2
+    placed = [(x - h, y - h, x + h, y + h) for x, y in zip(px, py, strict=True)]
+    out: list[tuple[float, float, bool]] = [(0.0, 0.0, False)] * len(texts)
+    for i in sorted(range(len(texts)), key=lambda k: (px[k], py[k])):
+        w = text_width(texts[i], size)
+        best: tuple[float, float, float, int] | None = None  # (overlap, x, y, rank)
+        for rank, dy in enumerate(offsets):
+            for x in (px[i] + 6, px[i] - 6 - w):
+                y = py[i] + dy
+                box = text_box(x, y, texts[i], size)
+                if box[0] < area[0] or box[2] > area[2] or box[1] < area[1] or box[3] > area[3]:
+                    continue
+                cost = sum(_overlap(box, b) for b in placed)
+                if best is None or cost < best[0]:
+                    best = (cost, x, y, rank)
+                if cost == 0:
+                    break
+            if best is not None and best[0] == 0:
+                break
+        if best is None:  # no spot inside the area: above the point, clamped across
+            x = min(max(px[i] + 6, area[0]), area[2] - w)
+            best = (0.0, x, py[i] - 0.5 * size, 0)
+        _, x, y, rank = best
+        placed.append(text_box(x, y, texts[i], size))
+        out[i] = (x, y, rank > 0)
+    return out
 
 
 def canvas(width: float, height: float, body: Sequence[str]) -> str:

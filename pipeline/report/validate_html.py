@@ -9,21 +9,18 @@ from __future__ import annotations
 from typing import Any
 
 from pipeline import __version__
+from pipeline.numfmt import fmt, short
 from pipeline.report.templates import render_template
 from pipeline.verdict import IMPROVED_BELOW
 
 TEMPLATE = "validate.html.j2"
 
 
-def _fmt(x: Any, digits: int = 3) -> str:
-    return "–" if x is None else f"{float(x):.{digits}f}"
-
-
 def render_validation(result: dict[str, Any]) -> str:
     """The page of one validation (:func:`pipeline.validate.validate` plus the command's paths)."""
     return render_template(
         TEMPLATE,
-        _fmt,
+        fmt,
         r=result,
         v=result["verdict"],
         nominal=result["robots"][-1],
@@ -31,4 +28,5 @@ def render_validation(result: dict[str, Any]) -> str:
         input_name=str(result.get("input", "")).rsplit("/", 1)[-1],
         version=__version__,
         improved_below=IMPROVED_BELOW,
+        tolerance=short(result["verdict"].get("tolerance_mm")),
     )
