@@ -1,12 +1,20 @@
-"""Screenshots of report.html, validate.html and the compare page at 900 and 1400 px.
+"""Screenshots of report.html, validate.html, the compare page and the audit page at 900 and
+1400 px, with what the layout and token probes found.
 
-    python benchmarks/report_screenshots.py [--run runs/sample] [--out docs/img]
+    python benchmarks/report_screenshots.py [--run runs/sample] [--out docs/img] [--pages audit]
 
 Runs the shipped sample (or takes a run folder of it), validates its calibration on its
 own touch-ups in reverse order written as a table (a layout check, not a validation:
-those are the touch-ups it was fitted on), compares the run with itself, opens each page
-in headless Chromium (``tests/support/browser.py``) at both widths, saves the first
-1200 px of each as ``PAGE-WIDTH.png`` and prints what the layout probe found (docs/report.md).
+those are the touch-ups it was fitted on), compares the run with itself, and audits a
+small simulated fleet: three LR Mate-like robots of six recordings each
+(:mod:`pipeline.sim.history`, touch-up level): robot A's joint 3 zero turned 0.05 deg
+before recording 2 and its base moved 1 mm before recording 4; robot B's camera remounted
+(0.1 mm) before recording 3; robot C unchanged. Opens each page in headless Chromium
+(``tests/support/browser.py``) at both widths, saves the first 1200 px of each (2400 px of
+the audit page) as ``PAGE-WIDTH.png`` and prints what the layout probe found and how many
+table-cell tokens the token probe saw broken over two lines (docs/report.md). ``--pages``
+takes some of report, validate, compare, audit (comma-separated; the sample is run only
+for the first three).
 """
 
 from __future__ import annotations
@@ -17,11 +25,43 @@ import sys
 import tempfile
 from pathlib import Path
 
+import numpy as np
+
 REPO = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(REPO / "tests"))
 
+#: the audited fleet: robot -> (seed, {recording index: (event kind, size, joint)})
+FLEET = {
+    "A": (1, {2: ("joint_offset", np.radians(0.05), "joint_3"), 4: ("base", 1e-3, "")}),
+    "B": (2, {3: ("camera", 1e-4, "")}),
+    "C": (3, {}),
+}
+#: how much of each page the screenshot keeps (CSS px)
+HEIGHT = {"audit": 2400}
 
-def _pages(run: Path, work: Path) -> dict[str, Path]:
+
+def _audit(work: Path) -> Path:
+    """``vtcal audit`` of :data:`FLEET`; its ``audit.html``."""
+    from pipeline.cli import main
+    from pipeline.sim.history import Event, make_history, write_history
+
+    for rid, (seed, events) in FLEET.items():
+        ev = {i: Event(k, s, j) for i, (k, s, j) in events.items()}
+        write_history(make_history(f"cell-{rid}", ev, seed=seed), work / "runs")
+    try:
+        main(["audit", str(work / "runs"), "--out", str(work / "audit")])
+    except SystemExit as exc:
+        if exc.code:
+            raise
+    return work / "audit" / "audit.html"
+
+
+#: the pages, in the order they are written
+PAGES = ("report", "validate", "compare", "audit")
+
+
+def _run_pages(run: Path, work: Path) -> dict[str, Path]:
+    """report.html of the sample's run, validate.html, the compare page."""
     import pandas as pd
 
     from pipeline.cli import main
@@ -52,19 +92,22 @@ def _pages(run: Path, work: Path) -> dict[str, Path]:
     }
 
 
-def main() -> None:
+def main(argv: list[str] | None = None) -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--run", type=Path, default=None, help="run folder of the shipped sample")
     ap.add_argument("--out", type=Path, default=REPO / "docs" / "img")
-    args = ap.parse_args()
+    ap.add_argument("--pages", default=",".join(PAGES), help="comma-separated: " + ", ".join(PAGES))
+    args = ap.parse_args(argv)
+    wanted = [p for p in PAGES if p in args.pages.split(",")]
     from support.browser import CHROMIUM, open_in_chromium
 
     if CHROMIUM is None:
         sys.exit("chromium not installed (apt-get install chromium)")
     with tempfile.TemporaryDirectory() as tmp:
         work = Path(tmp)
+        pages: dict[str, Path] = {}
         run = args.run
-        if run is None:
+        if run is None and set(wanted) - {"audit"}:
             from pipeline.cli import main as vtcal
 
             run = work / "sample"
@@ -74,19 +117,32 @@ def main() -> None:
             except SystemExit as exc:
                 if exc.code:
                     raise
+        if run is not None:
+            pages.update(_run_pages(run, work))
+        if "audit" in wanted:
+            pages["audit"] = _audit(work)
         args.out.mkdir(parents=True, exist_ok=True)
-        for name, page in _pages(run, work).items():
+        for name in wanted:
+            page = pages[name]
             for width in (900, 1400):
                 shot = args.out / f"{name}-{width}.png"
                 res = open_in_chromium(page, work / f"b-{name}-{width}", shot, width=width,
-                                       height=1200)  # fmt: skip
-                lay = res["layout"]
+                                       height=HEIGHT.get(name, 1200))  # fmt: skip
+                lay, tok = res["layout"], res["tokens"]
+                for e in res["errors"]:
+                    print("  browser:", e)
+                for o in lay["overlaps"]:
+                    print("  overlap:", o)
+                for b in tok["broken"]:
+                    print(f"  broken: {b['token']!r} over {b['lines']} lines in {b['cell']}")
                 print(
                     f"{shot.relative_to(REPO) if shot.is_relative_to(REPO) else shot}: "
                     f"page {lay['page']} px in a {lay['viewport']} px window, "
                     f"{len(lay['past'])} element(s) past its edge, {len(lay['scrolls'])} "
-                    f"table(s) scrolling, {len(lay['overlaps'])} text overlap(s); "
-                    f"{shot.stat().st_size // 1024} KiB"
+                    f"table(s) scrolling, {len(lay['overlaps'])} text overlap(s); tokens: "
+                    f"{len(tok['broken'])} of {tok['tokens']} in {tok['cells']} table cells "
+                    f"broken over two lines; {len(res['leaving'])} request(s) leaving, "
+                    f"{len(res['errors'])} error(s); {shot.stat().st_size // 1024} KiB"
                 )
 
 

@@ -360,9 +360,10 @@ def _drift(table: pd.DataFrame, k_sigma: float) -> None:
 
 _CSS = """
 body{font-family:system-ui,sans-serif;margin:1.5em;color:#222}
-table{border-collapse:collapse;margin:0.6em 0 1.6em;font-size:0.86em;max-width:100%}
-th,td{border:1px solid #ccc;padding:0.2em 0.5em;text-align:right;overflow-wrap:anywhere}
-th{background:#f0f0f0} td.l,th.l{text-align:left}
+.table-wrap{max-width:100%;overflow-x:auto;margin:0.6em 0 1.6em}
+table{border-collapse:collapse;font-size:0.86em}
+th,td{border:1px solid #ccc;padding:0.2em 0.5em;text-align:right}
+th{background:#f0f0f0} td.l,th.l{text-align:left} .w{white-space:nowrap}
 tr.moved td{background:#fde2e2} .ok{color:#176b2c} .bad{color:#a11}
 """
 
@@ -406,6 +407,51 @@ def _cell(v: Any, unit: str = "") -> str:
     return html.escape(str(v))
 
 
+#: the page's runs table: (column of compare_runs' runs frame, heading)
+RUN_HEADS = [
+    ("run", "run"),
+    ("robot", "robot"),
+    ("n_touchups", "touch-ups"),
+    ("n_rejected", "rejected"),
+    ("n_split_targets", "knocked targets"),
+]
+#: the page's error-models table (a row per run and model)
+MODEL_HEADS = [
+    ("run", "run"),
+    ("model", "model"),
+    ("shipped", "shipped"),
+    ("heldout_rms_mm", "held-out RMS mm"),
+    ("loto_rms_mm", "leave-one-target-out mm"),
+    ("train_rms_mm", "training RMS mm"),
+    ("predicted_rms_mm", "predicted RMS mm"),
+    ("cond", "condition"),
+    ("n_used", "used"),
+]
+
+
+def _words(text: str) -> str:
+    """Escaped cell text that wraps only between words: a hyphenated word (``touch-ups``,
+    ``cross-validated``, ``1e-05``, a run's folder name) is kept on one line (a browser
+    breaks after a hyphen)."""
+    return " ".join(f"<span class='w'>{w}</span>" if "-" in w else w for w in text.split(" "))
+
+
+def _table(rows: pd.DataFrame, heads: list[tuple[str, str]]) -> str:
+    """An HTML table of ``rows``' columns ``heads`` (column, heading), in a sideways-scrolling
+    wrapper; a missing held-out figure reads :data:`NOT_CROSS_VALIDATED`."""
+    out = ["<div class='table-wrap'><table><tr>"]
+    out.append("".join(f"<th class='l'>{_words(html.escape(h))}</th>" for _, h in heads))
+    out.append("</tr>")
+    for r in rows.to_dict("records"):
+        cells = [
+            NOT_CROSS_VALIDATED if c == "heldout_rms_mm" and not _cell(r[c]) else _cell(r[c])
+            for c, _ in heads
+        ]
+        out.append("<tr>" + "".join(f"<td>{_words(v)}</td>" for v in cells) + "</tr>")
+    out.append("</table></div>")
+    return "\n".join(out)
+
+
 def render_html(result: CompareResult) -> str:
     """A self-contained HTML page of a comparison (no scripts, no external resources)."""
     s = result.summary
@@ -427,36 +473,18 @@ def render_html(result: CompareResult) -> str:
         "first run of the same robot and model (standard errors of identification: random "
         "error only). Lengths in mm, angles in deg. Held-out: k-fold cross-validation RMS.</p>"
     )
-    out.append("<h2>Runs and error models</h2><table><tr>")
-    heads = [
-        ("run", "run"),
-        ("robot", "robot"),
-        ("model", "model"),
-        ("shipped", "shipped"),
-        ("heldout_rms_mm", "held-out RMS mm"),
-        ("loto_rms_mm", "leave-one-target-out mm"),
-        ("train_rms_mm", "training RMS mm"),
-        ("predicted_rms_mm", "predicted RMS mm"),
-        ("cond", "condition"),
-        ("n_touchups", "touch-ups"),
-        ("n_used", "used"),
-        ("n_rejected", "rejected"),
-        ("n_split_targets", "knocked targets"),
-    ]
-    out.append("".join(f"<th class='l'>{html.escape(h)}</th>" for _, h in heads) + "</tr>")
-    for r in result.runs.to_dict("records"):
-        cells = [
-            NOT_CROSS_VALIDATED if c == "heldout_rms_mm" and not _cell(r[c]) else _cell(r[c])
-            for c, _ in heads
-        ]
-        out.append("<tr>" + "".join(f"<td>{v}</td>" for v in cells) + "</tr>")
-    out.append("</table>")
+    # two tables, not one of 13 columns: each fits a 900 px window with its words whole
+    out.append("<h2>Runs</h2>")
+    out.append(_table(result.runs.drop_duplicates("run"), RUN_HEADS))
+    out.append("<h2>Error models</h2>")
+    out.append(_table(result.runs, MODEL_HEADS))
     kin = result.table[result.table["kind"] != "target"]
     for (robot, model), g in kin.groupby(["robot", "model"], sort=False):
         out.append(f"<h2>Parameters: {html.escape(str(robot))} [{html.escape(str(model))}]</h2>")
         runs = list(dict.fromkeys(g["run"]))
-        out.append("<table><tr><th class='l'>parameter</th><th class='l'>unit</th>")
-        out.append("".join(f"<th>{html.escape(r)} value &plusmn; std</th>" for r in runs))
+        out.append("<div class='table-wrap'><table><tr><th class='l'>parameter</th>")
+        out.append("<th class='l'>unit</th>")
+        out.append("".join(f"<th>{_words(html.escape(r))} value &plusmn; std</th>" for r in runs))
         out.append("<th>largest |delta|/sigma</th></tr>")
         for p, gp in g.groupby("parameter", sort=False):
             unit = str(gp["unit"].iloc[0])
@@ -469,13 +497,15 @@ def render_html(result: CompareResult) -> str:
                     continue
                 v, sd = float(x["value"].iloc[0]), float(x["std"].iloc[0])
                 held = "" if bool(x["identifiable"].iloc[0]) else " (held)"
-                cells.append(f"<td>{_cell(v, unit)} &plusmn; {_cell(sd, unit)}{held}</td>")
+                txt = f"{_cell(v, unit)} &plusmn; {_cell(sd, unit)}{held}"
+                cells.append(f"<td>{_words(txt)}</td>")
             ds = gp["delta_sigma"].max()
             shown = "deg" if unit == "rad" else ("mm" if unit == "m" else unit)
+            name, sigmas = _words(html.escape(str(p))), _words(_cell(ds))
             out.append(
-                f"<tr class='{'moved' if moved else ''}'><td class='l'>{html.escape(str(p))}</td>"
-                f"<td class='l'>{html.escape(shown)}</td>{''.join(cells)}<td>{_cell(ds)}</td></tr>"
+                f"<tr class='{'moved' if moved else ''}'><td class='l'>{name}</td>"
+                f"<td class='l'>{html.escape(shown)}</td>{''.join(cells)}<td>{sigmas}</td></tr>"
             )
-        out.append("</table>")
+        out.append("</table></div>")
     out.append("</body></html>\n")
     return "\n".join(out)

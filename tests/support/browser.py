@@ -125,8 +125,8 @@ class Cdp:
 
 #: JavaScript returning (as JSON) what does not fit the page's width: the page's own scroll
 #: width against the viewport's, every table / figure / block whose right edge passes the
-#: viewport, every table scrolling sideways inside itself, and the pairs of SVG text
-#: boxes that overlap within one figure
+#: viewport, every table scrolling sideways inside itself or its ``.table-wrap``, and the
+#: pairs of SVG text boxes that overlap within one figure
 LAYOUT_PROBE = """(() => {
   const W = document.documentElement.clientWidth;
   const out = {viewport: W, page: document.documentElement.scrollWidth, past: [], scrolls: [],
@@ -136,7 +136,7 @@ LAYOUT_PROBE = """(() => {
     const r = el.getBoundingClientRect();
     if (r.width > 0 && r.right > W + 0.5) out.past.push(name(el) + ' right ' + Math.round(r.right));
   }
-  for (const el of document.querySelectorAll('table')) {
+  for (const el of document.querySelectorAll('table, .table-wrap')) {
     if (el.scrollWidth > el.clientWidth + 1) out.scrolls.push(name(el));
   }
   document.querySelectorAll('svg').forEach((svg, k) => {
@@ -150,6 +150,52 @@ LAYOUT_PROBE = """(() => {
                                                '" / "' + boxes[j][0].textContent + '"');
     }
   });
+  return JSON.stringify(out);
+})()"""
+
+
+#: JavaScript returning (as JSON) every table cell's token that the browser broke over two
+#: lines: every ``<details>`` is opened first so that each table is laid out, then for each
+#: ``th`` / ``td`` each whitespace-free run of its text (a token: ``832.00``, ``18/42``,
+#: ``model``) is covered by a Range; its client rects are grouped into lines (rects that
+#: overlap vertically are one line, so ``x<sub>1</sub>`` stays one) and more than one line
+#: means the token was split. ``cells`` is how many cells were measured, ``tokens`` how many
+#: tokens, ``broken`` a list of ``{token, lines, cell}``.
+TOKEN_PROBE = """(() => {
+  document.querySelectorAll('details').forEach(d => { d.open = true; });
+  const out = {cells: 0, tokens: 0, broken: []};
+  for (const cell of document.querySelectorAll('th, td')) {
+    const walker = document.createTreeWalker(cell, NodeFilter.SHOW_TEXT);
+    const nodes = [];
+    let text = '';
+    for (let n = walker.nextNode(); n; n = walker.nextNode()) {
+      nodes.push([n, text.length]);
+      text += n.data;
+    }
+    if (!text.trim()) continue;
+    out.cells++;
+    const at = pos => {
+      let k = nodes.length - 1;
+      while (k > 0 && nodes[k][1] > pos) k--;
+      return [nodes[k][0], pos - nodes[k][1]];
+    };
+    for (const m of text.matchAll(/\\S+/g)) {
+      out.tokens++;
+      const range = document.createRange();
+      range.setStart(...at(m.index));
+      const end = at(m.index + m[0].length - 1);
+      range.setEnd(end[0], end[1] + 1);
+      const rects = [...range.getClientRects()].filter(r => r.width > 0 && r.height > 0)
+        .sort((a, b) => a.top - b.top);
+      let lines = 0, bottom = -Infinity;
+      for (const r of rects) {
+        if (r.top >= bottom - 0.5) { lines++; bottom = r.bottom; }
+        else bottom = Math.max(bottom, r.bottom);
+      }
+      if (lines > 1) out.broken.push({token: m[0], lines: lines,
+                                      cell: cell.tagName.toLowerCase() + ' "' + text.trim().slice(0, 60) + '"'});
+    }
+  }
   return JSON.stringify(out);
 })()"""
 
@@ -177,8 +223,10 @@ def open_in_chromium(
     -------
     dict with ``requests`` (every URL requested), ``leaving`` (those not ``file:``,
     ``data:`` or ``about:``), ``errors`` (console errors, error log entries,
-    exceptions), ``title``, ``n_svg`` (inline SVG elements in the page) and ``layout``
-    (:data:`LAYOUT_PROBE`'s findings at this width).
+    exceptions), ``title``, ``n_svg`` (inline SVG elements in the page), ``layout``
+    (:data:`LAYOUT_PROBE`'s findings at this width) and ``tokens`` (:data:`TOKEN_PROBE`'s:
+    the table cells' tokens broken over two lines; measured after the screenshot, as it
+    opens every ``<details>``).
     """
     cdp = Cdp(tmp / "profile")
     try:
@@ -212,6 +260,7 @@ def open_in_chromium(
                 }
             shot = cdp.call("Page.captureScreenshot", session=sid, format="png", **extra)
             screenshot.write_bytes(base64.b64decode(shot["data"]))
+        tokens = cdp.call("Runtime.evaluate", session=sid, expression=TOKEN_PROBE)
     finally:
         cdp.close()
     ev = cdp.events
@@ -241,4 +290,41 @@ def open_in_chromium(
         "title": title["result"].get("value"),
         "n_svg": n_svg["result"].get("value"),
         "layout": json.loads(layout["result"].get("value") or "{}"),
+        "tokens": json.loads(tokens["result"].get("value") or "{}"),
     }
+
+
+def probe_pages(
+    pages: dict[str, Path], tmp: Path, widths: tuple[int, ...] = (900, 1400), height: int = 1200
+) -> dict[tuple[str, int], dict[str, Any]]:
+    """Each page at each width in one browser: ``{(name, width): {"layout", "tokens"}}``
+    (:data:`LAYOUT_PROBE`'s and :data:`TOKEN_PROBE`'s findings), faster than
+    :func:`open_in_chromium` per page when only the probes are wanted."""
+    out: dict[tuple[str, int], dict[str, Any]] = {}
+    cdp = Cdp(tmp / "profile")
+    try:
+        target = cdp.call("Target.createTarget", url="about:blank")["targetId"]
+        sid = cdp.call("Target.attachToTarget", targetId=target, flatten=True)["sessionId"]
+        for domain in ("Runtime", "Page"):
+            cdp.call(f"{domain}.enable", session=sid)
+        for width in widths:
+            cdp.call(
+                "Emulation.setDeviceMetricsOverride",
+                session=sid,
+                width=width,
+                height=height,
+                deviceScaleFactor=1,
+                mobile=False,
+            )
+            for name, html in pages.items():
+                cdp.events.clear()  # a load event of the page before is not this one's
+                cdp.call("Page.navigate", session=sid, url=html.resolve().as_uri())
+                cdp.wait_event("Page.loadEventFired")
+                found = {}
+                for key, probe in (("layout", LAYOUT_PROBE), ("tokens", TOKEN_PROBE)):
+                    res = cdp.call("Runtime.evaluate", session=sid, expression=probe)
+                    found[key] = json.loads(res["result"].get("value") or "{}")
+                out[(name, width)] = found
+    finally:
+        cdp.close()
+    return out
