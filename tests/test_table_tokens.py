@@ -98,3 +98,11 @@ def test_table_cells_keep_their_tokens_whole(probed: dict, page: str, width: int
         broken
     )
     assert lay["page"] <= lay["viewport"], (page, width, lay)
+
+
+@pytest.mark.parametrize("page", PAGES)
+def test_no_console_error_on_any_page(probed: dict, page: str) -> None:
+    """A page opened as a user opens it logs no error: its icon, styles and images are
+    allowed by its own content policy (the validate page's icon once was not)."""
+    errors = [e for w in WIDTHS for e in probed[(page, w)]["errors"]]
+    assert not errors, (page, errors)

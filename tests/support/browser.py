@@ -267,6 +267,21 @@ def open_in_chromium(
     requests = [
         e["params"]["request"]["url"] for e in ev if e.get("method") == "Network.requestWillBeSent"
     ]
+    errors = console_errors(ev)
+    return {
+        "requests": requests,
+        "leaving": [u for u in requests if not u.startswith(("file:", "data:", "about:"))],
+        "errors": errors,
+        "title": title["result"].get("value"),
+        "n_svg": n_svg["result"].get("value"),
+        "layout": json.loads(layout["result"].get("value") or "{}"),
+        "tokens": json.loads(tokens["result"].get("value") or "{}"),
+    }
+
+
+def console_errors(ev: list[dict[str, Any]]) -> list[str]:
+    """Console errors, error log entries (a blocked resource, a policy violation) and
+    uncaught exceptions among DevTools events."""
     errors = [
         e["params"]["entry"]["text"]
         for e in ev
@@ -283,29 +298,22 @@ def open_in_chromium(
         for e in ev
         if e.get("method") == "Runtime.exceptionThrown"
     ]
-    return {
-        "requests": requests,
-        "leaving": [u for u in requests if not u.startswith(("file:", "data:", "about:"))],
-        "errors": errors,
-        "title": title["result"].get("value"),
-        "n_svg": n_svg["result"].get("value"),
-        "layout": json.loads(layout["result"].get("value") or "{}"),
-        "tokens": json.loads(tokens["result"].get("value") or "{}"),
-    }
+    return errors
 
 
 def probe_pages(
     pages: dict[str, Path], tmp: Path, widths: tuple[int, ...] = (900, 1400), height: int = 1200
 ) -> dict[tuple[str, int], dict[str, Any]]:
-    """Each page at each width in one browser: ``{(name, width): {"layout", "tokens"}}``
-    (:data:`LAYOUT_PROBE`'s and :data:`TOKEN_PROBE`'s findings), faster than
+    """Each page at each width in one browser: ``{(name, width): {"layout", "tokens",
+    "errors"}}`` (:data:`LAYOUT_PROBE`'s and :data:`TOKEN_PROBE`'s findings, the page's
+    console errors, :func:`console_errors`), faster than
     :func:`open_in_chromium` per page when only the probes are wanted."""
     out: dict[tuple[str, int], dict[str, Any]] = {}
     cdp = Cdp(tmp / "profile")
     try:
         target = cdp.call("Target.createTarget", url="about:blank")["targetId"]
         sid = cdp.call("Target.attachToTarget", targetId=target, flatten=True)["sessionId"]
-        for domain in ("Runtime", "Page"):
+        for domain in ("Runtime", "Log", "Page"):
             cdp.call(f"{domain}.enable", session=sid)
         for width in widths:
             cdp.call(
@@ -324,6 +332,8 @@ def probe_pages(
                 for key, probe in (("layout", LAYOUT_PROBE), ("tokens", TOKEN_PROBE)):
                     res = cdp.call("Runtime.evaluate", session=sid, expression=probe)
                     found[key] = json.loads(res["result"].get("value") or "{}")
+                cdp.drain(0.2)  # log entries that arrive after the load event
+                found["errors"] = console_errors(cdp.events)
                 out[(name, width)] = found
     finally:
         cdp.close()
