@@ -5,7 +5,8 @@
 
 The fleet, the page and what is printed (the layout and token probes) are
 ``benchmarks/report_screenshots.py``'s; this writes ``audit-900.png`` and
-``audit-1400.png`` (the first 2400 px of each) without running the shipped sample.
+``audit-1400.png`` (the fleet page, the first 1200 px of each) and ``audit-robot-1400.png``
+(the page of the robot on top) without running the shipped sample.
 """
 
 from __future__ import annotations

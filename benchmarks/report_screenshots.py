@@ -8,11 +8,14 @@ own touch-ups in reverse order written as a table (a layout check, not a validat
 those are the touch-ups it was fitted on), compares the run with itself, and audits a
 small simulated fleet: three LR Mate-like robots of six recordings each
 (:mod:`pipeline.sim.history`, touch-up level): robot A's joint 3 zero turned 0.05 deg
-before recording 2 and its base moved 1 mm before recording 4; robot B's camera remounted
-(0.1 mm) before recording 3; robot C unchanged. Opens each page in headless Chromium
-(``tests/support/browser.py``) at both widths, saves the first 1200 px of each (2400 px of
-the audit page) as ``PAGE-WIDTH.png`` and prints what the layout probe found and how many
-table-cell tokens the token probe saw broken over two lines (docs/report.md). ``--pages``
+before recording 2, its base moved 1 mm before recording 4 and its joint 2 zero turned
+0.15 deg before its last; robot B's camera remounted (0.1 mm) before its last; robot C
+unchanged; and robot D, three recordings 200 days older, overdue. Opens each page in headless Chromium
+(``tests/support/browser.py``) at both widths, saves the first 1200 px of each as
+``PAGE-WIDTH.png`` (and the first 1600 px of the page of the robot on top of the audit's
+fleet page at 1400 px, ``audit-robot-1400.png``) and prints what the layout probe found
+and how many table-cell tokens the token probe saw broken over two lines (docs/report.md).
+``--pages``
 takes some of report, validate, compare, audit (comma-separated; the sample is run only
 for the first three).
 """
@@ -30,30 +33,48 @@ import numpy as np
 REPO = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(REPO / "tests"))
 
-#: the audited fleet: robot -> (seed, {recording index: (event kind, size, joint)})
+#: the audited fleet: robot -> (seed, {recording index: (event kind, size, joint)},
+#: recordings, days its first recording is before the others')
 FLEET = {
-    "A": (1, {2: ("joint_offset", np.radians(0.05), "joint_3"), 4: ("base", 1e-3, "")}),
-    "B": (2, {3: ("camera", 1e-4, "")}),
-    "C": (3, {}),
-}
+    "A": (1, {2: ("joint_offset", np.radians(0.05), "joint_3"), 4: ("base", 1e-3, ""),
+              5: ("joint_offset", np.radians(0.15), "joint_2")}, 6, 0),
+    "B": (2, {5: ("camera", 1e-4, "")}, 6, 0),
+    "C": (3, {}, 6, 0),
+    "D": (4, {}, 3, 200),
+}  # fmt: skip
 #: how much of each page the screenshot keeps (CSS px)
-HEIGHT = {"audit": 2400}
+HEIGHT = {"audit-robot": 1600}
 
 
 def _audit(work: Path) -> Path:
-    """``vtcal audit`` of :data:`FLEET`; its ``audit.html``."""
-    from pipeline.cli import main
-    from pipeline.sim.history import Event, make_history, write_history
+    """``vtcal audit`` of :data:`FLEET` with an interval 30 days longer than the time since
+    the first recordings of A, B and C (D's is 200 days older: overdue); its ``audit.html``."""
+    import time
 
-    for rid, (seed, events) in FLEET.items():
+    from pipeline.cli import main
+    from pipeline.sim.history import DAY_NS, START_NS, Event, make_history, write_history
+
+    for rid, (seed, events, n, early) in FLEET.items():
         ev = {i: Event(k, s, j) for i, (k, s, j) in events.items()}
-        write_history(make_history(f"cell-{rid}", ev, seed=seed), work / "runs")
+        hist = make_history(
+            f"cell-{rid}", ev, seed=seed, n_recordings=n, start_ns=START_NS - early * DAY_NS
+        )
+        write_history(hist, work / "runs")
+    interval = (time.time_ns() - START_NS) // DAY_NS + 30
     try:
-        main(["audit", str(work / "runs"), "--out", str(work / "audit")])
+        main(["audit", str(work / "runs"), "--out", str(work / "audit"),
+              "--interval-days", str(interval)])  # fmt: skip
     except SystemExit as exc:
         if exc.code:
             raise
     return work / "audit" / "audit.html"
+
+
+def _first_robot(fleet: Path) -> Path:
+    """The page of the robot on top of the fleet page (the one to look at first)."""
+    import re
+
+    return fleet.parent / re.findall(r'<a href="(robots/[^"]+)"', fleet.read_text())[0]
 
 
 #: the pages, in the order they are written
@@ -121,10 +142,12 @@ def main(argv: list[str] | None = None) -> None:
             pages.update(_run_pages(run, work))
         if "audit" in wanted:
             pages["audit"] = _audit(work)
+            pages["audit-robot"] = _first_robot(pages["audit"])
+            wanted.append("audit-robot")
         args.out.mkdir(parents=True, exist_ok=True)
         for name in wanted:
             page = pages[name]
-            for width in (900, 1400):
+            for width in (900, 1400) if name != "audit-robot" else (1400,):
                 shot = args.out / f"{name}-{width}.png"
                 res = open_in_chromium(page, work / f"b-{name}-{width}", shot, width=width,
                                        height=HEIGHT.get(name, 1200))  # fmt: skip

@@ -194,8 +194,10 @@ def test_cli_audit_end_to_end(small_history, tmp_path):
     rec = pd.read_parquet(out / "audit_recordings.parquet")
     assert rec["recording"].tolist() == [f"A-r0{i}" for i in range(4)]
     assert rec.loc[2, "drift_mm"] > 2 * rec.loc[1, "drift_mm"] and rec.loc[1, "passed"]
-    html = (out / "audit.html").read_text()
-    assert "<svg" in html and "joint_3 zero offset" in html
+    html = (out / "audit.html").read_text()  # the fleet; each robot's timeline on its page
+    assert '<svg class="spark"' in html and 'href="robots/A.html"' in html
+    robot = (out / "robots" / "A.html").read_text()
+    assert "<svg" in robot and "joint_3 zero offset" in robot
     assert len(pd.read_parquet(out / "audit_models.parquet")) == 8
     from rerun.chunk import RrdReader
 

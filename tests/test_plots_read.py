@@ -319,12 +319,14 @@ def _audit_result(chi2: float):  # type: ignore[no-untyped-def]
 
 def test_the_audit_page_writes_a_huge_chi_square_for_people() -> None:
     """A different robot's chi-square printed as 40210926531.0."""
-    from pipeline.audit.page import render_page
+    from pipeline.audit.page import render_page, render_robot_page
 
-    page = render_page(_audit_result(40210926531.0))
-    text = _visible_text(page)
+    res = _audit_result(40210926531.0)
+    text = _visible_text(render_robot_page(res, "A"))  # the robot's page has its changes
     assert "4.02e10 / 12" in text
     assert not RAW_FLOAT.search(text), RAW_FLOAT.search(text)
+    text = _visible_text(render_page(res))  # and the fleet page its drifts
+    assert "0.9000" in text and not RAW_FLOAT.search(text), RAW_FLOAT.search(text)
 
 
 def test_the_report_writes_no_raw_float(demo_run: Path, tmp_path: Path) -> None:

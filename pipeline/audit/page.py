@@ -1,33 +1,46 @@
-"""The audit's HTML page: per robot a timeline, the fleet's models x recordings heat map.
+"""The audit's HTML pages: the fleet page a maintenance engineer starts from, a page per robot.
 
-Self-contained like the run report (``reports/audit.html.j2``, the report's
-stylesheet inlined, no scripts). Pictures are SVG drawn with the report's
-canvas (:mod:`pipeline.report.svg`):
+Self-contained like the run report (``reports/audit.html.j2`` and
+``reports/audit_robot.html.j2``, the report's stylesheet inlined, no scripts).
 
-* per robot, recordings left to right (their dates): the drift of the previous
-  calibration and the validated and fresh consistencies (mm), the tolerance, and
-  below, each change read, its size with a 2-sigma error bar (mm or deg), labelled
-  where no label covers another (:func:`pipeline.report.svg.place_labels`);
-* the fleet: one cell per (model, recording), coloured by the held-out error on
-  a log scale, the best model of each recording outlined.
+* ``audit.html``: every robot in one compact row, in the order of attention
+  (:mod:`pipeline.audit.attention`: failed, changed, overdue, the rest; worst first),
+  with its last recording's date, its latest drift, a status word and a sparkline of its
+  drift over its history (:func:`pipeline.report.svg.sparkline`), its name a link to its
+  page; the comparison of robots of one model; the error models ranked (and the models
+  x recordings heat map while it fits a page, :data:`HEAT_MAX`). Small with hundreds of
+  robots: no chart but the sparklines.
+* ``robots/ROBOT.html`` (:func:`robot_file`), per robot: its timeline, recordings left to
+  right (their dates): the drift of the previous calibration and the validated and fresh
+  consistencies (mm), the tolerance, and below, each change read, its size with a
+  2-sigma error bar (mm or deg), labelled where no label covers another
+  (:func:`pipeline.report.svg.place_labels`); its recordings and changes; its
+  comparison with robots of its model; its models x recordings heat map, coloured by
+  the held-out error on a log scale, the best model of each recording outlined.
 
 Figures are written by :func:`pipeline.numfmt.fmt` (a chi-square of 4e10 as ``4.02e10``).
 """
 
 from __future__ import annotations
 
+import hashlib
 import math
+import re
+import time
 from datetime import UTC, datetime
 from html import escape
+from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pandas as pd
 
 from pipeline import __version__
+from pipeline.audit.attention import DAY_NS, STATUSES, Rows, fleet_status_rows, reading, rows_of
 from pipeline.audit.attribute import display_unit
 from pipeline.audit.audit import AuditResult
-from pipeline.numfmt import fmt
-from pipeline.report.svg import Panel, canvas, legend_height, padded
+from pipeline.numfmt import fmt, short
+from pipeline.report.svg import Panel, canvas, legend_height, padded, sparkline
 from pipeline.report.templates import render_template
 
 TEMPLATE = "audit.html.j2"
@@ -45,15 +58,18 @@ def _date(ns: int) -> str:
     return datetime.fromtimestamp(ns / 1e9, tz=UTC).strftime("%Y-%m-%d")
 
 
-def timeline_svg(recs: pd.DataFrame, changes: pd.DataFrame) -> str:
-    """One robot's timeline (see the module docstring)."""
-    n = len(recs)
+def timeline_svg(recs: pd.DataFrame | Rows, changes: pd.DataFrame | Rows) -> str:
+    """One robot's timeline (see the module docstring): its recordings in order and its
+    history comparisons (tables or their rows, :func:`rows_of`)."""
+    rr = rows_of(recs)
+    n = len(rr)
     x = np.arange(n, dtype=float)
-    ticks = [(float(i), _date(int(s))) for i, s in zip(x, recs["stamp_ns"], strict=True)]
-    vals = np.concatenate(
-        [recs[c].to_numpy(float) for c in ("drift_mm", "drift_raw_mm", "validated_mm", "fresh_mm")]
-    )
-    vals = np.append(vals[np.isfinite(vals)], float(recs["tolerance_mm"].iloc[0]))
+    ticks = [(float(i), _date(int(r["stamp_ns"]))) for i, r in zip(x, rr, strict=True)]
+    cols = {c: np.array([r[c] for r in rr], float)
+            for c in ("drift_mm", "drift_raw_mm", "validated_mm", "fresh_mm")}  # fmt: skip
+    vals = np.concatenate(list(cols.values()))
+    tol = float(rr[0]["tolerance_mm"])
+    vals = np.append(vals[np.isfinite(vals)], tol)
     lh = legend_height(5)
     top = Panel((70, 10 + lh, 620, 170), (-0.5, n - 0.5), (0.0, float(vals.max()) * 1.15 or 1.0))
     top.legend_at = "above"
@@ -68,14 +84,13 @@ def timeline_svg(recs: pd.DataFrame, changes: pd.DataFrame) -> str:
         ("fresh_mm", "fresh"),
     ):  # fmt: skip
         dash = "3 2" if key == "raw" else ""
-        top.line(x, recs[col].to_numpy(float), COLOURS[key], markers=6, dash=dash)
+        top.line(x, cols[col], COLOURS[key], markers=6, dash=dash)
         top.key(keys[key], COLOURS[key])
-    tol = float(recs["tolerance_mm"].iloc[0])
     top.line([-0.5, n - 0.5], [tol, tol], COLOURS["tol"], dash="4 3")
     top.key("tolerance", COLOURS["tol"])
-    ch = changes[changes["changed"]]
-    pos = {r: i for i, r in enumerate(recs["recording"])}
-    for c in ch.to_dict("records"):
+    ch = [c for c in rows_of(changes) if c["changed"]]
+    pos = {r["recording"]: i for i, r in enumerate(rr)}
+    for c in ch:
         top.text(pos[c["to_recording"]], 0, c["kind"].replace("_", " "), dy=-14)
     body = [top.render(ylabel="mm (drift, consistency)", xticks=ticks)]
     bottom = _changes_panel(ch, pos, n, ticks, 240 + lh)
@@ -88,12 +103,12 @@ CHANGES_HEIGHT = 190
 
 
 def _changes_panel(
-    ch: pd.DataFrame, pos: dict[str, int], n: int, ticks: list[tuple[float, str]], top: float
+    ch: Rows, pos: dict[str, int], n: int, ticks: list[tuple[float, str]], top: float
 ) -> str:
     """The timeline's lower panel: each change read, its size with a 2-sigma bar, labelled
     (cause and column) where no label covers another (:meth:`Panel.labels`)."""
     sizes, errs, labels, xs, kinds = [], [], [], [], []
-    for c in ch.to_dict("records"):
+    for c in ch:
         cols, size, std = list(c["columns"]), list(c["size"]), list(c["size_std"])
         for k, (col, s, e) in enumerate(zip(cols, size, std, strict=True)):
             f, unit = display_unit(col)
@@ -118,17 +133,18 @@ def _changes_panel(
     )
 
 
-def heatmap_svg(matrix: pd.DataFrame) -> str:
+def heatmap_svg(matrix: pd.DataFrame | Rows) -> str:
     """Models x recordings, coloured by log10 of the held-out error."""
-    recs = list(dict.fromkeys(matrix["recording"]))
-    models = list(dict.fromkeys(matrix["model"]))
+    rows = rows_of(matrix)
+    recs = {r: i for i, r in enumerate(dict.fromkeys(r["recording"] for r in rows))}
+    models = {m: j for j, m in enumerate(dict.fromkeys(r["model"] for r in rows))}
     cw, ch, left, top = 34.0, 22.0, 80.0, 90.0
-    v = matrix["heldout_mm"].to_numpy(float)
+    v = np.array([r["heldout_mm"] for r in rows], float)
     ok = np.isfinite(v) & (v > 0)
     lo, hi = (np.log10(v[ok].min()), np.log10(v[ok].max())) if ok.any() else (0.0, 1.0)
     parts = []
-    for r in matrix.to_dict("records"):
-        i, j = recs.index(r["recording"]), models.index(r["model"])
+    for r in rows:
+        i, j = recs[r["recording"]], models[r["model"]]
         x, y = left + i * cw, top + j * ch
         if np.isfinite(r["heldout_mm"]) and r["heldout_mm"] > 0:
             t = (math.log10(r["heldout_mm"]) - lo) / max(hi - lo, 1e-9)
@@ -159,25 +175,149 @@ def heatmap_svg(matrix: pd.DataFrame) -> str:
     return canvas(max(w, 420), top + len(models) * ch + 30, parts)
 
 
-def render_page(res: AuditResult) -> str:
-    """The audit's HTML page."""
-    robots = []
-    for rid, recs in res.recordings.groupby("robot_id", sort=True):
-        ch = res.changes[
-            (res.changes["comparison"] == "history") & (res.changes["robot_id"] == rid)
-        ]
-        robots.append(
+#: the fleet page's heat map shows at most this many recordings (each robot's page has its own)
+HEAT_MAX = 24
+ROBOT_TEMPLATE = "audit_robot.html.j2"
+
+
+def robot_file(robot_id: str) -> str:
+    """The robot's page, relative to ``audit.html``: ``robots/cell-3.html``; a name with
+    other characters than letters, digits, ``-`` and ``_`` is kept readable and made unique
+    by a hash of it (``robots/cell_3-1a2b3c4d.html`` for ``cell 3``)."""
+    rid = str(robot_id)
+    slug = re.sub(r"[^A-Za-z0-9_-]+", "_", rid)[:60]
+    if slug != rid or not slug:
+        slug = f"{slug}-{hashlib.sha1(rid.encode()).hexdigest()[:8]}".lstrip("-")
+    return f"robots/{slug}.html"
+
+
+def _anchor(robot_id: str) -> str:
+    """The id of the robot's row on the fleet page."""
+    return "robot-" + robot_file(robot_id)[len("robots/") : -len(".html")]
+
+
+def _spark(recs: Rows) -> str:
+    """The robot's drift per recording as a sparkline (dates across), tolerance dashed."""
+    drift = np.array([r["drift_mm"] for r in recs], float)
+    tol = float(recs[-1].get("tolerance_mm", math.nan))
+    shown = ", ".join(fmt(d, 4) for d in drift[np.isfinite(drift)])
+    title = f"drift per recording: {shown} mm"
+    title += f" (tolerance {short(tol)} mm)" if math.isfinite(tol) else ""
+    days = np.array([r["stamp_ns"] for r in recs], float) / DAY_NS
+    return sparkline(days, drift, tol, title=title)
+
+
+class Grouped:
+    """The audit's rows grouped once (:func:`rows_of`): per robot its recordings in order,
+    its history comparisons and the comparisons of robots it is in; per recording its
+    models. Hundreds of robots' pages read these, not the tables."""
+
+    def __init__(self, res: AuditResult) -> None:
+        self.recs: dict[str, Rows] = {}
+        for r in sorted(rows_of(res.recordings), key=lambda r: (r["index"], r["stamp_ns"])):
+            self.recs.setdefault(r["robot_id"], []).append(r)
+        self.hist: dict[str, Rows] = {}
+        self.cross: dict[str, Rows] = {}
+        for c in rows_of(res.changes):
+            if c["comparison"] == "history":
+                self.hist.setdefault(c["robot_id"], []).append(c)
+            elif c["comparison"] == "robots":
+                for rid in dict.fromkeys((c["from_robot_id"], c["robot_id"])):
+                    self.cross.setdefault(rid, []).append(c)
+        self.models: dict[str, Rows] = {}
+        for m in rows_of(res.models) if len(res.models) else []:
+            self.models.setdefault(m["recording"], []).append(m)
+
+
+def fleet_rows(res: AuditResult, status: Rows, grouped: Grouped | None = None) -> Rows:
+    """The fleet table's rows, in ``status``'s order (:func:`fleet_status_rows`)."""
+    recs = (grouped or Grouped(res)).recs
+    rows = []
+    for r in status:
+        rows.append(
             {
-                "id": rid,
-                "model": recs["model"].iloc[0],
-                "svg": timeline_svg(recs.reset_index(drop=True), ch),
-                "rows": recs.to_dict("records"),
-                "changes": ch.to_dict("records"),
+                "id": r["robot_id"], "href": robot_file(r["robot_id"]),
+                "anchor": _anchor(r["robot_id"]), "status": r["status"],
+                "date": _date(r["last_stamp_ns"]), "overdue": r["overdue"],
+                "n": r["n_recordings"], "drift": fmt(r["drift_mm"], 4),
+                "spark": _spark(recs[r["robot_id"]]), "reading": reading(r),
+                "age": f"{r['age_days']:.0f}",
             }
-        )
-    cross = res.changes[res.changes["comparison"] == "robots"].to_dict("records")
+        )  # fmt: skip
+    return rows
+
+
+def render_page(
+    res: AuditResult,
+    *,
+    now_ns: int | None = None,
+    interval_days: float | None = None,
+    grouped: Grouped | None = None,
+) -> str:
+    """The fleet page, ``audit.html`` (see the module docstring); ``now_ns`` the audit's
+    time (the clock's when None), ``interval_days`` when a robot is overdue."""
+    now = time.time_ns() if now_ns is None else int(now_ns)
+    status = fleet_status_rows(res.recordings, res.changes, now_ns=now, interval_days=interval_days)
+    counts = {s: sum(r["status"] == s for r in status) for s in STATUSES}
+    cross = rows_of(res.changes[res.changes["comparison"] == "robots"])
+    n_recs = res.recordings["recording"].nunique()
+    heat = heatmap_svg(res.models) if 0 < n_recs <= HEAT_MAX and len(res.models) else ""
+    rows = fleet_rows(res, status, grouped)
+    firsts = {s: next((r["anchor"] for r in rows if r["status"] == s), "") for s in STATUSES}
     return render_template(
-        TEMPLATE, fmt, robots=robots, cross=cross, heat=heatmap_svg(res.models),
-        ranking=res.ranking.to_dict("records"), lines=res.lines, version=__version__,
-        date=_date,
+        TEMPLATE, fmt, fleet=rows, counts=counts, firsts=firsts, cross=cross, heat=heat,
+        n_recordings=n_recs, ranking=rows_of(res.ranking), version=__version__,
+        now=_date(now), interval_days=interval_days, short=short, robot_file=robot_file,
     )  # fmt: skip
+
+
+def _why(row: dict[Any, Any]) -> str:
+    """The robot page's reason for its status: the fleet row's, and how late when overdue."""
+    parts = [reading(row)] if reading(row) else []
+    if row["overdue"]:
+        parts.append(f"{row['age_days']:.0f} days since its last recording")
+    return "; ".join(parts)
+
+
+def render_robot_page(
+    res: AuditResult,
+    robot_id: str,
+    row: dict[Any, Any] | None = None,
+    grouped: Grouped | None = None,
+) -> str:
+    """One robot's page, ``robots/ROBOT.html`` (see the module docstring); ``row`` its line
+    of :func:`pipeline.audit.attention.fleet_status` (its status said at the top), if known;
+    ``grouped`` the audit's rows (:class:`Grouped`) when many pages are written."""
+    g = grouped or Grouped(res)
+    recs, ch = g.recs[robot_id], g.hist.get(robot_id, [])
+    models = [m for r in recs for m in g.models.get(r["recording"], [])]
+    return render_template(
+        ROBOT_TEMPLATE, fmt, id=robot_id, model=recs[0]["model"], svg=timeline_svg(recs, ch),
+        rows=recs, changes=ch, cross=g.cross.get(robot_id, []),
+        heat=heatmap_svg(models) if models else "", status=row["status"] if row else "",
+        reading=_why(row) if row else "",
+        fleet=f"../audit.html#{_anchor(robot_id)}", version=__version__, date=_date,
+        robot_file=robot_file,
+    )  # fmt: skip
+
+
+def write_pages(
+    res: AuditResult, out: Path, *, now_ns: int | None = None, interval_days: float | None = None
+) -> Path:
+    """Write ``out/audit.html`` and each robot's ``out/robots/ROBOT.html``; the first's path."""
+    from pipeline.fileio import atomic_write_bytes
+
+    now = time.time_ns() if now_ns is None else int(now_ns)
+    grouped = Grouped(res)
+    status = fleet_status_rows(
+        [r for recs in grouped.recs.values() for r in recs], res.changes, now_ns=now,
+        interval_days=interval_days,
+    )  # fmt: skip
+    (out / "robots").mkdir(parents=True, exist_ok=True)
+    for row in status:
+        page = render_robot_page(res, row["robot_id"], row, grouped)
+        atomic_write_bytes(out / robot_file(row["robot_id"]), page.encode())
+    path = out / "audit.html"
+    page = render_page(res, now_ns=now, interval_days=interval_days, grouped=grouped)
+    atomic_write_bytes(path, page.encode())
+    return path

@@ -17,6 +17,7 @@ from collections.abc import Sequence
 from html import escape
 
 import numpy as np
+from numpy.typing import ArrayLike
 
 from pipeline.numfmt import short
 
@@ -457,4 +458,48 @@ def canvas(width: float, height: float, body: Sequence[str]) -> str:
     return (
         f'<svg xmlns="http://www.w3.org/2000/svg" width="{width:g}" height="{height:g}" '
         f'viewBox="0 0 {width:g} {height:g}" {FONT} fill="#24292f">{"".join(body)}</svg>'
+    )
+
+
+def sparkline(
+    xs: ArrayLike,
+    ys: ArrayLike,
+    ref: float | None = None,
+    *,
+    width: float = 96.0,
+    height: float = 20.0,
+    colour: str = "#57606a",
+    over: str = "#cf222e",
+    title: str = "",
+) -> str:
+    """A word-sized ``<svg>`` of ``ys`` over ``xs``: one line through the finite points,
+    ``ref`` as a dashed line, the last point a dot (``over`` when above ``ref``). No axes,
+    no text: a table cell's picture of a history, for an HTML page (no ``xmlns``). Empty
+    when no point is finite."""
+    x, y = np.asarray(xs, float), np.asarray(ys, float)
+    ok = np.isfinite(x) & np.isfinite(y)
+    if not ok.any():
+        return ""
+    x, y = x[ok], y[ok]
+    pad = 2.5
+    hi = max(float(y.max()), ref if ref is not None and math.isfinite(ref) else 0.0, 0.0)
+    hi = hi * 1.1 or 1.0
+    lo = min(float(y.min()), 0.0)
+    x0, span = float(x.min()), float(x.max() - x.min())
+    px = pad + (x - x0) / span * (width - 2 * pad) if span > 0 else np.full(len(x), width / 2)
+    py = height - pad - (y - lo) / (hi - lo) * (height - 2 * pad)
+    parts = [f"<title>{escape(title)}</title>"] if title else []
+    if ref is not None and math.isfinite(ref):
+        ry = _f(height - pad - (ref - lo) / (hi - lo) * (height - 2 * pad))
+        parts.append(
+            f'<path d="M0 {ry}H{width:g}" stroke="{GRID}" stroke-dasharray="3 2" fill="none"/>'
+        )
+    if len(px) > 1:
+        d = "M" + "L".join(f"{_f(a)} {_f(b)}" for a, b in zip(px, py, strict=True))
+        parts.append(f'<path d="{d}" stroke="{colour}" stroke-width="1.3" fill="none"/>')
+    last = over if ref is not None and y[-1] > ref else colour
+    parts.append(f'<circle cx="{_f(px[-1])}" cy="{_f(py[-1])}" r="2.2" fill="{last}"/>')
+    return (
+        f'<svg class="spark" width="{width:g}" '
+        f'height="{height:g}" viewBox="0 0 {width:g} {height:g}">{"".join(parts)}</svg>'
     )

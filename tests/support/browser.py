@@ -200,6 +200,17 @@ TOKEN_PROBE = """(() => {
 })()"""
 
 
+#: JavaScript returning (as JSON) the page's navigation timing, ms from the navigation's
+#: start: ``dom_ms`` (DOMContentLoaded handled), ``load_ms`` (the load event), and
+#: ``layout_ms`` (the page laid out: reading its height forces the layout)
+TIMING_PROBE = """(() => {
+  const h = document.documentElement.scrollHeight;
+  const n = performance.getEntriesByType('navigation')[0];
+  return JSON.stringify({dom_ms: n.domContentLoadedEventEnd, load_ms: n.loadEventEnd || n.loadEventStart,
+                         layout_ms: performance.now(), height: h});
+})()"""
+
+
 def open_in_chromium(
     html: Path,
     tmp: Path,
@@ -305,9 +316,10 @@ def probe_pages(
     pages: dict[str, Path], tmp: Path, widths: tuple[int, ...] = (900, 1400), height: int = 1200
 ) -> dict[tuple[str, int], dict[str, Any]]:
     """Each page at each width in one browser: ``{(name, width): {"layout", "tokens",
-    "errors"}}`` (:data:`LAYOUT_PROBE`'s and :data:`TOKEN_PROBE`'s findings, the page's
-    console errors, :func:`console_errors`), faster than
-    :func:`open_in_chromium` per page when only the probes are wanted."""
+    "errors", "timing"}}`` (:data:`LAYOUT_PROBE`'s and :data:`TOKEN_PROBE`'s findings, the
+    page's console errors, :func:`console_errors`, :data:`TIMING_PROBE`'s load times and
+    ``wall_ms``: from the navigation's request to the page laid out, as this process saw
+    it), faster than :func:`open_in_chromium` per page when only the probes are wanted."""
     out: dict[tuple[str, int], dict[str, Any]] = {}
     cdp = Cdp(tmp / "profile")
     try:
@@ -326,9 +338,12 @@ def probe_pages(
             )
             for name, html in pages.items():
                 cdp.events.clear()  # a load event of the page before is not this one's
+                t0 = time.monotonic()
                 cdp.call("Page.navigate", session=sid, url=html.resolve().as_uri())
                 cdp.wait_event("Page.loadEventFired")
-                found = {}
+                res = cdp.call("Runtime.evaluate", session=sid, expression=TIMING_PROBE)
+                found: dict[str, Any] = {"timing": json.loads(res["result"].get("value") or "{}")}
+                found["timing"]["wall_ms"] = 1e3 * (time.monotonic() - t0)
                 for key, probe in (("layout", LAYOUT_PROBE), ("tokens", TOKEN_PROBE)):
                     res = cdp.call("Runtime.evaluate", session=sid, expression=probe)
                     found[key] = json.loads(res["result"].get("value") or "{}")
