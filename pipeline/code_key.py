@@ -41,6 +41,7 @@ import sys
 import types
 from functools import cache
 from pathlib import Path
+from typing import Any
 
 from pipeline import catalog, resources
 from pipeline.catalog import STAGES
@@ -255,12 +256,19 @@ def stage_code_digest(stage: str) -> str:
         closure, the schemas, and the entry functions' current code objects
     """
     h = hashlib.sha256()
-    modules: set[str] = set()
     declared = catalog.STAGE[stage]  # read now: a registered stage is keyed too
     mod, attr = declared.fn.split(":")
     node = getattr(importlib.import_module(mod), attr)
     h.update(declared.fn.encode() + b"\0" + _code_bytes(node.__code__))
-    for entry in declared.code:
+    _hash_entries(h, declared.code)
+    save_import_cache()
+    return h.hexdigest()[:16]
+
+
+def _hash_entries(h: Any, entries: tuple[str, ...]) -> None:
+    """Feed ``h`` the entry points' current code and their import closure's sources."""
+    modules: set[str] = set()
+    for entry in entries:
         mod, attr = entry.split(":")
         modules.update(module_closure(mod))
         fn = getattr(importlib.import_module(mod), attr)
@@ -268,5 +276,18 @@ def stage_code_digest(stage: str) -> str:
         h.update(entry.encode() + b"\0")
         h.update(_code_bytes(code) if code is not None else repr(fn).encode())
     h.update(_sources_digest(tuple(sorted(modules))))
+
+
+def code_digest(entries: tuple[str, ...]) -> str:
+    """Digest of the code behind ``module:function`` entry points that are not a stage
+    (the audit's fits, :mod:`pipeline.audit.cache`): as :func:`stage_code_digest`, the
+    entry functions' code and their modules' import closure with the schemas.
+
+    Returns
+    -------
+    str : 16 hex digits
+    """
+    h = hashlib.sha256()
+    _hash_entries(h, tuple(entries))
     save_import_cache()
     return h.hexdigest()[:16]

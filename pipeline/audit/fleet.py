@@ -23,6 +23,9 @@ from pipeline.audit.identity import AuditItem
 #: the error models compared by default
 MODELS = ("offsets", "mdh", "full", "poe")
 
+#: a run's own k-fold figures: ``({model: (kfold_rms_mm, note)}, chosen, [tied models])``
+Crossval = tuple[dict[str, tuple[float, str]], str, list[str]]
+
 
 def model_matrix(
     items: list[AuditItem], models: tuple[str, ...] = MODELS, workers: int = 1
@@ -35,9 +38,24 @@ def model_matrix(
     from pipeline.stages.parallel_map import parallel_map
 
     runs = [run_crossval(it) for it in items]
-    tasks = [(i, m) for i in range(len(items)) for m in models if m not in runs[i][0]]
+    tasks = heldout_tasks(runs, models)
     res = parallel_map(lambda t: heldout_mm(items[t[0]], t[1]), tasks, workers)
-    got = dict(zip(tasks, res, strict=True))
+    return matrix_table(items, models, runs, dict(zip(tasks, res, strict=True)))
+
+
+def heldout_tasks(runs: list[Crossval], models: tuple[str, ...]) -> list[tuple[int, str]]:
+    """``(recording index, model)`` whose held-out figure the runs' own k-fold lacks."""
+    return [(i, m) for i in range(len(runs)) for m in models if m not in runs[i][0]]
+
+
+def matrix_table(
+    items: list[AuditItem],
+    models: tuple[str, ...],
+    runs: list[Crossval],
+    got: dict[tuple[int, str], tuple[float, str]],
+) -> pd.DataFrame:
+    """The matrix of :func:`model_matrix` from the runs' k-fold figures (``runs``,
+    :func:`run_crossval` of each item) and the held-out ones computed (``got``)."""
     rows = []
     for i, it in enumerate(items):
         kfold, chosen, tied = runs[i]
@@ -62,7 +80,7 @@ def model_matrix(
     return pd.DataFrame(rows)
 
 
-def run_crossval(item: AuditItem) -> tuple[dict[str, tuple[float, str]], str, list[str]]:
+def run_crossval(item: AuditItem) -> Crossval:
     """The run folder's own k-fold figures: ``({model: (kfold_rms_mm, note)}, chosen,
     [models not told apart from it])``; empty where the run has no cross-validation."""
     import json

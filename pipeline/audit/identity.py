@@ -49,6 +49,8 @@ class AuditItem:
     truth : ``truth.json`` beside it when simulated (None otherwise; the benchmark reads it)
     noise : the touch-up stage's measured noise (``capture_noise`` of ``touchups.parquet``,
         :mod:`pipeline.stages.touchup.noise`), None where the folder lacks it
+    table_read : False when :func:`load_item` left ``table`` unread (empty) for a
+        worker to read (:func:`with_table`)
     """
 
     name: str
@@ -63,6 +65,7 @@ class AuditItem:
     distances: list[tuple[Any, Any, float]] = field(default_factory=list)
     truth: dict[str, Any] | None = None
     noise: dict[str, Any] | None = None
+    table_read: bool = True
 
 
 def robot_name(urdf: str) -> str:
@@ -116,9 +119,17 @@ def manifest_ids(path: Path) -> dict[str, str]:
 
 
 def load_item(
-    folder: Path, robot_id: str | None = None, ids: dict[str, str] | None = None
+    folder: Path,
+    robot_id: str | None = None,
+    ids: dict[str, str] | None = None,
+    *,
+    table: bool = True,
 ) -> AuditItem:
     """Read one run folder (``ids``: :func:`manifest_ids`; ``robot_id``: for all).
+
+    ``table=False`` leaves the touch-ups unread where the recording is dated without
+    them (the audit reads them where a fit runs, :func:`with_table`; a cached one
+    needs none).
 
     Raises
     ------
@@ -144,7 +155,8 @@ def load_item(
             "spec/recording.md, or its batch manifest entry's); give --manifest "
             "FILE.toml or --robot-id NAME"
         )
-    table = read_artefact(folder / INLIERS, "inliers")
+    lazy = not table and ("first_stamp_ns" in rec or (folder / RUN_FILES["frames"]).is_file())
+    touchups = pd.DataFrame() if lazy else read_artefact(folder / INLIERS, "inliers")
     urdf = str(rec.get("urdf", ""))
     joints = list(rec.get("joint_names") or [])
     base, flange = str(rec.get("base_link", "")), str(rec.get("flange_link", ""))
@@ -157,12 +169,24 @@ def load_item(
         urdf=urdf,
         base_link=base,
         flange_link=flange,
-        stamp_ns=_first_stamp(folder, rec, table),
-        table=table,
+        stamp_ns=_first_stamp(folder, rec, touchups),
+        table=touchups,
         distances=metadata_distances(meta),
         truth=json.loads(truth_path.read_text()) if truth_path.is_file() else None,
         noise=measured_noise(folder / TOUCHUPS),
+        table_read=not lazy,
     )
+
+
+def with_table(item: AuditItem) -> AuditItem:
+    """``item`` with its touch-ups read (:func:`load_item` with ``table=False`` leaves them)."""
+    if item.table_read:
+        return item
+    from dataclasses import replace
+
+    from pipeline.artefacts import read_artefact
+
+    return replace(item, table=read_artefact(item.path / INLIERS, "inliers"), table_read=True)
 
 
 def measured_noise(path: Path) -> dict[str, Any] | None:

@@ -63,14 +63,15 @@ def _env(values: dict[str, str]) -> Iterator[None]:
                 os.environ[k] = v
 
 
-def process_context() -> Any:
+def process_context(preload: tuple[str, ...] = ()) -> Any:
     """Multiprocessing context for the pool: a fork server, warm and single-threaded.
 
     The fork server is a fresh interpreter started with :data:`THREAD_ENV` in its
     environment; it imports the pipeline once (:data:`PRELOAD`) and forks every
     worker from itself, so workers start in milliseconds, share the imported code
     pages, and are never forked from a multi-threaded parent. Falls back to
-    ``spawn`` where there is no fork server.
+    ``spawn`` where there is no fork server. ``preload``: modules it imports besides
+    (``vtcal audit``'s, :mod:`pipeline.audit.engine`), when it is not running yet.
     """
     import multiprocessing as mp
 
@@ -80,18 +81,18 @@ def process_context() -> Any:
         return mp.get_context("spawn")
     from multiprocessing import forkserver
 
-    ctx.set_forkserver_preload(list(PRELOAD))
+    ctx.set_forkserver_preload([*PRELOAD, *preload])
     with _env(THREAD_ENV):
         forkserver.ensure_running()
     return ctx
 
 
-def prestart(kind: str = "processes") -> None:
+def prestart(kind: str = "processes", preload: tuple[str, ...] = ()) -> None:
     """Start the process pool's fork server now, so it imports the pipeline while
     this process gets on with its own imports (``vtcal batch`` calls it first)."""
     if kind == "processes":
         with contextlib.suppress(Exception):
-            process_context()
+            process_context(preload)
 
 
 def default_workers() -> int:
@@ -108,6 +109,7 @@ def open_executor(
     workers: int | None = None,
     scheduler: str | None = None,
     out_dir: Path | None = None,
+    preload: tuple[str, ...] = (),
 ) -> Iterator[Executor]:
     """An :class:`~concurrent.futures.Executor` for a batch, shut down on exit.
 
@@ -125,6 +127,7 @@ def open_executor(
     out_dir : the batch folder; with a ``scheduler``, the cluster's workers are
         first checked to run the same vtcal code and to see this folder
         (:func:`pipeline.cluster.preflight`)
+    preload : modules the process pool's fork server imports besides :data:`PRELOAD`
 
     Raises
     ------
@@ -143,7 +146,7 @@ def open_executor(
             raise BadInput("--scheduler is for --executor dask; the process pool needs no server")
         from concurrent.futures import ProcessPoolExecutor
 
-        with ProcessPoolExecutor(max_workers=n, mp_context=process_context()) as pool:
+        with ProcessPoolExecutor(max_workers=n, mp_context=process_context(preload)) as pool:
             yield pool
         return
     try:

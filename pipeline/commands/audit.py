@@ -34,13 +34,20 @@ Examples:
               help="Robot identity for recordings without the robot_id metadata key.")  # fmt: skip
 @click.option("--models", default="offsets,mdh,full,poe", show_default=True,
               help="Error models ranked across the fleet (comma-separated).")  # fmt: skip
-@click.option("--workers", type=int, default=0, show_default=True,
-              help="Processes for the fits (0: the free cores; 1: serial).")  # fmt: skip
+@click.option("--executor", type=click.Choice(("processes", "dask")), default="processes",
+              show_default=True,
+              help="Where the fits run: a local process pool, or Dask (as `vtcal batch`).")  # fmt: skip
+@click.option("--scheduler", default=None, metavar="ADDRESS",
+              help="Dask scheduler (tcp://host:8786) whose workers see the run folders; "
+              "without it Dask starts a local cluster.")  # fmt: skip
+@click.option("--workers", "-j", type=int, default=None,
+              help="Worker processes (default: the free cores; 1: in this process).")  # fmt: skip
 @click.option("--fail-on-change", is_flag=True,
               help="Exit with status 5 when a robot changed (the audit's files are written).")  # fmt: skip
 def command(
     run_dirs: tuple[Path, ...], out: Path, tolerance_mm: float, alpha: float,
-    manifest: Path | None, robot_id: str | None, models: str, workers: int,
+    manifest: Path | None, robot_id: str | None, models: str, executor: str,
+    scheduler: str | None, workers: int | None,
     fail_on_change: bool,
 ) -> None:  # fmt: skip
     """Audit robots over time from run folders (`vtcal run` / `vtcal batch`).
@@ -53,21 +60,26 @@ def command(
     zero, link, camera/pin, base, or different robots); across the fleet: the
     error models ranked by held-out error. Writes Parquet tables and an HTML page.
     """
+    from pipeline.audit.engine import prestart
+    from pipeline.batch.executor import check_executor_options
+
+    check_executor_options(executor, workers or None, scheduler)  # 0: the free cores
+    prestart(executor, workers)
     from pipeline.artefacts import atomic_write_bytes, write_artefact
     from pipeline.audit.audit import run_audit
     from pipeline.audit.identity import load_item, manifest_ids, run_folders
     from pipeline.audit.page import render_page
     from pipeline.audit.rrd import write_rrd
+    from pipeline.audit.work import work_line
     from pipeline.errors import BadInput
 
     if not 0 < alpha < 1:
         raise BadInput(f"--alpha {alpha}: must be between 0 and 1")
     names = tuple(m.strip() for m in models.split(",") if m.strip())
     ids = manifest_ids(manifest) if manifest is not None else {}
-    items = [load_item(f, robot_id, ids) for f in run_folders(list(run_dirs))]
-    if workers < 0:
-        raise BadInput(f"--workers {workers}: must be >= 0")
-    res = run_audit(items, tolerance_mm=tolerance_mm, alpha=alpha, models=names, workers=workers)
+    items = [load_item(f, robot_id, ids, table=False) for f in run_folders(list(run_dirs))]
+    res = run_audit(items, tolerance_mm=tolerance_mm, alpha=alpha, models=names, workers=workers,
+                    executor=executor, scheduler=scheduler, cache_dir=out)  # fmt: skip
     out.mkdir(parents=True, exist_ok=True)
     cfg = {"tolerance_mm": tolerance_mm, "alpha": alpha, "models": list(names)}
     for name, table in (
@@ -80,6 +92,7 @@ def command(
     write_rrd(res, out / "audit.rrd")
     for line in res.lines:
         click.echo(line)
+    click.echo(work_line(res.counts))
     click.echo(f"tables: {out}/audit_*.parquet   page: {page}   Rerun: {out}/audit.rrd")
     if fail_on_change and bool(res.changes["changed"].any()):
         from pipeline.errors import EXIT_CHANGED
