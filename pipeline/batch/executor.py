@@ -46,6 +46,9 @@ PRELOAD = (
     "pipeline.stages.crossval.stage",
     "pipeline.stages.crossval.choose",
     "pipeline.nodes",
+    # last: the lazily loaded modules and the detector's compiled code (a new worker's
+    # first recording otherwise pays them, ~1.6 CPU s: pipeline/batch/warm.py)
+    "pipeline.batch.warm",
 )
 
 
