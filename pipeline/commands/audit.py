@@ -42,13 +42,16 @@ Examples:
               "without it Dask starts a local cluster.")  # fmt: skip
 @click.option("--workers", "-j", type=int, default=None,
               help="Worker processes (default: the free cores; 1: in this process).")  # fmt: skip
+@click.option("--interval-days", type=POSITIVE, default=None,
+              help="The fleet page calls a robot overdue when its last recording is older than "
+              "this many days (counted to the audit's time). Default: none is.")  # fmt: skip
 @click.option("--fail-on-change", is_flag=True,
               help="Exit with status 5 when a robot changed (the audit's files are written).")  # fmt: skip
 def command(
     run_dirs: tuple[Path, ...], out: Path, tolerance_mm: float, alpha: float,
     manifest: Path | None, robot_id: str | None, models: str, executor: str,
     scheduler: str | None, workers: int | None,
-    fail_on_change: bool,
+    fail_on_change: bool, interval_days: float | None,
 ) -> None:  # fmt: skip
     """Audit robots over time from run folders (`vtcal run` / `vtcal batch`).
 
@@ -58,17 +61,18 @@ def command(
     between consecutive recordings: a chi-square change test with a stated
     false-alarm rate and the one physical cause that explains a change (joint
     zero, link, camera/pin, base, or different robots); across the fleet: the
-    error models ranked by held-out error. Writes Parquet tables and an HTML page.
+    error models ranked by held-out error. Writes Parquet tables and HTML pages:
+    audit.html, every robot in the order of attention, and robots/ROBOT.html.
     """
     from pipeline.audit.engine import prestart
     from pipeline.batch.executor import check_executor_options
 
     check_executor_options(executor, workers or None, scheduler)  # 0: the free cores
     prestart(executor, workers)
-    from pipeline.artefacts import atomic_write_bytes, write_artefact
+    from pipeline.artefacts import write_artefact
     from pipeline.audit.audit import run_audit
     from pipeline.audit.identity import load_item, manifest_ids, run_folders
-    from pipeline.audit.page import render_page
+    from pipeline.audit.page import write_pages
     from pipeline.audit.rrd import write_rrd
     from pipeline.audit.work import work_line
     from pipeline.errors import BadInput
@@ -87,8 +91,7 @@ def command(
         ("audit_models", res.models),
     ):  # fmt: skip
         write_artefact(out / f"{name}.parquet", table, name, stage="audit", config=cfg)
-    page = out / "audit.html"
-    atomic_write_bytes(page, render_page(res).encode())
+    page = write_pages(res, out, interval_days=interval_days)
     write_rrd(res, out / "audit.rrd")
     for line in res.lines:
         click.echo(line)
