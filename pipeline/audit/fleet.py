@@ -56,28 +56,34 @@ def matrix_table(
 ) -> pd.DataFrame:
     """The matrix of :func:`model_matrix` from the runs' k-fold figures (``runs``,
     :func:`run_crossval` of each item) and the held-out ones computed (``got``)."""
-    rows = []
-    for i, it in enumerate(items):
-        kfold, chosen, tied = runs[i]
-        errs = {m: kfold[m] if m in kfold else got[(i, m)] for m in models}
-        vals = pd.Series({m: e for m, (e, _) in errs.items()})
-        ranks = vals.rank(method="min", na_option="keep")
-        group = [m for m in [chosen, *tied] if m in ranks and np.isfinite(ranks[m])]
-        if chosen in group:  # the chosen model and those not told apart from it: one rank
-            ranks[group] = min(ranks[m] for m in group)
-        for m, (e, note) in errs.items():
-            r = ranks[m]
-            rows.append(
-                {
-                    "robot_id": it.robot_id,
-                    "recording": it.name,
-                    "model": m,
-                    "heldout_mm": e,
-                    "rank": int(r) if np.isfinite(r) else -1,
-                    "note": note,
-                }
-            )
-    return pd.DataFrame(rows)
+    n = len(models)
+    errs = [
+        runs[i][0][m] if m in runs[i][0] else got[(i, m)] for i in range(len(items)) for m in models
+    ]
+    out = pd.DataFrame(
+        {
+            "robot_id": [it.robot_id for it in items for _ in models],
+            "recording": [it.name for it in items for _ in models],
+            "model": list(models) * len(items),
+            "heldout_mm": np.array([e for e, _ in errs], dtype=float),
+        }
+    )
+    # per recording: 1 = the lowest held-out error, NaN kept (as Series.rank of each)
+    ranks = out.groupby(np.repeat(np.arange(len(items)), n), sort=False)["heldout_mm"].rank(
+        method="min", na_option="keep"
+    )
+    r = np.array(ranks, dtype=float)
+    for i, (_, chosen, tied) in enumerate(runs):
+        if not chosen:
+            continue
+        sl = r[i * n : (i + 1) * n]
+        at = {m: k for k, m in enumerate(models)}
+        group = [at[m] for m in [chosen, *tied] if m in at and np.isfinite(sl[at[m]])]
+        if chosen in at and at[chosen] in group:  # the chosen model and those tied: one rank
+            sl[group] = min(sl[k] for k in group)
+    out["rank"] = [int(x) if np.isfinite(x) else -1 for x in r]
+    out["note"] = [note for _, note in errs]
+    return out
 
 
 def run_crossval(item: AuditItem) -> Crossval:
@@ -107,7 +113,7 @@ def run_crossval(item: AuditItem) -> Crossval:
 def ranking(matrix: pd.DataFrame) -> pd.DataFrame:
     """Per model: ``median_rank``, ``rms_heldout_mm`` (over the recordings every model
     fitted; when there is none, over the model's own), ``n``; best first."""
-    ok = matrix.groupby("recording")["heldout_mm"].transform(lambda s: s.notna().all())
+    ok = matrix["heldout_mm"].notna().groupby(matrix["recording"]).transform("all")
     full = matrix[ok] if ok.any() else matrix[matrix["heldout_mm"].notna()]
     out = []
     for m, g in matrix.groupby("model", sort=False):
