@@ -181,6 +181,10 @@ def open_executor(
                     # a throwaway cluster: its shutdown chatter (heartbeats to a
                     # closed scheduler) is noise; task errors come back as outcomes
                     silence_logs=logging.CRITICAL,
+                    # each worker imports the lazily loaded modules and the compiled
+                    # detector once, at its start (a cluster started apart: `dask worker
+                    # --preload pipeline.batch.warm`, docs/batch.md)
+                    preload=["pipeline.batch.warm"],
                 )
             )
             client = stack.enter_context(Client(cluster))
