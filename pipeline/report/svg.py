@@ -13,7 +13,7 @@ maps data ``(x, y)`` to pixels by ``px = left + (x - x0) / (x1 - x0) * width``
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from html import escape
 
 import numpy as np
@@ -164,32 +164,30 @@ class Panel:
             f'<path d="{d}" stroke="{color}" stroke-width="{size:g}" stroke-linecap="round"{op}/>'
         )
 
-    def crosses(self, x: np.ndarray, y: np.ndarray, color: str, size: float = 8.0) -> None:
-        """``x`` markers of ``size`` px at the points."""
+    def _marks(
+        self, x: np.ndarray, y: np.ndarray, path: Callable[[float, float, float], str],
+        size: float, style: str,
+    ) -> None:  # fmt: skip
+        """One path element of ``path(px, py, size)`` at every finite point, ``style``d."""
         px, py = self.X(x), self.Y(y)
         d = "".join(
-            cross_path(float(a), float(b), size)
+            path(float(a), float(b), size)
             for a, b in zip(px, py, strict=True)
             if math.isfinite(a) and math.isfinite(b)
         )
         if d:
-            self.parts.append(f'<path d="{d}" stroke="{color}" stroke-width="1.8"/>')
+            self.parts.append(f'<path d="{d}" {style}/>')
+
+    def crosses(self, x: np.ndarray, y: np.ndarray, color: str, size: float = 8.0) -> None:
+        """``x`` markers of ``size`` px at the points."""
+        self._marks(x, y, cross_path, size, f'stroke="{color}" stroke-width="1.8"')
 
     def rings(
         self, x: np.ndarray, y: np.ndarray, color: str, size: float, width: float = 2.0
     ) -> None:
         """Open circles of diameter ``size`` px at the points (one path element for all):
         what lies at a point, e.g. a target's cross, shows through a ring drawn over it."""
-        px, py = self.X(x), self.Y(y)
-        d = "".join(
-            ring_path(float(a), float(b), size)
-            for a, b in zip(px, py, strict=True)
-            if math.isfinite(a) and math.isfinite(b)
-        )
-        if d:
-            self.parts.append(
-                f'<path d="{d}" fill="none" stroke="{color}" stroke-width="{width:g}"/>'
-            )
+        self._marks(x, y, ring_path, size, f'fill="none" stroke="{color}" stroke-width="{width:g}"')
 
     def rect(self, x0: float, x1: float, y0: float, y1: float, color: str) -> None:
         """A filled rectangle between data corners (a bar)."""

@@ -109,6 +109,25 @@ class Cdp:
         except TimeoutError:
             pass
 
+    def new_page(self, domains: tuple[str, ...]) -> str:
+        """A blank page attached with ``domains`` enabled; its session id."""
+        target = self.call("Target.createTarget", url="about:blank")["targetId"]
+        sid: str = self.call("Target.attachToTarget", targetId=target, flatten=True)["sessionId"]
+        for domain in domains:
+            self.call(f"{domain}.enable", session=sid)
+        return sid
+
+    def window(self, sid: str, width: int, height: int) -> None:
+        """The page's viewport: ``width`` x ``height`` CSS px at scale 1, desktop."""
+        self.call(
+            "Emulation.setDeviceMetricsOverride",
+            session=sid,
+            width=width,
+            height=height,
+            deviceScaleFactor=1,
+            mobile=False,
+        )
+
     def close(self) -> None:
         try:
             self.call("Browser.close", timeout=5.0)
@@ -241,18 +260,8 @@ def open_in_chromium(
     """
     cdp = Cdp(tmp / "profile")
     try:
-        target = cdp.call("Target.createTarget", url="about:blank")["targetId"]
-        sid = cdp.call("Target.attachToTarget", targetId=target, flatten=True)["sessionId"]
-        for domain in ("Network", "Runtime", "Log", "Page"):
-            cdp.call(f"{domain}.enable", session=sid)
-        cdp.call(
-            "Emulation.setDeviceMetricsOverride",
-            session=sid,
-            width=width,
-            height=height,
-            deviceScaleFactor=1,
-            mobile=False,
-        )
+        sid = cdp.new_page(("Network", "Runtime", "Log", "Page"))
+        cdp.window(sid, width, height)
         cdp.call("Page.navigate", session=sid, url=html.resolve().as_uri())
         cdp.wait_event("Page.loadEventFired")
         cdp.drain(0.3)
@@ -323,19 +332,9 @@ def probe_pages(
     out: dict[tuple[str, int], dict[str, Any]] = {}
     cdp = Cdp(tmp / "profile")
     try:
-        target = cdp.call("Target.createTarget", url="about:blank")["targetId"]
-        sid = cdp.call("Target.attachToTarget", targetId=target, flatten=True)["sessionId"]
-        for domain in ("Runtime", "Log", "Page"):
-            cdp.call(f"{domain}.enable", session=sid)
+        sid = cdp.new_page(("Runtime", "Log", "Page"))
         for width in widths:
-            cdp.call(
-                "Emulation.setDeviceMetricsOverride",
-                session=sid,
-                width=width,
-                height=height,
-                deviceScaleFactor=1,
-                mobile=False,
-            )
+            cdp.window(sid, width, height)
             for name, html in pages.items():
                 cdp.events.clear()  # a load event of the page before is not this one's
                 t0 = time.monotonic()
