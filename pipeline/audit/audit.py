@@ -30,7 +30,6 @@ from pipeline.audit.fit import Estimate
 from pipeline.audit.fleet import MODELS, matrix_table, ranking
 from pipeline.audit.identity import AuditItem, histories
 from pipeline.audit.pairs import CHANGE_COLUMNS as CHANGE_COLUMNS
-from pipeline.audit.pairs import compare_pair as compare_pair
 from pipeline.audit.pairs import significance as significance
 
 

@@ -14,7 +14,7 @@ import numpy as np
 
 from pipeline.audit.attribute import Reading, attribute
 from pipeline.audit.change import compare_estimates
-from pipeline.audit.drift import TOLERANCE_MM, read_drift_m, validate_previous
+from pipeline.audit.drift import read_drift_m, validate_previous
 from pipeline.audit.fit import Estimate
 from pipeline.audit.identity import AuditItem, with_table
 
@@ -34,15 +34,18 @@ def significance(changed: bool, kind: str, read_mm: float, tolerance_mm: float) 
     return "beyond_tolerance"
 
 
-def _change_row(
+def compare_pair(
     kind: str,
     a: AuditItem,
     b: AuditItem,
     ea: Estimate,
     eb: Estimate,
     alpha: float,
-    tolerance_mm: float = TOLERANCE_MM,
-) -> dict[str, Any]:
+    tolerance_mm: float,
+) -> tuple[dict[str, Any], dict[str, Any] | None]:
+    """A comparison's row of ``audit_changes`` and, for two recordings of one robot
+    (``kind`` ``history``), the previous calibration validated on the later one
+    (:func:`pipeline.audit.drift.validate_previous`; None for ``robots``)."""
     diff = compare_estimates(ea, eb)
     reading = attribute(diff, eb, alpha) if diff.changed(alpha) else Reading("none", "", "")
     read_mm = read_drift_m(eb, diff, reading) * 1e3
@@ -57,7 +60,7 @@ def _change_row(
             f"detectable, within tolerance ({read_mm:.4f} mm <= {tolerance_mm:g} mm): "
             + reading.text
         )
-    return {
+    c = {
         "comparison": kind,
         "robot_id": b.robot_id,
         "from_robot_id": a.robot_id,
@@ -83,24 +86,9 @@ def _change_row(
         "read_drift_mm": read_mm,
         "significance": sig,
     }
-
-
-def compare_pair(
-    kind: str,
-    a: AuditItem,
-    b: AuditItem,
-    ea: Estimate,
-    eb: Estimate,
-    alpha: float,
-    tolerance_mm: float,
-) -> tuple[dict[str, Any], dict[str, Any] | None]:
-    """A comparison's row of ``audit_changes`` and, for two recordings of one robot
-    (``kind`` ``history``), the previous calibration validated on the later one
-    (:func:`pipeline.audit.drift.validate_previous`; None for ``robots``)."""
-    c = _change_row(kind, a, b, ea, eb, alpha, tolerance_mm)
     if kind != "history":
         return c, None
-    return c, validate_previous(ea, eb, with_table(b), tolerance_mm, c["read_drift_mm"])
+    return c, validate_previous(ea, eb, with_table(b), tolerance_mm, read_mm)
 
 
 def _f_text(f: float) -> str:
