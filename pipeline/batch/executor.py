@@ -46,10 +46,13 @@ PRELOAD = (
     "pipeline.stages.crossval.stage",
     "pipeline.stages.crossval.choose",
     "pipeline.nodes",
-    # last: the lazily loaded modules and the detector's compiled code (a new worker's
-    # first recording otherwise pays them, ~1.6 CPU s: pipeline/batch/warm.py)
-    "pipeline.batch.warm",
 )
+
+#: what a batch's workers load besides before their first recording: the lazily loaded
+#: modules and the detector's compiled code (a new worker's first recording otherwise
+#: pays them, ~1.6 CPU s: pipeline/batch/warm.py). The batch passes it as ``preload``;
+#: the audit, whose workers neither detect nor report, does not.
+RUN_PRELOAD = ("pipeline.batch.warm",)
 
 
 @contextlib.contextmanager
@@ -181,10 +184,10 @@ def open_executor(
                     # a throwaway cluster: its shutdown chatter (heartbeats to a
                     # closed scheduler) is noise; task errors come back as outcomes
                     silence_logs=logging.CRITICAL,
-                    # each worker imports the lazily loaded modules and the compiled
-                    # detector once, at its start (a cluster started apart: `dask worker
-                    # --preload pipeline.batch.warm`, docs/batch.md)
-                    preload=["pipeline.batch.warm"],
+                    # each worker imports ``preload`` once, at its start (a batch: the
+                    # lazily loaded modules and the compiled detector, RUN_PRELOAD; a
+                    # cluster started apart: `dask worker --preload pipeline.batch.warm`)
+                    preload=list(preload),
                 )
             )
             client = stack.enter_context(Client(cluster))

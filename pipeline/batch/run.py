@@ -55,6 +55,7 @@ from typing import TYPE_CHECKING, Any
 
 from pipeline.batch.executor import (
     EXECUTORS,
+    RUN_PRELOAD,
     THREAD_ENV,
     check_executor_options,
     default_workers,
@@ -452,7 +453,7 @@ def _from_ledgers(
         rec = None if force else cached_outcome(it, out_dir / it.name, config, until)
         if rec is None:
             if not pending and executor is None:
-                prestart(kind)  # its imports overlap the remaining ledger checks
+                prestart(kind, RUN_PRELOAD)  # its imports overlap the ledger checks
             pending.append(it)
             continue
         outcomes[it.name] = rec
@@ -480,7 +481,7 @@ def _open_slots(
     if executor is not None:
         return [_Slot(executor, max(1, n_pending))]
     if kind == "processes":
-        ctx = process_context()
+        ctx = process_context(RUN_PRELOAD)
         n = min(workers or default_workers(), n_pending)
 
         def make() -> Executor:
@@ -492,7 +493,7 @@ def _open_slots(
         for slot in slots:
             stack.callback(slot.close)
         return slots
-    ex = stack.enter_context(open_executor(kind, workers, scheduler, out_dir))
+    ex = stack.enter_context(open_executor(kind, workers, scheduler, out_dir, RUN_PRELOAD))
     return [_Slot(ex, max(1, n_pending))]
 
 

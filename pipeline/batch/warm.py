@@ -2,8 +2,9 @@
 
 ``vtcal batch``'s process pool forks its workers from one fork server
 (:func:`pipeline.batch.executor.process_context`), and replaces a worker after a number
-of recordings (``recycle_after``). Importing this module in the fork server (it is one
-of :data:`pipeline.batch.executor.PRELOAD`) does there, once, what each new worker
+of recordings (``recycle_after``). Importing this module in the fork server (the batch
+preloads :data:`pipeline.batch.executor.RUN_PRELOAD`; a local Dask cluster's workers
+import it at their start) does there, once, what each new worker
 otherwise did on its first recording: it imports the modules a run loads lazily (the
 report's, the ledger's, the MCAP index reader's) and loads the detector's and the edge
 fit's compiled code from numba's cache
