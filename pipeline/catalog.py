@@ -68,6 +68,7 @@ ARTEFACTS: list[Artefact] = [
     Artefact("model_urdfs", "calibrated_{model}.urdf", "identify", index="models"),
     Artefact("crossval", "crossval.parquet", "crossval", "crossval"),
     Artefact("calibrated_urdf", "calibrated.urdf", "choose"),
+    Artefact("calibration", "calibration.json", "choose"),
     Artefact("identify", "identify.json", "choose"),
     Artefact("report", "report.html", "report"),
     Artefact("rrd", "run.rrd", "report"),
@@ -189,10 +190,10 @@ STAGES: list[Stage] = [
     Stage(
         "choose",
         "pipeline.nodes:choose",
-        ("models", "model_urdfs"),
-        ("calibrated_urdf", "identify"),
+        ("models", "model_urdfs", "parameters"),
+        ("calibrated_urdf", "calibration", "identify"),
         None,
-        ("pipeline.stages.crossval.choose:choose_model",),
+        ("pipeline.stages.crossval.choose:choose_model", "pipeline.use.record:calibration_record"),
         # touchups: the repeated captures' noise; recording: the assumptions (adequacy)
         optional=("crossval", "touchups", "recording"),
         cache="always",

@@ -38,6 +38,11 @@ COMMANDS: dict[str, tuple[str, str]] = {
         "Judge a calibrated URDF on another recording's touch-ups.",
     ),
     "export": ("pipeline.commands.export", "Write a run's calibration for a controller or ROS."),
+    "predict": ("pipeline.commands.predict", "Where the calibrated robot puts its tool at joints."),
+    "compensate": (
+        "pipeline.commands.compensate",
+        "Joints that reach targets on the calibrated robot.",
+    ),
     "measure": ("pipeline.commands.measure", "Run a plan on a cell: touch up and record."),
     "calibrate": ("pipeline.commands.calibrate", "Plan -> measure -> run for a cell, in one go."),
     "cell-server": (

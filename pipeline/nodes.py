@@ -168,9 +168,14 @@ def crossval(data: dict[str, Any], config: Any, context: Any) -> dict[str, Any]:
 
 
 def choose(data: dict[str, Any], config: Any, context: Any) -> dict[str, Any]:
-    """calibrated.urdf and identify.json: the shipped model (:mod:`pipeline.stages.crossval.choose`)."""
+    """calibrated.urdf, calibration.json and identify.json: the shipped models.
+
+    :mod:`pipeline.stages.crossval.choose` picks the URDF's model,
+    :mod:`pipeline.use.record` records the model predictions use.
+    """
     from pipeline.stages.crossval import choose as stage
     from pipeline.stages.trust.adequacy import trust
+    from pipeline.use.record import calibration_record
 
     # the cross-validation summary and the capture noise ride in their tables' metadata
     summary = json.loads(_meta(data, "crossval")["summary"]) if "crossval" in data else None
@@ -179,7 +184,14 @@ def choose(data: dict[str, Any], config: Any, context: Any) -> dict[str, Any]:
     noise = json.loads(tu.get("capture_noise") or "{}") if tu is not None else None
     rec = data.get("recording")
     shipped["trust"] = trust(shipped, noise, rec if isinstance(rec, dict) else None)
-    return {"calibrated_urdf": urdf, "identify": shipped}
+    record = calibration_record(
+        data["parameters"], data["models"], summary, context.robot, str(shipped["best_model"])
+    )
+    shipped["predict_model"] = record["model"]
+    shipped["predict_choice"] = record["choice"]
+    if summary is not None:  # the choice for predictions, beside the URDF's, in the headline
+        shipped["headline"] = [*shipped.get("headline", []), record["choice"]]
+    return {"calibrated_urdf": urdf, "calibration": record, "identify": shipped}
 
 
 def report(data: dict[str, Any], config: Any, context: Any) -> dict[str, Any]:

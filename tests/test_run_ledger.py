@@ -64,7 +64,7 @@ def test_run_json_records_fingerprint_and_artefact_hashes(first_run) -> None:
     # every output of every stage that ran, with its content hash; run.json itself not
     want = {"frames.parquet", "detections.parquet", "recording.json", "touchups.parquet"}
     want |= {"inliers.parquet", "parameters.parquet", "residuals.parquet", "targets.parquet"}
-    want |= {"calibrated.urdf", "identify.json", "models.json"}
+    want |= {"calibrated.urdf", "calibration.json", "identify.json", "models.json"}
     want |= {f"calibrated_{m}.urdf" for m in json.loads((out / "models.json").read_text())["order"]}
     assert set(led["artefacts"]) == want
     for name, h in led["artefacts"].items():

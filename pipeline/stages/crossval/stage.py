@@ -54,6 +54,7 @@ import pandas as pd
 from pipeline.errors import BadInput, CalibrationFailed
 from pipeline.kinematics.se3 import F64
 from pipeline.stages.crossval.predict import held_rows, joints_and_corrections, predict_pins
+from pipeline.stages.crossval.predictor import predict_choice
 from pipeline.stages.crossval.refit import RefitTable, refit, refit_config, refit_table
 from pipeline.stages.crossval.told_apart import not_told_apart, sentence
 from pipeline.stages.identify.stage import IdentifyConfig
@@ -69,9 +70,9 @@ class CrossvalConfig:
     ----------
     k : folds of the k-fold scheme (at most the largest target's touch-up count)
     models : error models to compare (``--set crossval.models=full,elastic``);
-        empty: the identify stage's model, or, when it is ``"all"``, every registered model a URDF carries exactly
-        (the ones a run can ship: ``elastic`` is fitted by identify but
-        cross-validated only on request, which saves a fifth of the refits)
+        empty: the identify stage's model, or, when it is ``"all"``, every registered
+        model: ``calibrated.urdf`` takes the best a URDF carries exactly, predictions
+        (``calibration.json``) may take one it cannot (:mod:`.predictor`)
     seed : seed of the fold assignment
     loto : also run leave-one-target-out
     workers : processes the error models are cross-validated in (each model's fits in
@@ -156,7 +157,7 @@ def cross_validate(
         smallest k-fold RMS; ``summary``: figures per model and ``choice``, a
         sentence saying the model was chosen by held-out error.
     """
-    from pipeline.models import get_model, model_names
+    from pipeline.models import model_names
 
     robot = Robot.load(urdf, base_link, flange_link)
     names = list(robot.chain.joint_names)
@@ -168,7 +169,7 @@ def cross_validate(
     if config.models:
         models = list(config.models)
     elif identify_config.model == "all":
-        models = [m for m in model_names() if get_model(m).urdf_exact]
+        models = list(model_names())
     else:
         models = [identify_config.model]
     base_cfg = dataclasses.replace(identify_config, n_workspace=4)
@@ -210,6 +211,9 @@ def cross_validate(
     if chosen is not None:  # (T1): which models the held-out errors cannot tell apart
         summary["paired"] = not_told_apart(out, chosen, list(summary_models))
         summary["choice"] = choice + sentence(chosen, summary["paired"])
+    summary["predict_model"], summary["predict_choice"] = predict_choice(
+        summary_models, chosen, summary.get("paired") or {}
+    )
     return CrossvalResult(table=out, chosen_model=chosen, summary=_strict(summary))
 
 
@@ -477,7 +481,8 @@ def _choose(
         text += (
             f"; {best_any} predicts held-out touch-ups better ({b['kfold_rms_mm']:.4f} mm) but a "
             "URDF cannot carry its configuration-dependent terms, so calibrated.urdf is "
-            f"{chosen}'s; {best_any}'s values are in parameters.parquet"
+            f"{chosen}'s; {best_any}'s values are in parameters.parquet (calibration.json "
+            "carries the model predictions use)"
         )
     if not v.get("urdf_exact", True):
         text += (
