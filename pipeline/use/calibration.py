@@ -38,7 +38,6 @@ from pipeline.kinematics.se3 import F64
 from pipeline.use.record import FORMAT
 
 
-
 @dataclass(frozen=True)
 class Prediction:
     """Where the calibrated robot puts its flange and virtual pin, per joint vector.
