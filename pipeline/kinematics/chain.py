@@ -20,7 +20,14 @@ import numpy as np
 from numpy.typing import ArrayLike
 
 from pipeline.kinematics.se3 import F64, matrix_from_axis_angle
-from pipeline.kinematics.urdf import Joint, RobotDescription, chain_joints, parse_urdf
+from pipeline.kinematics.urdf import (
+    Inertial,
+    Joint,
+    RobotDescription,
+    carried_inertials,
+    chain_joints,
+    parse_urdf,
+)
 
 
 @dataclass(frozen=True)
@@ -32,11 +39,17 @@ class Chain:
     base_link, tip_link : str
     joints : tuple of Joint
         Every joint on the way (fixed ones included), base first.
+    inertials : dict of str to Inertial
+        Mass and centre of mass each link below the base carries rigidly (its
+        own ``<inertial>`` and the off-chain bodies hanging off it, see
+        :func:`pipeline.kinematics.urdf.carried_inertials`), keyed by link name;
+        empty when the URDF has no inertials.
     """
 
     base_link: str
     tip_link: str
     joints: tuple[Joint, ...]
+    inertials: Mapping[str, Inertial] = field(default_factory=dict, repr=False, compare=False)
     _segments: tuple[F64, ...] = field(init=False, repr=False, compare=False)
     _tail: F64 = field(init=False, repr=False, compare=False)
 
@@ -84,7 +97,7 @@ class Chain:
             else j
             for j in self.joints
         )
-        return Chain(self.base_link, self.tip_link, joints)
+        return Chain(self.base_link, self.tip_link, joints, self.inertials)
 
     def with_tip(self, T_tip_extra: F64, name: str = "tool") -> Chain:
         """A copy extended by a fixed transform after the tip (e.g. a tool)."""
@@ -96,13 +109,14 @@ class Chain:
             T_parent_joint=np.asarray(T_tip_extra, dtype=float),
             axis=np.zeros(3),
         )
-        return Chain(self.base_link, name, self.joints + (j,))
+        return Chain(self.base_link, name, self.joints + (j,), self.inertials)
 
 
 def load_chain(urdf: str | RobotDescription, base_link: str, tip_link: str) -> Chain:
     """Build the chain from ``base_link`` to ``tip_link`` of a URDF (XML text or parsed)."""
     robot = parse_urdf(urdf) if isinstance(urdf, str) else urdf
-    return Chain(base_link, tip_link, tuple(chain_joints(robot, base_link, tip_link)))
+    path = chain_joints(robot, base_link, tip_link)
+    return Chain(base_link, tip_link, tuple(path), carried_inertials(robot, path))
 
 
 def _motion(joint: Joint, qk: F64) -> F64:

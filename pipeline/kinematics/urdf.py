@@ -1,7 +1,9 @@
 """URDF reading: joints of a robot description and the serial chain between two links.
 
 Only what kinematics needs is interpreted (joint type, parent, child, origin,
-axis, limits); the calibrated-URDF writer (:mod:`pipeline.kinematics.urdf_write`)
+axis, limits) plus each link's ``<inertial>`` mass and centre of mass where the
+URDF gives one (the gravity load of the elastic error models,
+:mod:`pipeline.models.elastic`); the calibrated-URDF writer (:mod:`pipeline.kinematics.urdf_write`)
 edits the original XML so that everything else survives untouched.
 """
 
@@ -65,13 +67,35 @@ class Joint:
 
 
 @dataclass(frozen=True)
+class Inertial:
+    """A link's ``<inertial>``: what gravity acts on (the inertia tensor is not read).
+
+    Attributes
+    ----------
+    mass : float
+        ``<mass value>``, kg (finite, >= 0).
+    com : (3,)
+        Centre of mass in the link frame, m: the ``<inertial><origin xyz>``
+        (its ``rpy`` orients the inertia tensor only).
+    """
+
+    mass: float
+    com: F64
+
+
+@dataclass(frozen=True)
 class RobotDescription:
-    """All joints of a URDF, keyed by name, plus the link names."""
+    """All joints of a URDF, keyed by name, plus the link names.
+
+    ``inertials`` holds the ``<inertial>`` of each link that has one (empty when
+    the URDF carries none).
+    """
 
     name: str
     joints: dict[str, Joint]
     links: tuple[str, ...]
     xml: str = field(repr=False)
+    inertials: dict[str, Inertial] = field(default_factory=dict, repr=False, compare=False)
 
 
 def _floats(text: str | None, default: tuple[float, ...], what: str) -> F64:
@@ -101,6 +125,7 @@ def parse_urdf(xml: str) -> RobotDescription:
     if root.tag != "robot":
         raise BadInput(f"URDF root element is <{root.tag}>, expected <robot>")
     links = tuple(str(el.get("name")) for el in root.findall("link"))
+    inertials = {str(el.get("name")): _inertial(el) for el in root.findall("link")}
     joints: dict[str, Joint] = {}
     for el in root.findall("joint"):
         name = el.get("name")
@@ -135,7 +160,73 @@ def parse_urdf(xml: str) -> RobotDescription:
             lower=lower,
             upper=upper,
         )
-    return RobotDescription(name=str(root.get("name", "")), joints=joints, links=links, xml=xml)
+    return RobotDescription(
+        name=str(root.get("name", "")),
+        joints=joints,
+        links=links,
+        xml=xml,
+        inertials={k: v for k, v in inertials.items() if v is not None},
+    )
+
+
+def _inertial(link: ET.Element) -> Inertial | None:
+    """A ``<link>``'s ``<inertial>`` mass and centre of mass, or None without one.
+
+    Raises
+    ------
+    BadInput
+        If the ``<inertial>`` has no ``<mass value>`` or it is negative or not finite.
+    """
+    el = link.find("inertial")
+    if el is None:
+        return None
+    name = link.get("name")
+    mass_el = el.find("mass")
+    text = mass_el.get("value") if mass_el is not None else None
+    if text is None:
+        raise BadInput(f"URDF: link {name}'s <inertial> has no <mass value>")
+    mass = float(_floats(text, (0.0,), f"{name} mass")[0])
+    if mass < 0:
+        raise BadInput(f"URDF: link {name}'s mass {text!r} is negative")
+    origin = el.find("origin")
+    com = _floats(origin.get("xyz") if origin is not None else None, (0, 0, 0), f"{name} com")
+    return Inertial(mass=mass, com=com)
+
+
+def carried_inertials(robot: RobotDescription, path: list[Joint]) -> dict[str, Inertial]:
+    """The inertial each link of a serial chain carries rigidly, off-chain bodies included.
+
+    For every link below the chain's joints (the child of each joint of ``path``),
+    its own ``<inertial>`` merged with those of the links hanging off it that are
+    not on the chain (a hand's fingers, a tool beyond the tip link), through
+    their joints at zero position: total mass and mass-weighted centre of mass,
+    in the link's frame. A link whose subtree holds no inertial is left out, so
+    a URDF without inertials gives ``{}``.
+    """
+    if not robot.inertials:
+        return {}
+    on_chain = {j.name for j in path}
+    below: dict[str, list[Joint]] = {}
+    for j in robot.joints.values():
+        below.setdefault(j.parent, []).append(j)
+    out: dict[str, Inertial] = {}
+    for link in (j.child for j in path):
+        mass, moment, found = 0.0, np.zeros(3), False
+        stack: list[tuple[str, F64]] = [(link, np.eye(4))]
+        while stack:
+            name, T = stack.pop()
+            inertial = robot.inertials.get(name)
+            if inertial is not None:
+                found = True
+                mass += inertial.mass
+                moment += inertial.mass * (T[:3, :3] @ inertial.com + T[:3, 3])
+            for j in below.get(name, []):
+                if j.name not in on_chain:
+                    stack.append((j.child, T @ j.T_parent_joint))
+        if found:
+            com = moment / mass if mass > 0 else np.zeros(3)
+            out[link] = Inertial(mass=mass, com=com)
+    return out
 
 
 def chain_joints(robot: RobotDescription, base_link: str, tip_link: str) -> list[Joint]:
