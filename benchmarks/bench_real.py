@@ -24,11 +24,22 @@ least squares of the pin and the two sockets at fixed kinematics), MUKCa's
 calibrated URDF of the dataset with its own ``ball_joint`` pin and with the pin
 refitted the same way, and every vtcal model (``--model`` full, mdh, poe,
 offsets, each registered model, and the shipped default). A model a URDF cannot
-carry (``elastic``) is judged by its own forward map with the values of its
+carry (the elastic ones) is judged by its own forward map with the values of its
 ``parameters.parquet``, and its ``calibrated.urdf`` (the rigid part) alone on a
-second line. Then the same with
+second line. ``elastic_inertial`` needs the URDF's link inertials: it is trained
+on ``nominal_panda_inertial.urdf`` (the same kinematics plus Gaz et al. 2019's
+masses, see ``datasets/real/README.md``), every other model on
+``nominal_panda.urdf``. Then the same with
 TWO training placements (the named one and the one farthest from it), judged
 on the rest.
+
+Each split also prints the mass-model choice of the elastic error model
+(``elastic``, ``elastic_mid``, ``elastic_inertial``, with ``full`` for
+reference): per candidate its k-fold held-out RMS on the *training* touch-ups
+(:func:`pipeline.stages.crossval.stage.cross_validate`, 5 folds, no
+leave-one-target-out; what a run can judge by) next to its held-out-placement
+consistency (what it should be judged by, unseen by the run), and which
+candidate each picks.
 
     python benchmarks/bench_real.py                  # all three datasets
     python benchmarks/bench_real.py --datasets panda_3 --models default
@@ -78,6 +89,15 @@ JOINTS = [f"panda_joint{i}" for i in range(1, 8)]
 DISTANCE_M = 0.05
 #: the models benchmarked by name; "default" is ``vtcal identify`` without --model
 BASE_MODELS = ("full", "mdh", "poe", "offsets")
+#: the nominal URDF with link inertials (Gaz et al. 2019), for the models that need them
+INERTIAL_URDF = "nominal_panda_inertial.urdf"
+#: the candidates of the elastic model's mass-model choice (and ``full`` for reference)
+MASS_CANDIDATES = ("full", "elastic", "elastic_mid", "elastic_inertial")
+
+
+def nominal_urdf(model: str) -> Path:
+    """The nominal URDF ``model`` is trained on: with inertials where it needs them."""
+    return DATA / (INERTIAL_URDF if model == "elastic_inertial" else "nominal_panda.urdf")
 
 
 @dataclass(frozen=True)
@@ -199,7 +219,7 @@ def vtcal_identify(
         "identify",
         str(table),
         "--urdf",
-        str(DATA / "nominal_panda.urdf"),
+        str(nominal_urdf(model)),
         "--out",
         str(out),
         "--flange-link",
@@ -225,7 +245,7 @@ def vtcal_identify(
         return (lambda q: pin_points(urdf_chain, np.zeros(3), q)), seconds, shipped or model
     params = pd.read_parquet(out / "parameters.parquet")
     params = params[params["model"] == model]
-    em = get_model(model)(load_chain((DATA / "nominal_panda.urdf").read_text(), BASE, TCP))
+    em = get_model(model)(load_chain(nominal_urdf(model).read_text(), BASE, TCP))
     value = dict(zip(params["name"], params["value"], strict=True))
     x = np.array([value[n] for n in em.param_names])
     pin = np.array([value[f"pin.{a}"] for a in "xyz"])
@@ -235,6 +255,69 @@ def vtcal_identify(
 
     predict.urdf_chain = urdf_chain  # type: ignore[attr-defined]
     return predict, seconds, model
+
+
+def kfold_rms(df: pd.DataFrame, train: list[str], models: list[str]) -> dict[str, float]:
+    """k-fold held-out RMS (mm) of each model on the training placements' touch-ups.
+
+    :func:`pipeline.stages.crossval.stage.cross_validate` with 5 folds and no
+    leave-one-target-out, on the raw touch-ups with the run's known distances;
+    each model on its own nominal URDF (:func:`nominal_urdf`).
+    """
+    from pipeline.stages.crossval.stage import CrossvalConfig, cross_validate
+    from pipeline.stages.identify.stage import IdentifyConfig
+
+    d = df[df["placement"].isin(train)][["touchup_id", "target_id", *JOINTS]].copy()
+    codes = {t: i for i, t in enumerate(dict.fromkeys(d["target_id"]))}  # integer target ids
+    d["target_id"] = d["target_id"].map(codes)
+    dist: list[tuple[int | str, int | str, float]] = [
+        (codes[f"{p}/hole_0"], codes[f"{p}/hole_1"], DISTANCE_M) for p in train
+    ]
+    out = {}
+    for m in models:
+        res = cross_validate(
+            d.reset_index(drop=True),
+            nominal_urdf(m).read_text(),
+            BASE,
+            TCP,
+            IdentifyConfig(distances=dist),
+            CrossvalConfig(models=[m], loto=False, workers=1),
+        )
+        out[m] = float(res.summary["models"][m]["kfold_rms_mm"])
+    return out
+
+
+def print_mass_choice(
+    dataset: str, train: list[str], kfold: dict[str, float], rows: dict[str, dict[str, Kpi]]
+) -> None:
+    """The elastic mass-model candidates: k-fold on the training placement vs held out."""
+    mukca = mean_kpi(rows["MUKCa"])
+    print(
+        f"\n{dataset} [{'+'.join(train)}]: mass model of the elastic model "
+        f"(MUKCa held out {mukca.consistency_mm:.3f} / {mukca.distance_error_mm:.3f} mm)"
+    )
+    print(f"  {'model':<18}{'k-fold RMS (train)':>20}{'held-out cons / dist':>24}{'x MUKCa':>9}")
+    held = {}
+    for m, kf in kfold.items():
+        row = rows.get(f"vtcal {m}")
+        if row is None:
+            continue
+        k = mean_kpi(row)
+        held[m] = k.consistency_mm
+        print(
+            f"  {m:<18}{kf:>17.4f} mm{k.consistency_mm:>12.3f} / {k.distance_error_mm:.3f} mm"
+            f"{k.consistency_mm / mukca.consistency_mm:>8.2f}"
+        )
+    elastic = [m for m in held if m.startswith("elastic")]
+    if elastic:
+        by_kfold = min(elastic, key=lambda m: kfold[m])
+        by_held = min(elastic, key=lambda m: held[m])
+        print(
+            f"  among the elastic candidates k-fold picks {by_kfold}, the held-out placements "
+            f"{by_held}" + (" (the same)" if by_kfold == by_held else " (not the same)")
+        )
+    k_all, h_all = min(held, key=lambda m: kfold[m]), min(held, key=lambda m: held[m])
+    print(f"  with full: k-fold picks {k_all}, the held-out placements {h_all}")
 
 
 def farthest_placement(df: pd.DataFrame, first: str) -> str:
@@ -346,6 +429,11 @@ def main() -> None:
     )
     ap.add_argument("--no-two", action="store_true", help="skip the two-placement training")
     ap.add_argument(
+        "--no-mass",
+        action="store_true",
+        help="skip the k-fold figures of the elastic mass-model candidates (and full)",
+    )
+    ap.add_argument(
         "--floors",
         action="store_true",
         help="also train on every placement but one and fit each placement on itself "
@@ -364,6 +452,10 @@ def main() -> None:
                 t0 = time.perf_counter()
                 rows, notes = evaluate(ds, train, args.models, work)
                 print_table(ds, train, rows, notes)
+                if not args.no_mass:
+                    cands = [m for m in MASS_CANDIDATES if f"vtcal {m}" in rows]
+                    kf = kfold_rms(load_table(ds), train, cands)
+                    print_mass_choice(ds, train, kf, rows)
                 print(f"({time.perf_counter() - t0:.1f} s)")
                 summary.append((ds, "+".join(train), {r: mean_kpi(v) for r, v in rows.items()}))
         if args.floors:
