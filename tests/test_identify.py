@@ -188,7 +188,7 @@ def test_refusals():
 def test_all_models_and_outputs(tmp_path):
     urdf, nominal, true, table, targets = _case(seed=8, per_target=12, noise_q=1e-6, noise_pin=1e-5)
     results = identify(table, urdf, "base_link", "flange", IdentifyConfig(model="all"))
-    assert set(results) == {"full", "mdh", "poe", "offsets", "elastic"}
+    assert set(results) == {"full", "mdh", "poe", "offsets", "elastic", "elastic_mid"}
     paths = write_fits(results, tmp_path)
     params = read_artefact(paths["parameters"], "parameters")
     assert set(params.model) == set(results)

@@ -86,7 +86,7 @@ def test_pin_and_jacobian_names_a_wrong_shape() -> None:
     from pipeline.robots import builtin_urdf
 
     chain = load_chain(builtin_urdf("lrmate"), "base_link", "flange")
-    for name in model_names():
+    for name in model_names(chain):
         m = make_model(name, chain)
         x, q = m.zero(), np.zeros((4, 6))
         p, R, J = m.pin_and_jacobian(x, q, np.zeros(3))

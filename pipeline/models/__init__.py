@@ -22,9 +22,12 @@ for _info in pkgutil.iter_modules(__path__):
 __all__ = ["ErrorModel", "get_model", "make_model", "model_help", "model_names", "register"]
 
 
-def model_names() -> list[str]:
-    """Registered model names, in registration order."""
-    return list(REGISTRY)
+def model_names(chain: Chain | None = None) -> list[str]:
+    """Registered model names, in registration order; with ``chain``, those that apply to it
+    (:meth:`pipeline.models.base.ErrorModel.applies`)."""
+    if chain is None:
+        return list(REGISTRY)
+    return [n for n, cls in REGISTRY.items() if cls.applies(chain)]
 
 
 def get_model(name: str) -> type[ErrorModel]:

@@ -127,6 +127,12 @@ class ErrorModel(ABC):
     #: configuration-dependent terms a URDF cannot carry; never shipped as calibrated.urdf)
     urdf_exact: bool = True
 
+    @classmethod
+    def applies(cls, chain: Chain) -> bool:
+        """Whether the model can be built on ``chain`` (False: ``--model all`` leaves it out;
+        e.g. a model on the URDF's inertials where the URDF has none)."""
+        return True
+
     def __init_subclass__(cls, **kwargs: Any) -> None:
         """Wrap a subclass's :meth:`pin_and_jacobian` with :meth:`check_inputs`.
 

@@ -117,5 +117,10 @@ class ElasticInertialModel(ElasticModel):
     mass_kind = "urdf_inertials"
     masses_physical = True
 
+    @classmethod
+    def applies(cls, chain: Chain) -> bool:
+        """Only on a chain whose URDF gives link inertials."""
+        return bool(getattr(chain, "inertials", None))
+
     def point_masses(self, chain: Chain) -> PointMasses:
         return inertial_masses(chain)

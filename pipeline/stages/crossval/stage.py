@@ -169,7 +169,7 @@ def cross_validate(
     if config.models:
         models = list(config.models)
     elif identify_config.model == "all":
-        models = list(model_names())
+        models = list(model_names(robot.chain))
     else:
         models = [identify_config.model]
     base_cfg = dataclasses.replace(identify_config, n_workspace=4)

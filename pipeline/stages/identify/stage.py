@@ -228,7 +228,7 @@ def _identify_models(
             except (BadInput, CalibrationFailed) as exc:
                 return f"{name}: {exc}"
 
-        names = model_names()
+        names = model_names(robot.chain)
         if config.workers != 1:
             _share_exact_touchups(robot)
         results: dict[str, IdentifyResult] = {}
