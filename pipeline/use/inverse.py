@@ -8,6 +8,11 @@ calibrated forward map (:meth:`pipeline.use.calibration.Calibration.pin_and_rota
     r(q) = p_pin(q) - p*                         (pin position: 3 rows)
     dq   = -J^T (J J^T + mu I)^-1 r,   J = dr/dq by central differences           (I2)
 
+``mu`` is ``DAMPING`` times the mean diagonal of ``J J^T``, raised a
+thousandfold on a row whose step failed and lowered tenfold after one that
+worked (Levenberg-Marquardt; Nocedal & Wright, *Numerical Optimization*, 2nd
+ed., section 10.3): near a wrist singularity the undamped step is huge.
+
 ``L`` = 1 m/rad weighs orientation against position; (I2) is the damped
 minimum-norm step, so a redundant arm (7 joints for 6 or 3 rows) moves as
 little as it can from ``q0``. A step is kept only when it lowers ``|r|``
@@ -37,9 +42,11 @@ TOL_M = 1e-12
 LENGTH_M = 1.0
 #: central-difference step of (I2), rad (m for a prismatic joint)
 STEP = 1e-6
-MAX_ITER = 60
+MAX_ITER = 100
 #: the damping mu of (I2), relative to the mean diagonal of J J^T (keeps a singular arm solvable)
 DAMPING = 1e-12
+#: a row whose damping grew past this stops (a target out of reach)
+MAX_DAMPING = 1e6
 
 
 @dataclass(frozen=True)
@@ -140,6 +147,7 @@ def solve(
     n = q.shape[1]
     r = _residual(cal, q, T, point, payload_kg)
     cost = np.einsum("ni,ni->n", r, r)
+    damp = np.full(N, DAMPING)  # per row: raised where a step failed (Levenberg-Marquardt)
     for _ in range(MAX_ITER):
         active = cost > TOL_M**2
         if not active.any():
@@ -153,7 +161,7 @@ def solve(
         rr = rr.reshape(2 * n, len(idx), -1)
         J = np.transpose((rr[:n] - rr[n:]) / (2 * STEP), (1, 2, 0))  # (A, rows, n)
         JJt = J @ np.transpose(J, (0, 2, 1))
-        mu = DAMPING * (np.trace(JJt, axis1=1, axis2=2) / JJt.shape[1] + 1e-30)
+        mu = damp[idx] * (np.trace(JJt, axis1=1, axis2=2) / JJt.shape[1] + 1e-30)
         JJt = JJt + mu[:, None, None] * np.eye(J.shape[1])
         dq = -np.einsum(
             "aij,aj->ai",
@@ -161,7 +169,8 @@ def solve(
             np.linalg.solve(JJt, r[idx][..., None])[..., 0],
         )
         stalled = _line_search(cal, q, r, cost, idx, dq, T, point, payload_kg)
-        if stalled.all():  # no row could lower its residual: as close as it gets
+        damp[idx] = np.where(stalled, damp[idx] * 1e3, np.maximum(damp[idx] * 0.1, DAMPING))
+        if (damp[idx] > MAX_DAMPING).all():  # no row can lower its residual: as close as it gets
             break
     res_m = np.linalg.norm(r[:, :3], axis=1)
     res_rad = (

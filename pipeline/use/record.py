@@ -18,7 +18,9 @@ whole, so ``vtcal predict``, ``vtcal compensate`` and
   prediction is flagged (:mod:`pipeline.estimation.region`);
 * ``mass_model``: what an elastic model assumes (masses, gravity, payload in
   training), from the model itself; absent for a rigid model;
-* ``validated``: the held-out (k-fold) figures of the model, mm.
+* ``validated``: the model's validated error as the run's verdict states it
+  (:func:`pipeline.verdict.verdict`: held-out k-fold, or the covariance-predicted
+  error where that is larger) and its k-fold figures, mm.
 
 Pure: tables and dicts in, a JSON-ready dict out. Read back by
 :func:`pipeline.use.calibration.Calibration.from_record`.
@@ -113,6 +115,7 @@ def calibration_record(
     """
     from pipeline.kinematics.chain import load_chain
     from pipeline.models import get_model
+    from pipeline.verdict import verdict
 
     urdf, base_link, flange_link = robot
     model = urdf_model
@@ -126,6 +129,7 @@ def calibration_record(
     cov_names, cov = parameter_covariance(params, model)
     mass = em.mass_model() if hasattr(em, "mass_model") else None
     cv = ((crossval or {}).get("models") or {}).get(model) or {}
+    judged = verdict({**fits["models"][model], "best_model": model, "crossval": crossval or {}})
     return {
         "format": FORMAT,
         "model": model,
@@ -140,6 +144,8 @@ def calibration_record(
         "region": _region_rad(fits["models"][model]),
         "mass_model": mass,
         "validated": {
+            "validated_mm": (judged or {}).get("validated_mm"),
+            "validated_how": (judged or {}).get("validated_how"),
             "kfold_rms_mm": cv.get("kfold_rms_mm"),
             "kfold_model_rms_mm": cv.get("kfold_model_rms_mm"),
             "train_rms_mm": fits["models"][model].get("rms_mm"),

@@ -62,7 +62,7 @@ def finite_columns(df: pd.DataFrame, cols: list[str], path: Path) -> np.ndarray:
     if bad.any():
         i, j = (int(v[0]) for v in np.nonzero(bad))
         raise BadInput(
-            f"{path}: row {i}, column {cols[j]!r}: {df[cols[j]].iloc[i]!r} is not a finite number"
+            f"{path}: row {i}, column {cols[j]!r}: {df[cols[j]].iloc[i]} is not a finite number"
         )
     return values
 
