@@ -64,6 +64,7 @@ MUKCa's held-out mean).
 from __future__ import annotations
 
 import argparse
+import json
 import tempfile
 import time
 import xml.etree.ElementTree as ET
@@ -242,7 +243,12 @@ def vtcal_identify(
             shipped = line.split()[-1]
     urdf_chain = load_chain((out / "calibrated.urdf").read_text(), BASE, "virtual_pin")
     if model == "default" or get_model(model).urdf_exact:
-        return (lambda q: pin_points(urdf_chain, np.zeros(3), q)), seconds, shipped or model
+
+        def by_urdf(q: np.ndarray) -> np.ndarray:
+            return pin_points(urdf_chain, np.zeros(3), q)
+
+        by_urdf.run_dir = out  # type: ignore[attr-defined]
+        return by_urdf, seconds, shipped or model
     params = pd.read_parquet(out / "parameters.parquet")
     params = params[params["model"] == model]
     em = get_model(model)(load_chain(nominal_urdf(model).read_text(), BASE, TCP))
@@ -361,7 +367,29 @@ def evaluate(
         rigid = getattr(predict, "urdf_chain", None)
         if rigid is not None:  # a model a URDF cannot carry: its calibrated.urdf alone too
             rows[f"vtcal {m} (urdf only)"] = judge(rigid, np.zeros(3))
+        if m == "default":  # the same run through vtcal predict: the model it predicts with
+            run_dir = predict.run_dir  # type: ignore[attr-defined]
+            used = json.loads((run_dir / "calibration.json").read_text())["model"]
+            t0 = time.perf_counter()
+            rows[f"vtcal predict (-> {used})"] = judge.predictor(
+                lambda q, d=run_dir: vtcal_predict(d, q, work)
+            )
+            notes[f"vtcal predict (-> {used})"] = f"{time.perf_counter() - t0:.1f} s"
     return rows, notes
+
+
+def vtcal_predict(run_dir: Path, q: np.ndarray, work: Path) -> np.ndarray:
+    """``vtcal predict RUN_DIR --joints J.csv --out P.csv`` (the click command, in process):
+    the pin positions (base frame, m) the run's calibration.json model predicts at ``q``."""
+    from pipeline.cli import cli
+
+    joints, out = work / "predict_joints.csv", work / "predicted.csv"
+    pd.DataFrame(q, columns=JOINTS).to_csv(joints, index=False)
+    args = ["predict", str(run_dir), "--joints", str(joints), "--out", str(out)]
+    res = CliRunner().invoke(cli, args, prog_name="vtcal", catch_exceptions=False)
+    if res.exit_code != 0:
+        raise RuntimeError(f"vtcal predict failed ({res.exit_code}): {res.output}")
+    return pd.read_csv(out)[["pin_x_m", "pin_y_m", "pin_z_m"]].to_numpy(float)
 
 
 def floors(dataset: str, models: tuple[str, ...], work: Path) -> None:

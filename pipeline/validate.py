@@ -66,6 +66,8 @@ MIN_PER_TARGET = 2
 CALIBRATED = "calibrated (its own pin)"
 CALIBRATED_REFIT = "calibrated + refitted pin"
 NOMINAL_REFIT = "nominal + refitted pin"
+#: the row of calibration.json's model where it is not the URDF's (followed by its name)
+CALIBRATED_MODEL = "predictions' model:"
 
 
 @dataclass(frozen=True)
@@ -185,6 +187,16 @@ def predicted_points(chain: Chain, pin: F64, data: Touchups) -> F64:
     return np.asarray(np.einsum("nij,nj->ni", T[:, :3, :3], pin + data.d) + T[:, :3, 3])
 
 
+def model_points(cal: Any, data: Touchups) -> F64:
+    """(V1) with the forward map of a run's calibration.json model (:mod:`pipeline.use`):
+    ``x_i = R_i (p + d_i) + t_i`` with ``(R_i, t_i)`` its flange pose (compliance included)."""
+    pred = cal.forward(data.q)
+    T = pred.T_base_flange
+    return np.asarray(
+        np.einsum("nij,nj->ni", T[:, :3, :3], cal.p_flange_pin + data.d) + T[:, :3, 3]
+    )
+
+
 def consistency(points: F64, tk: np.ndarray, K: int) -> tuple[F64, F64, F64]:
     """(V2): target centres and the distances of the points from their centre.
 
@@ -223,7 +235,12 @@ def known_distance_errors(
 
 
 def judge(
-    label: str, chain: Chain, pin: F64, data: Touchups, distances: list[tuple[str, str, float]]
+    label: str,
+    chain: Chain,
+    pin: F64,
+    data: Touchups,
+    distances: list[tuple[str, str, float]],
+    points: F64 | None = None,
 ) -> dict[str, Any]:
     """The figures of one robot (chain to the flange, pin in the flange frame) on ``data``.
 
@@ -231,9 +248,10 @@ def judge(
     -------
     dict: ``label``, ``pin_flange_m`` (3,), ``consistency_mm`` (pooled RMS, V2),
     ``max_mm``, ``per_target`` ``{label: {"n", "rms_mm"}}``, ``distances`` (V3 rows)
-    and ``max_distance_error_mm`` (None without a known distance).
+    and ``max_distance_error_mm`` (None without a known distance). ``points``: the
+    (V1) points of a model a chain cannot hold (:func:`model_points`), else from ``chain``.
     """
-    x = predicted_points(chain, pin, data)
+    x = predicted_points(chain, pin, data) if points is None else points
     centres, dist, per = consistency(x, data.tk, data.K)
     counts = np.bincount(data.tk, minlength=data.K)
     rows = known_distance_errors(centres, data.labels, distances)
@@ -279,6 +297,7 @@ def validate(
     data: Touchups,
     distances: list[tuple[str, str, float]],
     tolerance_mm: float | None = None,
+    model: Any = None,
 ) -> dict[str, Any]:
     """Judge a calibration, and the nominal robot, on touch-ups it was not fitted on.
 
@@ -291,6 +310,8 @@ def validate(
     data : :func:`usable_touchups`
     distances : known distances ``(label a, label b, metres)`` between touched targets
     tolerance_mm : PASS / FAIL bound, mm (None: improved / not improved only)
+    model : the run's :class:`pipeline.use.Calibration` when the model it predicts with is
+        not the URDF's (``elastic``): judged too, on a row of its own after the URDF's
 
     Returns
     -------
@@ -317,6 +338,10 @@ def validate(
     robots = []
     if calibrated_pin is not None:
         robots.append(judge(CALIBRATED, calibrated, calibrated_pin, data_c, distances))
+    if model is not None:
+        label = f"{CALIBRATED_MODEL} {model.model}"
+        pts = model_points(model, data_c)
+        robots.append(judge(label, calibrated, model.p_flange_pin, data_c, distances, pts))
     robots.append(refit_cal)
     before = judge(NOMINAL_REFIT, nominal, refit_pin(nominal, data), data, distances)
     robots.append(before)

@@ -262,3 +262,72 @@ def test_predictions_take_a_richer_model_only_beyond_doubt(elastic_rms, z, want)
     chosen, text = predict_choice(models, "mdh", {"elastic": {"z": z}, "full": {"z": 0.0}})
     assert chosen == want
     assert ("calibrated.urdf holds mdh" in text) == (want == "elastic")
+
+
+def test_payload_moves_an_elastic_prediction_and_rows_keep_their_own(panda_run):
+    """calibration.json carries the elastic model's mass model; a payload column is honoured
+    row by row (each row as forward() with its payload), a rigid model ignores it (and says so)."""
+    out, df, place, tmp = panda_run
+    cal = load(out)
+    assert cal.model.startswith("elastic") and cal.has_payload
+    mass = cal.record["mass_model"]
+    assert mass["payload"]["mass_kg"] == 0.0 and mass["masses"]
+    held = df[place == "backleft"].reset_index(drop=True).iloc[:12].copy()
+    held["payload_kg"] = [0.0, 2.0, 5.0] * 4
+    held.to_csv(tmp / "payload.csv", index=False)
+    _vtcal("predict", out, "--joints", tmp / "payload.csv", "--out", tmp / "payload_pred.csv")
+    pred = pd.read_csv(tmp / "payload_pred.csv")
+    q = held[PANDA].to_numpy(float)
+    for kg in (0.0, 2.0, 5.0):
+        rows = np.flatnonzero(held["payload_kg"].to_numpy() == kg)
+        want = cal.forward(q[rows], payload_kg=kg).p_base_pin
+        got = pred.loc[rows, ["pin_x_m", "pin_y_m", "pin_z_m"]].to_numpy(float)
+        assert np.abs(got - want).max() < 1e-12
+    moved = np.linalg.norm(
+        cal.forward(q, payload_kg=5.0).p_base_pin - cal.forward(q).p_base_pin, axis=1
+    )
+    assert moved.max() > 1e-6  # a compliance under gravity: a payload deflects the arm
+    # the URDF's rigid model: the payload changes nothing, and the command says so
+    rigid = json.loads((out / "calibration.json").read_text())
+    rigid.update(model=rigid["urdf_model"])
+    from pipeline.use.calibration import Calibration
+    from pipeline.use.record import parameter_vector
+
+    params = pd.read_parquet(out / "parameters.parquet")
+    from pipeline.models import get_model
+
+    em = get_model(rigid["model"])(cal.chain)
+    x, pin = parameter_vector(params, rigid["model"], list(em.param_names))
+    rigid["parameters"] = {"names": list(em.param_names), "values": x}
+    rigid["p_flange_pin"] = pin
+    rigid["covariance"] = {"names": [], "matrix": []}
+    r = Calibration(rigid)
+    assert not r.has_payload
+    assert np.array_equal(r.forward(q, payload_kg=5.0).p_base_pin, r.forward(q).p_base_pin)
+
+
+def test_validate_and_exports_carry_the_prediction_model(panda_run):
+    """validate judges calibration.json's elastic model on a row of its own; the URDF says it
+    holds the rigid model only; the json export carries the record whole."""
+    out, _, _, tmp = panda_run
+    rec = json.loads((out / "calibration.json").read_text())
+    assert rec["model"] != rec["urdf_model"]
+    urdf = (out / "calibrated.urdf").read_text()
+    assert f"holds the rigid model {rec['urdf_model']} only" in urdf and rec["model"] in urdf
+    text = _vtcal(
+        "validate", out / "calibrated.urdf", tmp / "backleft.csv",
+        "--urdf", REAL / "nominal_panda.urdf", "--flange-link", "panda_hand_tcp",
+        "--distance", "backleft/hole_0:backleft/hole_1=0.05",
+    )  # fmt: skip
+    rows = {
+        ln.split("  ")[1].strip(): ln
+        for ln in text.splitlines()
+        if ln.startswith("  ") and "  " in ln[2:]
+    }
+    label = f"predictions' model: {rec['model']}"
+    assert label in rows, text
+    cons = float(rows[label].split()[-3])
+    cons_urdf = float(rows["calibrated (its own pin)"].split()[-3])
+    assert cons < cons_urdf  # 0.19 against 0.28 mm on this placement
+    doc = json.loads(_vtcal("export", out, "--format", "json"))
+    assert doc["calibration"]["model"] == rec["model"] and "rigid model" in doc["urdf_holds"]

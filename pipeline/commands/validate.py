@@ -201,7 +201,8 @@ def command(
         kept, dropped = _known_distances(given, data.labels, inp)
         if tolerance_mm is None:
             tolerance_mm = tolerance_from_metadata(inp.metadata)
-        result = validate(cal_chain, cal_pin, nom_chain, data, kept, tolerance_mm)
+        model = _prediction_model(calibrated, cal_chain.joint_names, flange)
+        result = validate(cal_chain, cal_pin, nom_chain, data, kept, tolerance_mm, model)
         if result["implausible"] and not accept_implausible:  # identify's guardrails
             raise CalibrationFailed(
                 f"{inp.source}: implausible input: "
@@ -222,6 +223,27 @@ def command(
     err = refusal(result)
     if err is not None:
         raise err
+
+
+def _prediction_model(calibrated: Path, joints: list[str], flange: str) -> Any:
+    """The run's calibration.json model beside CALIBRATED.urdf, where it is not the URDF's.
+
+    ``elastic`` (joint compliance) predicts through its own map, which a URDF cannot
+    hold; None when there is no record, it is the URDF's model, or another robot.
+    """
+    from pipeline.catalog import RUN_FILES
+
+    path = calibrated.parent / RUN_FILES["calibration"]
+    if calibrated.name != RUN_FILES["calibrated_urdf"] or not path.is_file():
+        return None
+    from pipeline.use import load
+
+    cal = load(calibrated.parent)
+    same = cal.joint_names == joints and cal.record["robot"]["flange_link"] == flange
+    if cal.model == cal.record.get("urdf_model") or not same:
+        return None
+    click.echo(f"{path.name}: predictions use {cal.model}, judged on a row of its own")
+    return cal
 
 
 def _input_suffix(input_path: Path, urdf_path: Path | None) -> str:
@@ -306,13 +328,13 @@ def _echo(result: dict[str, Any]) -> None:
     )
     heads = [f"error {r['pair']}" for r in result["robots"][0]["distances"]]
     widths = [max(14, len(h) + 2) for h in heads]
-    head = f"  {'robot':<27}{'consistency':>13}{'max':>9}"
+    head = f"  {'robot':<33}{'consistency':>13}{'max':>9}"
     click.echo(head + "".join(f"{h:>{w}}" for h, w in zip(heads, widths, strict=True)) + "   (mm)")
     for r in result["robots"]:
         cells = "".join(
             f"{d['error_mm']:>{w}.4f}" for d, w in zip(r["distances"], widths, strict=True)
         )
-        click.echo(f"  {r['label']:<27}{r['consistency_mm']:>13.4f}{r['max_mm']:>9.4f}{cells}")
+        click.echo(f"  {r['label']:<33}{r['consistency_mm']:>13.4f}{r['max_mm']:>9.4f}{cells}")
     click.echo(result["verdict"]["line"])
 
 

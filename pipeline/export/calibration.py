@@ -1,12 +1,14 @@
 """What every export format starts from: a run folder's shipped calibration, read once.
 
 This module is the disk edge of :mod:`pipeline.export`; the format modules are
-pure functions of a :class:`RunCalibration`. Everything comes from three files
+pure functions of a :class:`RunCalibration`. Everything comes from four files
 of the run folder (``spec/outputs.md``):
 
 * ``calibrated.urdf``: the shipped model's chain (base link to flange link), the
   virtual pin (the ``virtual_pin_joint`` origin) and the provenance block;
 * ``identify.json``: the shipped model, its figures and every model's summary;
+* ``calibration.json``: the model predictions use (``elastic``'s compliance where
+  the run chose it; the ``json`` format carries it whole);
 * ``parameters.parquet``: the ``offsets`` model's joint zero offsets and pin
   (identified with the nominal link geometry, so they are what a controller
   that keeps its own kinematics can use).
@@ -68,6 +70,8 @@ class RunCalibration:
     summary: dict[str, Any] = field(repr=False)
     provenance: dict[str, str]
     offsets: OffsetsFit | None = None
+    #: ``calibration.json`` (the model predictions use, :mod:`pipeline.use.record`), if present
+    record: dict[str, Any] | None = field(default=None, repr=False)
 
     @property
     def model(self) -> str:
@@ -178,7 +182,20 @@ def load_run(run_dir: str | Path) -> RunCalibration:
         summary=summary,
         provenance=read_provenance(xml),
         offsets=_offsets(run_dir, chain.joint_names),
+        record=_record(run_dir),
     )
+
+
+def _record(run_dir: Path) -> dict[str, Any] | None:
+    """The run's ``calibration.json``, None in a run folder from before it existed."""
+    path = run_dir / RUN_FILES["calibration"]
+    if not path.is_file():
+        return None
+    try:
+        record: dict[str, Any] = json.loads(path.read_text())
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
+        raise BadInput(f"{path}: not readable JSON: {exc}") from exc
+    return record
 
 
 def header_lines(cal: RunCalibration) -> list[str]:

@@ -4,8 +4,10 @@ Keys: ``format`` (``"vtcal-export"``), ``provenance`` (the URDF block's
 ``key: value`` pairs), ``model``, ``chain`` (``base_link``, ``flange_link``,
 ``joints``), ``p_flange_pin_m``, ``urdf`` (the text), ``ur_calibration``
 (``entries``: segment -> ``{x, y, z, roll, pitch, yaw}``, ``end_frame``,
-``hash``), ``offsets`` (:func:`pipeline.export.offsets.offsets_data`) and
-``dh`` (``rows``: one ``{joint, alpha, beta, a, theta, d, hayati}`` per joint,
+``hash``), ``offsets`` (:func:`pipeline.export.offsets.offsets_data`),
+``calibration`` (the run's ``calibration.json``: the model predictions use, whole,
+or null), ``urdf_holds`` (one sentence: whether the URDF is that model or its rigid
+stand-in) and ``dh`` (``rows``: one ``{joint, alpha, beta, a, theta, d, hayati}`` per joint,
 ``base`` and ``tool`` as 4 x 4 row lists, ``convention``). A format the robot
 does not allow is ``{"refused": "<the one-line reason>"}`` in place of its
 value. Floats are written with full precision; SI units (m, rad).
@@ -62,6 +64,19 @@ def _dh(cal: RunCalibration) -> dict[str, Any]:
     }
 
 
+def _urdf_holds(cal: RunCalibration) -> str:
+    """What ``urdf`` (and every other format here) carries, against the model predictions use."""
+    rec = cal.record or {}
+    used = rec.get("model")
+    if not used or used == cal.model:
+        return f"the model predictions use ({cal.model})"
+    return (
+        f"the rigid model {cal.model} only: predictions use {used}, whose configuration-"
+        "dependent terms (joint compliance) no URDF, DH table or offset list can carry; "
+        "'calibration' holds it (vtcal predict / vtcal compensate, pipeline.use.load)"
+    )
+
+
 def export_json(cal: RunCalibration, signs: Sequence[int] | None = None) -> str:
     """The JSON document (see module docstring)."""
     doc = {
@@ -78,5 +93,7 @@ def export_json(cal: RunCalibration, signs: Sequence[int] | None = None) -> str:
         "ur_calibration": _or_refused(lambda: _ur(cal)),
         "offsets": _or_refused(lambda: offsets_data(cal, signs)),
         "dh": _or_refused(lambda: _dh(cal)),
+        "calibration": cal.record,
+        "urdf_holds": _urdf_holds(cal),
     }
     return json.dumps(doc, indent=1, sort_keys=True, allow_nan=False) + "\n"
