@@ -74,7 +74,12 @@ def predict_choice(
             f"calibrated.urdf holds {urdf_model}, a rigid model (a URDF cannot carry "
             f"{best}'s configuration-dependent terms)"
         )
-    why = "not by more than 1 %" if not ahead else f"not told apart (|z| < {Z_APART:g})"
+    if rivals[best] >= own:
+        why = "no better on held-out touch-ups"
+    elif not ahead:
+        why = "better by no more than 1 %"
+    else:
+        why = f"not told apart (|z| < {Z_APART:g})"
     return urdf_model, (
         f"predictions use {urdf_model}, the model calibrated.urdf holds: {best} is "
         f"{why} ({figures})"
