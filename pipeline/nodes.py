@@ -187,25 +187,11 @@ def choose(data: dict[str, Any], config: Any, context: Any) -> dict[str, Any]:
     record = calibration_record(
         data["parameters"], data["models"], summary, context.robot, str(shipped["best_model"])
     )
-    if record["model"] != record["urdf_model"]:  # the URDF says plainly what it holds
-        urdf = _rigid_only_note(urdf, record["urdf_model"], record["model"])
     shipped["predict_model"] = record["model"]
     shipped["predict_choice"] = record["choice"]
     if summary is not None:  # the choice for predictions, beside the URDF's, in the headline
         shipped["headline"] = [*shipped.get("headline", []), record["choice"]]
     return {"calibrated_urdf": urdf, "calibration": record, "identify": shipped}
-
-
-def _rigid_only_note(urdf: str, rigid: str, used: str) -> str:
-    """calibrated.urdf with a comment before its ``<robot>``: it holds the rigid model only."""
-    note = (
-        f"<!-- vtcal: this URDF holds the rigid model {rigid} only. The run predicts with "
-        f"{used}, whose joint compliance (a deflection with the gravity torque) no URDF can "
-        "carry: calibration.json holds it; use vtcal predict / vtcal compensate or "
-        "pipeline.use.load(run_dir) to predict as it does. -->\n"
-    )
-    at = urdf.find("<robot")
-    return urdf if at < 0 else urdf[:at] + note + urdf[at:]
 
 
 def report(data: dict[str, Any], config: Any, context: Any) -> dict[str, Any]:

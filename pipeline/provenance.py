@@ -113,6 +113,19 @@ def provenance_lines(summary: dict[str, Any], source: Source, version: str) -> l
         "base frame: held at nominal (touch-ups never identify it)",
         f"date: {date}; the calibration's wall-clock time is not written, so identical runs "
         "give identical files)",
+        *_predictions_line(summary, model),
+    ]
+
+
+def _predictions_line(summary: dict[str, Any], model: str) -> list[str]:
+    """Where the run predicts with a model the URDF cannot carry: the URDF says it plainly."""
+    used = (summary.get("crossval") or {}).get("predict_model")
+    if not used or used == model:
+        return []
+    return [
+        f"predictions: {used} (calibration.json), not this URDF: it holds the rigid model "
+        f"{model} only, {used}'s joint compliance (a deflection with the gravity torque) no "
+        "URDF can carry; vtcal predict / vtcal compensate / pipeline.use.load use it"
     ]
 
 

@@ -318,7 +318,7 @@ def test_fuzz_touchup_tables(work, base_table, ops):
 @given(muts=st.lists(_mutation, min_size=1, max_size=3), utf16=st.booleans())
 @settings(FUZZ, max_examples=N_CSV)
 def test_fuzz_touchup_csv_bytes(work, base_table, muts, utf16):
-    from pipeline.commands.identify import read_table
+    from pipeline.io.tables import read_table
 
     table, urdf = base_table
     text = table.to_csv(index=False)

@@ -313,7 +313,10 @@ def test_validate_and_exports_carry_the_prediction_model(panda_run):
     rec = json.loads((out / "calibration.json").read_text())
     assert rec["model"] != rec["urdf_model"]
     urdf = (out / "calibrated.urdf").read_text()
-    assert f"holds the rigid model {rec['urdf_model']} only" in urdf and rec["model"] in urdf
+    from pipeline.provenance import read_provenance
+
+    line = read_provenance(urdf)["predictions"]
+    assert f"holds the rigid model {rec['urdf_model']} only" in line and rec["model"] in line
     text = _vtcal(
         "validate", out / "calibrated.urdf", tmp / "backleft.csv",
         "--urdf", REAL / "nominal_panda.urdf", "--flange-link", "panda_hand_tcp",

@@ -27,7 +27,7 @@ if TYPE_CHECKING:
     "compensate",
     epilog="""\b
 Examples:
-  vtcal compensate runs/cell --targets program.csv --out program_compensated.csv
+  vtcal compensate runs/sample --targets datasets/samples/sample_program.csv --out corrected.csv
   vtcal compensate runs/cell --targets poses.csv --out joints.csv            # x,y,z,qx,qy,qz,qw
   vtcal compensate runs/cell --targets points.csv --point pin --out joints.parquet
 """,
@@ -122,8 +122,8 @@ def _say(cal: Calibration, out: pd.DataFrame, what: str) -> None:
     """The console summary of a compensation."""
     import numpy as np
 
-    from pipeline.commands.predict import _say_region
     from pipeline.numfmt import fmt
+    from pipeline.use.tables import region_line
 
     res = out["residual_m"].to_numpy(dtype=float) * 1e3
     conv = out["converged"].to_numpy(dtype=bool)
@@ -138,4 +138,4 @@ def _say(cal: Calibration, out: pd.DataFrame, what: str) -> None:
         click.echo(
             f"{int((~limits).sum())} rows outside the URDF's joint limits (within_limits false)"
         )
-    _say_region(out)
+    click.echo(region_line(out))

@@ -10,7 +10,6 @@ writes from identification on (see ``docs/identification.md``).
 
 from __future__ import annotations
 
-import io
 import json
 import xml.etree.ElementTree as ET
 from pathlib import Path
@@ -29,56 +28,8 @@ from pipeline.commands._common import (
     tolerance_option,
 )
 from pipeline.errors import BadInput
+from pipeline.io.tables import read_table
 from pipeline.models import model_help
-
-
-def read_table(path: Path) -> pd.DataFrame:
-    """A touch-up table from ``.csv`` or ``.parquet``.
-
-    Raises
-    ------
-    BadInput
-        Unknown suffix, unreadable file, or an empty table.
-    """
-    suffix = path.suffix.lower()
-    try:
-        if suffix == ".csv":
-            df = _read_csv(path)
-        elif suffix in (".parquet", ".pq"):
-            df = pd.read_parquet(path)
-        else:
-            raise BadInput(f"{path}: touch-up table must be .csv or .parquet, not {suffix!r}")
-    except BadInput:
-        raise
-    except Exception as exc:  # pandas/pyarrow raise many types for a bad file
-        raise BadInput(f"{path}: not a readable touch-up table: {exc}") from exc
-    if df.empty:
-        raise BadInput(f"{path}: the touch-up table has no rows")
-    return df
-
-
-def _read_csv(path: Path) -> pd.DataFrame:
-    """A CSV in UTF-8 (BOM or not) or UTF-16 with a BOM; comma, semicolon or tab separated.
-
-    Raises BadInput naming the first byte that is not text.
-    """
-    raw = path.read_bytes()
-    if raw.startswith((b"\xff\xfe", b"\xfe\xff")):
-        encoding = "utf-16"
-    else:
-        encoding = "utf-8-sig"
-    try:
-        text = raw.decode(encoding)
-    except UnicodeDecodeError as exc:
-        raise BadInput(
-            f"{path}: not a text CSV: byte 0x{raw[exc.start]:02x} at offset {exc.start} is not "
-            f"{encoding.upper().replace('-SIG', '')} (save the table as UTF-8 CSV)"
-        ) from exc
-    if "\x00" in text:
-        raise BadInput(f"{path}: not a text CSV: it holds NUL characters (binary data?)")
-    first = text.split("\n", 1)[0]
-    sep = max((",", ";", "\t"), key=first.count)
-    return pd.read_csv(io.StringIO(text), sep=sep)
 
 
 def infer_links(urdf: str) -> tuple[str, str]:

@@ -26,7 +26,7 @@ if TYPE_CHECKING:
     "predict",
     epilog="""\b
 Examples:
-  vtcal predict runs/sample --joints program.csv --out predicted.csv
+  vtcal predict runs/sample --joints datasets/samples/sample_program.csv --out predicted.csv
   vtcal predict runs/panda --joints poses.parquet --out predicted.parquet --payload-kg 0.5
 """,
 )
@@ -67,6 +67,7 @@ def _say(cal: Calibration, out: pd.DataFrame, payload: np.ndarray) -> None:
     import numpy as np
 
     from pipeline.numfmt import fmt
+    from pipeline.use.tables import region_line
 
     m = cal.model
     sig = out["sigma_pin_m"].to_numpy(dtype=float) * 1e3
@@ -76,21 +77,8 @@ def _say(cal: Calibration, out: pd.DataFrame, payload: np.ndarray) -> None:
             f"predicted pin uncertainty (1 sigma): median {fmt(float(np.nanmedian(sig)))} mm, "
             f"max {fmt(float(np.nanmax(sig)))} mm"
         )
-    _say_region(out)
+    click.echo(region_line(out))
     if np.isfinite(np.asarray(payload, dtype=float)).any() and not getattr(
         cal, "has_payload", False
     ):
         click.echo(f"payload: model {m} is rigid, the payload changes nothing it predicts")
-
-
-def _say_region(out: pd.DataFrame) -> None:
-    """How many rows leave the covered region, and through which joints."""
-    inside = out["inside_region"].to_numpy(dtype=bool)
-    if inside.all():
-        click.echo("every row inside the joint ranges the calibration covered")
-        return
-    joints = sorted({j for s in out["outside_joints"] for j in str(s).split(",") if j})
-    click.echo(
-        f"{int((~inside).sum())} of {len(inside)} rows outside the joint ranges the calibration "
-        f"covered ({', '.join(joints)}): predictions there are extrapolated (inside_region false)"
-    )

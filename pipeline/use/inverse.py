@@ -45,7 +45,7 @@ STEP = 1e-6
 MAX_ITER = 100
 #: the damping mu of (I2), relative to the mean diagonal of J J^T (keeps a singular arm solvable)
 DAMPING = 1e-12
-#: a row whose damping grew past this stops (a target out of reach)
+#: a row whose damping grew past this is as close as it gets (a target out of reach)
 MAX_DAMPING = 1e6
 
 

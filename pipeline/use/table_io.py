@@ -27,7 +27,7 @@ PARQUET = (".parquet", ".pq")
 
 def read_rows(path: Path) -> pd.DataFrame:
     """A table of joint vectors or targets (CSV or Parquet), as the user wrote it."""
-    from pipeline.commands.identify import read_table
+    from pipeline.io.tables import read_table
 
     try:
         return read_table(path)

@@ -105,3 +105,15 @@ def nominal_targets(cal: Any, q: F64, point: str) -> F64:
         T = T.copy()
         T[:, :3, 3] = np.einsum("nij,j->ni", T[:, :3, :3], cal.p_flange_pin) + T[:, :3, 3]
     return T
+
+
+def region_line(out: pd.DataFrame) -> str:
+    """One sentence: how many rows leave the covered joint ranges, and through which joints."""
+    inside = out["inside_region"].to_numpy(dtype=bool)
+    if inside.all():
+        return "every row inside the joint ranges the calibration covered"
+    joints = sorted({j for s in out["outside_joints"] for j in str(s).split(",") if j})
+    return (
+        f"{int((~inside).sum())} of {len(inside)} rows outside the joint ranges the calibration "
+        f"covered ({', '.join(joints)}): predictions there are extrapolated (inside_region false)"
+    )
