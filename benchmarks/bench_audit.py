@@ -81,16 +81,25 @@ def main() -> None:
     ap.add_argument("--histories", type=int, default=20, help="histories per case")
     ap.add_argument("--recordings", type=int, default=6)
     ap.add_argument("--per-target", type=int, default=12)
+    ap.add_argument("--alpha", type=float, default=ALPHA, help="the change test's level")
+    ap.add_argument("--first-seed", type=int, default=0, help="histories use seeds after it")
+    ap.add_argument(
+        "--cases", nargs="+", default=list(CASES), metavar="CASE",
+        help="cases to run (default: all): " + "; ".join(CASES),
+    )  # fmt: skip
     a = ap.parse_args()
+    alpha = a.alpha
     t0 = time.perf_counter()
     print(
         f"bench_audit: {a.histories} histories per case x {a.recordings} recordings, 3 targets x "
-        f"{a.per_target} touch-ups, alpha {ALPHA} per comparison"
+        f"{a.per_target} touch-ups, alpha {alpha} per comparison"
     )
     firsts = []
-    seed = 0
+    seed = a.first_seed
     all_fa = all_other = 0
-    for case, (event, right) in CASES.items():
+    null_p: list[float] = []  # p-values of every comparison without an event
+    for case in a.cases:
+        event, right = CASES[case]
         found = named = 0
         fa = n_other = hist_fa = 0
         ratios = []
@@ -106,9 +115,10 @@ def main() -> None:
             for i in range(1, len(hist)):
                 d = compare_estimates(est[i - 1], est[i])
                 if event is not None and i == AT:
-                    found += d.changed()
-                    reading = attribute(d, est[i]) if d.changed() else Reading("none", "", "")
-                    named += d.changed() and right(reading)
+                    found += d.changed(alpha)
+                    seen = d.changed(alpha)
+                    reading = attribute(d, est[i], alpha) if seen else Reading("none", "", "")
+                    named += seen and right(reading)
                     truth = drift_m(
                         (hist[i - 1].true_chain, hist[i - 1].truth.p_flange_pin),
                         (hist[i].true_chain, hist[i].truth.p_flange_pin), est[i].q,
@@ -123,8 +133,9 @@ def main() -> None:
                         ratios.append(got / truth)
                 else:
                     n_other += 1
-                    fa += d.changed()
-                    any_fa |= d.changed()
+                    fa += d.changed(alpha)
+                    any_fa |= d.changed(alpha)
+                    null_p.append(float(d.p))
             hist_fa += any_fa
         all_fa, all_other = all_fa + fa, all_other + n_other
         line = f"{case:24s}"
@@ -149,13 +160,20 @@ def main() -> None:
             )
     print(
         f"{'every case':24s} false alarms {all_fa}/{all_other} comparisons without an event "
-        f"({100 * all_fa / max(all_other, 1):.2f} %, alpha {100 * ALPHA:.0f} %)"
+        f"({100 * all_fa / max(all_other, 1):.2f} %, alpha {100 * alpha:g} %)"
     )
+    pv = np.array(null_p)
+    if pv.size:
+        levels = ", ".join(
+            f"{100 * lv:g} %: {int(np.sum(pv < lv))} ({100 * np.mean(pv < lv):.2f} %)"
+            for lv in (0.01, 0.005, 0.001)
+        )
+        print(f"{'':24s} the same comparisons at other levels: {levels}")
     diff_ok = 0
     pairs = list(zip(firsts, firsts[1:], strict=False))
     for ea, eb in pairs:
         d = compare_estimates(ea, eb)
-        diff_ok += d.changed() and attribute(d, eb).kind == "different_robot"
+        diff_ok += d.changed(alpha) and attribute(d, eb, alpha).kind == "different_robot"
     print(f"{'different robots':24s} read as different robots {diff_ok}/{len(pairs)}")
     print(f"time {time.perf_counter() - t0:.1f} s")
 

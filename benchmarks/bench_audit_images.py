@@ -144,7 +144,7 @@ def histories(work: Path, n: int, per_target: int, workers: int, renderer: str =
     from concurrent.futures import ProcessPoolExecutor
 
     from pipeline.audit.attribute import Reading, attribute
-    from pipeline.audit.change import compare_estimates
+    from pipeline.audit.change import ALPHA, compare_estimates
     from pipeline.audit.fit import fit_item
     from pipeline.audit.identity import load_item
 
@@ -162,7 +162,7 @@ def histories(work: Path, n: int, per_target: int, workers: int, renderer: str =
         runs = list(ex.map(_one_recording, jobs))
     est = [fit_item(load_item(r)) for r in runs]
     print(f"bench_audit_images --histories {n} --renderer {renderer}: {len(runs)} recordings, 3 targets x "
-          f"{per_target} poses, one capture each, alpha 0.01 per comparison")  # fmt: skip
+          f"{per_target} poses, one capture each, alpha {ALPHA:g} per comparison")  # fmt: skip
     firsts = []
     for i, (case, h) in enumerate(keys):
         a, b = est[2 * i], est[2 * i + 1]
@@ -177,11 +177,13 @@ def histories(work: Path, n: int, per_target: int, workers: int, renderer: str =
         chis = [d.T / d.dof for d, _ in rows]
         if case == "none":
             print(f"{case:<22} false alarms {found}/{len(rows)} comparisons"
-                  f" ({100 * found / len(rows):.1f} %); chi2/dof median {np.median(chis):.2f}"
+                  f" ({100 * found / len(rows):.1f} %; smallest p {min(d.p for d, _ in rows):.2g});"
+                  f" chi2/dof median {np.median(chis):.2f}"
                   f" (f_dof median {np.median([d.f_dof for d, _ in rows]):.0f})")  # fmt: skip
         else:
             print(f"{case:<22} found {found}/{len(rows)} ({100 * found / len(rows):.0f} %),"
-                  f" read right {right}/{len(rows)} ({100 * right / len(rows):.0f} %)")  # fmt: skip
+                  f" read right {right}/{len(rows)} ({100 * right / len(rows):.0f} %);"
+                  f" largest p {max(d.p for d, _ in rows):.2g}")  # fmt: skip
     for case, h, d, r in keys:  # every miss, to read
         if not CASES[case][2](r):
             print(f"  miss: {case} history {h}: chi2 {d.T:.1f} on {d.dof} dof, f {d.f_dof:.0f},"

@@ -26,8 +26,9 @@ Examples:
               help="Folder for audit_{recordings,changes,models}.parquet, audit.html, audit.rrd.")  # fmt: skip
 @click.option("--tolerance-mm", type=POSITIVE, default=0.1, show_default=True,
               help="PASS when the previous calibration's drift and consistency are within it.")  # fmt: skip
-@click.option("--alpha", type=float, default=0.01, show_default=True,
-              help="False-alarm rate of the change test per comparison.")  # fmt: skip
+@click.option("--alpha", type=float, default=0.001, show_default=True,
+              help="Level of the change test per comparison (measured false alarms: about "
+              "2-4x it on fresh simulated histories, 0.3 % at the default; docs/audit.md).")  # fmt: skip
 @click.option("--manifest", type=click.Path(dir_okay=False, path_type=Path), default=None,
               help="The batch manifest: its entries' robot_id name the runs' robots.")  # fmt: skip
 @click.option("--robot-id", default=None,
