@@ -71,7 +71,7 @@ def _say(cal: Calibration, out: pd.DataFrame, payload: np.ndarray) -> None:
 
     m = cal.model
     sig = out["sigma_pin_m"].to_numpy(dtype=float) * 1e3
-    click.echo(f"model {m} ({cal.record.get('choice', '')})")
+    click.echo(str(cal.record.get("choice") or f"predictions use {m}"))
     if np.isfinite(sig).any():
         click.echo(
             f"predicted pin uncertainty (1 sigma): median {fmt(float(np.nanmedian(sig)))} mm, "
