@@ -27,7 +27,7 @@ from setuptools import find_packages, setup
 from setuptools.command.build_py import build_py
 
 #: the numba modules (folder under pipeline/stages, cache file prefix) compiled into the build
-JIT_MODULES = (("detect", "_jit."), ("image", "_edge_jit."))
+JIT_MODULES = (("detect", "_jit."), ("response", "_edge_jit."))
 
 DATA = {
     "pipeline._data.schemas": "schemas",

@@ -10,7 +10,7 @@ then times ``estimate_from_profiles`` on copies of them two ways, in one run:
 
 - ``reference``: each fit as before it was compiled, ``least_squares(method="lm")``
   on the NumPy residual and Jacobian (:class:`EdgeFit`, one QR per call);
-- ``compiled``: :func:`pipeline.stages.image.response_fit.fit_edge` as it is
+- ``compiled``: :func:`pipeline.stages.response.edge_fit.fit_edge` as it is
   (one compiled pass per residual and Jacobian, ``leastsq``);
 
 CPU seconds, the best of ``--repeat`` (single-threaded numerics). It prints
@@ -77,7 +77,7 @@ def reference_fit(d, du, dv, E, w, x0, xtol=1e-10):  # type: ignore[no-untyped-d
     """The fit before it was compiled: ``least_squares`` on the NumPy :class:`EdgeFit`."""
     from scipy.optimize import least_squares
 
-    from pipeline.stages.image.response_fit import EdgeFit
+    from pipeline.stages.response.edge_fit import EdgeFit
 
     fit = EdgeFit(d, du, dv, E * w, w)
     sol = least_squares(fit.residual, x0, jac=fit.jacobian, method="lm", xtol=xtol)
@@ -111,7 +111,7 @@ def main() -> None:
     ap.add_argument("--repeat", type=int, default=5)
     args = ap.parse_args()
     args.workdir.mkdir(parents=True, exist_ok=True)
-    from pipeline.stages.image.response_fit import warm_edge_fit
+    from pipeline.stages.response.edge_fit import warm_edge_fit
 
     warm_edge_fit()  # the compiled kernel loaded (or compiled) before any timing
     print(f"load {' '.join(f'{x:.2f}' for x in os.getloadavg())}; CPU ms, best of {args.repeat}")

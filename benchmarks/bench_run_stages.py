@@ -295,7 +295,7 @@ def jit_cache_files() -> list[Path]:
     import importlib.util
 
     found = []
-    for module in ("pipeline.stages.detect._jit", "pipeline.stages.image._edge_jit"):
+    for module in ("pipeline.stages.detect._jit", "pipeline.stages.response._edge_jit"):
         spec = importlib.util.find_spec(module)
         assert spec is not None and spec.origin is not None
         stem = module.rsplit(".", 1)[1]

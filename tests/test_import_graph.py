@@ -141,6 +141,55 @@ def test_no_package_import_cycle() -> None:
     assert cycles(pk) == []
 
 
+def subpackage_edges(edges: dict[str, set[str]], packages: set[str]) -> dict[str, set[str]]:
+    """The import graph between the innermost packages: every module is its own package's
+    node (``pipeline.stages.identify.data`` -> ``pipeline.stages.identify``), a package's
+    ``__init__`` the package itself, a top-level module (``pipeline.runner``) itself. Finer than :func:`package_edges`, which sees
+    ``pipeline/stages/`` as one node and so missed ``image <-> detect`` and
+    ``identify <-> trust``."""
+
+    def node(m: str) -> str:
+        parent = m.rsplit(".", 1)[0]
+        return m if m in packages or "." not in parent else parent  # top-level: itself
+
+    out: dict[str, set[str]] = {}
+    for a, bs in edges.items():
+        out.setdefault(node(a), set()).update(node(b) for b in bs if node(b) != node(a))
+    return out
+
+
+def test_no_subpackage_import_cycle() -> None:
+    """No two packages at any depth import each other, directly or round a loop (the
+    response curve sits below detect, the estimators that need the detector above it;
+    the input guardrails below identify)."""
+    sources = _package_sources()
+    edges, _ = analyse(sources)
+    sub = subpackage_edges(edges, {m for m, (_, is_pkg) in sources.items() if is_pkg})
+    assert {"pipeline.stages.detect", "pipeline.stages.response", "pipeline.stages.image"} <= set(
+        sub
+    )
+    assert "pipeline.stages.response" in sub["pipeline.stages.detect"]
+    assert cycles(sub) == []
+
+
+def test_the_subpackage_check_can_fail() -> None:
+    """Two sub-packages of one package importing each other: a cycle the package graph
+    cannot see (one node), the sub-package graph does."""
+    fake = {
+        "pipeline": ("", True),
+        "pipeline.s": ("", True),
+        "pipeline.s.a": ("", True),
+        "pipeline.s.a.x": ("from pipeline.s.b.y import f\n", False),
+        "pipeline.s.b": ("", True),
+        "pipeline.s.b.y": ("def f():\n    from pipeline.s.a.z import g\n", False),
+        "pipeline.s.a.z": ("", False),
+    }
+    edges, _ = analyse(fake)
+    assert cycles(edges) == [] and cycles(package_edges(edges)) == []
+    sub = subpackage_edges(edges, {m for m, (_, is_pkg) in fake.items() if is_pkg})
+    assert cycles(sub) == [["pipeline.s.a", "pipeline.s.b", "pipeline.s.a"]]
+
+
 def test_the_package_check_can_fail() -> None:
     fake = {
         "pipeline": ("", True),

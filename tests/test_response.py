@@ -11,8 +11,8 @@ from pipeline.sim.camera import CameraModel
 from pipeline.sim.render import render_ideal
 from pipeline.sim.target_geometry import projected_ellipse
 from pipeline.stages.detect.detector import DetectConfig, detect_target
-from pipeline.stages.image.response import Response, parse_response
 from pipeline.stages.image.response_estimate import estimate_response
+from pipeline.stages.response.curve import Response, parse_response
 
 CAM = CameraModel(fx=900.0, fy=900.0, cx=318.2, cy=256.9, k1=-0.05, k2=0.005)
 

@@ -1,4 +1,4 @@
-"""The edge model's fit with its analytic Jacobian (pipeline.stages.image.response_fit).
+"""The edge model's fit with its analytic Jacobian (pipeline.stages.response.edge_fit).
 
 The camera-response estimate fits model (R1)-(R2) some 250 times a recording;
 MINPACK used to difference the residual for its Jacobian. These tests hold the
@@ -16,8 +16,8 @@ from scipy.optimize._numdiff import approx_derivative
 from test_response import renders, srgb_encode
 
 import pipeline.stages.image.response_estimate as rest
-from pipeline.stages.image.response import Response
-from pipeline.stages.image.response_fit import CompiledEdgeFit, EdgeFit, edge_spread, fit_edge
+from pipeline.stages.response.curve import Response
+from pipeline.stages.response.edge_fit import CompiledEdgeFit, EdgeFit, edge_spread, fit_edge
 
 
 def profile(seed: int = 1, n: int = 900):

@@ -19,8 +19,8 @@ from pipeline.io.mcap import EncodedImage, image_to_gray
 from pipeline.measure.loop import Detection
 from pipeline.measure.protocols import Frame
 from pipeline.stages.detect.detector import DetectConfig, detect_target
-from pipeline.stages.image.response import parse_response
 from pipeline.stages.image.response_estimate import ResponseEstimate, estimate_response
+from pipeline.stages.response.curve import parse_response
 
 
 def frame_to_grey(frame: Frame) -> np.ndarray:
@@ -48,7 +48,7 @@ ESTIMATE_IMAGES = 7
 class LiveDetector:
     """vtcal's detector for the live loop, on grey levels linearised as ingest linearises them.
 
-    The camera response (:mod:`pipeline.stages.image.response`) is applied by
+    The camera response (:mod:`pipeline.stages.response.curve`) is applied by
     :func:`pipeline.stages.detect.detector.detect_target` itself (``DetectConfig.response``,
     the code path of offline detection). A declared response is used from the
     first capture. An undeclared one (``auto``) is estimated by the offline

@@ -9,7 +9,7 @@ touch-ups' residuals along the view then correlate with the tilt and with the
 long axis' direction on the plate. This section shows, from the artefacts only:
 
 * the response curve detection used and how it was chosen
-  (``recording.json`` ``camera``, :mod:`pipeline.stages.image.response`);
+  (``recording.json`` ``camera``, :mod:`pipeline.stages.response.curve`);
 * the sensor's fixed gain pattern (PRNU), found and divided out or not
   (``camera`` ``flat_field``, :mod:`pipeline.stages.image.flat_field`);
 * the illumination gradient across the target;

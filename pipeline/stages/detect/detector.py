@@ -72,7 +72,7 @@ from pipeline.stages.detect.ellipse import (
     refine_geometric,
 )
 from pipeline.stages.detect.ellipse_distance import approx_distance
-from pipeline.stages.image.response import Response, parse_response
+from pipeline.stages.response.curve import Response, parse_response
 
 try:  # the compiled fine stage (same steps, loops compiled by numba)
     from pipeline.stages.detect import _jit
@@ -133,7 +133,7 @@ class DetectConfig:
         Run the fine stage compiled (:mod:`pipeline.stages.detect._jit`, numba)
         when numba is installed; False: the NumPy reference path.
     response : str
-        The camera's response curve (:mod:`pipeline.stages.image.response`: ``linear``,
+        The camera's response curve (:mod:`pipeline.stages.response.curve`: ``linear``,
         ``srgb``, ``gamma:G``): the grey levels of the target's window are
         linearised with its inverse before the sub-pixel stage, so that the
         halfway level is halfway in irradiance. ``auto`` (the default): ingest

@@ -10,7 +10,7 @@ plate), and calls ``on_slow`` once when it has lasted ``after_s`` seconds, so th
 command line can say what is happening and show it progressing instead of
 sitting silent. The synthetic detection's result is discarded; the recording's
 own detections are the same with or without it (same compiled code). The
-camera-response estimate's compiled edge fit (:mod:`pipeline.stages.image._edge_jit`)
+camera-response estimate's compiled edge fit (:mod:`pipeline.stages.response._edge_jit`)
 is warmed the same way, on a synthetic edge.
 
 Where numba keeps the cache: ``__pycache__`` beside ``_jit.py`` when that
@@ -34,7 +34,7 @@ import cv2
 import numpy as np
 
 from pipeline.stages.detect.detector import DetectConfig, detect_target
-from pipeline.stages.image.response_fit import warm_edge_fit
+from pipeline.stages.response.edge_fit import warm_edge_fit
 
 
 def synthetic_target(size: int = 96, radius: float = 18.0) -> np.ndarray:

@@ -75,7 +75,7 @@ import numpy as np
 from scipy.special import ndtr
 
 from pipeline.stages.detect.detector import DetectConfig, detect_target, nonlinear_response
-from pipeline.stages.image.response import Response
+from pipeline.stages.response.curve import Response
 
 #: half-width of a kept crop beyond the long half-axis (px)
 CROP_MARGIN_PX = 10

@@ -1,4 +1,4 @@
-"""The camera's response curve estimated from the images (:mod:`pipeline.stages.image.response`).
+"""The camera's response curve estimated from the images (:mod:`pipeline.stages.response.curve`).
 
 Estimation (per recording, from the edge profiles of the first images that
 show a target). An edge blurred by a symmetric point spread function has, in
@@ -49,8 +49,8 @@ from scipy.special import ndtr
 
 from pipeline.kinematics.se3 import F64
 from pipeline.stages.detect.detector import DetectConfig, detect_target, ellipse_foot
-from pipeline.stages.image.response import Response
-from pipeline.stages.image.response_fit import EdgeFit, edge_spread, fit_edge
+from pipeline.stages.response.curve import Response
+from pipeline.stages.response.edge_fit import EdgeFit, edge_spread, fit_edge
 
 
 @dataclass
@@ -186,7 +186,7 @@ def edge_harmonics(d: F64, du: F64, dv: F64, grey: F64, psi: F64, x0: tuple[floa
     noise and the response's own signature. They are geometry, the same in
     every curve: fitted once on raw grey with model (R1) (``psi`` the ellipse's
     parametric angle, ``k = 1..ROUND_HARMONICS``; analytic Jacobian,
-    :class:`pipeline.stages.image.response_fit.EdgeFit`) and taken out of ``d``.
+    :class:`pipeline.stages.response.edge_fit.EdgeFit`) and taken out of ``d``.
     """
     K = ROUND_HARMONICS
     ks = np.arange(1, K + 1)
@@ -199,7 +199,7 @@ def edge_harmonics(d: F64, du: F64, dv: F64, grey: F64, psi: F64, x0: tuple[floa
 
 
 #: the edge profile's odd shape terms (R2): a point spread function that is not Gaussian
-#: (:func:`pipeline.stages.image.response_fit.edge_spread`)
+#: (:func:`pipeline.stages.response.edge_fit.edge_spread`)
 SHAPE_TERMS = True
 
 __all__ = ["ResponseEstimate", "edge_profile", "edge_spread", "estimate_response"]
@@ -208,7 +208,7 @@ __all__ = ["ResponseEstimate", "edge_profile", "edge_spread", "estimate_response
 def _fit_profile(pr: _Profile, resp: Response) -> tuple[float, tuple[float, float]]:
     """Residual sum (grey^2, normalised scale) of model (R1)-(R2) under the curve ``resp``.
 
-    Fitted by :func:`pipeline.stages.image.response_fit.fit_edge` (variable projection, analytic
+    Fitted by :func:`pipeline.stages.response.edge_fit.fit_edge` (variable projection, analytic
     Jacobian); a profile keeps its fit per curve, so the figures computed at the best power
     law after the search (noise, edge width, illumination) do not fit it again.
     """

@@ -44,10 +44,10 @@ from pipeline.io.mcap import (
 )
 from pipeline.io.recording import iter_recording, summarize
 from pipeline.kinematics.urdf import RobotDescription, chain_joints, parse_urdf
+from pipeline.measurement.plausibility import joints_outside_chain
 from pipeline.stages.detect.detector import DetectConfig
 from pipeline.stages.image.binning import unbin
 from pipeline.stages.image.flat_field import CropStore, correct_flat_field
-from pipeline.stages.image.response import Response, parse_response
 from pipeline.stages.ingest.image_worker import ImageWorker
 from pipeline.stages.ingest.joints import (
     arm_joint_names,
@@ -63,7 +63,7 @@ from pipeline.stages.ingest.stream import (
     take_message,
 )
 from pipeline.stages.ingest.types import METADATA_KEYS, IngestConfig, Progress, RecordingInfo
-from pipeline.stages.trust.plausibility import joints_outside_chain
+from pipeline.stages.response.curve import Response, parse_response
 
 #: the public names of ingest, importable from here (the settings and the recording
 #: info live in ingest_types, the streaming pass in ingest_stream, the joint states'

@@ -85,13 +85,13 @@ class RecordingInfo:
     warnings : one line each (truncation, joint-state gaps)
     image_width, image_height : size of the images (px)
     camera : what was found about the camera: ``response`` (the curve detection used,
-        :mod:`pipeline.stages.image.response`), ``response_source`` (option, metadata,
+        :mod:`pipeline.stages.response.curve`), ``response_source`` (option, metadata,
         estimated), and the estimate's figures (``ResponseEstimate.to_dict``)
     measurement : the recording's ``measurement`` metadata record, when ``vtcal measure``
         wrote it (:mod:`pipeline.measure.summary`: touch-ups planned, converged, given up,
         captures, cell and wall time), as written (strings)
     implausible : guardrail lines on the joint states
-        (:func:`pipeline.stages.trust.plausibility.joints_outside_chain`: a joint above the base
+        (:func:`pipeline.measurement.plausibility.joints_outside_chain`: a joint above the base
         or after the flange link that moves); the run refuses them before extraction
     """
 

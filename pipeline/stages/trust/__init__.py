@@ -1,7 +1,8 @@
 """What the data and the fit can be trusted with; nothing is deleted, only flagged.
 
-``plausibility`` (guardrails: inputs that look right but cannot be, caught before
-identification), ``outliers`` (the outliers stage: touch-ups identification must not
-trust), ``adequacy`` (whether the run's accuracy figure can be trusted: the
-model-adequacy test).
+``outliers`` (the outliers stage: touch-ups identification must not trust),
+``adequacy`` (whether the run's accuracy figure can be trusted: the
+model-adequacy test). The guardrails on the input (inputs that look right but
+cannot be, caught before identification) are :mod:`pipeline.measurement.plausibility`,
+below identification, which applies them.
 """

@@ -1,6 +1,6 @@
 """Compiled (numba) residual and Jacobian of the edge model (R1)-(R2), one pass per term.
 
-The same quantities as :class:`pipeline.stages.image.response_fit.EdgeFit` (its
+The same quantities as :class:`pipeline.stages.response.edge_fit.EdgeFit` (its
 docstring holds the model and the variable-projection Jacobian (J)), computed
 in three loops over the profile's pixels instead of a few dozen NumPy calls and
 a QR factorisation per evaluation: the projection on ``A``'s six columns goes
@@ -172,7 +172,7 @@ def _residual_and_rhs(du, dv, y, w, c, s, su, sv, clipped, sgn, F, dFdt, he3, he
 def edge_residual_jacobian(d, du, dv, y, w, x, min_sigma, r, J):  # type: ignore[no-untyped-def]
     """Fill ``r`` (N,) and ``J`` (N, len(x)) of model (R1)-(R2) at ``x = (delta, sigma, b...)``.
 
-    ``d, du, dv, y, w`` as :class:`~pipeline.stages.image.response_fit.EdgeFit` (``y = w E``);
+    ``d, du, dv, y, w`` as :class:`~pipeline.stages.response.edge_fit.EdgeFit` (``y = w E``);
     ``len(x) - 2`` (0, 1 or 2) odd shape terms. Returns False when the Gram matrix is
     singular (the caller then takes the NumPy path).
 

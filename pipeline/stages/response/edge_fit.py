@@ -46,7 +46,7 @@ from scipy.special import ndtr
 from pipeline.kinematics.se3 import F64
 
 try:  # the compiled residual and Jacobian (same model, one pass per term)
-    from pipeline.stages.image import _edge_jit
+    from pipeline.stages.response import _edge_jit
 except ImportError:  # pragma: no cover - numba missing: the NumPy path
     _edge_jit = None  # type: ignore[assignment]
 
@@ -177,7 +177,7 @@ class EdgeFit:
 
 
 class CompiledEdgeFit(EdgeFit):
-    """:class:`EdgeFit` (no harmonics) through :mod:`pipeline.stages.image._edge_jit`.
+    """:class:`EdgeFit` (no harmonics) through :mod:`pipeline.stages.response._edge_jit`.
 
     The residual and the Jacobian of one ``x`` come from one call of the compiled
     kernel (MINPACK asks for both at each accepted step), kept as :class:`EdgeFit`
