@@ -361,7 +361,7 @@ def validate(
 def implausible(
     nominal: Chain, data: Touchups, distances: list[tuple[str, str, float]]
 ) -> list[str]:
-    """The guardrails of identification (:mod:`pipeline.measurement.plausibility`) on these touch-ups.
+    """The guardrails of identification (:mod:`pipeline.stages.guardrails.plausibility`) on these touch-ups.
 
     Wherever a robot is judged, the same inputs are implausible: joint values
     outside the nominal URDF's limits, a nominal fit (pin and targets solved at
@@ -374,7 +374,7 @@ def implausible(
     -------
     list of str : one line per implausible input (empty when plausible)
     """
-    from pipeline.measurement import plausibility as pl
+    from pipeline.stages.guardrails import plausibility as pl
 
     lines = pl.joint_values(data.q, nominal)
     _, targets, rho = pl.nominal_targets(

@@ -134,7 +134,7 @@ def test_no_compile_when_asked(build_command, tmp_path, monkeypatch, how):
     cmd.build_lib = str(tmp_path)
     stages = tmp_path / "pipeline" / "stages"
     stale = stages / "detect" / "__pycache__" / "_jit.fine_stage-1.py311.nbi"
-    stale_fit = stages / "image" / "__pycache__" / "_edge_jit.edge_residual_jacobian-1.py311.nbc"
+    stale_fit = stages / "response" / "__pycache__" / "_edge_jit.edge_residual_jacobian-1.py311.nbc"
     for f in (stale, stale_fit):
         f.parent.mkdir(parents=True)
         f.write_bytes(b"an earlier build's")

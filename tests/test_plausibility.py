@@ -16,8 +16,8 @@ from test_identify import LRMATE_CENTRE, PIN, _case
 from pipeline.errors import CalibrationFailed
 from pipeline.evaluate import synthetic_touchups
 from pipeline.kinematics import load_chain
-from pipeline.measurement import plausibility as pl
 from pipeline.robots import builtin_urdf
+from pipeline.stages.guardrails import plausibility as pl
 from pipeline.stages.identify.stage import IdentifyConfig, conditioning_note, identify
 
 REPO = Path(__file__).resolve().parent.parent

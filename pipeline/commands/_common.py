@@ -216,7 +216,7 @@ def tolerance_option(fn: Callable[..., Any]) -> Callable[..., Any]:
 
 
 def accept_implausible_option(fn: Callable[..., Any]) -> Callable[..., Any]:
-    """``--accept-implausible``: identify despite the guardrails (:mod:`pipeline.measurement.plausibility`)."""
+    """``--accept-implausible``: identify despite the guardrails (:mod:`pipeline.stages.guardrails.plausibility`)."""
     return click.option(
         "--accept-implausible",
         is_flag=True,

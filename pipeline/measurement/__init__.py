@@ -12,9 +12,6 @@
   :class:`~pipeline.measurement.pin.Problem` and the one linear pin/target solve.
 - :mod:`~pipeline.measurement.data`: the rows identification fits
   (:class:`~pipeline.measurement.data.FitData`).
-- :mod:`~pipeline.measurement.plausibility`: the guardrails, inputs that look
-  right but cannot be against the nominal robot (joint names, scale, pin),
-  applied by ingest, identification and validate.
 
 Every stage, the live loop, the simulator, the planner, validate, evaluate and
 the report take these from here (``docs/architecture.md`` lists the callers;

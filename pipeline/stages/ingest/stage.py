@@ -44,8 +44,8 @@ from pipeline.io.mcap import (
 )
 from pipeline.io.recording import iter_recording, summarize
 from pipeline.kinematics.urdf import RobotDescription, chain_joints, parse_urdf
-from pipeline.measurement.plausibility import joints_outside_chain
 from pipeline.stages.detect.detector import DetectConfig
+from pipeline.stages.guardrails.plausibility import joints_outside_chain
 from pipeline.stages.image.binning import unbin
 from pipeline.stages.image.flat_field import CropStore, correct_flat_field
 from pipeline.stages.ingest.image_worker import ImageWorker
