@@ -92,8 +92,8 @@ def _toml(raw: dict[str, Any]) -> str:
 
 def judge(rec: Path, truth: dict[str, Any], out: Path, seed: int) -> dict[str, Any]:
     """``vtcal run`` on ``rec`` and the calibrated pin against the truth."""
-    from pipeline.artefacts import read_artefact
     from pipeline.evaluate import judge_run
+    from pipeline.io.artefacts import read_artefact
     from pipeline.orchestrator import RunConfig, run_pipeline
 
     t0 = time.perf_counter()

@@ -85,8 +85,8 @@ def one_case(cell: str, effect: str, seed: int, work: str) -> dict[str, Any]:
     """Simulate, run and judge one (cell, effect); figures in mm and px."""
     import pandas as pd
 
-    from pipeline.artefacts import read_artefact
     from pipeline.evaluate import judge_run
+    from pipeline.io.artefacts import read_artefact
     from pipeline.orchestrator import RunConfig, run_pipeline
     from pipeline.sim.scenario import scenario_from_dict
     from pipeline.sim.simulator import write_recording
@@ -135,7 +135,7 @@ def one_case(cell: str, effect: str, seed: int, work: str) -> dict[str, Any]:
     flat = (
         f"{ff['prnu_percent']:.2f}%" if ff.get("applied") else f"z{ff.get('z', float('nan')):+.1f}"
     )
-    from pipeline.artefacts import read_meta
+    from pipeline.io.artefacts import read_meta
 
     settled = json.loads(read_meta(out / "touchups.parquet").get("settle", "{}") or "{}")
     centre = settled.get("centre") or {}

@@ -1,9 +1,9 @@
 """What a stage waits for when it writes its files: one ``fsync`` after another, or together.
 
 Every file vtcal writes is made durable before it replaces the old one
-(:func:`pipeline.fileio.atomic_write_bytes`: a temporary sibling, ``fsync``,
+(:func:`pipeline.io.fileio.atomic_write_bytes`: a temporary sibling, ``fsync``,
 ``os.replace``). The identify stage writes nine files (three tables,
-``models.json``, five URDFs). Inside :func:`pipeline.fileio.write_group` the
+``models.json``, five URDFs). Inside :func:`pipeline.io.fileio.write_group` the
 ``fsync``-s run in threads at once and the file system commits them together;
 the files land in the order written when the group ends. This script writes
 ``--files`` files of ``--kb`` kB into a temporary folder on the file system of
@@ -22,7 +22,7 @@ import tempfile
 import time
 from pathlib import Path
 
-from pipeline.fileio import atomic_write_bytes, write_group
+from pipeline.io.fileio import atomic_write_bytes, write_group
 
 
 def write_files(folder: Path, n: int, blob: bytes, grouped: bool) -> float:

@@ -43,10 +43,11 @@ from functools import cache
 from pathlib import Path
 from typing import Any
 
-from pipeline import catalog, resources
+from pipeline import catalog
 from pipeline.catalog import STAGES
-from pipeline.fileio import atomic_write_bytes, hash_named_files
-from pipeline.resources import user_cache_dir
+from pipeline.io import resources
+from pipeline.io.fileio import atomic_write_bytes, hash_named_files
+from pipeline.io.resources import user_cache_dir
 
 PACKAGE_DIR = Path(__file__).resolve().parent
 SCHEMA_DIR = resources.SCHEMA_DIR

@@ -118,7 +118,7 @@ def _read_run(run: Path) -> dict[str, Any]:
         summary = json.loads(ij.read_text())
     except json.JSONDecodeError as exc:
         raise BadInput(f"{ij}: not valid JSON ({exc.msg} at line {exc.lineno})") from exc
-    from pipeline.artefacts import read_artefact
+    from pipeline.io.artefacts import read_artefact
 
     params = read_artefact(pp, "parameters")
     urdf = ""

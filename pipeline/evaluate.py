@@ -313,7 +313,7 @@ def judge_run(out: Any, truth: dict[str, Any], n_poses: int, seed: int) -> dict[
     import json
     from pathlib import Path
 
-    from pipeline.artefacts import read_artefact
+    from pipeline.io.artefacts import read_artefact
     from pipeline.kinematics import load_chain
 
     folder = Path(out)

@@ -39,9 +39,9 @@ from typing import Any
 from pipeline import catalog
 from pipeline.catalog import RUN_FILES, STAGE_NAMES, run_paths
 from pipeline.errors import BadInput, CalibrationFailed, VtcalError
-from pipeline.fileio import config_hash
+from pipeline.io.fileio import config_hash
+from pipeline.io.jsonio import json_bytes, jsonable, write_json
 from pipeline.io.layout import locate
-from pipeline.jsonio import json_bytes, jsonable, write_json
 from pipeline.known_distances import metadata_distances
 from pipeline.runner import (
     Context,

@@ -20,7 +20,7 @@ recording bytes, options, ``until`` or code; a missing, edited or corrupt
 artefact; a temporary file a killed run left behind) is a miss, and the
 orchestrator's per-stage checks decide what to redo.
 
-Standard library only (plus the package version and :mod:`pipeline.fileio`).
+Standard library only (plus the package version and :mod:`pipeline.io.fileio`).
 """
 
 from __future__ import annotations
@@ -33,9 +33,10 @@ from functools import cache
 from pathlib import Path
 from typing import Any
 
-from pipeline import __version__, resources
+from pipeline import __version__
 from pipeline.catalog import RUN_FILES
-from pipeline.fileio import file_hash, hash_named_files
+from pipeline.io import resources
+from pipeline.io.fileio import file_hash, hash_named_files
 from pipeline.io.layout import locate, recording_hash
 
 PACKAGE_DIR = Path(__file__).resolve().parent

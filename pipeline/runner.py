@@ -42,8 +42,8 @@ from pipeline import __version__
 from pipeline.catalog import BY_KEY, STAGE, STAGE_NAMES, STAGES, Artefact, Parquet, Stage, run_paths
 from pipeline.code_key import stage_code_digest
 from pipeline.errors import BadInput
-from pipeline.fileio import atomic_write_bytes, config_hash, file_hash, write_group
-from pipeline.jsonio import json_bytes, jsonable
+from pipeline.io.fileio import atomic_write_bytes, config_hash, file_hash, write_group
+from pipeline.io.jsonio import json_bytes, jsonable
 
 #: Reports progress of a long stage: ``(stage, done, total or None)``.
 Progress = Callable[[str, int, int | None], None]
@@ -133,7 +133,7 @@ def is_fresh(outputs: list[Path], inputs: Mapping[str, str], config: Mapping[str
     written after the stage's Parquet artefacts, so their presence plus a fresh
     Parquet means the stage finished.
     """
-    from pipeline.artefacts import read_meta
+    from pipeline.io.artefacts import read_meta
 
     want_cfg = config_hash(config)
     parquet = [p for p in outputs if p.suffix == ".parquet"]
@@ -211,7 +211,7 @@ def load_input(key: str, out: Path, written: Mapping[Path, tuple[str, Any]] | No
         return {m: p.read_text() for m, p in zip(names, _per_model(art, out, names), strict=True)}
     path = out / art.file
     if art.schema is not None:
-        from pipeline.artefacts import read_artefact, read_meta, table_meta
+        from pipeline.io.artefacts import read_artefact, read_meta, table_meta
 
         kept = (written or {}).get(path)
         if kept is not None and path.is_file() and file_hash(path) == kept[0]:
@@ -259,7 +259,7 @@ class Inputs(Mapping[str, Any]):
         table = self._cache.get(key, self._context.given.get(key))
         if table is not None:
             return dict(table.attrs.get("vtcal", {}))
-        from pipeline.artefacts import read_meta
+        from pipeline.io.artefacts import read_meta
 
         return read_meta(self._context.out / BY_KEY[key].file)
 
@@ -285,7 +285,7 @@ def write_output(
     Parquet (:class:`pipeline.catalog.Parquet` or a DataFrame): checked against
     its schema, with the stage's key in the metadata (and, with ``written``, its hash and
     Arrow table kept there: :attr:`Context.written`). JSON: sorted keys
-    (:func:`pipeline.jsonio.json_bytes`). URDF: text. Per-model URDFs: one file each. A path (the report's
+    (:func:`pipeline.io.jsonio.json_bytes`). URDF: text. Per-model URDFs: one file each. A path (the report's
     files): already written by its writer.
     """
     if isinstance(value, Path):
@@ -298,7 +298,7 @@ def write_output(
         return paths
     path = out / art.file
     if art.schema is not None:
-        from pipeline.artefacts import write_artefact_table
+        from pipeline.io.artefacts import write_artefact_table
 
         table = value if isinstance(value, Parquet) else Parquet(value)
         kept = write_artefact_table(
@@ -460,7 +460,7 @@ def write_run(
     out: Path, stages: list[StageRecord], *, changed_only: bool = False, **fields: Any
 ) -> None:
     """The one writer of ``run.json``: ``{"version", "stages", **fields}``, byte-stable
-    (:func:`pipeline.jsonio.json_bytes`), atomic; with ``changed_only`` only when its bytes
+    (:func:`pipeline.io.jsonio.json_bytes`), atomic; with ``changed_only`` only when its bytes
     change. The runner writes this run's stage table before the report (which shows it),
     :mod:`pipeline.orchestrator` the finished run with its ledger entry."""
     path = run_paths(out)["run"]

@@ -8,8 +8,8 @@ from pathlib import Path
 import pandas as pd
 import pytest
 
-from pipeline import artefacts
-from pipeline.artefacts import (
+from pipeline.io import artefacts
+from pipeline.io.artefacts import (
     SchemaError,
     load_schema,
     read_artefact,

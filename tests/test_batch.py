@@ -20,9 +20,9 @@ from pathlib import Path
 import pyarrow.parquet as pq
 import pytest
 
-from pipeline.artefacts import read_artefact, read_meta
 from pipeline.batch.run import items_from_paths, load_manifest, open_executor, run_batch
 from pipeline.errors import BadInput
+from pipeline.io.artefacts import read_artefact, read_meta
 
 REPO = Path(__file__).resolve().parent.parent
 SAMPLE = REPO / "datasets" / "samples" / "sample_lrmate.mcap"

@@ -128,8 +128,8 @@ def test_identify_declares_the_touchups_it_reads_the_implied_diameter_from(
 ) -> None:
     """The image-implied target diameter reaches identify as a declared input (its key
     holds the touch-ups' hash), not through a config built from the disk (issue 37)."""
-    from pipeline.artefacts import read_meta
     from pipeline.catalog import STAGE
+    from pipeline.io.artefacts import read_meta
 
     assert "touchups" in STAGE["identify"].optional
     inputs = json.loads(read_meta(sample_run / RUN_FILES["parameters"])["inputs"])
@@ -144,7 +144,7 @@ def test_identify_and_choose_read_only_the_metadata_they_need(
     and checked again (4.2 + 4.4 + 1.4 ms on the 72-touch-up cell)."""
     import shutil
 
-    from pipeline import artefacts
+    from pipeline.io import artefacts
 
     out = tmp_path / "run"
     shutil.copytree(sample_run, out)
@@ -174,7 +174,8 @@ def test_a_run_takes_the_tables_it_wrote_instead_of_reading_them_back(
     a file changed since it was written is read."""
     import shutil
 
-    from pipeline import artefacts, runner
+    from pipeline import runner
+    from pipeline.io import artefacts
 
     out = tmp_path / "run"
     shutil.copytree(sample_run, out)

@@ -186,7 +186,7 @@ def test_import_parses_are_kept_by_source_and_used_again(fresh_import_cache) -> 
     fresh_import_cache()
     assert code_key._imports(mod) == frozenset({"pipeline.stages.trust.outliers"})
     # other bytes (an edited module) are another key: parsed afresh
-    assert code_key._import_key(mod, b"import pipeline.jsonio\n") != key
+    assert code_key._import_key(mod, b"import pipeline.io.jsonio\n") != key
 
 
 def test_a_damaged_import_cache_only_means_parsing(fresh_import_cache) -> None:

@@ -8,11 +8,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from pipeline.artefacts import read_artefact
 from pipeline.cli import main
 from pipeline.compare import compare_runs, render_html
 from pipeline.errors import BadInput
 from pipeline.evaluate import perturbed_chain, random_deviations, synthetic_touchups
+from pipeline.io.artefacts import read_artefact
 from pipeline.kinematics.chain import Chain, load_chain
 from pipeline.runner import write_fits
 from pipeline.stages.crossval.stage import CrossvalConfig, cross_validate

@@ -25,13 +25,13 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from pipeline.artefacts import read_artefact
 from pipeline.estimation.correction_frame import (
     PAIR_COLUMNS,
     body_jacobian,
     scatter_from_columns,
     translation_map,
 )
+from pipeline.io.artefacts import read_artefact
 from pipeline.kinematics import fk, load_chain
 from pipeline.measurement.image import pair_change
 from pipeline.orchestrator import RunConfig, run_pipeline

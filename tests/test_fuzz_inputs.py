@@ -38,8 +38,8 @@ from hypothesis import strategies as st
 from mcap.writer import CompressionType
 from test_robustness_data import chunk_spans, tiny_recording, touchup_table
 
-from pipeline.artefacts import SchemaError, load_schema
 from pipeline.errors import VtcalError
+from pipeline.io.artefacts import SchemaError, load_schema
 
 PER_EXAMPLE_S = 20.0
 N_TINY = 260

@@ -8,7 +8,6 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from pipeline.artefacts import read_artefact
 from pipeline.errors import BadInput, CalibrationFailed
 from pipeline.evaluate import (
     perturbed_chain,
@@ -17,6 +16,7 @@ from pipeline.evaluate import (
     synthetic_touchups,
     workspace_poses,
 )
+from pipeline.io.artefacts import read_artefact
 from pipeline.kinematics import load_chain
 from pipeline.robots import builtin_urdf
 from pipeline.runner import write_fits

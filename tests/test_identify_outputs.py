@@ -7,8 +7,8 @@ from pathlib import Path
 
 import pandas as pd
 
-from pipeline.artefacts import read_artefact
 from pipeline.cli import main
+from pipeline.io.artefacts import read_artefact
 
 REPO = Path(__file__).resolve().parent.parent
 TRUTH = REPO / "datasets" / "samples" / "sample_lrmate.mcap.truth.json"

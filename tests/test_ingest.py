@@ -8,8 +8,8 @@ from mcap.writer import CompressionType
 from support.mcap_write import write_recording
 from test_robustness_data import MS, NAMES, T0, URDF
 
-from pipeline.artefacts import write_artefact
 from pipeline.errors import BadInput
+from pipeline.io.artefacts import write_artefact
 from pipeline.stages.detect.detector import DetectConfig
 from pipeline.stages.ingest.stage import IngestConfig, ingest_recording, load_image
 

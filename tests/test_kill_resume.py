@@ -23,7 +23,7 @@ from pathlib import Path
 
 import numpy as np
 
-from pipeline.artefacts import read_artefact
+from pipeline.io.artefacts import read_artefact
 from pipeline.withdraw import BACKUP
 
 REPO = Path(__file__).resolve().parent.parent

@@ -2,7 +2,7 @@
 robots, and the file contracts its help points to (``spec/``).
 
 They live at the top of the repository (``schemas/``, ``reports/``, ``spec/``); ``setup.py``
-maps them into the wheel as ``pipeline/_data/...`` and :mod:`pipeline.resources`
+maps them into the wheel as ``pipeline/_data/...`` and :mod:`pipeline.io.resources`
 finds them there when no checkout is beside the package. Before, a plain
 ``pip install .`` failed at the first artefact ("no schema declared").
 """
@@ -46,7 +46,7 @@ def test_the_wheel_carries_schemas_templates_and_robots(tmp_path: Path) -> None:
 def test_the_contracts_ship_and_the_helps_point_to_them() -> None:
     """``spec/`` holds the three contracts, and no help text, docstring or doc points to
     ``shared/spec/`` (a folder neither the repository nor the package has)."""
-    from pipeline import resources
+    from pipeline.io import resources
 
     assert {p.name for p in resources.data_dir("spec").glob("*.md")} == {
         "recording.md", "touchups.md", "outputs.md",
@@ -67,7 +67,7 @@ def test_the_contracts_ship_and_the_helps_point_to_them() -> None:
 
 
 def test_resources_fall_back_to_the_wheels_copy(tmp_path: Path, monkeypatch) -> None:
-    from pipeline import resources
+    from pipeline.io import resources
 
     assert resources.data_dir("schemas") == REPO / "schemas"
     fake_pkg = tmp_path / "site" / "pipeline"

@@ -12,9 +12,9 @@ import pytest
 from click.testing import CliRunner
 from scipy.spatial.transform import Rotation
 
-from pipeline.artefacts import read_artefact
 from pipeline.cli import cli, main
 from pipeline.errors import BadInput
+from pipeline.io.artefacts import read_artefact
 from pipeline.kinematics.chain import fk, load_chain
 from pipeline.plan.candidates import CandidateConfig, generate_candidates, working_radius
 from pipeline.plan.check import calibrate_and_score, touchups_at, true_world

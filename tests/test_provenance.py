@@ -15,7 +15,7 @@ from pathlib import Path
 import pytest
 
 from pipeline.cli import main
-from pipeline.fileio import file_hash
+from pipeline.io.fileio import file_hash
 from pipeline.provenance import (
     Source,
     provenance_lines,

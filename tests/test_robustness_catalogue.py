@@ -30,7 +30,7 @@ from test_robustness_data import (
     touchup_table,
 )
 
-from pipeline.artefacts import read_artefact
+from pipeline.io.artefacts import read_artefact
 
 SAMPLE = Path(__file__).resolve().parent.parent / "datasets" / "samples" / "sample_lrmate.mcap"
 

@@ -29,9 +29,9 @@ from support.rosbag_writers import (
     write_split_mcap_bag,
 )
 
-from pipeline.artefacts import read_artefact
 from pipeline.cli import main
 from pipeline.errors import BadInput
+from pipeline.io.artefacts import read_artefact
 from pipeline.io.recording import TOUCHUP_TOPIC
 from pipeline.orchestrator import RunConfig, run_pipeline
 from pipeline.stages.detect.detector import DetectConfig
@@ -276,7 +276,7 @@ def test_bad_bags_one_line(short_msgs: list[Msg], tmp_path: Path) -> None:
 def test_split_bag_run_is_cached_by_content(short_msgs: list[Msg], tmp_path: Path) -> None:
     """A bag directory is hashed over its data files: same bytes -> every stage cached;
     one file changed -> a new hash (metadata.yaml itself is not hashed)."""
-    from pipeline.fileio import file_hash
+    from pipeline.io.fileio import file_hash
     from pipeline.io.layout import locate, recording_hash
 
     bag = write_split_mcap_bag(tmp_path / "split", short_msgs, 2)

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from pipeline.artefacts import read_artefact, write_artefact
+from pipeline.io.artefacts import read_artefact, write_artefact
 from pipeline.kinematics.se3 import matrix_from_rpy
 from pipeline.measurement.image import camera_from_jacobian
 from pipeline.sim.camera import CameraModel

@@ -1,4 +1,4 @@
-"""Write groups (pipeline.fileio.write_group): a stage's files fsync-ed together, landing in order."""
+"""Write groups (pipeline.io.fileio.write_group): a stage's files fsync-ed together, landing in order."""
 
 from __future__ import annotations
 
@@ -10,7 +10,7 @@ from pathlib import Path
 
 import pytest
 
-from pipeline import fileio
+from pipeline.io import fileio
 from pipeline.orchestrator import RunConfig, run_pipeline
 
 SAMPLE = Path(__file__).resolve().parents[1] / "datasets" / "samples" / "sample_lrmate.mcap"

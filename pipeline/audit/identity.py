@@ -137,7 +137,7 @@ def load_item(
         No ``inliers.parquet``, unreadable ``recording.json``, or no robot identity
         (neither the ``robot_id`` metadata key nor ``robot_id`` given).
     """
-    from pipeline.artefacts import read_artefact
+    from pipeline.io.artefacts import read_artefact
     from pipeline.known_distances import metadata_distances
 
     folder = Path(folder)
@@ -184,7 +184,7 @@ def with_table(item: AuditItem) -> AuditItem:
         return item
     from dataclasses import replace
 
-    from pipeline.artefacts import read_artefact
+    from pipeline.io.artefacts import read_artefact
 
     return replace(item, table=read_artefact(item.path / INLIERS, "inliers"), table_read=True)
 
@@ -197,7 +197,7 @@ def measured_noise(path: Path) -> dict[str, Any] | None:
         return None
     import pyarrow as pa
 
-    from pipeline.artefacts import read_meta
+    from pipeline.io.artefacts import read_meta
 
     try:
         raw = read_meta(path).get("capture_noise")

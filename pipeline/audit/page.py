@@ -305,7 +305,7 @@ def write_pages(
     res: AuditResult, out: Path, *, now_ns: int | None = None, interval_days: float | None = None
 ) -> Path:
     """Write ``out/audit.html`` and each robot's ``out/robots/ROBOT.html``; the first's path."""
-    from pipeline.fileio import atomic_write_bytes
+    from pipeline.io.fileio import atomic_write_bytes
 
     now = time.time_ns() if now_ns is None else int(now_ns)
     grouped = Grouped(res)

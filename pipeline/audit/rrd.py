@@ -16,9 +16,9 @@ from pathlib import Path
 
 import numpy as np
 
-from pipeline.artefacts import atomic_write_bytes
 from pipeline.audit.attribute import display_unit
 from pipeline.audit.audit import AuditResult
+from pipeline.io.artefacts import atomic_write_bytes
 
 APP_ID = "vtcal_audit"
 SCALARS = ("drift_mm", "drift_raw_mm", "validated_mm", "fresh_mm")

@@ -39,7 +39,7 @@ def batch_fingerprint(
     (such a batch is never taken as unchanged).
     """
     from pipeline import run_ledger
-    from pipeline.fileio import config_hash
+    from pipeline.io.fileio import config_hash
     from pipeline.orchestrator import RunConfig
 
     if any(o.status != "ok" for o in outcomes):
@@ -65,7 +65,7 @@ def batch_fingerprint(
 
 def reusable_record(out_dir: Path, fp: dict[str, Any]) -> dict[str, Any] | None:
     """``batch.json`` when it records ``fp`` and every file it lists is intact, else None."""
-    from pipeline.fileio import file_hash
+    from pipeline.io.fileio import file_hash
 
     try:
         rec = json.loads((out_dir / BATCH_RECORD).read_text())
@@ -86,7 +86,7 @@ def write_record(
     out_dir: Path, fp: dict[str, Any], written: Sequence[Path], note: str, lines: Sequence[str]
 ) -> None:
     """Write ``batch.json`` (atomically, after the files it vouches for)."""
-    from pipeline.fileio import atomic_write_bytes, file_hash
+    from pipeline.io.fileio import atomic_write_bytes, file_hash
 
     rec = {
         "fingerprint": fp,

@@ -162,7 +162,7 @@ class BatchResult:
     def summary(self) -> pd.DataFrame:
         """The summary table (schema ``batch_summary``)."""
         if self.summary_frame is None:
-            from pipeline.artefacts import read_artefact
+            from pipeline.io.artefacts import read_artefact
 
             self.summary_frame = read_artefact(self.summary_path, "batch_summary")
         return self.summary_frame

@@ -18,7 +18,7 @@ if TYPE_CHECKING:
 
 def _summary_columns() -> tuple[list[str], list[str]]:
     """Columns of the summary and the nullable ones, from ``schemas/batch_summary.json``."""
-    from pipeline.artefacts import load_schema
+    from pipeline.io.artefacts import load_schema
 
     schema = load_schema("batch_summary")
     return schema.column_names, [c.name for c in schema.columns if c.nullable]
@@ -87,7 +87,7 @@ def write_summary(
     force: bool = False,
 ) -> Path:
     """Write ``out_dir/summary.parquet`` (schema ``batch_summary``); return its path."""
-    from pipeline.artefacts import write_artefact
+    from pipeline.io.artefacts import write_artefact
     from pipeline.orchestrator import jsonable
 
     path = out_dir / "summary.parquet"
@@ -124,7 +124,7 @@ def compare_batch(out_dir: Path, outcomes: Sequence[RecordingOutcome]) -> tuple[
         from pipeline.compare import compare_runs, render_html
     except ImportError:
         return None, "cross-run comparison not available (pipeline.compare missing)"
-    from pipeline.artefacts import atomic_write_bytes, write_artefact
+    from pipeline.io.artefacts import atomic_write_bytes, write_artefact
 
     try:
         res = compare_runs(runs)

@@ -23,7 +23,7 @@ import importlib
 
 #: modules a run imports lazily, besides those the fork server already preloads
 LAZY = (
-    "pipeline.artefacts",
+    "pipeline.io.artefacts",
     "pipeline.provenance",
     "pipeline.run_ledger",
     "pipeline.verdict",

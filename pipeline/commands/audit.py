@@ -70,13 +70,13 @@ def command(
 
     check_executor_options(executor, workers or None, scheduler)  # 0: the free cores
     prestart(executor, workers)
-    from pipeline.artefacts import write_artefact
     from pipeline.audit.audit import run_audit
     from pipeline.audit.identity import load_item, manifest_ids, run_folders
     from pipeline.audit.page import write_pages
     from pipeline.audit.rrd import write_rrd
     from pipeline.audit.work import work_line
     from pipeline.errors import BadInput
+    from pipeline.io.artefacts import write_artefact
 
     if not 0 < alpha < 1:
         raise BadInput(f"--alpha {alpha}: must be between 0 and 1")

@@ -41,9 +41,9 @@ def command(
     (same nominal URDF) are compared with the first one given; a parameter that
     moved by more than its uncertainty is flagged.
     """
-    from pipeline.artefacts import atomic_write_bytes, write_artefact
     from pipeline.compare import compare_runs, heldout_text, render_html, told_apart_text
     from pipeline.errors import BadInput
+    from pipeline.io.artefacts import atomic_write_bytes, write_artefact
 
     if not k_sigma > 0:
         raise BadInput(f"--sigma {k_sigma}: must be > 0")

@@ -50,7 +50,7 @@ def command(run_dir: Path, fmt: str, out_path: Path | None, joint_signs: str | N
         sys.stdout.write(text)
         sys.stdout.flush()
         return
-    from pipeline.fileio import atomic_write_bytes
+    from pipeline.io.fileio import atomic_write_bytes
 
     atomic_write_bytes(out_path, text.encode())
     click.echo(f"wrote {fmt} of {run_dir} to {out_path}", err=True)

@@ -67,7 +67,7 @@ def _table_source(table: Path, urdf_path: Path, df: pd.DataFrame, conf: dict[str
     ``stamp_ns`` when it has that column (a run's touchups.parquet does), else unknown.
     """
     from pipeline import __version__
-    from pipeline.fileio import config_hash, file_hash
+    from pipeline.io.fileio import config_hash, file_hash
     from pipeline.provenance import Source, recorded_utc
     from pipeline.run_ledger import code_digest
 

@@ -133,7 +133,7 @@ def command(
     quiet: bool,
 ) -> None:
     """Plan measuring poses that make the identification well conditioned."""
-    from pipeline.artefacts import write_artefact
+    from pipeline.io.artefacts import write_artefact
     from pipeline.plan.planner import PlanConfig, plan_poses
     from pipeline.plan.targets import read_targets
     from pipeline.robots import load_urdf

@@ -58,7 +58,7 @@ def _from_recording(recording: Path, folder: Path, flange_link: str | None, quie
     """Ingest, touch-ups and outliers of a recording into ``folder`` (cached stages reused)."""
     import json
 
-    from pipeline.artefacts import read_artefact
+    from pipeline.io.artefacts import read_artefact
     from pipeline.orchestrator import RunConfig, run_paths, run_pipeline
 
     overrides = {"flange_link": flange_link} if flange_link else {}
@@ -304,7 +304,7 @@ def _refuse_its_own_training_data(calibrated: Path, cal_text: str, input_path: P
     names the source's SHA-256 (16 hex); a file with the same bytes is refused.
     """
     from pipeline.errors import CalibrationFailed
-    from pipeline.fileio import file_hash
+    from pipeline.io.fileio import file_hash
     from pipeline.provenance import read_provenance
 
     source = read_provenance(cal_text).get("source", "")
@@ -339,7 +339,7 @@ def _echo(result: dict[str, Any]) -> None:
 
 
 def _write(result: dict[str, Any], out: Path) -> None:
-    from pipeline.fileio import atomic_write_bytes
+    from pipeline.io.fileio import atomic_write_bytes
     from pipeline.orchestrator import write_json
     from pipeline.report.validate_html import render_validation
 

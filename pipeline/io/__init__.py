@@ -4,4 +4,9 @@
 ``mcap`` (streaming MCAP reading), ``mcap_index`` (a few messages through the index),
 ``mcap_write`` (the one ROS 2 MCAP writer), ``rosbags`` (rosbag2 ``.db3`` and ROS 1
 ``.bag``).
+
+And vtcal's own files: ``artefacts`` (the declared Parquet schemas, checked on
+write and read), ``fileio`` (atomic writes, file and config hashes), ``jsonio``
+(the JSON side files' one byte-stable form), ``resources`` (where the schemas,
+report templates and the spec are), ``tables`` (a user's CSV or Parquet tables).
 """

@@ -171,10 +171,10 @@ def _bag_directory(d: Path) -> Layout:
 def recording_hash(layout: Layout) -> str:
     """SHA-256 (16 hex digits) of the recording's bytes.
 
-    One file: the hash of its bytes (:func:`pipeline.fileio.file_hash`). A bag
+    One file: the hash of its bytes (:func:`pipeline.io.fileio.file_hash`). A bag
     directory: the hash of its files' names and bytes in reading order.
     """
-    from pipeline.fileio import file_hash
+    from pipeline.io.fileio import file_hash
 
     if len(layout.files) == 1 and layout.kind != "rosbag2-mcap":
         return file_hash(layout.files[0])

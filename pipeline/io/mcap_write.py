@@ -19,7 +19,7 @@ from typing import IO, Any
 from mcap.writer import CompressionType
 from mcap_ros2.writer import Writer
 
-from pipeline import resources
+from pipeline.io import resources
 
 MSG_DIR = resources.SCHEMA_DIR / "ros2"
 _BUILTIN = {

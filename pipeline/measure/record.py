@@ -34,8 +34,8 @@ from typing import IO, Any
 import numpy as np
 
 from pipeline.errors import BadInput
-from pipeline.fileio import atomic_write_bytes
 from pipeline.io import mcap as io_mcap
+from pipeline.io.fileio import atomic_write_bytes
 from pipeline.io.mcap_write import Recorder, stamp
 from pipeline.measure.protocols import Frame, JointReading
 from pipeline.measure.summary import METADATA_NAME

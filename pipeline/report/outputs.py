@@ -17,7 +17,7 @@ from __future__ import annotations
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
-from pipeline.fileio import write_group
+from pipeline.io.fileio import write_group
 from pipeline.report.data import RunData, load_run
 from pipeline.report.html import build_report, thumbnail_frames
 from pipeline.report.images import Frame, grey_images, recording_frames

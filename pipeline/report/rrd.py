@@ -38,7 +38,7 @@ from __future__ import annotations
 from pathlib import Path
 
 from pipeline.catalog import RUN_FILES
-from pipeline.fileio import commit_file
+from pipeline.io.fileio import commit_file
 from pipeline.report.data import RunData, load_run, run_uuid
 from pipeline.report.images import Frame
 

@@ -21,7 +21,7 @@ from typing import Any
 
 import jinja2
 
-from pipeline.resources import TEMPLATE_DIR, user_cache_dir
+from pipeline.io.resources import TEMPLATE_DIR, user_cache_dir
 
 #: the settings of every template environment (part of the cache key)
 ENV_OPTIONS: dict[str, Any] = {

@@ -372,8 +372,8 @@ def recording_json(rec: HistoryRecording) -> dict[str, Any]:
 
 def write_history(history: list[HistoryRecording], out: Path) -> list[Path]:
     """Write each recording as ``out/NAME/{inliers.parquet, recording.json, truth.json}``."""
-    from pipeline.artefacts import write_artefact
     from pipeline.catalog import RUN_FILES
+    from pipeline.io.artefacts import write_artefact
 
     folders = []
     for rec in history:

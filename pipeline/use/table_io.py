@@ -80,8 +80,8 @@ def payload_column(df: pd.DataFrame, path: Path, default: float | None) -> np.nd
 
 def write_rows(path: Path, df: pd.DataFrame, schema: str, stage: str) -> None:
     """Write ``df`` to ``path`` under the declared ``schema`` (Parquet or CSV), all or nothing."""
-    from pipeline.artefacts import load_schema, write_artefact
-    from pipeline.fileio import atomic_write_bytes
+    from pipeline.io.artefacts import load_schema, write_artefact
+    from pipeline.io.fileio import atomic_write_bytes
 
     if path.suffix.lower() in PARQUET:
         write_artefact(path, df, schema, stage=stage)

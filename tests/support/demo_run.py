@@ -22,7 +22,7 @@ import pandas as pd
 import pyarrow as pa
 import pyarrow.parquet as pq
 
-from pipeline.artefacts import SCHEMA_DIR, load_schema, write_artefact
+from pipeline.io.artefacts import SCHEMA_DIR, load_schema, write_artefact
 from pipeline.kinematics.chain import Chain, fk, jacobian, load_chain
 from pipeline.kinematics.se3 import matrix_from_rpy
 from pipeline.kinematics.urdf_write import write_calibrated_urdf

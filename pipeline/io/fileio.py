@@ -1,8 +1,8 @@
 """File hashing and atomic writes, with the standard library alone.
 
-Kept apart from :mod:`pipeline.artefacts` (which loads pandas and pyarrow) so
+Kept apart from :mod:`pipeline.io.artefacts` (which loads pandas and pyarrow) so
 that the run ledger and the orchestrator's cache checks can hash and write files
-without importing any numeric library. :mod:`pipeline.artefacts` re-exports
+without importing any numeric library. :mod:`pipeline.io.artefacts` re-exports
 these functions.
 """
 

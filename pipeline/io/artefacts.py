@@ -20,7 +20,7 @@ into place, so a killed run never leaves a half-written artefact. Parquet
 key-value metadata carries the stage, the package version, a hash of the
 stage's configuration and the hashes of its input artefacts (``vtcal.*`` keys).
 
-File hashing and the atomic write itself live in :mod:`pipeline.fileio` (standard
+File hashing and the atomic write itself live in :mod:`pipeline.io.fileio` (standard
 library only, for the cache checks that must not load pandas) and are re-exported here.
 """
 
@@ -38,9 +38,10 @@ import pandas as pd
 import pyarrow as pa
 import pyarrow.parquet as pq
 
-from pipeline import __version__, resources
+from pipeline import __version__
 from pipeline.errors import BadInput, VtcalError
-from pipeline.fileio import atomic_write_bytes, bytes_hash, config_hash, file_hash
+from pipeline.io import resources
+from pipeline.io.fileio import atomic_write_bytes, bytes_hash, config_hash, file_hash
 
 __all__ = [
     "SCHEMA_DIR",

@@ -12,7 +12,7 @@ from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
-from pipeline.fileio import atomic_write_bytes
+from pipeline.io.fileio import atomic_write_bytes
 
 
 def jsonable(obj: Any) -> Any:
