@@ -4,7 +4,7 @@ For each run folder given (``vtcal run`` output): its touch-ups (``inliers.parqu
 the inliers) are resampled with replacement ``--draws`` times (each target keeps at
 least one touch-up; the known distances and the model are the run's shipped ones),
 each resample refitted, and its virtual pin predicted at the same workspace poses
-(:func:`pipeline.evaluate.workspace_poses`, the covered joint ranges). The scatter of
+(:func:`pipeline.accuracy.evaluate.workspace_poses`, the covered joint ranges). The scatter of
 those predictions about their mean, after the same rigid / similarity registration as
 the accuracy figures, is the bootstrap's error; the covariance's prediction is
 identify's ``predicted_absolute`` / ``predicted_shape`` **without** the pin offset of
@@ -34,10 +34,10 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
+from pipeline.accuracy.evaluate import registered_errors, workspace_poses
 from pipeline.audit.fit import fit_table
 from pipeline.audit.identity import load_item
 from pipeline.errors import VtcalError
-from pipeline.evaluate import registered_errors, workspace_poses
 
 
 def resample(table: pd.DataFrame, rng: np.random.Generator) -> pd.DataFrame:
@@ -115,7 +115,7 @@ def full_covariance_prediction(res, q: np.ndarray) -> dict[str, float]:
 
 def simulate(seed: int, draws: int, model: str = "poe") -> dict[str, float]:
     """True error, covariance and bootstrap on a seeded simulated cell (module docstring)."""
-    from pipeline.evaluate import (
+    from pipeline.accuracy.evaluate import (
         perturbed_chain,
         pin_positions,
         random_deviations,

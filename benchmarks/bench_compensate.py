@@ -37,8 +37,7 @@ import pandas as pd
 from click.testing import CliRunner
 from scipy.spatial.transform import Rotation
 
-from pipeline.cli import cli
-from pipeline.evaluate import (
+from pipeline.accuracy.evaluate import (
     perturbed_chain,
     pin_positions,
     random_deviations,
@@ -46,6 +45,7 @@ from pipeline.evaluate import (
     synthetic_touchups,
     workspace_poses,
 )
+from pipeline.cli import cli
 from pipeline.kinematics import load_chain
 from pipeline.kinematics.chain import fk
 from pipeline.robots import builtin_urdf

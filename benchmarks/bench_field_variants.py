@@ -4,7 +4,7 @@ For each seed: simulate a small LR Mate recording (160x128 PNG, 3 targets x 6
 poses), rewrite it message by message as another recorder would
 (``tests/support/field_variants.py``), run the pipeline on each variant
 (``--model full``; the camera's response ``--response``, default sRGB) and judge the shipped ``calibrated.urdf`` against the
-simulator's truth over 500 poses (``pipeline.evaluate.judge_run``). Printed:
+simulator's truth over 500 poses (``pipeline.accuracy.evaluate.judge_run``). Printed:
 each variant's shape RMS and its ratio to the same images in ``mono8``
 (PNG as simulated, and the same scene upscaled 16x to 2560x2048 PNG, are
 there too).
@@ -28,7 +28,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "tests"))  # the
 
 from support.field_variants import png_grey, raw_image, rewrite, upscaled  # noqa: E402
 
-from pipeline.evaluate import judge_run  # noqa: E402
+from pipeline.accuracy.evaluate import judge_run  # noqa: E402
 from pipeline.orchestrator import RunConfig, run_pipeline  # noqa: E402
 from pipeline.sim.scenario import load_scenario  # noqa: E402
 from pipeline.sim.simulator import simulate  # noqa: E402

@@ -6,7 +6,7 @@ Synthetic touch-ups of a true robot (nominal URDF + per-joint origin deviations
 of the simulator's magnitudes: 1 mm, 3 mrad, 1.5 mrad zero offsets), 3 targets,
 the true pin exactly on the target up to a contact noise of 0.01 mm RMS (3D)
 and 1e-6 rad encoder noise. Accuracy as ``spec/outputs.md`` measures
-it (pipeline.evaluate.pin_accuracy over poses spread through the touched
+it (pipeline.accuracy.evaluate.pin_accuracy over poses spread through the touched
 volume). Prints:
 
 1. time of ``identify`` on 36 touch-ups with the full model (warm: the
@@ -40,7 +40,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
-from pipeline.evaluate import (  # noqa: E402
+from pipeline.accuracy.evaluate import (  # noqa: E402
     perturbed_chain,
     pin_accuracy,
     pin_positions,

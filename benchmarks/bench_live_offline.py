@@ -18,7 +18,7 @@ out-of-round prints, vibration), one seed:
   its first clean captures.
 
 Printed per row: shape and absolute RMS of the calibrated pin against the
-truth (mm, 500 poses, ``pipeline.evaluate.judge_run``), the nominal robot's
+truth (mm, 500 poses, ``pipeline.accuracy.evaluate.judge_run``), the nominal robot's
 shape RMS, the response the run used, how many touch-ups converged, and the
 loop's stopping size in the offline detector's measure (``e_s_px`` of the
 touch-up table: mean and RMS over the touch-ups, px) beside the loop's
@@ -92,7 +92,7 @@ def _toml(raw: dict[str, Any]) -> str:
 
 def judge(rec: Path, truth: dict[str, Any], out: Path, seed: int) -> dict[str, Any]:
     """``vtcal run`` on ``rec`` and the calibrated pin against the truth."""
-    from pipeline.evaluate import judge_run
+    from pipeline.accuracy.evaluate import judge_run
     from pipeline.io.artefacts import read_artefact
     from pipeline.orchestrator import RunConfig, run_pipeline
 

@@ -21,7 +21,7 @@ iterations and extra captures, cell (simulated robot) time per touch-up (median)
 calibration, and the cell time split into travel, settle, servo and capture
 (:mod:`pipeline.measure.timing`; per touch-up the mean, so that the four add up to the mean
 touch-up); then ``vtcal run`` on the recording and the calibrated pin's shape and absolute
-RMS error against the simulation truth over 500 poses (``pipeline.evaluate.judge_run``).
+RMS error against the simulation truth over 500 poses (``pipeline.accuracy.evaluate.judge_run``).
 
     python benchmarks/bench_measure.py [--scenario datasets/scenarios/standard.toml] [--seed 1]
 """
@@ -39,9 +39,9 @@ from typing import Any
 
 import numpy as np
 
+from pipeline.accuracy.evaluate import judge_run
 from pipeline.cell_adapters import connect
 from pipeline.commands.measure import HOLD_S, run_measure
-from pipeline.evaluate import judge_run
 from pipeline.measure.detector import vtcal_detector
 from pipeline.measure.plan_file import read_plan
 from pipeline.measure.record import open_recording

@@ -85,7 +85,7 @@ def one_case(cell: str, effect: str, seed: int, work: str) -> dict[str, Any]:
     """Simulate, run and judge one (cell, effect); figures in mm and px."""
     import pandas as pd
 
-    from pipeline.evaluate import judge_run
+    from pipeline.accuracy.evaluate import judge_run
     from pipeline.io.artefacts import read_artefact
     from pipeline.orchestrator import RunConfig, run_pipeline
     from pipeline.sim.scenario import scenario_from_dict
@@ -143,7 +143,7 @@ def one_case(cell: str, effect: str, seed: int, work: str) -> dict[str, Any]:
     settle = f"r{swing['r']:.2f}" if swing else ("w" if centre.get("weighted") else "-")
     kept = int(inl["inlier"].sum())
     across, along = _touchup_misses(truth, inl, judged["model_summary"])
-    from pipeline.verdict import verdict
+    from pipeline.accuracy.verdict import verdict
 
     ident = json.loads((out / "identify.json").read_text())
     v = verdict(ident) or {}
@@ -311,7 +311,7 @@ def _print_seed(
         " '-' the repeated final captures' plain means, 'w' settle-weighted, 'rX' the centre"
         " from the one-mode swing fit (decay X per capture); across / along um = RMS miss of the"
         " corrected pins against the truth, per-target means out; claim = the verdict's"
-        " figure (pipeline.verdict V2), x true = claim / the true error of its kind (absolute with"
+        " figure (pipeline.accuracy.verdict V2), x true = claim / the true error of its kind (absolute with"
         " the calibration bar, else shape; goal 0.5-2x, or the run"
         " said the figure is a lower bound: lower), adeq = the fit's residual over what the"
         " repeated captures' noise predicts (pipeline.stages.trust.adequacy A1; > 3: lower bound)"
@@ -329,7 +329,7 @@ def _print_seed(
 
 
 def _truth_of(r: dict[str, Any]) -> float:
-    """The true error of the kind the verdict's figure is (pipeline.verdict.predicted_kind)."""
+    """The true error of the kind the verdict's figure is (pipeline.accuracy.verdict.predicted_kind)."""
     return float(r["abs"] if r.get("claim_kind") == "absolute" else r["shape"])
 
 

@@ -46,7 +46,7 @@ from typing import Any
 import numpy as np
 import pandas as pd
 
-from pipeline.evaluate import pin_accuracy, register_points, workspace_poses
+from pipeline.accuracy.evaluate import pin_accuracy, register_points, workspace_poses
 from pipeline.kinematics.chain import fk, load_chain
 from pipeline.known_distances import parse_distances
 from pipeline.stages.crossval.predict import heldout_predictions

@@ -13,7 +13,7 @@ pin ~(0.03, 0, 0.25) m in the flange frame) and seed:
   the same usable candidates (:mod:`pipeline.plan.check`): contact miss 0.01 mm
   per axis, encoder noise 1e-6 rad; each set ``--reps`` times with fresh noise;
 * every table goes through ``pipeline.stages.identify.stage.identify`` (model full, no
-  known distance) and is scored by ``pipeline.evaluate.pin_accuracy`` (shape RMS)
+  known distance) and is scored by ``pipeline.accuracy.evaluate.pin_accuracy`` (shape RMS)
   over the plan's evaluation poses (spread through the candidates' joint box);
   a seed's figure is the RMS over its repetitions.
 

@@ -11,7 +11,7 @@ PRNU, sRGB, JPEG q90), and ``oor``, the out-of-round prints alone; beside them
 (c) ``sim-all``, the team's own simulator's all-effects cell
 (``bench_optics.EFFECTS["all"]``) for the same scenario and seed. Each runs
 through ``vtcal run`` (to cross-validation) and is judged against the truth
-as ``bench_optics`` judges (:func:`pipeline.evaluate.judge_run`: shape and
+as ``bench_optics`` judges (:func:`pipeline.accuracy.evaluate.judge_run`: shape and
 absolute RMS over 500 poses).
 
 Printed per row: true shape / absolute error (mm), the held-out figure vtcal
@@ -97,9 +97,9 @@ def render(robot: str, effects: str, seed: int, cache: Path, role: str) -> Path:
 
 def evaluate(rec: Path, seed: int, work: Path) -> dict[str, Any]:
     """``vtcal run`` on ``rec`` (to cross-validation), judged against its truth."""
-    from pipeline.evaluate import judge_run
+    from pipeline.accuracy.evaluate import judge_run
+    from pipeline.accuracy.verdict import verdict
     from pipeline.orchestrator import RunConfig, run_pipeline
-    from pipeline.verdict import verdict
 
     truth = json.loads(Path(str(rec) + ".truth.json").read_text())
     out = work / rec.stem
@@ -280,7 +280,7 @@ def main() -> None:
             )
     print(
         "mm: shape / abs = RMS of the shipped model against the truth (500 poses, as bench_optics);"
-        " held-out = the validated figure vtcal's verdict printed (pipeline.verdict); warn = the"
+        " held-out = the validated figure vtcal's verdict printed (pipeline.accuracy.verdict); warn = the"
         " run's warnings; response = recording.json's response/source;"
         " render s/cap = seconds per capture (Mitsuba for linear/all/oor, the team's simulator"
         " for sim-all, whole-recording wall time / captures)"

@@ -85,8 +85,8 @@ def _run_pages(run: Path, work: Path) -> dict[str, Path]:
     """report.html of the sample's run, validate.html, the compare page."""
     import pandas as pd
 
+    from pipeline.accuracy.compare import compare_runs, render_html
     from pipeline.cli import main
-    from pipeline.compare import compare_runs, render_html
     from pipeline.report.html import build_report
 
     rec = json.loads((run / "recording.json").read_text())

@@ -32,7 +32,7 @@ import re
 from dataclasses import dataclass
 from typing import Any
 
-from pipeline.verdict import verdict
+from pipeline.accuracy.verdict import verdict
 
 #: first line of the block; :func:`stamp_urdf` replaces a block that starts with it
 MARKER = "vtcal provenance"

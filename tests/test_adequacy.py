@@ -12,9 +12,9 @@ import math
 import numpy as np
 import pytest
 
+from pipeline.accuracy.verdict import verdict
 from pipeline.stages.touchup.noise import capture_noise
 from pipeline.stages.trust.adequacy import RATIO_MAX, adequacy, assumptions, trust
-from pipeline.verdict import verdict
 
 
 def _noise(rms_um=10.0):

@@ -13,10 +13,10 @@ from types import SimpleNamespace
 
 import pytest
 
+from pipeline.accuracy.verdict import verdict
 from pipeline.batch.run import RecordingOutcome, take_result
 from pipeline.batch.summary import summary_table
 from pipeline.commands.batch import _line, print_summary, summary_console
-from pipeline.verdict import verdict
 
 
 def _summary(kfold: float, nominal: float) -> dict:

@@ -8,10 +8,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from pipeline.accuracy.compare import compare_runs, render_html
+from pipeline.accuracy.evaluate import perturbed_chain, random_deviations, synthetic_touchups
 from pipeline.cli import main
-from pipeline.compare import compare_runs, render_html
 from pipeline.errors import BadInput
-from pipeline.evaluate import perturbed_chain, random_deviations, synthetic_touchups
 from pipeline.io.artefacts import read_artefact
 from pipeline.kinematics.chain import Chain, load_chain
 from pipeline.runner import write_fits
@@ -160,7 +160,7 @@ def test_a_model_without_a_held_out_figure_says_so_everywhere() -> None:
     """Issue 35: elastic's missing held-out figure was ``nan`` in compare, ``-`` in batch."""
     import math
 
-    from pipeline.compare import NOT_CROSS_VALIDATED, heldout_text
+    from pipeline.accuracy.compare import NOT_CROSS_VALIDATED, heldout_text
 
     assert heldout_text(math.nan) == NOT_CROSS_VALIDATED == heldout_text(None)
     assert heldout_text(0.05861) == "0.0586 mm"

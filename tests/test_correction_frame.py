@@ -201,7 +201,7 @@ def test_a_map_the_poses_do_not_determine_is_not_applied() -> None:
     identification keeps the corrections as they are, saying why."""
     from test_identify import LRMATE_CENTRE, PIN
 
-    from pipeline.evaluate import synthetic_touchups
+    from pipeline.accuracy.evaluate import synthetic_touchups
     from pipeline.robots import builtin_urdf
 
     urdf = builtin_urdf("lrmate")

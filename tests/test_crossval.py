@@ -7,8 +7,13 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from pipeline.evaluate import perturbed_chain, pin_positions, random_deviations, register_points
-from pipeline.evaluate import synthetic_touchups as synth
+from pipeline.accuracy.evaluate import (
+    perturbed_chain,
+    pin_positions,
+    random_deviations,
+    register_points,
+)
+from pipeline.accuracy.evaluate import synthetic_touchups as synth
 from pipeline.io.artefacts import read_artefact, write_artefact
 from pipeline.kinematics.chain import load_chain
 from pipeline.stages.crossval.predict import heldout_predictions

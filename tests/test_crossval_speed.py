@@ -8,8 +8,8 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from pipeline.evaluate import perturbed_chain, random_deviations
-from pipeline.evaluate import synthetic_touchups as synth
+from pipeline.accuracy.evaluate import perturbed_chain, random_deviations
+from pipeline.accuracy.evaluate import synthetic_touchups as synth
 from pipeline.kinematics.chain import load_chain
 from pipeline.stages.crossval.stage import CrossvalConfig, cross_validate, refit_config
 from pipeline.stages.identify.stage import IdentifyConfig, IdentifyResult, identify

@@ -8,8 +8,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from pipeline.accuracy.evaluate import synthetic_touchups
 from pipeline.errors import BadInput
-from pipeline.evaluate import synthetic_touchups
 from pipeline.kinematics import load_chain
 from pipeline.kinematics.urdf import parse_urdf
 from pipeline.models import get_model, make_model

@@ -6,9 +6,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from pipeline.accuracy.evaluate import perturbed_chain, random_deviations, synthetic_touchups
 from pipeline.estimation.uncertainty import covariance
 from pipeline.estimation.whitening import robust_flange_whitening
-from pipeline.evaluate import perturbed_chain, random_deviations, synthetic_touchups
 from pipeline.kinematics import load_chain
 from pipeline.measurement.pin import Problem, initial_pin_targets
 from pipeline.models import make_model

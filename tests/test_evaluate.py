@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from pipeline.evaluate import (
+from pipeline.accuracy.evaluate import (
     perturbed_chain,
     pin_accuracy,
     random_deviations,
@@ -73,7 +73,7 @@ def test_pin_ik_puts_the_pin_on_target():
     rng = np.random.default_rng(4)
     pin = np.array([0.01, 0.0, 0.2])
     seeds = rng.uniform(-0.8, 0.8, (20, 7))
-    from pipeline.evaluate import pin_positions
+    from pipeline.accuracy.evaluate import pin_positions
 
     goal = pin_positions(chain, pin, seeds + rng.normal(0, 0.1, seeds.shape))
     q, ok = solve_pin_ik(chain, pin, goal, seeds)

@@ -147,7 +147,7 @@ def _grey_edit(convert):
 
 def test_mono16_holding_12_bit_data_is_as_accurate_as_mono8(tmp_path, capsys):
     """An sRGB camera's 12-bit samples in mono16: same shape error as the 8-bit images."""
-    from pipeline.evaluate import judge_run
+    from pipeline.accuracy.evaluate import judge_run
 
     rec, truth = simulated(tmp_path, seed=1, toml=SRGB_TOML)
     shape = {}
@@ -231,7 +231,7 @@ def test_unreadable_messages_are_one_line(sim, tmp_path, capsys, kind):
 def test_five_megapixel_images_are_read_binned(sim, tmp_path, capsys):
     """2560x2048 images of the same scene: detected on 8x8 block means, same calibration."""
     rec, truth = sim
-    from pipeline.evaluate import judge_run
+    from pipeline.accuracy.evaluate import judge_run
 
     shape = {}
     for f in (1, 16):
@@ -372,7 +372,7 @@ def test_calibrate_refuses_to_reuse_another_plan_or_recording(tmp_path, capsys):
 def test_validate_against_a_flipped_nominal_urdf_is_implausible(tmp_path, capsys):
     """The nominal URDF with joint_2's axis flipped: its 'before' is ~100 mm off, which made
     any calibration look thousands of times better; validate refuses it as identify does."""
-    from pipeline.evaluate import perturbed_chain, random_deviations, synthetic_touchups
+    from pipeline.accuracy.evaluate import perturbed_chain, random_deviations, synthetic_touchups
     from pipeline.kinematics import load_chain
     from pipeline.robots import builtin_urdf
 
@@ -577,7 +577,7 @@ ENCODINGS = ["mono8", "8UC1", "mono16", "mono16_be", "16UC1", "rgb8", "bgr8", "r
 
 @pytest.fixture(scope="module")
 def reference(sim, tmp_path_factory) -> float:
-    from pipeline.evaluate import judge_run
+    from pipeline.accuracy.evaluate import judge_run
     from pipeline.orchestrator import RunConfig, run_pipeline
 
     rec, truth = sim
@@ -595,7 +595,7 @@ def test_every_container_option_and_encoding_reads_as_the_reference(
 ):
     """MCAP written in each container option the spec allows, images in each encoding the
     spec's types allow: exit 0 within 1.1x of the reference's shape error, every file parses."""
-    from pipeline.evaluate import judge_run
+    from pipeline.accuracy.evaluate import judge_run
 
     rec, truth = sim
     dst = tmp_path / "v.mcap"

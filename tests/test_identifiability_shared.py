@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-import pipeline.evaluate as evaluate
+import pipeline.accuracy.evaluate as evaluate
 from pipeline.kinematics import load_chain
 from pipeline.models import model_names
 from pipeline.robots import builtin_urdf

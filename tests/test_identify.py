@@ -8,14 +8,14 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from pipeline.errors import BadInput, CalibrationFailed
-from pipeline.evaluate import (
+from pipeline.accuracy.evaluate import (
     perturbed_chain,
     pin_accuracy,
     random_deviations,
     synthetic_touchups,
     workspace_poses,
 )
+from pipeline.errors import BadInput, CalibrationFailed
 from pipeline.io.artefacts import read_artefact
 from pipeline.kinematics import load_chain
 from pipeline.robots import builtin_urdf

@@ -11,9 +11,9 @@ import numpy as np
 import pandas as pd
 import pytest
 
+from pipeline.accuracy.evaluate import perturbed_chain, random_deviations
+from pipeline.accuracy.evaluate import synthetic_touchups as synth
 from pipeline.estimation.correction_frame import PAIR_COLUMNS
-from pipeline.evaluate import perturbed_chain, random_deviations
-from pipeline.evaluate import synthetic_touchups as synth
 from pipeline.kinematics.chain import load_chain
 from pipeline.measurement.data import FitData
 from pipeline.stages.crossval.refit import refit, refit_config, refit_table

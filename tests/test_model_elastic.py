@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from pipeline.evaluate import registered_errors, synthetic_touchups, workspace_poses
+from pipeline.accuracy.evaluate import registered_errors, synthetic_touchups, workspace_poses
 from pipeline.kinematics import load_chain
 from pipeline.kinematics.chain import fk_frames
 from pipeline.models import get_model

@@ -5,8 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from pipeline.accuracy.evaluate import pin_positions
 from pipeline.errors import BadInput
-from pipeline.evaluate import pin_positions
 from pipeline.kinematics import fk, load_chain
 from pipeline.kinematics.urdf_write import write_calibrated_urdf
 from pipeline.models import get_model, model_names

@@ -31,7 +31,7 @@ from typing import Any
 import numpy as np
 import pytest
 
-from pipeline.evaluate import pin_accuracy, workspace_poses
+from pipeline.accuracy.evaluate import pin_accuracy, workspace_poses
 from pipeline.io.artefacts import read_artefact
 from pipeline.kinematics import fk, load_chain
 from pipeline.orchestrator import RunConfig, run_pipeline

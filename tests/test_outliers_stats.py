@@ -1,6 +1,6 @@
 """Statistical outlier rejection and knock splitting recover injected truth.
 
-Synthetic touch-ups of a perturbed LR Mate-like arm (pipeline.evaluate), with
+Synthetic touch-ups of a perturbed LR Mate-like arm (pipeline.accuracy.evaluate), with
 seeded noise, a knocked target and a bad touch-up injected where we know them.
 """
 
@@ -15,7 +15,7 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from pipeline.evaluate import (
+from pipeline.accuracy.evaluate import (
     perturbed_chain,
     random_deviations,
     solve_pin_ik,

@@ -12,11 +12,11 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from pipeline.accuracy.evaluate import registered_errors
+from pipeline.accuracy.verdict import predicted_kind, verdict
 from pipeline.estimation.uncertainty import predicted_errors, with_pin_offset
-from pipeline.evaluate import registered_errors
 from pipeline.kinematics.se3 import matrix_from_axis_angle
 from pipeline.stages.touchup.noise import pin_offset_cov
-from pipeline.verdict import predicted_kind, verdict
 
 
 def _poses(rng: np.random.Generator, n: int) -> tuple[np.ndarray, np.ndarray]:

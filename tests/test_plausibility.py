@@ -13,11 +13,11 @@ import numpy as np
 import pytest
 from test_identify import LRMATE_CENTRE, PIN, _case
 
+from pipeline.accuracy.evaluate import synthetic_touchups
 from pipeline.errors import CalibrationFailed
-from pipeline.evaluate import synthetic_touchups
+from pipeline.guardrails import plausibility as pl
 from pipeline.kinematics import load_chain
 from pipeline.robots import builtin_urdf
-from pipeline.stages.guardrails import plausibility as pl
 from pipeline.stages.identify.stage import IdentifyConfig, conditioning_note, identify
 
 REPO = Path(__file__).resolve().parent.parent

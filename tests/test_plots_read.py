@@ -366,7 +366,7 @@ def test_the_validate_page_writes_no_raw_float(lrmate_run: Path, tmp_path: Path)
 
 
 def _compare_result():  # type: ignore[no-untyped-def]
-    from pipeline.compare import CompareResult
+    from pipeline.accuracy.compare import CompareResult
 
     runs = pd.DataFrame(
         {"run": ["a", "b"], "robot": "lrmate", "model": "full", "shipped": True,
@@ -390,7 +390,7 @@ def _compare_result():  # type: ignore[no-untyped-def]
 
 def test_compare_shows_angles_in_degrees_as_the_report() -> None:
     """The report shows angles in deg, compare showed mrad: one unit on every page."""
-    from pipeline.compare import render_html
+    from pipeline.accuracy.compare import render_html
 
     page = render_html(_compare_result())
     text = _visible_text(page)

@@ -12,7 +12,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from pipeline.evaluate import (
+from pipeline.accuracy.evaluate import (
     perturbed_chain,
     pin_accuracy,
     random_deviations,

@@ -14,6 +14,7 @@ from pathlib import Path
 
 import pytest
 
+from pipeline.accuracy.verdict import verdict
 from pipeline.cli import main
 from pipeline.io.fileio import file_hash
 from pipeline.provenance import (
@@ -23,7 +24,6 @@ from pipeline.provenance import (
     recorded_utc,
     stamp_urdf,
 )
-from pipeline.verdict import verdict
 
 
 def test_provenance_block_in_calibrated_urdf(lrmate_run: Path) -> None:

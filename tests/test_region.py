@@ -35,7 +35,7 @@ def test_the_summary_names_the_ranges_and_warns_only_on_a_large_growth():
 
 
 def test_identify_reports_the_covered_ranges_of_the_touchups():
-    from pipeline.evaluate import perturbed_chain, random_deviations, synthetic_touchups
+    from pipeline.accuracy.evaluate import perturbed_chain, random_deviations, synthetic_touchups
     from pipeline.kinematics import load_chain
     from pipeline.robots import builtin_urdf
     from pipeline.stages.identify.stage import IdentifyConfig, identify

@@ -215,8 +215,8 @@ def test_all_empty_target_columns_are_not_shown(lrmate_run: Path) -> None:
 
 def _pages(demo_run: Path, lrmate_run: Path, tmp: Path) -> dict[str, Path]:
     """report.html of the demo run and of a real identification, validate.html, compare.html."""
+    from pipeline.accuracy.compare import compare_runs, render_html
     from pipeline.cli import main
-    from pipeline.compare import compare_runs, render_html
 
     pages = {
         "report": build_report(demo_run, tmp / "demo.html"),

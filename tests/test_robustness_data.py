@@ -226,7 +226,7 @@ def touchup_table(
     seed: int = 0, per_target: int = 8, n_targets: int = 3
 ) -> tuple[pd.DataFrame, str]:
     """A valid touch-up table of the built-in LR Mate (nominal = true) and its URDF."""
-    from pipeline.evaluate import synthetic_touchups
+    from pipeline.accuracy.evaluate import synthetic_touchups
     from pipeline.kinematics import load_chain
     from pipeline.robots import builtin_urdf
 

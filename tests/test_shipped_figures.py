@@ -19,10 +19,10 @@ import numpy as np
 import pandas as pd
 import pytest
 
+from pipeline.accuracy.verdict import verdict
 from pipeline.orchestrator import RunConfig, run_pipeline
 from pipeline.sim.scenario import scenario_from_dict
 from pipeline.sim.simulator import write_recording
-from pipeline.verdict import verdict
 
 REPO = Path(__file__).resolve().parent.parent
 SAMPLE = REPO / "datasets" / "samples" / "sample_lrmate.mcap"
@@ -72,7 +72,7 @@ def test_identify_json_is_the_shipped_models_rows(run_dir: Path) -> None:
         float(np.sqrt(np.mean(kfold["error_mm"] ** 2))), rel=1e-9
     )
     v = verdict(s)
-    # (V2) of pipeline.verdict from the shipped rows' own figures
+    # (V2) of pipeline.accuracy.verdict from the shipped rows' own figures
     own = s["rms_mm"] * np.sqrt(3 * s["n_rows"] / s["dof"])
     k = s["crossval"]["k"]
     beyond = np.sqrt(max(own_cv["kfold_rms_mm"] ** 2 - own**2, 0.0) * (k - 1) / k)
@@ -103,7 +103,7 @@ def test_the_report_batch_and_compare_show_the_same_figures(run_dir: Path, tmp_p
         if isinstance(own.get(key), (int, float)):
             assert rec.figures[key] == own[key], key
     # vtcal compare of the run with itself: the shipped model's held-out figure, nothing moved
-    from pipeline.compare import compare_runs
+    from pipeline.accuracy.compare import compare_runs
 
     cmp = compare_runs([run_dir, run_dir])
     shipped = cmp.runs[cmp.runs["shipped"]]

@@ -52,8 +52,8 @@ def pages(lrmate_run: Path, tmp_path_factory: pytest.TempPathFactory) -> dict[st
     """Every page with tables: the report of a synthetic run (targets, parameters, stages,
     files) and of a real identification (the error models with their condition numbers),
     validate.html, compare.html of the two runs, audit.html."""
+    from pipeline.accuracy.compare import compare_runs, render_html
     from pipeline.cli import main
-    from pipeline.compare import compare_runs, render_html
     from pipeline.report.html import build_report
 
     tmp = tmp_path_factory.mktemp("tokens")

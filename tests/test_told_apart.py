@@ -11,8 +11,8 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from pipeline.compare import compare_runs, told_apart_text
-from pipeline.stages.crossval.told_apart import MIN_PAIRS, not_told_apart, paired_z, sentence
+from pipeline.accuracy.compare import compare_runs, told_apart_text
+from pipeline.accuracy.told_apart import MIN_PAIRS, not_told_apart, paired_z, sentence
 
 
 def _errors(rng: np.random.Generator, n: int, extra_mm: dict[str, float]) -> pd.DataFrame:
@@ -62,7 +62,7 @@ def test_too_few_common_touchups_make_no_test() -> None:
 
 def test_compare_carries_the_paired_z(tmp_path: Path) -> None:
     """vtcal compare reads (T1) from identify.json's cross-validation and says it."""
-    from pipeline.evaluate import perturbed_chain, random_deviations
+    from pipeline.accuracy.evaluate import perturbed_chain, random_deviations
     from pipeline.kinematics.chain import load_chain
     from tests.test_compare import (
         URDF,  # noqa: F401  (the compare test's robot)

@@ -7,8 +7,8 @@ import xml.etree.ElementTree as ET
 import numpy as np
 import pytest
 
+from pipeline.accuracy.evaluate import pin_positions
 from pipeline.errors import BadInput
-from pipeline.evaluate import pin_positions
 from pipeline.kinematics import fk, load_chain
 from pipeline.kinematics.se3 import matrix_from_axis_angle, transform_from
 from pipeline.kinematics.urdf_write import write_calibrated_urdf

@@ -10,8 +10,7 @@ import pandas as pd
 import pytest
 from click.testing import CliRunner
 
-from pipeline.cli import cli, main
-from pipeline.evaluate import (
+from pipeline.accuracy.evaluate import (
     perturbed_chain,
     pin_positions,
     random_deviations,
@@ -19,6 +18,7 @@ from pipeline.evaluate import (
     synthetic_touchups,
     workspace_poses,
 )
+from pipeline.cli import cli, main
 from pipeline.kinematics import load_chain
 from pipeline.robots import builtin_urdf
 from pipeline.stages.crossval.predictor import predict_choice

@@ -16,11 +16,11 @@ import numpy as np
 import pandas as pd
 import pytest
 
+from pipeline.accuracy.evaluate import perturbed_chain, random_deviations, synthetic_touchups
+from pipeline.accuracy.validate import Touchups, consistency, judge, usable_touchups
 from pipeline.cli import main
-from pipeline.evaluate import perturbed_chain, random_deviations, synthetic_touchups
 from pipeline.kinematics import load_chain
 from pipeline.kinematics.urdf_write import write_calibrated_urdf
-from pipeline.validate import Touchups, consistency, judge, usable_touchups
 
 REPO = Path(__file__).resolve().parent.parent
 NOMINAL = (REPO / "pipeline/robots/lrmate.urdf").read_text()

@@ -13,9 +13,9 @@ from pathlib import Path
 import pytest
 from click.testing import CliRunner
 
+from pipeline.accuracy.verdict import IMPROVED_BELOW, verdict
 from pipeline.cli import cli
 from pipeline.report.html import build_report
-from pipeline.verdict import IMPROVED_BELOW, verdict
 
 REPO = Path(__file__).resolve().parent.parent
 SAMPLE = REPO / "datasets" / "samples" / "sample_lrmate.mcap"

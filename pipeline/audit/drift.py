@@ -2,7 +2,7 @@
 
 Per recording ``b`` after ``a`` of one robot, two figures:
 
-* **validated** (``vtcal validate``'s, :func:`pipeline.validate.validate`): the
+* **validated** (``vtcal validate``'s, :func:`pipeline.accuracy.validate.validate`): the
   previous calibration (its chain and its own pin) judged on ``b``'s touch-ups:
   the consistency RMS (V2) and known-distance errors (V3), against ``b``'s own
   fresh calibration judged on the same touch-ups (its training consistency);
@@ -31,11 +31,11 @@ from typing import Any
 
 import numpy as np
 
+from pipeline.accuracy.evaluate import pin_positions, registered_errors, workspace_poses
 from pipeline.audit.attribute import Reading
 from pipeline.audit.change import Difference
 from pipeline.audit.fit import Estimate, point_columns
 from pipeline.audit.identity import AuditItem
-from pipeline.evaluate import pin_positions, registered_errors, workspace_poses
 from pipeline.kinematics.chain import Chain
 from pipeline.kinematics.se3 import F64
 
@@ -47,7 +47,7 @@ def drift_m(
     old: tuple[Chain, F64], new: tuple[Chain, F64], q: F64, seed: int = 0, n: int = 0
 ) -> float:
     """(D1) between two robots ``(chain, pin)`` at the poses ``q`` (m); ``n > 0``: at ``n``
-    poses drawn in their joint box instead (:func:`pipeline.evaluate.workspace_poses`)."""
+    poses drawn in their joint box instead (:func:`pipeline.accuracy.evaluate.workspace_poses`)."""
     qw = workspace_poses(q, n, np.random.default_rng(seed)) if n > 0 else np.asarray(q)
     pa = pin_positions(old[0], old[1], qw)
     pb = pin_positions(new[0], new[1], qw)
@@ -74,8 +74,8 @@ def validate_previous(
     ``drift_raw_mm`` (D1), ``drift_mm`` ((D3) when given, else (D1)), ``passed``
     (drift and validated at most the tolerance), ``line``.
     """
+    from pipeline.accuracy.validate import judge, match_distances, usable_touchups, validate
     from pipeline.kinematics import load_chain
-    from pipeline.validate import judge, match_distances, usable_touchups, validate
 
     nominal = load_chain(item.urdf, item.base_link, item.flange_link)
     data = usable_touchups(item.table, list(nominal.joint_names), item.name)

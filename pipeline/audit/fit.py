@@ -261,7 +261,7 @@ def fit_table(
 def fit_item(item: AuditItem, model: str = CHANGE_MODEL) -> Estimate:
     """The recording's own calibration with ``model`` and its estimate, its covariance
     raised to the recording's measured noise where the fit's residual is below it (F2)."""
-    from pipeline.validate import usable_touchups
+    from pipeline.accuracy.validate import usable_touchups
 
     res = fit_table(item.table, item.urdf, item.base_link, item.flange_link, model, item.distances)
     data = usable_touchups(item.table, list(res.chain.joint_names), item.name)
@@ -278,7 +278,7 @@ def noise_floor(summary: dict[str, Any], noise: dict[str, Any] | None) -> float:
         k = max(1, (s_noise / e)^2)                                                    (F2)
 
     ``e`` one touch-up's own error as the fit's residual estimates it ((V1) of
-    :func:`pipeline.verdict.own_noise_mm`), ``s_noise`` the touch-up stage's measured
+    :func:`pipeline.accuracy.verdict.own_noise_mm`), ``s_noise`` the touch-up stage's measured
     noise per touch-up (``rms_touchup_um`` of (N4), else the loop steps' whole noise of
     one capture, ``sqrt(tr cov_pose_flange_m2)``). A fit of 30 unknowns on 18 touch-ups
     has 25 residual dof; on image-level recordings of one robot its residual was up to
@@ -286,7 +286,7 @@ def noise_floor(summary: dict[str, Any], noise: dict[str, Any] | None) -> float:
     small, and re-recordings alarmed (bench_audit_images --histories 20: 2 of 20; none
     with F2). 1 where either figure is unknown.
     """
-    from pipeline.verdict import own_noise_mm
+    from pipeline.accuracy.verdict import own_noise_mm
 
     own = own_noise_mm(summary)
     if not noise or own is None or not own > 0:
@@ -323,12 +323,12 @@ def heldout_mm(item: AuditItem, model: str) -> tuple[float, str]:
     """Two-fold held-out consistency of ``model`` on one recording (mm) and a note.
 
     The touch-ups are split by :func:`halves`; each half's fit is judged on the
-    other by :func:`pipeline.validate.judge` (its own pin), and the two
+    other by :func:`pipeline.accuracy.validate.judge` (its own pin), and the two
     consistencies pooled: ``sqrt((n_a c_a^2 + n_b c_b^2) / (n_a + n_b))``.
     NaN with the reason when a half is too small for the model.
     """
+    from pipeline.accuracy.validate import judge, usable_touchups
     from pipeline.errors import VtcalError
-    from pipeline.validate import judge, usable_touchups
 
     a, b = halves(item.table)
     sq, n = 0.0, 0

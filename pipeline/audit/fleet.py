@@ -7,7 +7,7 @@ held-out consistency (:func:`pipeline.audit.fit.heldout_mm`: fitted on every
 other touch-up of each target, judged on the rest, and the other way round),
 said in the row's ``note``. Per recording the models are ranked (1 = lowest
 held-out error); a model the run's paired test (T1 of
-:mod:`pipeline.stages.crossval.told_apart`) does not tell apart from the run's
+:mod:`pipeline.accuracy.told_apart`) does not tell apart from the run's
 chosen model shares its rank. Overall, by the median of their ranks, then by the
 RMS of their held-out errors over the recordings where every model could be fitted.
 """

@@ -254,10 +254,10 @@ def _item_outcome(item: BatchItem, run_dir: Path, **fields: Any) -> RecordingOut
 
 def take_result(rec: RecordingOutcome, result: Any) -> None:
     """Stage statuses and, when identify ran or was cached, the figures of ``identify.json``
-    and the run's verdict (:func:`pipeline.verdict.verdict`, the one ``vtcal run`` prints:
+    and the run's verdict (:func:`pipeline.accuracy.verdict.verdict`, the one ``vtcal run`` prints:
     the validated figure, improved or not, PASS / FAIL against the recording's
     ``tolerance_mm`` when it has one)."""
-    from pipeline.verdict import verdict
+    from pipeline.accuracy.verdict import verdict
 
     rec.status = "ok"
     rec.stages = [(s.stage, s.status, float(s.seconds)) for s in result.stages]
@@ -292,7 +292,7 @@ def verdict_word(v: dict[str, Any]) -> str:
 def run_tolerance(run_dir: Path) -> float | None:
     """The tolerance a run is judged by: run.json's (``--tolerance-mm``), else the
     recording's ``tolerance_mm`` metadata key (recording.json), as ``vtcal run`` does."""
-    from pipeline.verdict import tolerance_from_metadata
+    from pipeline.accuracy.verdict import tolerance_from_metadata
 
     for name, key in ((RUN_FILES["run"], None), (RUN_FILES["recording"], "metadata")):
         try:

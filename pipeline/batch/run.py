@@ -169,9 +169,9 @@ class BatchResult:
 
     @property
     def compare(self) -> Any:
-        """The :class:`pipeline.compare.CompareResult` of the identified runs, or None."""
+        """The :class:`pipeline.accuracy.compare.CompareResult` of the identified runs, or None."""
         if self.compare_result is None and self.reused and self.compare_lines:
-            from pipeline.compare import compare_runs
+            from pipeline.accuracy.compare import compare_runs
 
             self.compare_result = compare_runs(identified_runs(self.outcomes))
         return self.compare_result
@@ -310,7 +310,7 @@ def run_batch(
     Returns
     -------
     BatchResult; its outcomes are in the order of ``items``; ``compare`` holds the
-    :class:`pipeline.compare.CompareResult` (or None, ``compare_note`` says why). On
+    :class:`pipeline.accuracy.compare.CompareResult` (or None, ``compare_note`` says why). On
     Ctrl-C the summary of what finished is written (the rest ``not_run``) before
     :class:`KeyboardInterrupt` propagates; finished recordings are cached for the next run.
 

@@ -114,16 +114,16 @@ def compare_batch(out_dir: Path, outcomes: Sequence[RecordingOutcome]) -> tuple[
     Returns
     -------
     (CompareResult or None, note): None with the reason when there is nothing to
-    compare or :mod:`pipeline.compare` is absent or fails (the batch summary stands
+    compare or :mod:`pipeline.accuracy.compare` is absent or fails (the batch summary stands
     alone; a comparison failure never fails the batch).
     """
     runs = identified_runs(outcomes)
     if not runs:
         return None, "no identified run to compare"
     try:
-        from pipeline.compare import compare_runs, render_html
+        from pipeline.accuracy.compare import compare_runs, render_html
     except ImportError:
-        return None, "cross-run comparison not available (pipeline.compare missing)"
+        return None, "cross-run comparison not available (pipeline.accuracy.compare missing)"
     from pipeline.io.artefacts import atomic_write_bytes, write_artefact
 
     try:
@@ -156,13 +156,13 @@ def _fmt(v: Any, spec: str) -> str:
 
 
 def compare_lines(res: Any) -> list[str]:
-    """The printed lines of a :class:`pipeline.compare.CompareResult`: the shipped
+    """The printed lines of a :class:`pipeline.accuracy.compare.CompareResult`: the shipped
     model's line per run, the verdict and the drift flags (every model is in compare.html).
 
     Stored in ``batch.json`` so that an unchanged batch prints them without
     rebuilding the comparison.
     """
-    from pipeline.compare import heldout_text
+    from pipeline.accuracy.compare import heldout_text
 
     lines = ["cross-run comparison (vtcal compare), shipped model:"]
     for r in res.runs.itertuples():

@@ -26,7 +26,7 @@ LAZY = (
     "pipeline.io.artefacts",
     "pipeline.provenance",
     "pipeline.run_ledger",
-    "pipeline.verdict",
+    "pipeline.accuracy.verdict",
     "pipeline.io.mcap_index",
     "pipeline.stages.trust.adequacy",
     "pipeline.stages.detect.saturation",

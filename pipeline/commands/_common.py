@@ -166,7 +166,7 @@ def echo_verdict(
     summary: dict[str, Any], tolerance_mm: float | None, indent: str = ""
 ) -> dict[str, Any] | None:
     """Print the verdict line (when there is a validated error or a tolerance); return it."""
-    from pipeline.verdict import verdict
+    from pipeline.accuracy.verdict import verdict
 
     v = verdict(summary, tolerance_mm)
     for w in v["warnings"] if v is not None else []:  # assumptions, the adequacy test
@@ -216,7 +216,7 @@ def tolerance_option(fn: Callable[..., Any]) -> Callable[..., Any]:
 
 
 def accept_implausible_option(fn: Callable[..., Any]) -> Callable[..., Any]:
-    """``--accept-implausible``: identify despite the guardrails (:mod:`pipeline.stages.guardrails.plausibility`)."""
+    """``--accept-implausible``: identify despite the guardrails (:mod:`pipeline.guardrails.plausibility`)."""
     return click.option(
         "--accept-implausible",
         is_flag=True,

@@ -41,7 +41,7 @@ def command(
     (same nominal URDF) are compared with the first one given; a parameter that
     moved by more than its uncertainty is flagged.
     """
-    from pipeline.compare import compare_runs, heldout_text, render_html, told_apart_text
+    from pipeline.accuracy.compare import compare_runs, heldout_text, render_html, told_apart_text
     from pipeline.errors import BadInput
     from pipeline.io.artefacts import atomic_write_bytes, write_artefact
 

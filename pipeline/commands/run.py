@@ -7,6 +7,7 @@ from typing import Any
 
 import click
 
+from pipeline.accuracy.verdict import tolerance_from_metadata
 from pipeline.catalog import RUN_FILES
 from pipeline.commands._common import (
     accept_implausible_option,
@@ -19,7 +20,6 @@ from pipeline.commands._common import (
     tolerance_option,
 )
 from pipeline.orchestrator import STAGES, RunConfig, run_pipeline
-from pipeline.verdict import tolerance_from_metadata
 
 
 @click.command(

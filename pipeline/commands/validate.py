@@ -3,7 +3,7 @@
     vtcal validate CALIBRATED.urdf REC.mcap|TABLE.{csv,parquet} [--urdf NOMINAL.urdf]
         [--out DIR] [--tolerance-mm X] [--distance A:B=METRES ...] [--flange-link L]
 
-The figures and the verdict rule are :mod:`pipeline.validate`'s; see docs/validate.md.
+The figures and the verdict rule are :mod:`pipeline.accuracy.validate`'s; see docs/validate.md.
 """
 
 from __future__ import annotations
@@ -159,11 +159,11 @@ def command(
     predicts, and the known-distance errors, against the nominal robot with a
     refitted pin. Exit 3 when not improved or FAIL.
     """
+    from pipeline.accuracy.validate import pin_of, refusal, usable_touchups, validate
+    from pipeline.accuracy.verdict import tolerance_from_metadata
     from pipeline.commands.identify import infer_links, read_table
     from pipeline.kinematics import parse_urdf
     from pipeline.known_distances import parse_distances
-    from pipeline.validate import pin_of, refusal, usable_touchups, validate
-    from pipeline.verdict import tolerance_from_metadata
 
     cal_text = _read_text(calibrated, "calibrated URDF")
     try:
@@ -281,8 +281,8 @@ def _known_distances(
     given: list[tuple[int | str, int | str, float]], labels: list[str], inp: _Input
 ) -> tuple[list[tuple[str, str, float]], list[str]]:
     """(kept, dropped): the --distance ones (all must match a target), else the recording's."""
+    from pipeline.accuracy.validate import match_distances
     from pipeline.known_distances import metadata_distances
-    from pipeline.validate import match_distances
 
     if given:
         kept, dropped = match_distances(given, labels, inp.source)

@@ -6,7 +6,7 @@ that cancel inside the covered joint ranges can grow apart outside them (a
 Kinova Gen3 lite calibrated on one placement was 9.2 mm off on others, against
 6.9 mm for the nominal arm with a fitted pin). The covariance says
 how much: the predicted shape error over poses drawn from the covered box
-(:func:`pipeline.evaluate.workspace_poses`) against poses from the box widened
+(:func:`pipeline.accuracy.evaluate.workspace_poses`) against poses from the box widened
 by half its span on each side, clipped to the joint limits::
 
     growth = rms_pred(widened box) / rms_pred(covered box)                       (G1)

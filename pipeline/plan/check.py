@@ -1,15 +1,15 @@
 """Measuring what a pose set buys: synthetic touch-ups at given poses, identification, accuracy.
 
 Used by the planner's benchmark (``benchmarks/bench_plan.py``) and tests. A
-*true* robot (nominal + deviations, :func:`pipeline.evaluate.perturbed_chain`)
+*true* robot (nominal + deviations, :func:`pipeline.accuracy.evaluate.perturbed_chain`)
 and a true pin are touched up at the planned poses: from each planned joint
 vector the true pin is pulled onto the true target plus an isotropic contact
 miss ``N(0, noise_pin_m^2)`` per axis by minimum-norm Gauss-Newton on the pin
-position (:func:`pipeline.evaluate.solve_pin_ik`, as the servo loop moves the
+position (:func:`pipeline.accuracy.evaluate.solve_pin_ik`, as the servo loop moves the
 flange, orientation kept near the plan), the recorded joints get encoder noise
 ``N(0, noise_q_rad^2)``; the table goes through the real identification
 (:func:`pipeline.stages.identify.stage.identify`) and the calibrated chain and pin
-are scored by :func:`pipeline.evaluate.pin_accuracy`.
+are scored by :func:`pipeline.accuracy.evaluate.pin_accuracy`.
 """
 
 from __future__ import annotations
@@ -20,7 +20,7 @@ import numpy as np
 import pandas as pd
 from numpy.typing import ArrayLike
 
-from pipeline.evaluate import pin_accuracy, solve_pin_ik
+from pipeline.accuracy.evaluate import pin_accuracy, solve_pin_ik
 from pipeline.kinematics.chain import Chain
 from pipeline.kinematics.se3 import F64
 
@@ -84,7 +84,7 @@ def calibrate_and_score(
 
     Returns
     -------
-    dict: ``shape_rms_m`` etc. (:func:`pipeline.evaluate.pin_accuracy`), ``identify_predicted_
+    dict: ``shape_rms_m`` etc. (:func:`pipeline.accuracy.evaluate.pin_accuracy`), ``identify_predicted_
     shape_rms_m`` (identification's own covariance prediction) and ``n_identified``
     """
     from pipeline.stages.identify.stage import IdentifyConfig, identify
@@ -115,7 +115,7 @@ def true_world(
     -------
     chain_true, p_pin_true (3,), targets_true (K, 3)
     """
-    from pipeline.evaluate import perturbed_chain, random_deviations
+    from pipeline.accuracy.evaluate import perturbed_chain, random_deviations
 
     dev = random_deviations(chain, rng, xyz_m=xyz_m, rpy_rad=rpy_rad, q0_rad=q0_rad)
     chain_true = perturbed_chain(chain, dev)

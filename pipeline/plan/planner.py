@@ -13,7 +13,7 @@ Predicted post-calibration error: ``cov = sigma^2 S_e^-1`` of the kinematic
 parameters and the pin (targets eliminated), ``sigma^2 = sigma_pin^2 +
 sigma_enc^2 mean_i |J_v,i|_F^2 / 3`` (touch-up contact noise per axis plus
 encoder noise carried to the pin), propagated to the pin over poses spread
-through the candidates' joint-space box (:func:`pipeline.evaluate.workspace_poses`)
+through the candidates' joint-space box (:func:`pipeline.accuracy.evaluate.workspace_poses`)
 and reduced by the best similarity registration (shape accuracy) as
 identification predicts it. A covariance sees random error only.
 """
@@ -27,8 +27,8 @@ from typing import Any
 import numpy as np
 import pandas as pd
 
+from pipeline.accuracy.evaluate import workspace_poses
 from pipeline.errors import BadInput
-from pipeline.evaluate import workspace_poses
 from pipeline.kinematics.chain import Chain, jacobian, load_chain
 from pipeline.kinematics.se3 import F64
 from pipeline.plan.candidates import (

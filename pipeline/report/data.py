@@ -88,7 +88,7 @@ class RunData:
     def tolerance_mm(self) -> float | None:
         """The accuracy the run had to reach (mm): run.json's ``tolerance_mm`` (the
         ``--tolerance-mm`` the run was given), else the recording's ``tolerance_mm`` key."""
-        from pipeline.verdict import tolerance_from_metadata
+        from pipeline.accuracy.verdict import tolerance_from_metadata
 
         given = tolerance_from_metadata(self.run)
         return given if given is not None else tolerance_from_metadata(self.meta)
@@ -96,7 +96,7 @@ class RunData:
     @property
     def tolerance_source(self) -> str:
         """Where :attr:`tolerance_mm` came from, in words ('' without a tolerance)."""
-        from pipeline.verdict import tolerance_from_metadata
+        from pipeline.accuracy.verdict import tolerance_from_metadata
 
         if tolerance_from_metadata(self.run) is not None:
             return "given on the command line, --tolerance-mm"

@@ -72,7 +72,7 @@ def verdict_section(data: RunData) -> dict[str, Any]:
     else:
         scale_text = ""
     rpath = rec.get("path")
-    from pipeline.verdict import IMPROVED_BELOW, verdict
+    from pipeline.accuracy.verdict import IMPROVED_BELOW, verdict
 
     tol = data.tolerance_mm
     # the nominal robot's error is identify.json's, as the console prints it; the report's

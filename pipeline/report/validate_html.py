@@ -9,15 +9,15 @@ from __future__ import annotations
 from typing import Any
 
 from pipeline import __version__
+from pipeline.accuracy.verdict import IMPROVED_BELOW
 from pipeline.numfmt import fmt, short
 from pipeline.report.templates import render_template
-from pipeline.verdict import IMPROVED_BELOW
 
 TEMPLATE = "validate.html.j2"
 
 
 def render_validation(result: dict[str, Any]) -> str:
-    """The page of one validation (:func:`pipeline.validate.validate` plus the command's paths)."""
+    """The page of one validation (:func:`pipeline.accuracy.validate.validate` plus the command's paths)."""
     return render_template(
         TEMPLATE,
         fmt,

@@ -6,13 +6,13 @@ them at the touch-up level (the converged joint vectors a recording yields after
 ingest, touch-up extraction and outlier rejection), fast enough for hundreds:
 
 * **The robot** = nominal URDF + seeded deviations (the simulator's magnitudes,
-  :func:`pipeline.evaluate.random_deviations`), a virtual pin ``p_flange_pin``
+  :func:`pipeline.accuracy.evaluate.random_deviations`), a virtual pin ``p_flange_pin``
   (the camera's mount, seeded), a base pose ``T_world_base`` and targets fixed
   in the cell ``p_world_target`` (K, 3).
 * **A recording** touches every target ``per_target`` times from new joint
   vectors: a seed configuration per target with every joint moved by up to
   ``spread_rad``, pulled onto the target by Gauss-Newton on the true pin
-  position (:func:`pipeline.evaluate.solve_pin_ik`), then the pin misses the
+  position (:func:`pipeline.accuracy.evaluate.solve_pin_ik`), then the pin misses the
   target by ``N(0, noise_pin_m^2)`` per axis and the encoders read the joints
   with ``N(0, noise_q_rad^2)`` (the noise of ``benchmarks/bench_identify.py``)::
 
@@ -50,7 +50,12 @@ from typing import Any
 import numpy as np
 import pandas as pd
 
-from pipeline.evaluate import perturbed_chain, pin_positions, random_deviations, solve_pin_ik
+from pipeline.accuracy.evaluate import (
+    perturbed_chain,
+    pin_positions,
+    random_deviations,
+    solve_pin_ik,
+)
 from pipeline.kinematics import load_chain
 from pipeline.kinematics.chain import Chain
 from pipeline.kinematics.se3 import F64
@@ -103,7 +108,7 @@ class RobotTruth:
 
     Attributes
     ----------
-    deviations : ``{joint: {"dxyz_m", "drpy_rad", "dq0_rad"}}`` (:func:`pipeline.evaluate.perturbed_chain`)
+    deviations : ``{joint: {"dxyz_m", "drpy_rad", "dq0_rad"}}`` (:func:`pipeline.accuracy.evaluate.perturbed_chain`)
     p_flange_pin : (3,) the virtual pin, flange frame (m)
     T_world_base : (4, 4) the base in the cell
     """

@@ -19,7 +19,7 @@ whole, so ``vtcal predict``, ``vtcal compensate`` and
 * ``mass_model``: what an elastic model assumes (masses, gravity, payload in
   training), from the model itself; absent for a rigid model;
 * ``validated``: the model's validated error as the run's verdict states it
-  (:func:`pipeline.verdict.verdict`: held-out k-fold, or the covariance-predicted
+  (:func:`pipeline.accuracy.verdict.verdict`: held-out k-fold, or the covariance-predicted
   error where that is larger) and its k-fold figures, mm.
 
 Pure: tables and dicts in, a JSON-ready dict out. Read back by
@@ -113,9 +113,9 @@ def calibration_record(
     ``joint_names``, ``parameters`` (``names``, ``values``), ``p_flange_pin``,
     ``covariance`` (``names``, ``matrix``), ``region``, ``mass_model``, ``validated``
     """
+    from pipeline.accuracy.verdict import verdict
     from pipeline.kinematics.chain import load_chain
     from pipeline.models import get_model
-    from pipeline.verdict import verdict
 
     urdf, base_link, flange_link = robot
     model = urdf_model

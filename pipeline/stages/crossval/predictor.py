@@ -13,7 +13,7 @@ beyond doubt, both conditions on the k-fold errors of the same touch-ups::
     rms_k(M) < (1 - TIE) rms_k(U)        and        z(M, U) <= -Z_APART           (P1)
 
 ``U`` the URDF's model, ``M`` the best-predicting model, ``rms_k`` the k-fold
-RMS, ``z`` the paired test (T1) of :mod:`pipeline.stages.crossval.told_apart`
+RMS, ``z`` the paired test (T1) of :mod:`pipeline.accuracy.told_apart`
 (negative: ``M`` misses less). Otherwise it predicts with ``U``, exactly what
 ``calibrated.urdf`` holds: a richer model is never taken on noise.
 """
@@ -24,7 +24,7 @@ import math
 from collections.abc import Mapping
 from typing import Any
 
-from pipeline.stages.crossval.told_apart import Z_APART
+from pipeline.accuracy.told_apart import Z_APART
 
 #: the relative margin of (P1): the same 1 % tie rule as the URDF's choice
 TIE = 0.01

@@ -51,12 +51,12 @@ from typing import Any
 import numpy as np
 import pandas as pd
 
+from pipeline.accuracy.told_apart import not_told_apart, sentence
 from pipeline.errors import BadInput, CalibrationFailed
 from pipeline.kinematics.se3 import F64
 from pipeline.stages.crossval.predict import held_rows, joints_and_corrections, predict_pins
 from pipeline.stages.crossval.predictor import predict_choice
 from pipeline.stages.crossval.refit import RefitTable, refit, refit_config, refit_table
-from pipeline.stages.crossval.told_apart import not_told_apart, sentence
 from pipeline.stages.identify.stage import IdentifyConfig
 from pipeline.stages.identify.types import Robot
 from pipeline.stages.parallel_map import parallel_map

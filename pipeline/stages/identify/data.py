@@ -381,9 +381,9 @@ def implausible_rows(
     flange_link: str,
     config: IdentifyConfig,
 ) -> list[str]:
-    """The guardrails of :mod:`pipeline.stages.guardrails.plausibility` on the used touch-ups."""
+    """The guardrails of :mod:`pipeline.guardrails.plausibility` on the used touch-ups."""
+    from pipeline.guardrails import plausibility as pl
     from pipeline.kinematics.urdf import parse_urdf
-    from pipeline.stages.guardrails import plausibility as pl
 
     limits = pl.joint_values(data.q, chain)
     robot = parse_urdf(urdf)

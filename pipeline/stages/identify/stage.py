@@ -58,6 +58,7 @@ import numpy as np
 import pandas as pd
 from scipy.optimize import least_squares
 
+from pipeline.accuracy.evaluate import workspace_poses
 from pipeline.errors import BadInput, CalibrationFailed
 from pipeline.estimation.identifiability import select_columns
 from pipeline.estimation.loss import partial_loss
@@ -73,7 +74,6 @@ from pipeline.estimation.whitening import (
     flange_residual_cov,
     flange_whitening,
 )
-from pipeline.evaluate import workspace_poses
 from pipeline.kinematics.se3 import F64
 from pipeline.kinematics.urdf_write import write_calibrated_urdf
 from pipeline.measurement.data import FitData

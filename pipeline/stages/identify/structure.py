@@ -98,7 +98,7 @@ def exact_touchups(urdf: str, base_link: str, flange_link: str) -> tuple[FitData
     robot and process (their inverse kinematics is most of a model's rating) and
     shared by every model's :func:`structure`.
     """
-    from pipeline.evaluate import synthetic_touchups
+    from pipeline.accuracy.evaluate import synthetic_touchups
 
     chain = load_chain(urdf, base_link, flange_link)
     rng = np.random.default_rng(20240601)

@@ -66,7 +66,7 @@ class IdentifyConfig:
         pin's covariance before the predicted errors (P1 of
         :func:`pipeline.estimation.uncertainty.with_pin_offset`);
         None (single captures, a table without images): nothing added
-    accept_implausible : identify even where :mod:`pipeline.stages.guardrails.plausibility` finds an
+    accept_implausible : identify even where :mod:`pipeline.guardrails.plausibility` finds an
         input the nominal robot contradicts (joint values outside the URDF's limits, a
         known distance off by more than the nominal robot's own error); the lines are
         then kept in the summary as ``implausible``

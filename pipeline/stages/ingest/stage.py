@@ -34,6 +34,7 @@ import numpy as np
 import pandas as pd
 
 from pipeline.errors import BadInput
+from pipeline.guardrails.plausibility import joints_outside_chain
 from pipeline.io.layout import locate
 from pipeline.io.mcap import (
     DEFAULT_IMAGE_TOPICS,
@@ -45,7 +46,6 @@ from pipeline.io.mcap import (
 from pipeline.io.recording import iter_recording, summarize
 from pipeline.kinematics.urdf import RobotDescription, chain_joints, parse_urdf
 from pipeline.stages.detect.detector import DetectConfig
-from pipeline.stages.guardrails.plausibility import joints_outside_chain
 from pipeline.stages.image.binning import unbin
 from pipeline.stages.image.flat_field import CropStore, correct_flat_field
 from pipeline.stages.ingest.image_worker import ImageWorker

@@ -91,7 +91,7 @@ class RecordingInfo:
         wrote it (:mod:`pipeline.measure.summary`: touch-ups planned, converged, given up,
         captures, cell and wall time), as written (strings)
     implausible : guardrail lines on the joint states
-        (:func:`pipeline.stages.guardrails.plausibility.joints_outside_chain`: a joint above the base
+        (:func:`pipeline.guardrails.plausibility.joints_outside_chain`: a joint above the base
         or after the flange link that moves); the run refuses them before extraction
     """
 

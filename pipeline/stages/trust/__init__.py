@@ -3,6 +3,6 @@
 ``outliers`` (the outliers stage: touch-ups identification must not trust),
 ``adequacy`` (whether the run's accuracy figure can be trusted: the
 model-adequacy test). The guardrails on the input (inputs that look right but
-cannot be, caught before identification) are :mod:`pipeline.stages.guardrails.plausibility`,
+cannot be, caught before identification) are :mod:`pipeline.guardrails.plausibility`,
 below identification, which applies them.
 """

@@ -25,7 +25,7 @@ excess far beyond chance at the tens of degrees of freedom of a calibration
 (``dof >= 20``: ``P(chi2_dof / dof > 9) < 1e-30``), so a run that crosses it
 carries an error of the same order as its noise or larger that no figure of
 the run measures. The verdict then says "systematic error likely: the figure is
-a lower bound" and a tolerance fails (:mod:`pipeline.verdict`).
+a lower bound" and a tolerance fails (:mod:`pipeline.accuracy.verdict`).
 
 The assumptions: every input the accuracy hinges on that was neither declared
 in the recording nor estimated with confidence (:func:`assumptions`), each one

@@ -30,8 +30,8 @@ those two rows are optimistic by the pin's three degrees of freedom; the
 calibrated robot's own pin is not.
 
 Verdict (:func:`verdict`): improved when the headline consistency is below
-:data:`pipeline.verdict.IMPROVED_BELOW` times the nominal + refitted pin one
-(:func:`pipeline.verdict.improvement`, the rule of ``vtcal run``); with a
+:data:`pipeline.accuracy.verdict.IMPROVED_BELOW` times the nominal + refitted pin one
+(:func:`pipeline.accuracy.verdict.improvement`, the rule of ``vtcal run``); with a
 tolerance, PASS when improved, the consistency is at most the tolerance and
 every known-distance error is at most the tolerance.
 """
@@ -45,6 +45,7 @@ from typing import Any
 import numpy as np
 import pandas as pd
 
+from pipeline.accuracy.verdict import improvement
 from pipeline.errors import BadInput, CalibrationFailed
 from pipeline.estimation.correction_frame import (
     MAX_FRAME_DEVIATION,
@@ -58,7 +59,6 @@ from pipeline.kinematics.urdf import RobotDescription
 from pipeline.kinematics.urdf_write import PIN_JOINT
 from pipeline.measurement.pin import fit_pin_and_targets
 from pipeline.numfmt import short
-from pipeline.verdict import improvement
 
 #: a target needs this many usable touch-ups for a consistency (one point is always "consistent")
 MIN_PER_TARGET = 2
@@ -361,7 +361,7 @@ def validate(
 def implausible(
     nominal: Chain, data: Touchups, distances: list[tuple[str, str, float]]
 ) -> list[str]:
-    """The guardrails of identification (:mod:`pipeline.stages.guardrails.plausibility`) on these touch-ups.
+    """The guardrails of identification (:mod:`pipeline.guardrails.plausibility`) on these touch-ups.
 
     Wherever a robot is judged, the same inputs are implausible: joint values
     outside the nominal URDF's limits, a nominal fit (pin and targets solved at
@@ -374,7 +374,7 @@ def implausible(
     -------
     list of str : one line per implausible input (empty when plausible)
     """
-    from pipeline.stages.guardrails import plausibility as pl
+    from pipeline.guardrails import plausibility as pl
 
     lines = pl.joint_values(data.q, nominal)
     _, targets, rho = pl.nominal_targets(

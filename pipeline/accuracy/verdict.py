@@ -48,7 +48,7 @@ def improvement(
     """``(ratio, improved)``: nominal / validated and whether validated < IMPROVED_BELOW x nominal.
 
     Both None when either figure is unknown (or zero). The one rule of "improved", used by
-    :func:`verdict` (a run) and :mod:`pipeline.validate` (a calibration on a new recording).
+    :func:`verdict` (a run) and :mod:`pipeline.accuracy.validate` (a calibration on a new recording).
     """
     if not nominal_mm or not validated_mm:
         return None, None

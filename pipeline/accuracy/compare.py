@@ -375,8 +375,8 @@ NOT_CROSS_VALIDATED = "not cross-validated"
 
 def told_apart_text(z: Any) -> str:
     """'' or "  (not told apart from the shipped model: z = +0.4)", (T1) of
-    :mod:`pipeline.stages.crossval.told_apart`; '' where it was not made or told them apart."""
-    from pipeline.stages.crossval.told_apart import Z_APART
+    :mod:`pipeline.accuracy.told_apart`; '' where it was not made or told them apart."""
+    from pipeline.accuracy.told_apart import Z_APART
 
     zf = _num(z)
     if not math.isfinite(zf) or abs(zf) >= Z_APART:
