@@ -19,7 +19,7 @@ scenario's own plan measured four ways:
 For each: touch-ups converged, captures per converged touch-up split into probes, loop
 iterations and extra captures, cell (simulated robot) time per touch-up (median) and per
 calibration, and the cell time split into travel, settle, servo and capture
-(:mod:`pipeline.measure.timing`; per touch-up the mean, so that the four add up to the mean
+(:mod:`pipeline.live.timing`; per touch-up the mean, so that the four add up to the mean
 touch-up); then ``vtcal run`` on the recording and the calibrated pin's shape and absolute
 RMS error against the simulation truth over 500 poses (``pipeline.accuracy.evaluate.judge_run``).
 
@@ -42,11 +42,11 @@ import numpy as np
 from pipeline.accuracy.evaluate import judge_run
 from pipeline.cell_adapters import connect
 from pipeline.commands.measure import HOLD_S, run_measure
-from pipeline.measure.detector import vtcal_detector
-from pipeline.measure.plan_file import read_plan
-from pipeline.measure.record import open_recording
-from pipeline.measure.session import SessionOptions, goal_from_metadata, run_session
-from pipeline.measure.summary import summarize
+from pipeline.live.detector import vtcal_detector
+from pipeline.live.plan_file import read_plan
+from pipeline.live.record import open_recording
+from pipeline.live.session import SessionOptions, goal_from_metadata, run_session
+from pipeline.live.summary import summarize
 from pipeline.orchestrator import RunConfig, run_pipeline
 from pipeline.sim.link import sim_cell, write_plan
 
@@ -132,7 +132,7 @@ def breakdown(rec: Path) -> dict[str, float]:
     }
 
 
-#: the split of the cell time (pipeline.measure.timing), as the touch-up summaries keep it
+#: the split of the cell time (pipeline.live.timing), as the touch-up summaries keep it
 SPLIT = ("travel_s", "settle_s", "servo_s", "capture_s")
 
 
@@ -230,7 +230,7 @@ def main() -> None:
         print(
             "travel: large moves until arrived; servo: probing shifts and servo steps until "
             "arrived; settle: arrival to the next exposure; capture: exposure, detection and "
-            "the hold after it (pipeline/measure/timing.py)"
+            "the hold after it (pipeline/live/timing.py)"
         )
 
 

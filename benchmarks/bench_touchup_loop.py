@@ -1,7 +1,7 @@
 """The shared touch-up loop on a standalone simulated cell: captures, time, pin accuracy.
 
 Runs every planned pose of a scenario (the standard cell, ``--per-target`` poses
-per target) through :func:`pipeline.measure.loop.touch_up` on
+per target) through :func:`pipeline.live.loop.touch_up` on
 :class:`pipeline.sim.cell_adapter.SimCell` (nothing recorded), probing the
 Jacobian at the first touch-up of each target, in three set-ups:
 
@@ -30,9 +30,9 @@ from pathlib import Path
 import numpy as np
 
 from pipeline.kinematics.se3 import F64
-from pipeline.measure.detector import vtcal_detector
-from pipeline.measure.loop import CaptureInfo, Detector, estimate_jacobian, touch_up
-from pipeline.measure.protocols import Frame
+from pipeline.live.detector import vtcal_detector
+from pipeline.live.loop import CaptureInfo, Detector, estimate_jacobian, touch_up
+from pipeline.live.protocols import Frame
 from pipeline.sim.cell_adapter import SimCell
 from pipeline.sim.scenario import scenario_from_dict
 

@@ -11,7 +11,7 @@
 With a TCP robot and a camera of its own (OpenCV, folder) the joint states are
 polled and stamped on the host clock, the camera's clock (docs/measure.md, "Clocks").
 
-Above both :mod:`pipeline.measure` (the live adapters) and :mod:`pipeline.sim`
+Above both :mod:`pipeline.live` (the live adapters) and :mod:`pipeline.sim`
 (the simulated cell, :mod:`pipeline.sim.link`), which runs the measure loop: so
 neither package imports the other both ways.
 """
@@ -22,21 +22,21 @@ from collections.abc import Callable
 from pathlib import Path
 
 from pipeline.errors import BadInput
-from pipeline.measure.cell_link import CellLink
-from pipeline.measure.protocols import Camera
+from pipeline.live.cell_link import CellLink
+from pipeline.live.protocols import Camera
 
 
 def _camera(spec: str) -> tuple[Camera, Callable[[], None]]:
     kind, _, rest = spec.partition(":")
     if kind == "opencv" and rest:
-        from pipeline.measure.cameras import OpenCVCamera
+        from pipeline.live.cameras import OpenCVCamera
 
         oc = OpenCVCamera(
             int(rest) if rest.isdigit() else rest, discard=0 if Path(rest).is_file() else 2
         )
         return oc, oc.close
     if kind == "folder" and rest:
-        from pipeline.measure.cameras import FolderCamera
+        from pipeline.live.cameras import FolderCamera
 
         fc = FolderCamera(rest)
         return fc, fc.close
@@ -66,7 +66,7 @@ def connect(robot: str, camera: str | None) -> CellLink:
     if robot.startswith("sim:"):
         return _sim(robot, camera)
     if robot.startswith("tcp://"):
-        from pipeline.measure.tcp_robot import TcpCamera, TcpRobot
+        from pipeline.live.tcp_robot import TcpCamera, TcpRobot
 
         own = camera in (None, "tcp", robot)
         tr = TcpRobot(robot, host_clock=not own)

@@ -10,8 +10,8 @@ import cv2
 import numpy as np
 import pytest
 
-from pipeline.measure.cameras import FolderCamera, OpenCVCamera, stamp_from_name
-from pipeline.measure.protocols import Camera, MeasureFault
+from pipeline.live.cameras import FolderCamera, OpenCVCamera, stamp_from_name
+from pipeline.live.protocols import Camera, MeasureFault
 
 
 def _img(k: int, dtype: type = np.uint8) -> np.ndarray:

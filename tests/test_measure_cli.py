@@ -10,7 +10,7 @@ import pytest
 from support.fake_wire_cell import FakeCamera, FakeRobot
 
 from pipeline.cli import main
-from pipeline.measure.tcp_server import Cell, serve_in_thread
+from pipeline.live.tcp_server import Cell, serve_in_thread
 from pipeline.robots import load_urdf
 
 

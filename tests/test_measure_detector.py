@@ -1,4 +1,4 @@
-"""vtcal's detector behind the loop's Detector interface (pipeline.measure.detector).
+"""vtcal's detector behind the loop's Detector interface (pipeline.live.detector).
 
 A disc rendered by area coverage (16 x 16 subsamples per pixel) at a known
 centre and diameter; the detector must find it in mono8, mono16, rgb8 and bgr8
@@ -10,8 +10,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from pipeline.measure.detector import frame_to_grey, vtcal_detector
-from pipeline.measure.protocols import Frame
+from pipeline.live.detector import frame_to_grey, vtcal_detector
+from pipeline.live.protocols import Frame
 
 
 def _disc(u: float, v: float, d: float, w: int = 160, h: int = 120, k: int = 16) -> np.ndarray:

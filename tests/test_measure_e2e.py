@@ -18,10 +18,10 @@ import pytest
 
 from pipeline.cli import main
 from pipeline.io import mcap as io_mcap
-from pipeline.measure.protocols import MeasureFault
-from pipeline.measure.record import read_progress
-from pipeline.measure.summary import from_metadata
-from pipeline.measure.tcp_server import Cell, CellServer, serve_in_thread
+from pipeline.live.protocols import MeasureFault
+from pipeline.live.record import read_progress
+from pipeline.live.summary import from_metadata
+from pipeline.live.tcp_server import Cell, CellServer, serve_in_thread
 from pipeline.sim.link import sim_cell, write_plan
 
 REPO = Path(__file__).resolve().parent.parent
@@ -250,7 +250,7 @@ class _Blind:
         self._inner = inner
 
     def capture(self) -> Any:
-        from pipeline.measure.protocols import Frame
+        from pipeline.live.protocols import Frame
 
         f = self._inner.capture()
         return Frame(np.full_like(f.image, 200), f.stamp_ns, f.encoding)

@@ -1,4 +1,4 @@
-"""The touch-up loop (pipeline.measure.loop) on an analytic fake cell (tests/support/fake_cell.py).
+"""The touch-up loop (pipeline.live.loop) on an analytic fake cell (tests/support/fake_cell.py).
 
 Known truth: the fake's flange position at which the disc is seen at the goal,
 and its analytic image Jacobian. Every test can fail: convergence to that
@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 from support.fake_cell import FakeCell
 
-from pipeline.measure.loop import (
+from pipeline.live.loop import (
     CaptureInfo,
     Goal,
     LoopConfig,
@@ -21,7 +21,7 @@ from pipeline.measure.loop import (
     servo_step,
     touch_up,
 )
-from pipeline.measure.protocols import Frame
+from pipeline.live.protocols import Frame
 
 GOAL = Goal(u0=319.5, v0=239.5, s0=80.0, threshold_px=0.5, threshold_size_px=0.5, polarity="x")
 

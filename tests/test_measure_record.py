@@ -10,8 +10,8 @@ import pytest
 
 from pipeline.errors import BadInput
 from pipeline.io import mcap as io_mcap
-from pipeline.measure.protocols import Frame, JointReading
-from pipeline.measure.record import open_recording, progress_path, read_progress
+from pipeline.live.protocols import Frame, JointReading
+from pipeline.live.record import open_recording, progress_path, read_progress
 
 NAMES = ["j1", "j2"]
 URDF = "<robot name='r'/>"

@@ -9,9 +9,9 @@ import numpy as np
 import pytest
 from support.fake_wire_cell import CrashingRobot, FakeCamera, FakeRobot, RefusingRobot
 
-from pipeline.measure.protocols import Camera, MeasureFault, Robot
-from pipeline.measure.tcp_robot import TcpCamera, TcpRobot
-from pipeline.measure.tcp_server import Cell, CellServer, serve_in_thread
+from pipeline.live.protocols import Camera, MeasureFault, Robot
+from pipeline.live.tcp_robot import TcpCamera, TcpRobot
+from pipeline.live.tcp_server import Cell, CellServer, serve_in_thread
 
 
 @pytest.fixture

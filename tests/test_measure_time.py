@@ -1,6 +1,6 @@
 """Robot time of a measurement (issue 38): the visiting order, the loop's stop rule at the
 CLI's settings, and the split of each touch-up's cell time into travel, settle, servo and
-capture (pipeline.measure.timing), down to the recording's ``measurement`` record.
+capture (pipeline.live.timing), down to the recording's ``measurement`` record.
 
 Known truth: a shuffled plan along a joint-space path (its shortest order is the path's),
 the analytic fake cell's own move, settle and exposure times, and the simulated robot's
@@ -17,9 +17,9 @@ import pytest
 from support.fake_cell import FakeCell
 
 from pipeline.commands.measure import MEASURE_GAIN, loop_config
-from pipeline.measure.loop import Goal, LoopConfig, estimate_jacobian, touch_up
-from pipeline.measure.plan_file import Plan, in_travel_order, joint_travel
-from pipeline.measure.timing import PHASES, timed
+from pipeline.live.loop import Goal, LoopConfig, estimate_jacobian, touch_up
+from pipeline.live.plan_file import Plan, in_travel_order, joint_travel
+from pipeline.live.timing import PHASES, timed
 
 REPO = Path(__file__).resolve().parent.parent
 GOAL = Goal(u0=319.5, v0=239.5, s0=80.0, threshold_px=0.5, threshold_size_px=0.5, polarity="x")
@@ -115,8 +115,8 @@ def test_the_recording_carries_the_split(tmp_path: Path) -> None:
     simulated robot settles 0.15 s after every move, which the arrival cut finds."""
     from pipeline.commands.measure import run_measure
     from pipeline.io import mcap as io_mcap
-    from pipeline.measure.record import read_progress
-    from pipeline.measure.summary import from_metadata
+    from pipeline.live.record import read_progress
+    from pipeline.live.summary import from_metadata
     from pipeline.sim.link import sim_cell, write_plan
 
     spec = f"sim:{REPO / 'datasets' / 'scenarios' / 'small.toml'}:1"

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from pipeline.measure.summary import as_metadata, summarize
+from pipeline.live.summary import as_metadata, summarize
 from pipeline.report.html_sections import measurement_text
 
 

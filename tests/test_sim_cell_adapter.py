@@ -15,9 +15,9 @@ import numpy as np
 import pytest
 
 from pipeline.kinematics.chain import fk
-from pipeline.measure.detector import vtcal_detector
-from pipeline.measure.loop import estimate_jacobian, touch_up
-from pipeline.measure.protocols import Camera, Robot
+from pipeline.live.detector import vtcal_detector
+from pipeline.live.loop import estimate_jacobian, touch_up
+from pipeline.live.protocols import Camera, Robot
 from pipeline.sim.cell_adapter import SimCell
 from pipeline.sim.scenario import load_scenario
 
@@ -87,7 +87,7 @@ def test_a_jpeg_cameras_frames_are_what_its_recording_carries(tmp_path: Path) ->
     import tomllib
 
     from pipeline.io.mcap_write import Recorder
-    from pipeline.measure.detector import frame_to_grey
+    from pipeline.live.detector import frame_to_grey
     from pipeline.sim.scenario import scenario_from_dict
     from pipeline.stages.ingest.stage import load_image
 

@@ -19,7 +19,7 @@ import click
 
 from pipeline.commands.measure import measure_options, run_measure
 from pipeline.errors import BadInput
-from pipeline.measure.summary import summarize, summary_line
+from pipeline.live.summary import summarize, summary_line
 from pipeline.robots import load_urdf
 
 #: what the plan in ``--out`` was planned from (hashes of the URDF and the targets file,
@@ -123,7 +123,7 @@ def command(
     """Plan, measure and calibrate a cell in one command."""
     from pipeline.commands import plan as plan_cmd
     from pipeline.commands import run as run_cmd
-    from pipeline.measure.record import read_progress
+    from pipeline.live.record import read_progress
 
     if plan_path is None:
         if targets_path is None or poses is None or urdf_path is None:

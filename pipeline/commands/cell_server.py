@@ -36,7 +36,7 @@ def command(
     withhold: tuple[str, ...],
 ) -> None:
     """Serve the simulated cell of SCENARIO and SEED on HOST:PORT until interrupted."""
-    from pipeline.measure.tcp_server import Cell, CellServer
+    from pipeline.live.tcp_server import Cell, CellServer
     from pipeline.sim.link import sim_cell, write_plan
 
     cell, tap = sim_cell(f"sim:{scenario_path}:{seed}")

@@ -12,14 +12,14 @@ import click
 
 from pipeline.commands._common import set_option
 from pipeline.errors import BadInput, CellFault
-from pipeline.measure.summary import as_metadata, summarize, summary_line
+from pipeline.live.summary import as_metadata, summarize, summary_line
 
 if TYPE_CHECKING:
-    from pipeline.measure.cell_link import CellLink
-    from pipeline.measure.detector import LiveDetector
-    from pipeline.measure.loop import LoopConfig
-    from pipeline.measure.plan_file import Plan
-    from pipeline.measure.session import SessionOptions
+    from pipeline.live.cell_link import CellLink
+    from pipeline.live.detector import LiveDetector
+    from pipeline.live.loop import LoopConfig
+    from pipeline.live.plan_file import Plan
+    from pipeline.live.session import SessionOptions
 
 #: cell time the arm stays still after each capture (s): more than ingest's still window
 #: (+-0.06 s about the stamp) plus half an exposure
@@ -118,7 +118,7 @@ def run_measure(
     """Measure ``plan_path`` on the cell into ``out``; return the measurement summary.
 
     ``order`` is ``plan`` (the file's order) or ``travel``
-    (:func:`pipeline.measure.plan_file.in_travel_order`).
+    (:func:`pipeline.live.plan_file.in_travel_order`).
 
     Raises
     ------
@@ -132,10 +132,10 @@ def run_measure(
     import numpy as np
 
     from pipeline.cell_adapters import connect
-    from pipeline.measure.plan_file import check_limits, in_travel_order, read_plan
-    from pipeline.measure.protocols import MeasureFault
-    from pipeline.measure.session import SessionOptions
-    from pipeline.measure.session import dry_run as visit
+    from pipeline.live.plan_file import check_limits, in_travel_order, read_plan
+    from pipeline.live.protocols import MeasureFault
+    from pipeline.live.session import SessionOptions
+    from pipeline.live.session import dry_run as visit
 
     def fault(exc: MeasureFault, what: str) -> CellFault:
         return CellFault(f"{what}: {exc.kind}: {exc}")
@@ -176,7 +176,7 @@ def loop_config(gain: float, max_iterations: int) -> LoopConfig:
     """The loop ``vtcal measure`` runs: the Jacobian updated from the loop's own steps
     (Broyden), the arm held still ``HOLD_S`` after each capture, the loop's other defaults
     (3 captures at convergence)."""
-    from pipeline.measure.loop import LoopConfig
+    from pipeline.live.loop import LoopConfig
 
     return LoopConfig(
         gain=gain, max_iterations=max_iterations, update_jacobian=True, compute_s=HOLD_S
@@ -240,9 +240,9 @@ def _measure_into(
     The designated blob comes from ``meta`` (the image size from one capture when it
     does not say); a fault leaves the recording so far, resumable (CellFault).
     """
-    from pipeline.measure.protocols import MeasureFault
-    from pipeline.measure.record import open_recording
-    from pipeline.measure.session import goal_from_metadata, run_session
+    from pipeline.live.protocols import MeasureFault
+    from pipeline.live.record import open_recording
+    from pipeline.live.session import goal_from_metadata, run_session
 
     size = None
     if "designated_u" not in meta or "designated_v" not in meta:
@@ -290,7 +290,7 @@ def _detector(meta: dict[str, str], polarity: str, s0: float, quiet: bool) -> Li
     BadInput
         A ``camera_response`` that is not a response curve.
     """
-    from pipeline.measure.detector import vtcal_detector
+    from pipeline.live.detector import vtcal_detector
 
     text = meta.get("camera_response", "auto")
     try:

@@ -19,7 +19,7 @@ import numpy as np
 import pandas as pd
 
 from pipeline import __version__
-from pipeline.measure.summary import from_metadata
+from pipeline.live.summary import from_metadata
 from pipeline.numfmt import fmt, short
 from pipeline.report import plots
 from pipeline.report.data import RunData, artefact_hashes, run_uuid
@@ -136,7 +136,7 @@ def measurement_text(kv: dict[str, str]) -> str:
     """How a ``vtcal measure`` recording was measured, in words ("" when it does not say).
 
     ``kv`` is the recording's ``measurement`` metadata record as ingest kept it
-    (:mod:`pipeline.measure.summary`).
+    (:mod:`pipeline.live.summary`).
     """
     if not kv:
         return ""

@@ -13,7 +13,7 @@ measurement protocols), :mod:`~pipeline.sim.link` (that cell as ``vtcal measure`
 ``sim:`` link), :mod:`~pipeline.sim.faults`, :mod:`~pipeline.sim.truth`
 (the truth file, whose layout follows the conformance sample's) and
 :mod:`~pipeline.sim.simulator` (runs a session with the shared touch-up loop of
-:mod:`pipeline.measure.loop`). It writes with the project's streaming ROS 2 MCAP writer,
+:mod:`pipeline.live.loop`). It writes with the project's streaming ROS 2 MCAP writer,
 :mod:`pipeline.io.mcap_write` (shared with ``vtcal measure``). The simulator sits above
-:mod:`pipeline.measure` (it runs its loop), never below. See ``docs/simulator.md``.
+:mod:`pipeline.live` (it runs its loop), never below. See ``docs/simulator.md``.
 """

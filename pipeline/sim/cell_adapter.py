@@ -1,6 +1,6 @@
 """The simulated cell behind the measurement protocols: ``SimRobot``, ``SimCamera``, ``SimCell``.
 
-The touch-up loop (:mod:`pipeline.measure.loop`) drives the simulated session
+The touch-up loop (:mod:`pipeline.live.loop`) drives the simulated session
 (:mod:`pipeline.sim.session`) through these, exactly as it drives a live cell
 through its adapter:
 
@@ -14,7 +14,7 @@ through its adapter:
   true once the last move ended and the settle time passed; :meth:`SimRobot.wait`
   advances the session clock (streaming joint states);
 - :meth:`SimCamera.capture` renders the target in view, records the image and
-  returns it as a :class:`~pipeline.measure.protocols.Frame`.
+  returns it as a :class:`~pipeline.live.protocols.Frame`.
 
 Two fault hooks serve the simulator (the loop knows nothing of them):
 ``SimRobot.stop_next_move`` makes the next large move return at a fraction of its
@@ -37,8 +37,8 @@ import numpy as np
 
 from pipeline.io.mcap_write import NullRecorder, Recorder
 from pipeline.kinematics.se3 import F64
-from pipeline.measure.loop import Detection, Detector, Goal, LoopConfig
-from pipeline.measure.protocols import Frame, JointReading
+from pipeline.live.loop import Detection, Detector, Goal, LoopConfig
+from pipeline.live.protocols import Frame, JointReading
 from pipeline.sim.cell import Target, known_distances, touchup_metadata
 from pipeline.sim.detect import detect_target
 from pipeline.sim.poses import measuring_poses
@@ -47,7 +47,7 @@ from pipeline.sim.session import CaptureOptions, JointStream, Session
 
 
 class SimRobot:
-    """:class:`~pipeline.measure.protocols.Robot` on a simulated session."""
+    """:class:`~pipeline.live.protocols.Robot` on a simulated session."""
 
     def __init__(self, sess: Session) -> None:
         self.sess = sess
@@ -96,7 +96,7 @@ class SimRobot:
 
 
 class SimCamera:
-    """:class:`~pipeline.measure.protocols.Camera` on a simulated session.
+    """:class:`~pipeline.live.protocols.Camera` on a simulated session.
 
     ``target`` is the target rendered (None: the one nearest the optical axis);
     ``options`` adds second blobs or occluders (fault injection).
@@ -140,7 +140,7 @@ class SimCamera:
 
 def controller_detector(camera: SimCamera, goal: Goal, method: str) -> Detector:
     """The simulated controller's own detector (:mod:`pipeline.sim.detect`) as a loop
-    :data:`~pipeline.measure.loop.Detector`: a model of a cell's recorder, deliberately
+    :data:`~pipeline.live.loop.Detector`: a model of a cell's recorder, deliberately
     independent of vtcal's detection."""
 
     def detect(frame: Frame, expected_uv: tuple[float, float] | None) -> Detection:

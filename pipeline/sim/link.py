@@ -17,8 +17,8 @@ import numpy as np
 
 from pipeline.errors import BadInput
 from pipeline.io.mcap_write import NullRecorder
-from pipeline.measure.cell_link import CellLink
-from pipeline.measure.protocols import JointReading
+from pipeline.live.cell_link import CellLink
+from pipeline.live.protocols import JointReading
 
 NS = 1_000_000_000
 

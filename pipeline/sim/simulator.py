@@ -15,7 +15,7 @@ The world
     robot, normals tilted towards it; two on a calibration bar of known length.
 
 The controller (uses only what a real one has)
-    vtcal's own touch-up loop (:mod:`pipeline.measure.loop`, the one a live
+    vtcal's own touch-up loop (:mod:`pipeline.live.loop`, the one a live
     cell runs), driving the session through the cell adapter
     (:mod:`pipeline.sim.cell_adapter`): the *nominal* chain for every flange
     motion (nominal IK) and the simulated controller's own detection of
@@ -58,7 +58,7 @@ from typing import Any
 
 from pipeline.io.mcap_write import Recorder
 from pipeline.kinematics.se3 import F64
-from pipeline.measure.loop import (
+from pipeline.live.loop import (
     CaptureInfo,
     Detector,
     LoopConfig,
@@ -67,7 +67,7 @@ from pipeline.measure.loop import (
     probe_shifts,
     touch_up,
 )
-from pipeline.measure.protocols import Frame
+from pipeline.live.protocols import Frame
 from pipeline.sim import faults
 from pipeline.sim.cell import Target
 from pipeline.sim.cell_adapter import SimCamera, SimCell
@@ -125,7 +125,7 @@ def simulate(
 
 
 class _Captures:
-    """The simulator's :data:`~pipeline.measure.loop.OnCapture`: completes each image's truth
+    """The simulator's :data:`~pipeline.live.loop.OnCapture`: completes each image's truth
     record (kind, touch-up, the controller's detection) and notes its position."""
 
     def __init__(self, sess: Session) -> None:
@@ -156,7 +156,7 @@ def _run(simcell: SimCell, progress: Progress | None = None) -> dict[str, Any]:
     Per attempt: the faults that act before the move (:func:`_faults_before_move`),
     the large move to the planned pose (:func:`_move_to_plan_pose`), a lost target's
     occluder, the image Jacobian probe on a target's first touch-up
-    (:func:`_probe_jacobian`), the closed loop (:func:`pipeline.measure.loop.touch_up`)
+    (:func:`_probe_jacobian`), the closed loop (:func:`pipeline.live.loop.touch_up`)
     and the touch-up's truth record (:func:`_record_touchup`).
     """
     sess = simcell.sess

@@ -20,7 +20,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from pipeline.measure.protocols import F64, Frame, JointReading
+from pipeline.live.protocols import F64, Frame, JointReading
 
 NS = 1_000_000_000
 

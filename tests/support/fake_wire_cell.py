@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from pipeline.measure.protocols import Frame, JointReading, MeasureFault
+from pipeline.live.protocols import Frame, JointReading, MeasureFault
 
 NS = 1_000_000_000
 

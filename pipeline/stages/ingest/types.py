@@ -88,7 +88,7 @@ class RecordingInfo:
         :mod:`pipeline.stages.response.curve`), ``response_source`` (option, metadata,
         estimated), and the estimate's figures (``ResponseEstimate.to_dict``)
     measurement : the recording's ``measurement`` metadata record, when ``vtcal measure``
-        wrote it (:mod:`pipeline.measure.summary`: touch-ups planned, converged, given up,
+        wrote it (:mod:`pipeline.live.summary`: touch-ups planned, converged, given up,
         captures, cell and wall time), as written (strings)
     implausible : guardrail lines on the joint states
         (:func:`pipeline.guardrails.plausibility.joints_outside_chain`: a joint above the base

@@ -5,7 +5,7 @@ from __future__ import annotations
 from collections.abc import Callable
 from dataclasses import dataclass, field
 
-from pipeline.measure.protocols import Camera, JointReading, Robot
+from pipeline.live.protocols import Camera, JointReading, Robot
 
 
 @dataclass

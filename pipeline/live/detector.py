@@ -1,4 +1,4 @@
-"""vtcal's own target detector as the touch-up loop's default :data:`~pipeline.measure.loop.Detector`.
+"""vtcal's own target detector as the touch-up loop's default :data:`~pipeline.live.loop.Detector`.
 
 The frame is reduced to grey exactly as ingest reduces a recorded image
 (:func:`pipeline.io.mcap.image_to_gray`: BT.601 weights for colour), then
@@ -16,8 +16,8 @@ from collections.abc import Callable
 import numpy as np
 
 from pipeline.io.mcap import EncodedImage, image_to_gray
-from pipeline.measure.loop import Detection
-from pipeline.measure.protocols import Frame
+from pipeline.live.loop import Detection
+from pipeline.live.protocols import Frame
 from pipeline.stages.detect.detector import DetectConfig, detect_target
 from pipeline.stages.image.response_estimate import ResponseEstimate, estimate_response
 from pipeline.stages.response.curve import parse_response
@@ -55,7 +55,7 @@ class LiveDetector:
     estimator (:func:`pipeline.stages.image.response_estimate.estimate_response`) from
     the first :data:`ESTIMATE_IMAGES` captures in which the target was found,
     detected meanwhile on raw grey (linear); ``say`` is told the outcome in one
-    line. Called as a :data:`~pipeline.measure.loop.Detector`.
+    line. Called as a :data:`~pipeline.live.loop.Detector`.
 
     Attributes
     ----------

@@ -9,7 +9,7 @@ planned pose with :meth:`Robot.move_joints`, then calls
    every component of the error is under its threshold.
 
 The loop sees the cell only through the protocols of
-:mod:`pipeline.measure.protocols`, sees the image only through a
+:mod:`pipeline.live.protocols`, sees the image only through a
 :data:`Detector`, and hands every captured frame to an :data:`OnCapture`
 callback (the client records it). It holds no state between calls: what it
 learns (the Jacobian) comes back in the result.
@@ -22,7 +22,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from pipeline.measure.protocols import F64, Camera, Frame, JointReading, Robot
+from pipeline.live.protocols import F64, Camera, Frame, JointReading, Robot
 from pipeline.measurement.image import image_error
 
 #: ``(u, v, s)``: target centre and full long axis of its ellipse (px), or None (not found)

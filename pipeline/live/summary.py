@@ -12,7 +12,7 @@ import json
 from pathlib import Path
 from typing import Any
 
-from pipeline.measure.timing import PHASES
+from pipeline.live.timing import PHASES
 
 #: name of the recording's metadata record that holds :func:`as_metadata`
 METADATA_NAME = "measurement"
@@ -24,7 +24,7 @@ def summarize(
     """Counts and times of a measurement from its touch-up summaries (all sessions).
 
     ``cell_s`` is split into ``travel_s``, ``settle_s``, ``servo_s`` and ``capture_s``
-    (:mod:`pipeline.measure.timing`) when every touch-up carries its split (a
+    (:mod:`pipeline.live.timing`) when every touch-up carries its split (a
     recording resumed from an older version's does not).
     """
     conv = [t for t in touchups if t["converged"]]

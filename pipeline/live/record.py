@@ -37,8 +37,8 @@ from pipeline.errors import BadInput
 from pipeline.io import mcap as io_mcap
 from pipeline.io.fileio import atomic_write_bytes
 from pipeline.io.mcap_write import Recorder, stamp
-from pipeline.measure.protocols import Frame, JointReading
-from pipeline.measure.summary import METADATA_NAME
+from pipeline.live.protocols import Frame, JointReading
+from pipeline.live.summary import METADATA_NAME
 
 JOINT_TOPIC = "/joint_states"
 IMAGE_TOPIC = "/camera/image_raw"
@@ -180,7 +180,7 @@ class LiveRecording:
     def finish(self, measurement: dict[str, str] | None = None) -> None:
         """Write the summary and footer; mark the sidecar finished.
 
-        ``measurement``: the string map of :func:`pipeline.measure.summary.as_metadata`,
+        ``measurement``: the string map of :func:`pipeline.live.summary.as_metadata`,
         written as the metadata record ``measurement`` (how the recording was measured).
         """
         if measurement:

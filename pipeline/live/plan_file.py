@@ -16,7 +16,7 @@ import numpy as np
 
 from pipeline.errors import BadInput, VtcalError
 from pipeline.kinematics.urdf import parse_urdf
-from pipeline.measure.protocols import F64
+from pipeline.live.protocols import F64
 
 
 class PlanRefused(VtcalError):

@@ -3,7 +3,7 @@
 Everything vtcal needs from a live cell is here, and nothing vendor-specific:
 an adapter (the simulated cell, the line-based TCP protocol of docs/measure.md,
 an OpenCV capture device, a folder of image files) implements these methods and
-the touch-up loop (:mod:`pipeline.measure.loop`) does the rest.
+the touch-up loop (:mod:`pipeline.live.loop`) does the rest.
 
 Frames and units follow docs/conventions.md: joint positions in rad (m for a
 prismatic joint), flange translations in metres expressed in the flange frame,

@@ -14,7 +14,7 @@ import threading
 import time
 from collections.abc import Callable
 
-from pipeline.measure.protocols import JointReading, MeasureFault
+from pipeline.live.protocols import JointReading, MeasureFault
 
 #: default polling rate, Hz: twice the spec's minimum, so a late reply now and then
 #: still leaves every 20 ms window with a sample

@@ -1,12 +1,12 @@
 """One measuring session: the plan's poses in order, each touched up and recorded.
 
-The client of the shared loop (:mod:`pipeline.measure.loop`) that ``vtcal
+The client of the shared loop (:mod:`pipeline.live.loop`) that ``vtcal
 measure`` runs: for each pose from the first unfinished one on, a large move
 (:meth:`Robot.move_joints`), the image Jacobian at the first touch-up of each
-target (:func:`~pipeline.measure.loop.estimate_jacobian`, paper sec. 2.1; then
+target (:func:`~pipeline.live.loop.estimate_jacobian`, paper sec. 2.1; then
 carried to the target's next touch-ups, updated by the loop's own steps), the touch-up
-(:func:`~pipeline.measure.loop.touch_up`), and every frame and joint sample
-into the live recording (:mod:`pipeline.measure.record`). What the session
+(:func:`~pipeline.live.loop.touch_up`), and every frame and joint sample
+into the live recording (:mod:`pipeline.live.record`). What the session
 learns (the Jacobian) is saved with each finished touch-up, so a resumed run
 goes on with it.
 """
@@ -20,8 +20,8 @@ from typing import Any
 
 import numpy as np
 
-from pipeline.measure.cell_link import CellLink
-from pipeline.measure.loop import (
+from pipeline.live.cell_link import CellLink
+from pipeline.live.loop import (
     CaptureInfo,
     Detector,
     Goal,
@@ -30,10 +30,10 @@ from pipeline.measure.loop import (
     touch_up,
     wait_still,
 )
-from pipeline.measure.plan_file import Plan
-from pipeline.measure.protocols import Frame, MeasureFault
-from pipeline.measure.record import LiveRecording
-from pipeline.measure.timing import seconds, timed
+from pipeline.live.plan_file import Plan
+from pipeline.live.protocols import Frame, MeasureFault
+from pipeline.live.record import LiveRecording
+from pipeline.live.timing import seconds, timed
 
 NS = 1_000_000_000
 
@@ -89,7 +89,7 @@ def run_session(
     ``captures`` (probes included), ``final_error_px``, ``cell_s`` (cell clock
     from the start of the large move to the last capture), its split
     ``travel_s``, ``settle_s``, ``servo_s``, ``capture_s``
-    (:mod:`pipeline.measure.timing`; they sum to ``cell_s``) and ``wall_s``.
+    (:mod:`pipeline.live.timing`; they sum to ``cell_s``) and ``wall_s``.
 
     Raises
     ------

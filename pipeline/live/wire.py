@@ -1,7 +1,7 @@
 """The line format of the vtcal cell protocol (docs/measure.md, "The cell protocol").
 
-Shared by the client (:mod:`pipeline.measure.tcp_robot`) and the reference
-server (:mod:`pipeline.measure.tcp_server`). Every request is one ASCII line
+Shared by the client (:mod:`pipeline.live.tcp_robot`) and the reference
+server (:mod:`pipeline.live.tcp_server`). Every request is one ASCII line
 ``COMMAND arg ...`` ending in ``\\n``; every reply is one line, ``OK field ...``
 or ``ERR kind message``. A few replies are followed by a block of bytes whose
 length is the last field of the ``OK`` line: ``CAPTURE`` (``OK FRAME stamp_ns
@@ -18,7 +18,7 @@ from collections.abc import Iterable
 
 import numpy as np
 
-from pipeline.measure.protocols import ENCODINGS, FAULT_KINDS, Frame, MeasureFault
+from pipeline.live.protocols import ENCODINGS, FAULT_KINDS, Frame, MeasureFault
 
 #: what a server answers to ``HELLO``: the protocol's name and version
 PROTOCOL = "vtcal-cell"
@@ -66,7 +66,7 @@ def raise_error(line: str, command: str) -> None:
     Unsupported
         ``kind`` is ``unsupported``.
     MeasureFault
-        ``kind`` is one of :data:`~pipeline.measure.protocols.FAULT_KINDS`; any
+        ``kind`` is one of :data:`~pipeline.live.protocols.FAULT_KINDS`; any
         other kind is reported as a ``connection`` fault naming it.
     """
     _, _, rest = line.partition(" ")

@@ -1,6 +1,6 @@
 """Camera adapters: an OpenCV ``VideoCapture`` source and a folder an external tool writes into.
 
-Both implement :class:`~pipeline.measure.protocols.Camera` and stamp images
+Both implement :class:`~pipeline.live.protocols.Camera` and stamp images
 with the host clock (``time.time_ns``), the clock the TCP robot's poller
 stamps joint states with (docs/measure.md, "Clocks").
 
@@ -26,7 +26,7 @@ from typing import Any
 import cv2
 import numpy as np
 
-from pipeline.measure.protocols import Frame, MeasureFault
+from pipeline.live.protocols import Frame, MeasureFault
 
 #: file suffixes the folder camera reads
 IMAGE_SUFFIXES = (".png", ".pgm", ".ppm", ".tif", ".tiff", ".bmp", ".jpg", ".jpeg")

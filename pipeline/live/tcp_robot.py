@@ -1,13 +1,13 @@
 """The client side of the vtcal cell protocol: a :class:`Robot` and a :class:`Camera` over TCP.
 
 A controller program (URScript, RAPID, KRL, Karel, a ROS 2 node, or the
-reference server :mod:`pipeline.measure.tcp_server`) listens on a TCP port and
-answers the line commands of :mod:`pipeline.measure.wire`; vtcal imports no
+reference server :mod:`pipeline.live.tcp_server`) listens on a TCP port and
+answers the line commands of :mod:`pipeline.live.wire`; vtcal imports no
 vendor SDK. docs/measure.md, "The cell protocol", is the reference.
 
 Joint states for the recording come from ``JOINTLOG?`` when the server answers
 it (samples the controller logged, on its own clock) and otherwise from a
-:class:`~pipeline.measure.joint_poller.JointPoller` reading ``JOINTS?`` at
+:class:`~pipeline.live.joint_poller.JointPoller` reading ``JOINTS?`` at
 100 Hz over a second connection (so polling goes on while a move blocks the
 first one).
 """
@@ -21,9 +21,9 @@ from urllib.parse import urlsplit
 
 import numpy as np
 
-from pipeline.measure import wire
-from pipeline.measure.joint_poller import JointPoller
-from pipeline.measure.protocols import F64, Frame, JointReading, MeasureFault
+from pipeline.live import wire
+from pipeline.live.joint_poller import JointPoller
+from pipeline.live.protocols import F64, Frame, JointReading, MeasureFault
 
 #: seconds a query (everything but a move or a capture) may take
 QUERY_TIMEOUT_S = 5.0
@@ -106,7 +106,7 @@ class TcpLink:
 
 
 class TcpRobot:
-    """:class:`~pipeline.measure.protocols.Robot` over the cell protocol.
+    """:class:`~pipeline.live.protocols.Robot` over the cell protocol.
 
     Parameters
     ----------
@@ -265,7 +265,7 @@ class TcpRobot:
 
 
 class TcpCamera:
-    """:class:`~pipeline.measure.protocols.Camera` over the cell protocol's ``CAPTURE``.
+    """:class:`~pipeline.live.protocols.Camera` over the cell protocol's ``CAPTURE``.
 
     Shares the robot's connection when given it (one link for a cell whose
     controller also serves the camera).

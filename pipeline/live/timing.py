@@ -34,7 +34,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from pipeline.measure.protocols import F64, Camera, Frame, JointReading, Robot
+from pipeline.live.protocols import F64, Camera, Frame, JointReading, Robot
 
 #: the phases of a touch-up's time, in the order they are reported
 PHASES = ("travel", "settle", "servo", "capture")
@@ -105,7 +105,7 @@ class PhaseClock:
 
 
 class TimedRobot:
-    """A :class:`~pipeline.measure.protocols.Robot` that notes its calls on a :class:`PhaseClock`."""
+    """A :class:`~pipeline.live.protocols.Robot` that notes its calls on a :class:`PhaseClock`."""
 
     def __init__(self, robot: Robot, clock: PhaseClock) -> None:
         self.inner = robot
@@ -147,7 +147,7 @@ class TimedRobot:
 
 
 class TimedCamera:
-    """A :class:`~pipeline.measure.protocols.Camera` that marks the start of each exposure."""
+    """A :class:`~pipeline.live.protocols.Camera` that marks the start of each exposure."""
 
     def __init__(self, camera: Camera, robot: TimedRobot) -> None:
         self.inner = camera

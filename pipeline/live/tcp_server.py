@@ -6,7 +6,7 @@ protocol"). One thread per connection (the client polls ``JOINTS?`` on a
 second connection while a move blocks the first); one lock around the cell, so
 the robot and camera see one call at a time.
 
-A :class:`~pipeline.measure.protocols.MeasureFault` of the cell becomes
+A :class:`~pipeline.live.protocols.MeasureFault` of the cell becomes
 ``ERR kind message``; any other exception closes the connection (what a
 crashed controller program does), which the client reports as a lost
 connection.
@@ -22,8 +22,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from pipeline.measure import wire
-from pipeline.measure.protocols import Camera, JointReading, MeasureFault, Robot
+from pipeline.live import wire
+from pipeline.live.protocols import Camera, JointReading, MeasureFault, Robot
 
 
 @dataclass
