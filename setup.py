@@ -4,7 +4,7 @@ in the wheel, and the detector compiled into the wheel.
 The repository keeps ``schemas/``, ``reports/`` and ``spec/`` (the file contracts:
 recording, touch-up table, outputs) beside ``pipeline/``; a wheel carries them inside the
 package as ``pipeline/_data/schemas``, ``pipeline/_data/reports`` and ``pipeline/_data/spec``,
-where :mod:`pipeline.resources` looks when no checkout is beside the package.
+where :mod:`pipeline.io.resources` looks when no checkout is beside the package.
 
 Building the package (``pip install .``, ``pip wheel .``) also compiles the detector's
 numba code once (:mod:`pipeline.stages.detect.precompile`, with the response estimate's
