@@ -249,12 +249,13 @@ def vtcal_identify(
 
         by_urdf.run_dir = out  # type: ignore[attr-defined]
         return by_urdf, seconds, shipped or model
-    params = pd.read_parquet(out / "parameters.parquet")
-    params = params[params["model"] == model]
+    from pipeline.use.record import parameter_vector
+
     em = get_model(model)(load_chain(nominal_urdf(model).read_text(), BASE, TCP))
-    value = dict(zip(params["name"], params["value"], strict=True))
-    x = np.array([value[n] for n in em.param_names])
-    pin = np.array([value[f"pin.{a}"] for a in "xyz"])
+    xs, pins = parameter_vector(
+        pd.read_parquet(out / "parameters.parquet"), model, list(em.param_names)
+    )
+    x, pin = np.array(xs), np.array(pins)
 
     def predict(q: np.ndarray) -> np.ndarray:
         return em.pin_and_jacobian(x, q, pin, jac=False)[0]

@@ -190,11 +190,8 @@ def predicted_points(chain: Chain, pin: F64, data: Touchups) -> F64:
 def model_points(cal: Any, data: Touchups) -> F64:
     """(V1) with the forward map of a run's calibration.json model (:mod:`pipeline.use`):
     ``x_i = R_i (p + d_i) + t_i`` with ``(R_i, t_i)`` its flange pose (compliance included)."""
-    pred = cal.forward(data.q)
-    T = pred.T_base_flange
-    return np.asarray(
-        np.einsum("nij,nj->ni", T[:, :3, :3], cal.p_flange_pin + data.d) + T[:, :3, 3]
-    )
+    p, _ = cal.pin_and_rotation(data.q, point=cal.p_flange_pin + data.d)  # per-row points
+    return np.asarray(p)
 
 
 def consistency(points: F64, tk: np.ndarray, K: int) -> tuple[F64, F64, F64]:

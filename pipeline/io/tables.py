@@ -14,9 +14,12 @@ import pandas as pd
 
 from pipeline.errors import BadInput
 
+#: suffixes read and written as Parquet (anything else a table reader takes is CSV)
+PARQUET_SUFFIXES = (".parquet", ".pq")
 
-def read_table(path: Path) -> pd.DataFrame:
-    """A touch-up table from ``.csv`` or ``.parquet``.
+
+def read_table(path: Path, what: str = "touch-up table") -> pd.DataFrame:
+    """A table from ``.csv`` or ``.parquet``; ``what`` names it in the errors.
 
     Raises
     ------
@@ -27,16 +30,16 @@ def read_table(path: Path) -> pd.DataFrame:
     try:
         if suffix == ".csv":
             df = _read_csv(path)
-        elif suffix in (".parquet", ".pq"):
+        elif suffix in PARQUET_SUFFIXES:
             df = pd.read_parquet(path)
         else:
-            raise BadInput(f"{path}: touch-up table must be .csv or .parquet, not {suffix!r}")
+            raise BadInput(f"{path}: {what} must be .csv or .parquet, not {suffix!r}")
     except BadInput:
         raise
     except Exception as exc:  # pandas/pyarrow raise many types for a bad file
-        raise BadInput(f"{path}: not a readable touch-up table: {exc}") from exc
+        raise BadInput(f"{path}: not a readable {what}: {exc}") from exc
     if df.empty:
-        raise BadInput(f"{path}: the touch-up table has no rows")
+        raise BadInput(f"{path}: the {what} has no rows")
     return df
 
 

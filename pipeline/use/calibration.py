@@ -103,6 +103,7 @@ class Calibration:
         self.upper = np.array([ranges.get(j, [-np.inf, np.inf])[1] for j in self.joint_names])
         self.limit_lower = np.asarray(self.chain.lower, dtype=float)
         self.limit_upper = np.asarray(self.chain.upper, dtype=float)
+        self._payload_models: dict[float, Any] = {}  # one model instance per payload
 
     @property
     def has_payload(self) -> bool:
@@ -112,16 +113,19 @@ class Calibration:
     def _with_payload(self, payload_kg: float | None) -> Any:
         """The error model with ``payload_kg`` at the flange (None: as in training).
 
-        A payload gets a model instance of its own: the shared one keeps the
-        training payload.
+        A payload gets a model instance of its own, made once (the inverse evaluates
+        the model many times per row): the shared one keeps the training payload.
         """
         if payload_kg is None or not self.has_payload:
             return self.error_model
-        from pipeline.models import get_model
+        kg = float(payload_kg)
+        if kg not in self._payload_models:
+            from pipeline.models import get_model
 
-        em: Any = get_model(self.model)(self.chain)
-        em.set_payload(float(payload_kg))
-        return em
+            em: Any = get_model(self.model)(self.chain)
+            em.set_payload(kg)
+            self._payload_models[kg] = em
+        return self._payload_models[kg]
 
     def pin_and_rotation(
         self, q: ArrayLike, payload_kg: float | None = None, point: ArrayLike | None = None
@@ -166,10 +170,9 @@ class Calibration:
         q2 = self.as_joints(q)
         em = self._with_payload(payload_kg)
         p, R, J = em.pin_and_jacobian(self.x, q2, self.p_flange_pin, jac=True)
-        p0, _, _ = em.pin_and_jacobian(self.x, q2, np.zeros(3), jac=False)
         T = np.tile(np.eye(4), (len(q2), 1, 1))
         T[:, :3, :3] = R
-        T[:, :3, 3] = p0
+        T[:, :3, 3] = p - R @ self.p_flange_pin  # the flange origin: (U1) solved for t(q)
         if self._cov.size and J is not None:
             parts = [J[:, :, self._kin_cols]] if self._kin_cols.size else []
             if self._n_pin:

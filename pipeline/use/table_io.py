@@ -7,7 +7,7 @@ number is one line naming the file, the row and the column.
 
 Out: the declared schemas ``schemas/predictions.json`` and
 ``schemas/compensated.json``, checked on write, written all-or-nothing
-(Parquet for ``.parquet``, CSV otherwise): an existing file is replaced only
+(Parquet for ``.parquet`` / ``.pq``, CSV otherwise): an existing file is replaced only
 by a complete one.
 """
 
@@ -21,18 +21,12 @@ import pandas as pd
 
 from pipeline.errors import BadInput
 
-#: output suffixes written as Parquet; anything else is CSV
-PARQUET = (".parquet", ".pq")
-
 
 def read_rows(path: Path) -> pd.DataFrame:
     """A table of joint vectors or targets (CSV or Parquet), as the user wrote it."""
     from pipeline.io.tables import read_table
 
-    try:
-        return read_table(path)
-    except BadInput as exc:
-        raise BadInput(str(exc).replace("touch-up table", "table")) from exc
+    return read_table(path, "table")
 
 
 def joint_matrix(
@@ -82,8 +76,9 @@ def write_rows(path: Path, df: pd.DataFrame, schema: str, stage: str) -> None:
     """Write ``df`` to ``path`` under the declared ``schema`` (Parquet or CSV), all or nothing."""
     from pipeline.io.artefacts import load_schema, write_artefact
     from pipeline.io.fileio import atomic_write_bytes
+    from pipeline.io.tables import PARQUET_SUFFIXES
 
-    if path.suffix.lower() in PARQUET:
+    if path.suffix.lower() in PARQUET_SUFFIXES:
         write_artefact(path, df, schema, stage=stage)
         return
     sch = load_schema(schema)

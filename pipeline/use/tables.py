@@ -37,10 +37,14 @@ def predict_rows(cal: Any, q: F64, payload: F64) -> pd.DataFrame:
     T = np.empty((N, 4, 4))
     pin = np.empty((N, 3))
     sigma = np.empty(N)
+    inside = np.empty(N, dtype=bool)
+    outside = [""] * N
     for kg, idx in _groups(payload):
         pr = cal.forward(q[idx], payload_kg=kg)
         T[idx], pin[idx], sigma[idx] = pr.T_base_flange, pr.p_base_pin, pr.sigma_pin_m
-    inside, outside = cal.covers(q)
+        inside[idx] = pr.inside
+        for i, names in zip(idx, pr.outside, strict=True):
+            outside[i] = names
     quat = Rotation.from_matrix(T[:, :3, :3]).as_quat()  # x, y, z, w
     df = pd.DataFrame({"row": np.arange(N, dtype=np.int64), "payload_kg": payload})
     for j, name in enumerate(cal.joint_names):
@@ -72,11 +76,14 @@ def compensate_rows(cal: Any, T: F64, q0: F64, point: str, payload: F64) -> pd.D
     q = np.empty_like(q0)
     res_m, res_rad = np.empty(N), np.empty(N)
     conv, within = np.empty(N, dtype=bool), np.empty(N, dtype=bool)
+    inside = np.empty(N, dtype=bool)
+    outside = [""] * N
     for kg, idx in _groups(payload):
         sol = cal.inverse(T[idx], q0[idx], point=point, payload_kg=kg)
         q[idx], res_m[idx], res_rad[idx] = sol.q, sol.residual_m, sol.residual_rad
-        conv[idx], within[idx] = sol.converged, sol.within_limits
-    inside, outside = cal.covers(q)
+        conv[idx], within[idx], inside[idx] = sol.converged, sol.within_limits, sol.inside
+        for i, names in zip(idx, sol.outside, strict=True):
+            outside[i] = names
     df = pd.DataFrame({"row": np.arange(N, dtype=np.int64), "point": point, "payload_kg": payload})
     for a, i in zip("xyz", range(3), strict=True):
         df[f"target_{a}_m"] = T[:, i, 3]
