@@ -12,6 +12,7 @@ import, so the test can fail.
 from __future__ import annotations
 
 import ast
+from collections.abc import Callable
 from pathlib import Path
 
 PACKAGE = Path(__file__).resolve().parent.parent / "pipeline"
@@ -116,17 +117,19 @@ def test_the_package_has_no_import_cycle() -> None:
     assert cycles(edges) == []
 
 
-def package_edges(edges: dict[str, set[str]]) -> dict[str, set[str]]:
-    """The import graph between packages: ``pipeline.X`` for every module of subpackage ``X``,
-    a top-level module ``pipeline.m`` as itself (issue 37)."""
-
-    def node(m: str) -> str:
-        return ".".join(m.split(".")[:2])
-
+def _collapsed(edges: dict[str, set[str]], node: Callable[[str], str]) -> dict[str, set[str]]:
+    """The graph of ``edges`` with each module replaced by ``node(module)`` (no self-loops)."""
     out: dict[str, set[str]] = {}
     for a, bs in edges.items():
         out.setdefault(node(a), set()).update(node(b) for b in bs if node(b) != node(a))
     return out
+
+
+def package_edges(edges: dict[str, set[str]]) -> dict[str, set[str]]:
+    """The import graph between packages: ``pipeline.X`` for every module of subpackage ``X``,
+    a top-level module ``pipeline.m`` as itself (issue 37)."""
+
+    return _collapsed(edges, lambda m: ".".join(m.split(".")[:2]))
 
 
 def test_no_package_import_cycle() -> None:
@@ -150,10 +153,7 @@ def subpackage_edges(edges: dict[str, set[str]], packages: set[str]) -> dict[str
         parent = m.rsplit(".", 1)[0]
         return m if m in packages or "." not in parent else parent  # top-level: itself
 
-    out: dict[str, set[str]] = {}
-    for a, bs in edges.items():
-        out.setdefault(node(a), set()).update(node(b) for b in bs if node(b) != node(a))
-    return out
+    return _collapsed(edges, node)
 
 
 def test_no_subpackage_import_cycle() -> None:
