@@ -77,6 +77,7 @@ from pipeline.stages.touchup.jacobian import estimate_jacobian, pair_scatters, s
 from pipeline.stages.touchup.noise import capture_noise, pose_noise
 from pipeline.stages.touchup.rows import final_shapes, touchup_row
 from pipeline.stages.touchup.segments import final_block, loop_starts, relative_poses, segments
+from pipeline.stages.touchup.servo_target import loop_steps, servo_target
 from pipeline.stages.touchup.targets import group_targets
 from pipeline.stages.touchup.tilt import tilt_bias
 from pipeline.stages.touchup.types import Captures, Designated, Tilt
@@ -119,6 +120,9 @@ class TouchupConfig:
     ransac_samples: int = 400
     seed: int = 0
     tilt_correction: bool = True
+    #: designated values missing from the metadata read from the loops' steps (D1)-(D2)
+    #: rather than the medians at the final captures
+    designated_from_steps: bool = True
 
     def to_dict(self) -> dict[str, Any]:
         return asdict(self)
@@ -170,11 +174,15 @@ def _designated(
     c: Captures,
     config: TouchupConfig,
     path: Any,
+    loops: list[np.ndarray] | None = None,
 ) -> Designated:
     """The designated centre and size and the thresholds: from the metadata, else inferred.
 
     A size missing from the metadata, and a centre ``inferred`` marks as guessed,
-    are the medians at the good final captures; a missing threshold is the
+    are where the loops aimed, read from their steps
+    (:func:`pipeline.stages.touchup.servo_target.servo_target`, (D1)-(D2)), or,
+    when the steps cannot tell (fewer than a dozen, or no contracting loop),
+    the medians at the good final captures; a missing threshold is the
     config's default. What is inferred is written to ``meta`` and ``inferred``.
     """
     u0 = _meta_float(meta, "designated_u")
@@ -184,7 +192,23 @@ def _designated(
     thr_s = _meta_float(meta, "threshold_size_px")
     if s0 is None or "designated_u" in inferred:
         fin_good = np.array([i for b in finals for i in b if c.good[i]], dtype=np.int64)
-        if len(fin_good):
+        aim = None
+        if loops is not None and config.designated_from_steps:
+            m = np.stack([c.u, c.v, c.s], axis=1)
+            mk, dm = loop_steps(loops, c.T, m, config.same_pose_rad, config.same_pose_m)
+            aim = servo_target(mk, dm)
+        if aim is not None:
+            how = f"where the loops aimed, from {aim.n_steps} loop steps"
+            if s0 is None:
+                s0 = float(aim.m0[2])
+                meta["designated_size_px"] = repr(s0)
+                inferred["designated_size_px"] = f"{s0:.3f} ({how}, +- {aim.sd[2]:.3f})"
+            if "designated_u" in inferred:
+                u0, v0 = float(aim.m0[0]), float(aim.m0[1])
+                meta["designated_u"], meta["designated_v"] = repr(u0), repr(v0)
+                inferred["designated_u"] = f"{u0:.3f} ({how}, +- {aim.sd[0]:.3f})"
+                inferred["designated_v"] = f"{v0:.3f} ({how}, +- {aim.sd[1]:.3f})"
+        elif len(fin_good):
             if s0 is None:
                 s0 = float(np.median(c.s[fin_good]))
                 meta["designated_size_px"] = repr(s0)
@@ -356,8 +380,12 @@ def extract_touchups(
     )
     same = {"same_pose_rad": config.same_pose_rad, "same_pose_m": config.same_pose_m}
     finals = [final_block(fr, c.T, c.still, **same) for fr in seg_frames]
-    des = _designated(meta, inferred, finals, c, config, info.path)
     loop_start = loop_starts(seg_frames, c.T, c.still, **same)
+    loops = [
+        np.array([i for i in fr if i >= start and c.still[i] and c.good[i]], dtype=np.int64)
+        for fr, start in zip(seg_frames, loop_start, strict=True)
+    ]
+    des = _designated(meta, inferred, finals, c, config, info.path, loops)
     # 4. targets and the pin estimate (final poses), then 3. the image Jacobian at the pin
     rep = _representatives(seg_frames, finals, c)
     labels, p_pin = group_targets(
