@@ -50,3 +50,41 @@ def test_light_on_dark_polarity() -> None:
     img = np.round(240.0 - _disc(70.0, 60.0, 30.0)).astype(np.uint8)
     det = vtcal_detector("light_on_dark")(Frame(img, 1, "mono8"), None)
     assert det is not None and det[0] == pytest.approx(70.0, abs=0.05)
+
+
+def _srgb_disc(u: float, v: float, d: float) -> np.ndarray:
+    """The disc of :func:`_disc` as an sRGB camera encodes it (blurred edge, then the curve)."""
+    import cv2
+
+    lin = cv2.GaussianBlur(_disc(u, v, d) / 255.0, (0, 0), 1.0)
+    enc = np.where(lin <= 0.0031308, 12.92 * lin, 1.055 * lin ** (1 / 2.4) - 0.055)
+    return np.round(255.0 * enc).astype(np.uint8)
+
+
+def test_a_resumed_measurement_keeps_the_response_it_learned() -> None:
+    """An undeclared response is estimated from the first clean captures (detected on raw
+    grey meanwhile); a resumed session takes the estimate from the progress state instead
+    of detecting its next captures on raw grey again, and a declared one stays."""
+    frames = [Frame(_srgb_disc(80.0 + 0.3 * k, 60.0 - 0.2 * k, 40.0), k, "mono8") for k in range(7)]
+    first = vtcal_detector("dark_on_light", size_px=40.0, response="auto")
+    raw = first(frames[0], (80.0, 60.0))
+    assert first.source == "pending" and first.learned() == {}
+    for f in frames[1:]:
+        first(f, (80.0, 60.0))
+    assert first.source == "estimated" and first.learned() == {"camera_response": "srgb"}
+
+    said: list[str] = []
+    again = vtcal_detector("dark_on_light", size_px=40.0, response="auto", say=said.append)
+    again.resume(first.learned())
+    assert again.source == "estimated" and again.response == "srgb"
+    assert "before the interruption" in said[0]
+    det = again(frames[0], (80.0, 60.0))
+    assert det is not None and raw is not None
+    # the same capture read with the curve, not on raw grey: the size the loop stops on
+    assert det[2] == pytest.approx(40.0, abs=0.05) and abs(raw[2] - 40.0) > 0.2
+    assert det == first(frames[0], (80.0, 60.0))
+
+    declared = vtcal_detector("dark_on_light", response="linear")
+    declared.resume({"camera_response": "srgb"})
+    assert declared.source == "declared" and declared.response == "linear"
+    assert declared.learned() == {}

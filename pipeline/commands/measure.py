@@ -256,6 +256,7 @@ def _measure_into(
     t0 = link.robot.read_joints().stamp_ns
     rec = open_recording(out, urdf, meta, plan.sha256, len(plan), t0)
     if rec.progress.sessions > 1:
+        detect.resume(rec.progress.state)  # a response estimated before stays
         behind = rec.progress.safe_log_ns - link.robot.read_joints().stamp_ns
         if behind >= 0:  # a cell whose clock restarted (a simulated one): let it pass
             link.robot.wait(behind / 1e9 + 1.0)

@@ -11,7 +11,8 @@ designated values as the pipeline will later measure them.
 from __future__ import annotations
 
 import dataclasses
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
+from typing import Any
 
 import numpy as np
 
@@ -111,6 +112,32 @@ class LiveDetector:
                     return None
         self._last_size = float(r["s"])
         return (float(r["u"]), float(r["v"]), float(r["s"]))
+
+    def learned(self) -> dict[str, str]:
+        """What a resumed measurement keeps: the response estimated (empty while pending or
+        when declared, which the cell's ``META?`` or ``--set`` gives again)."""
+        if self.source != "estimated":
+            return {}
+        return {"camera_response": self.config.response}
+
+    def resume(self, learned: Mapping[str, Any]) -> None:
+        """Take the response an earlier session of the same recording estimated.
+
+        A resumed measurement must not detect its next captures on raw grey again while
+        it re-learns a curve it already knew (its loop would stop at another size than
+        before the interruption); a declared response stays as declared.
+        """
+        spec = learned.get("camera_response")
+        if self.source != "pending" or not spec:
+            return
+        fixed = parse_response(str(spec))
+        if fixed is None:
+            return
+        self._held.clear()
+        self.source = "estimated"
+        self.config = dataclasses.replace(self.config, response=fixed.spec)
+        if self._say is not None:
+            self._say(f"camera response {fixed.spec}: as estimated before the interruption")
 
     def _estimate(self) -> None:
         """Estimate the response from the held captures (the offline estimator, as it is)."""

@@ -153,6 +153,8 @@ def run_session(
             {
                 "jacobians": {str(k): v.tolist() for k, v in jacobians.items()},
                 "lost_in_a_row": lost_in_a_row,
+                # what the detector learned (an estimated camera response), kept on resume
+                **(learned() if callable(learned := getattr(detect, "learned", None)) else {}),
             },
         )
         report(Event("done", i, len(plan), tid, res.final_error_px, res.reason))
