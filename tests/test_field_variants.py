@@ -666,3 +666,58 @@ def test_target_ids_survive_a_plan_that_visits_them_out_of_order(tmp_path, capsy
     assert a.equals(b)
     summary = json.loads((outs["names"] / "identify.json").read_text())
     assert summary.get("distances_dropped", []) == [], summary.get("distances_dropped")
+
+
+# ------------------------------------------------------------ level-of-detail images
+
+LOD_TOML = (
+    SMALL_TOML.replace("width = 160", "width = 320")
+    .replace("height = 128", "height = 256")
+    .replace("f_px = 300.0", "f_px = 600.0")
+)
+
+
+def test_level_of_detail_images_are_read_in_the_sensors_pixels(tmp_path, capsys):
+    """Every other capture sent at half resolution (area-averaged, as a recorder's
+    level-of-detail stream): each is detected at its own size and mapped to the full
+    size's pixels (L1), so its centre and long axis agree with the full-resolution
+    recording's within a tenth of a pixel, and the calibration is as good (1.2x)."""
+    import cv2
+    import pandas as pd
+
+    from pipeline.accuracy.evaluate import judge_run
+
+    rec, truth = simulated(tmp_path, seed=2, toml=LOD_TOML)
+    seen = [0]
+
+    def half(topic: str, msg: dict):
+        if "image" not in topic:
+            return msg
+        grey = png_grey(msg)
+        seen[0] += 1
+        if seen[0] % 2 == 0:
+            grey = cv2.resize(
+                grey, (grey.shape[1] // 2, grey.shape[0] // 2), interpolation=cv2.INTER_AREA
+            )
+        return raw_image(msg, grey, "mono8")
+
+    variant = rewrite(rec, tmp_path / "lod.mcap", half)
+    runs = {}
+    for name, r in (("full", rec), ("lod", variant)):
+        out = tmp_path / name
+        code, err = _run(r, out, capsys, "--until", "crossval")
+        assert code == 0 and not err, err
+        runs[name] = out
+    full = pd.read_parquet(runs["full"] / "detections.parquet")
+    lod = pd.read_parquet(runs["lod"] / "detections.parquet")
+    both = full["found"] & lod["found"]
+    halved = np.zeros(len(full), bool)
+    halved[1::2] = True
+    assert (both & halved).sum() > 20
+    for col, tol in (("u", 0.1), ("v", 0.1), ("s", 0.1)):
+        d = (lod[col] - full[col])[both & halved].abs()
+        assert float(d.median()) < tol / 2 and float(d.max()) < 3 * tol, (col, d.describe())
+    info = json.loads((runs["lod"] / "recording.json").read_text())
+    assert (info["image_width"], info["image_height"]) == (320, 256)
+    ref = judge_run(runs["full"], truth, 300, 1)["after"]["shape_rms_m"]
+    assert judge_run(runs["lod"], truth, 300, 1)["after"]["shape_rms_m"] <= 1.2 * ref

@@ -65,8 +65,9 @@ def bin_image(grey: np.ndarray, b: int) -> np.ndarray:
     return np.rint(np.clip(out, 0, 65535)).astype(np.uint16)
 
 
-def unbin(det: dict[str, Any], b: int) -> dict[str, Any]:
-    """A detection on a ``b``-binned image in full-resolution pixels (see the module doc)."""
+def unbin(det: dict[str, Any], b: float) -> dict[str, Any]:
+    """A detection on a ``b``-binned image in full-resolution pixels (see the module doc;
+    ``b`` need not be whole: an image scaled down by any factor maps the same way)."""
     if b <= 1:
         return det
     out = dict(det)

@@ -48,6 +48,7 @@ from pipeline.kinematics.urdf import RobotDescription, chain_joints, parse_urdf
 from pipeline.stages.detect.detector import DetectConfig
 from pipeline.stages.image.binning import unbin
 from pipeline.stages.image.flat_field import CropStore, correct_flat_field
+from pipeline.stages.image.image_scale import to_reference
 from pipeline.stages.ingest.image_worker import ImageWorker
 from pipeline.stages.ingest.joints import (
     arm_joint_names,
@@ -519,7 +520,9 @@ def _tables(
     order_img = np.argsort(img_log_a, kind="stable")
     stamps = np.asarray(s.img_stamp, dtype=np.int64)[order_img]
     frames = frame_table(stamps, img_log_a[order_img], J_t, Q, chain_names, config)
-    det_df = pd.DataFrame([unbin(rows[i], s.bin) for i in order_img])
+    ref = (s.height, s.width)
+    shapes = s.shapes if len(s.shapes) == len(rows) else [ref] * len(rows)
+    det_df = pd.DataFrame([to_reference(unbin(rows[i], s.bin), shapes[i], ref) for i in order_img])
     det_df.insert(0, "frame_index", np.arange(len(rows), dtype=np.int64))
     det_df["reason"] = det_df["reason"].astype(str)
     n_gap = int(frames["joint_gap"].sum())

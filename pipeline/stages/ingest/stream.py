@@ -79,6 +79,9 @@ class Streamed:
     bits, bits_note : the sample depth of 16-bit images (0: none seen), inferred from
         the first one's largest value (:func:`pipeline.io.mcap.significant_bits`), and
         how it was inferred
+    shapes : each image's ``(H, W)`` as decoded ((0, 0) when it was not): detections are in
+        that image's pixels until :func:`pipeline.stages.image.image_scale.to_reference`
+        maps them to the largest size's (level-of-detail images)
     bin, bin_note : the binning factor images are detected at (0: no image yet; detections
         in ``rows`` are in binned pixels until :func:`pipeline.stages.image.binning.unbin`) and why
     polarity_votes : without a declared polarity, how many images automatic detection read
@@ -108,6 +111,7 @@ class Streamed:
     bin: int = 0
     bin_note: str = ""
     polarity_votes: dict[str, int] = field(default_factory=dict)
+    shapes: list[tuple[int, int]] = field(default_factory=list)
     probe_raw: list[dict[str, Any]] = field(default_factory=list)
 
 
@@ -189,10 +193,19 @@ def _take_image(
         det = {kk: v for kk, v in zip(RESULT_KEYS, _nan_row(), strict=True)}
         det["reason"] = f"decode_failed: {exc}"[:120]
         grey = None
+        s.shapes.append((0, 0))
     if grey is not None and grey.dtype == np.uint16:
         grey = _full_range(grey, k, s)
     if grey is not None:
-        s.height, s.width = grey.shape
+        shape = (int(grey.shape[0]), int(grey.shape[1]))
+        last = next((sh for sh in reversed(s.shapes) if sh[0] > 0), shape)
+        if shape != last and s.expected is not None:  # a level-of-detail image: rescale
+            f = shape[1] / last[1]
+            u, v, sz = s.expected
+            s.expected = (f * u + 0.5 * (f - 1), f * v + 0.5 * (f - 1), f * sz)
+        s.shapes.append(shape)
+        if shape[0] * shape[1] > s.height * s.width:  # the reference: the largest size
+            s.height, s.width = shape
         if s.bin == 0:  # decided once, on the first image (pipeline.stages.image.binning)
             s.bin, s.bin_note = choose_binning(grey, s.dcfg)
         grey = bin_image(grey, s.bin)
@@ -207,7 +220,8 @@ def _take_image(
             det = detect_target(grey, s.dcfg, s.expected)
             if det["found"] and det["quality_ok"]:
                 s.expected = (det["u"], det["v"], det["s"])
-                s.crops.add(k, grey, det)
+                if shape == (s.height, s.width):  # the sensor's gain: its own pixels only
+                    s.crops.add(k, grey, det)
     s.rows.append(det)
     n_held = len(s.probing) if s.probing is not None else 0
     if n_held >= RESPONSE_PROBE_IMAGES and n_held % RESPONSE_PROBE_IMAGES == 0:
