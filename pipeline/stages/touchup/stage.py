@@ -77,7 +77,7 @@ from pipeline.stages.touchup.jacobian import estimate_jacobian, pair_scatters, s
 from pipeline.stages.touchup.noise import capture_noise, pose_noise
 from pipeline.stages.touchup.rows import final_shapes, touchup_row
 from pipeline.stages.touchup.segments import final_block, loop_starts, relative_poses, segments
-from pipeline.stages.touchup.servo_target import loop_steps, servo_target
+from pipeline.stages.touchup.servo_target import ServoTarget, loop_steps, servo_target
 from pipeline.stages.touchup.targets import group_targets
 from pipeline.stages.touchup.tilt import tilt_bias
 from pipeline.stages.touchup.types import Captures, Designated, Tilt
@@ -167,6 +167,21 @@ def _captures(frames: pd.DataFrame, detections: pd.DataFrame, info: Any) -> Capt
     )
 
 
+def _loop_aim(loops: list[np.ndarray], c: Captures, config: TouchupConfig) -> ServoTarget | None:
+    """Where the touch-up loops aimed, read from their steps (:mod:`.servo_target`, (D1)-(D2)).
+
+    It stands in for designated values the recording lacks, and beside declared ones it
+    tells the loop's own measure from vtcal's: a loop whose detector reads the size
+    ``b`` px differently from vtcal's aims ``b`` px off the declared size in vtcal's
+    measure (touchups.parquet's ``designated`` metadata keeps both).
+    """
+    if not config.designated_from_steps:
+        return None
+    m = np.stack([c.u, c.v, c.s], axis=1)
+    mk, dm = loop_steps(loops, c.T, m, config.same_pose_rad, config.same_pose_m)
+    return servo_target(mk, dm)
+
+
 def _designated(
     meta: dict[str, str],
     inferred: dict[str, str],
@@ -174,14 +189,13 @@ def _designated(
     c: Captures,
     config: TouchupConfig,
     path: Any,
-    loops: list[np.ndarray] | None = None,
+    aim: ServoTarget | None = None,
 ) -> Designated:
     """The designated centre and size and the thresholds: from the metadata, else inferred.
 
     A size missing from the metadata, and a centre ``inferred`` marks as guessed,
-    are where the loops aimed, read from their steps
-    (:func:`pipeline.stages.touchup.servo_target.servo_target`, (D1)-(D2)), or,
-    when the steps cannot tell (fewer than a dozen, or no contracting loop),
+    are where the loops aimed (``aim``, :func:`_loop_aim`), or, when the steps
+    cannot tell (too few, or no contracting loop),
     the medians at the good final captures; a missing threshold is the
     config's default. What is inferred is written to ``meta`` and ``inferred``.
     """
@@ -192,11 +206,6 @@ def _designated(
     thr_s = _meta_float(meta, "threshold_size_px")
     if s0 is None or "designated_u" in inferred:
         fin_good = np.array([i for b in finals for i in b if c.good[i]], dtype=np.int64)
-        aim = None
-        if loops is not None and config.designated_from_steps:
-            m = np.stack([c.u, c.v, c.s], axis=1)
-            mk, dm = loop_steps(loops, c.T, m, config.same_pose_rad, config.same_pose_m)
-            aim = servo_target(mk, dm)
         if aim is not None:
             how = f"where the loops aimed, from {aim.n_steps} loop steps"
             if s0 is None:
@@ -385,7 +394,8 @@ def extract_touchups(
         np.array([i for i in fr if i >= start and c.still[i] and c.good[i]], dtype=np.int64)
         for fr, start in zip(seg_frames, loop_start, strict=True)
     ]
-    des = _designated(meta, inferred, finals, c, config, info.path, loops)
+    aim = _loop_aim(loops, c, config)
+    des = _designated(meta, inferred, finals, c, config, info.path, aim)
     # 4. targets and the pin estimate (final poses), then 3. the image Jacobian at the pin
     rep = _representatives(seg_frames, finals, c)
     labels, p_pin = group_targets(
@@ -426,6 +436,20 @@ def extract_touchups(
         "threshold_px": des.thr,
         "threshold_size_px": des.thr_s,
     }
+    if aim is not None:  # the loops' own aim, and its offset from the values used
+        table.attrs["designated"]["loop_aim"] = {
+            "u": float(aim.m0[0]),
+            "v": float(aim.m0[1]),
+            "s": float(aim.m0[2]),
+            "sd_px": [float(x) for x in aim.sd],
+            "minus_used_px": [
+                float(aim.m0[0] - des.u0),
+                float(aim.m0[1] - des.v0),
+                float(aim.m0[2] - des.s0),
+            ],
+            "n_steps": aim.n_steps,
+            "gain": aim.gain,
+        }
     table.attrs["n_jacobian_pairs"] = len(pair_seg)
     table.attrs["settle"] = settled
     captured = capture_noise(uses, c.u, c.v, c.s, J_global, des.s0)
