@@ -62,6 +62,21 @@ def _images(convert: Callable[[np.ndarray], tuple[np.ndarray, str]]) -> Any:
     return edit
 
 
+def _every_other_halved() -> Any:
+    """Level-of-detail images: every other capture at half size (area means), mono8."""
+    import cv2
+
+    seen = [0]
+
+    def convert(g: np.ndarray) -> tuple[np.ndarray, str]:
+        seen[0] += 1
+        if seen[0] % 2 == 0:
+            g = cv2.resize(g, (g.shape[1] // 2, g.shape[0] // 2), interpolation=cv2.INTER_AREA)
+        return g, "mono8"
+
+    return _images(convert)
+
+
 def to_12bit(g: np.ndarray) -> np.ndarray:
     """8-bit grey as a 12-bit sensor would give it (0-4095) in a uint16."""
     return np.rint(g.astype(np.float64) * (4095.0 / 255.0)).astype(np.uint16)
@@ -73,6 +88,7 @@ VARIANTS: dict[str, Any] = {
     "mono16 (12-bit data)": _images(lambda g: (to_12bit(g), "mono16")),
     "png (as simulated)": None,
     "png 5 MP (x16 upscaled)": 16,
+    "level-of-detail (every other image at half size)": _every_other_halved(),
     "no designated/threshold": ("meta", lambda m: {
         k: v for k, v in m.items() if not k.startswith(("designated", "threshold"))
     }),
