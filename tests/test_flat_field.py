@@ -91,7 +91,7 @@ def with_prnu() -> tuple[list[np.ndarray], list[tuple[float, ...]]]:
 def test_the_gain_pattern_is_found_pixel_by_pixel(with_prnu: Any) -> None:
     imgs, _ = with_prnu
     store, _ = _ingest_like(imgs)
-    flat = estimate_flat_field(store, "linear", (H, W))
+    flat = estimate_flat_field(store, None, (H, W))
     assert flat.summary["applied"], flat.summary
     assert flat.summary["z"] > 3 * Z_MIN
     assert 0.85 < flat.summary["prnu_percent"] < 1.15
@@ -117,7 +117,7 @@ def test_dividing_it_out_removes_the_error_it_left_on_each_capture(with_prnu: An
 
     before = off(rows)
     one = list(rows)
-    flat = estimate_flat_field(store, "linear", (H, W))
+    flat = estimate_flat_field(store, None, (H, W))
     assert redetect(store, one, cfg, flat, (H, W)) == len(imgs)
     two = correct_flat_field(store, rows, cfg, (H, W))
     assert two.summary["rounds"] == ROUNDS == 2
@@ -137,7 +137,7 @@ def test_a_sensor_without_a_pattern_is_left_alone() -> None:
     imgs, _ = _captures(0.0)
     store, rows = _ingest_like(imgs)
     before = [dict(r) for r in rows]
-    flat = estimate_flat_field(store, "linear", (H, W))
+    flat = estimate_flat_field(store, None, (H, W))
     assert not flat.summary["applied"]
     assert flat.gain is None
     assert abs(flat.summary["z"]) < Z_MIN
@@ -152,17 +152,17 @@ def test_too_many_crops_or_too_few_say_so() -> None:
     small = CropStore(max_bytes=100)
     small.add(0, imgs[0], det)
     assert small.overflow and not small.crops
-    assert "not estimated" in estimate_flat_field(small, "linear", (H, W)).summary["note"]
+    assert "not estimated" in estimate_flat_field(small, None, (H, W)).summary["note"]
     few = CropStore()
     few.add(0, imgs[0], det)
     few.add(1, imgs[0], {**det, "quality_ok": False})  # only clean detections are kept
     assert len(few.crops) == 1
-    assert "1 clean images" in estimate_flat_field(few, "linear", (H, W)).summary["note"]
+    assert "1 clean images" in estimate_flat_field(few, None, (H, W)).summary["note"]
     mixed = CropStore()
     mixed.add(0, imgs[0], det)
     mixed.add(1, np.pad(imgs[0], 4, mode="edge"), det)  # a recording whose image size changes
     assert mixed.mixed and len(mixed.crops) == 1
-    assert "different sizes" in estimate_flat_field(mixed, "linear", (H, W)).summary["note"]
+    assert "different sizes" in estimate_flat_field(mixed, None, (H, W)).summary["note"]
 
 
 def test_the_gain_enters_the_detector_on_linear_light() -> None:
@@ -215,6 +215,6 @@ def test_each_crop_is_modelled_once_per_estimate(with_prnu: Any, monkeypatch) ->
         return real(c, resp)
 
     monkeypatch.setattr(ff, "_model", counting)
-    flat = estimate_flat_field(store, "linear", (H, W))
+    flat = estimate_flat_field(store, None, (H, W))
     assert flat.summary["applied"]
     assert len(calls) == len(set(calls)) == len(store.crops)

@@ -211,3 +211,24 @@ def test_a_retry_with_more_images_held_back_detects_only_the_new_ones(monkeypatc
     probing += [(k, blank.copy()) for k in range(24, 48)]
     assert resolve_response(probing, rows, cfg, final=True, raw=raw) is not None
     assert len(seen) == 48 == len(set(seen)) == len(raw)
+
+
+def test_the_detection_settings_carry_a_response_object_and_write_its_spec() -> None:
+    """A spec string is parsed once, when the settings are made (command line, JSON); the
+    frozen Response is carried from then on, and to_dict writes its spec, so settings
+    round-trip and their hash is the string's ('auto' is None: not known yet)."""
+    import dataclasses
+
+    from pipeline.stages.detect.detector import DetectConfig
+    from pipeline.stages.response.curve import Response
+
+    cfg = DetectConfig(response="gamma:2.2")
+    assert cfg.response == Response("gamma", 2.2)
+    assert cfg.to_dict()["response"] == "gamma:2.2000"  # the curve's own spec
+    assert DetectConfig(**cfg.to_dict()) == cfg
+    assert DetectConfig().response is None and DetectConfig().to_dict()["response"] == "auto"
+    assert DetectConfig(response="auto").response is None
+    srgb = dataclasses.replace(cfg, response=Response("srgb"))
+    assert srgb.response is not None and srgb.response.spec == "srgb"
+    with pytest.raises(ValueError):
+        DetectConfig(response="sepia")

@@ -21,7 +21,7 @@ from pipeline.live.loop import Detection
 from pipeline.live.protocols import Frame
 from pipeline.stages.detect.detector import DetectConfig, detect_target
 from pipeline.stages.image.response_estimate import ResponseEstimate, estimate_response
-from pipeline.stages.response.curve import parse_response
+from pipeline.stages.response.curve import Response, parse_response
 
 
 def frame_to_grey(frame: Frame) -> np.ndarray:
@@ -79,12 +79,10 @@ class LiveDetector:
         estimate_images: int = ESTIMATE_IMAGES,
     ) -> None:
         cfg = dataclasses.replace(config or DetectConfig(), polarity=polarity)
-        text = cfg.response if response is None else response
-        fixed = parse_response(text)  # ValueError on a bad spec: the caller words it
+        # ValueError on a bad spec: the caller words it
+        fixed = cfg.response if response is None else parse_response(response)
         self.source = "declared" if fixed is not None else "pending"
-        self.config = dataclasses.replace(
-            cfg, response=fixed.spec if fixed is not None else "linear"
-        )
+        self.config = dataclasses.replace(cfg, response=fixed or Response("linear"))
         self.estimate: ResponseEstimate | None = None
         self._say = say
         self._n = max(int(estimate_images), 1)
@@ -93,8 +91,9 @@ class LiveDetector:
 
     @property
     def response(self) -> str:
-        """The response spec the detector linearises with now."""
-        return self.config.response
+        """The spec of the response the detector linearises with now."""
+        r = self.config.response
+        return r.spec if r is not None else "linear"
 
     def __call__(self, frame: Frame, expected_uv: tuple[float, float] | None) -> Detection:
         grey = frame_to_grey(frame)
@@ -118,7 +117,7 @@ class LiveDetector:
         when declared, which the cell's ``META?`` or ``--set`` gives again)."""
         if self.source != "estimated":
             return {}
-        return {"camera_response": self.config.response}
+        return {"camera_response": self.response}
 
     def resume(self, learned: Mapping[str, Any]) -> None:
         """Take the response an earlier session of the same recording estimated.
@@ -135,7 +134,7 @@ class LiveDetector:
             return
         self._held.clear()
         self.source = "estimated"
-        self.config = dataclasses.replace(self.config, response=fixed.spec)
+        self.config = dataclasses.replace(self.config, response=fixed)
         if self._say is not None:
             self._say(f"camera response {fixed.spec}: as estimated before the interruption")
 
@@ -145,7 +144,7 @@ class LiveDetector:
         self._held.clear()
         self.estimate = est
         self.source = "estimated"
-        self.config = dataclasses.replace(self.config, response=est.response.spec)
+        self.config = dataclasses.replace(self.config, response=est.response)
         if self._say is not None:
             self._say(
                 f"camera response not declared (camera_response): estimated from the first "

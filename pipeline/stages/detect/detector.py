@@ -49,7 +49,6 @@ from __future__ import annotations
 
 import math
 from dataclasses import asdict, dataclass
-from functools import lru_cache
 from typing import Any
 
 import numpy as np
@@ -132,14 +131,17 @@ class DetectConfig:
     compiled : bool
         Run the fine stage compiled (:mod:`pipeline.stages.detect._jit`, numba)
         when numba is installed; False: the NumPy reference path.
-    response : str
-        The camera's response curve (:mod:`pipeline.stages.response.curve`: ``linear``,
-        ``srgb``, ``gamma:G``): the grey levels of the target's window are
-        linearised with its inverse before the sub-pixel stage, so that the
-        halfway level is halfway in irradiance. ``auto`` (the default): ingest
-        takes the recording's ``camera_response`` metadata or estimates the
-        curve from the first images (:func:`pipeline.stages.image.response_estimate.estimate_response`);
-        :func:`detect_target` called alone treats ``auto`` as ``linear``.
+    response : Response or None
+        The camera's response curve (:class:`pipeline.stages.response.curve.Response`):
+        the grey levels of the target's window are linearised with its inverse
+        before the sub-pixel stage, so that the halfway level is halfway in
+        irradiance. None (the default, ``auto``): not known; ingest takes the
+        recording's ``camera_response`` metadata or estimates the curve from the
+        first images (:func:`pipeline.stages.image.response_estimate.estimate_response`);
+        :func:`detect_target` called alone treats it as linear. A spec string
+        (``linear``, ``srgb``, ``gamma:G``, ``table:...``, ``auto``), as settings read
+        from a command line or JSON give it, is parsed once, on construction; the
+        object is carried from then on and :meth:`to_dict` writes its spec.
     clip_correction : bool
         Where the bright side of the edge is clipped at the image type's top code
         (an over-exposed plate), move the contour to where the unclipped halfway
@@ -159,11 +161,18 @@ class DetectConfig:
     curvature_correction: bool = True
     ambiguity_ratio: float = 0.5
     compiled: bool = True
-    response: str = "auto"
+    response: Response | None = None
     clip_correction: bool = True
 
+    def __post_init__(self) -> None:
+        r: Any = self.response
+        if isinstance(r, str):  # a spec from a command line or JSON: parsed here, once
+            self.response = parse_response(r)
+
     def to_dict(self) -> dict[str, Any]:
-        return asdict(self)
+        d = asdict(self)
+        d["response"] = self.response.spec if self.response is not None else "auto"
+        return d
 
 
 #: keys of the dict :func:`detect_target` returns (also the detections columns)
@@ -215,10 +224,8 @@ def empty_result(reason: str, n_blobs: int = 0) -> dict[str, Any]:
     }
 
 
-@lru_cache(maxsize=16)
-def nonlinear_response(spec: str) -> Response | None:
-    """The response of a spec string; None when linear or ``auto`` (nothing to undo)."""
-    r = parse_response(spec)
+def nonlinear_response(r: Response | None) -> Response | None:
+    """The response to undo; None when linear or not known (nothing to undo)."""
     return None if r is None or r.is_linear else r
 
 

@@ -299,13 +299,15 @@ def _noise(acc_role: np.ndarray) -> float:
     return float(np.mean(diff**2 / (1.0 / de[has] + 1.0 / do[has])))
 
 
-def estimate_flat_field(store: CropStore, response_spec: str, shape: tuple[int, int]) -> FlatField:
+def estimate_flat_field(
+    store: CropStore, response: Response | None, shape: tuple[int, int]
+) -> FlatField:
     """The recording's gain pattern from its kept crops (module docstring's maths).
 
     Parameters
     ----------
     store : the crops ingest kept
-    response_spec : the camera response detection used (``DetectConfig.response``)
+    response : the camera response detection used (``DetectConfig.response``)
     shape : ``(H, W)`` of the images
 
     Returns
@@ -321,7 +323,7 @@ def estimate_flat_field(store: CropStore, response_spec: str, shape: tuple[int, 
         return FlatField(None, {**base, "note": "not estimated: images of different sizes"})
     if len(crops) < 8 or shape[0] <= 0 or shape[1] <= 0:
         return FlatField(None, {**base, "note": f"not estimated: {len(crops)} clean images"})
-    resp = nonlinear_response(response_spec)
+    resp = nonlinear_response(response)
     box = (
         min(c.v0 for c in crops),
         min(c.u0 for c in crops),

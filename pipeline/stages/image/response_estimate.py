@@ -38,6 +38,7 @@ a camera whose curve is neither linear nor sRGB should declare it.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, field
@@ -422,7 +423,7 @@ def estimate_response(
     -------
     ResponseEstimate
     """
-    cfg = DetectConfig(**{**(config.to_dict() if config is not None else {}), "response": "linear"})
+    cfg = dataclasses.replace(config or DetectConfig(), response=Response("linear"))
     profiles: list[_Profile] = []
     sat: list[tuple[int, int]] = []
     for i, img in enumerate(images):

@@ -26,6 +26,7 @@ together.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import os
 from typing import Any
@@ -301,21 +302,20 @@ def _detect_settings(
             f"{path}: polarity {polarity!r} (touchup metadata or --set) is not dark_on_light "
             "or light_on_dark"
         )
-    dcfg = DetectConfig(**{**detect_config.to_dict(), "polarity": polarity or None})
+    dcfg = dataclasses.replace(detect_config, polarity=polarity or None)
     # camera response: the detect option, else --set / metadata camera_response, else estimated
-    resp_text = dcfg.response
+    resp_fixed = dcfg.response
     resp_source = "option"
-    if resp_text == "auto":
+    if resp_fixed is None:
         resp_text = config.overrides.get("camera_response") or metadata.get(
             "camera_response", "auto"
         )
         resp_source = "metadata"
-    try:
-        resp_fixed = parse_response(resp_text)
-    except ValueError as exc:
-        raise BadInput(f"{path}: {exc}") from exc
-    if resp_fixed is not None:
-        dcfg = DetectConfig(**{**dcfg.to_dict(), "response": resp_fixed.spec})
+        try:
+            resp_fixed = parse_response(resp_text)
+        except ValueError as exc:
+            raise BadInput(f"{path}: {exc}") from exc
+        dcfg = dataclasses.replace(dcfg, response=resp_fixed)
     return polarity, dcfg, resp_fixed, resp_source
 
 

@@ -13,6 +13,7 @@ metadata are taken from their topics.
 
 from __future__ import annotations
 
+import dataclasses
 from concurrent.futures import Future
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -303,7 +304,7 @@ def resolve_response(
     )
     if not final and est.n_images < RESPONSE_FIT_IMAGES // 2:
         return None
-    cfg = DetectConfig(**{**dcfg.to_dict(), "response": est.response.spec})
+    cfg = dataclasses.replace(dcfg, response=est.response)
     expected: tuple[float, float, float] | None = None
     for k, grey in probing:
         det = detect_target(grey, cfg, expected)
