@@ -20,7 +20,7 @@ import json
 import math
 from typing import Any
 
-from pipeline.catalog import Parquet
+from pipeline.io.run_folder import Parquet
 
 
 def _info(recording: dict[str, Any]) -> Any:

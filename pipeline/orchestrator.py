@@ -37,11 +37,12 @@ from pathlib import Path
 from typing import Any
 
 from pipeline import catalog
-from pipeline.catalog import RUN_FILES, STAGE_NAMES, run_paths
+from pipeline.catalog import STAGE_NAMES
 from pipeline.errors import BadInput, CalibrationFailed, VtcalError
 from pipeline.io.fileio import config_hash
 from pipeline.io.jsonio import json_bytes, jsonable, write_json
 from pipeline.io.layout import locate
+from pipeline.io.run_folder import RUN_FILES, run_paths
 from pipeline.known_distances import metadata_distances
 from pipeline.runner import (
     Context,

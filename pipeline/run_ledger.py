@@ -34,10 +34,10 @@ from pathlib import Path
 from typing import Any
 
 from pipeline import __version__
-from pipeline.catalog import RUN_FILES
 from pipeline.io import resources
 from pipeline.io.fileio import file_hash, hash_named_files
 from pipeline.io.layout import locate, recording_hash
+from pipeline.io.run_folder import RUN_FILES
 
 PACKAGE_DIR = Path(__file__).resolve().parent
 SCHEMA_DIR = resources.SCHEMA_DIR

@@ -39,11 +39,12 @@ from pathlib import Path
 from typing import Any
 
 from pipeline import __version__
-from pipeline.catalog import BY_KEY, STAGE, STAGE_NAMES, STAGES, Artefact, Parquet, Stage, run_paths
+from pipeline.catalog import STAGE, STAGE_NAMES, STAGES, Stage
 from pipeline.code_key import stage_code_digest
 from pipeline.errors import BadInput
 from pipeline.io.fileio import atomic_write_bytes, config_hash, file_hash, write_group
 from pipeline.io.jsonio import json_bytes, jsonable
+from pipeline.io.run_folder import BY_KEY, Artefact, Parquet, run_paths
 
 #: Reports progress of a long stage: ``(stage, done, total or None)``.
 Progress = Callable[[str, int, int | None], None]
@@ -282,7 +283,7 @@ def write_output(
 ) -> list[Path]:
     """Write one output of a stage by its artefact's kind; the paths written.
 
-    Parquet (:class:`pipeline.catalog.Parquet` or a DataFrame): checked against
+    Parquet (:class:`pipeline.io.run_folder.Parquet` or a DataFrame): checked against
     its schema, with the stage's key in the metadata (and, with ``written``, its hash and
     Arrow table kept there: :attr:`Context.written`). JSON: sorted keys
     (:func:`pipeline.io.jsonio.json_bytes`). URDF: text. Per-model URDFs: one file each. A path (the report's

@@ -17,8 +17,8 @@ from typing import TYPE_CHECKING, Any
 
 from pipeline.batch.executor import THREAD_ENV
 from pipeline.batch.manifest import BatchItem
-from pipeline.catalog import RUN_FILES
 from pipeline.errors import BadInput, CalibrationFailed, VtcalError
+from pipeline.io.run_folder import RUN_FILES
 
 if TYPE_CHECKING:
     from pipeline.orchestrator import RunConfig

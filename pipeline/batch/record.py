@@ -14,7 +14,7 @@ from typing import TYPE_CHECKING, Any
 
 from pipeline.batch.manifest import BatchItem
 from pipeline.batch.outcome import RecordingOutcome
-from pipeline.catalog import RUN_FILES
+from pipeline.io.run_folder import RUN_FILES
 
 if TYPE_CHECKING:
     from pipeline.orchestrator import RunConfig

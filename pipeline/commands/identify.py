@@ -18,7 +18,6 @@ from typing import Any
 import click
 import pandas as pd
 
-from pipeline.catalog import RUN_FILES
 from pipeline.commands._common import (
     accept_implausible_option,
     distance_option,
@@ -28,6 +27,7 @@ from pipeline.commands._common import (
     tolerance_option,
 )
 from pipeline.errors import BadInput
+from pipeline.io.run_folder import RUN_FILES
 from pipeline.io.tables import read_table
 from pipeline.models import model_help
 

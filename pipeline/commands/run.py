@@ -8,7 +8,6 @@ from typing import Any
 import click
 
 from pipeline.accuracy.verdict import tolerance_from_metadata
-from pipeline.catalog import RUN_FILES
 from pipeline.commands._common import (
     accept_implausible_option,
     distance_option,
@@ -19,6 +18,7 @@ from pipeline.commands._common import (
     split_stage_options,
     tolerance_option,
 )
+from pipeline.io.run_folder import RUN_FILES
 from pipeline.orchestrator import STAGES, RunConfig, run_pipeline
 
 

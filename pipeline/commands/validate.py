@@ -231,7 +231,7 @@ def _prediction_model(calibrated: Path, joints: list[str], flange: str) -> Any:
     ``elastic`` (joint compliance) predicts through its own map, which a URDF cannot
     hold; None when there is no record, it is the URDF's model, or another robot.
     """
-    from pipeline.catalog import RUN_FILES
+    from pipeline.io.run_folder import RUN_FILES
 
     path = calibrated.parent / RUN_FILES["calibration"]
     if calibrated.name != RUN_FILES["calibrated_urdf"] or not path.is_file():
