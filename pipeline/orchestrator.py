@@ -33,11 +33,13 @@ import json
 import math
 from collections.abc import Mapping
 from dataclasses import dataclass, field
+from functools import partial
 from pathlib import Path
 from typing import Any
 
 from pipeline import catalog
 from pipeline.catalog import STAGE_NAMES
+from pipeline.code_key import stage_code_digest
 from pipeline.errors import BadInput, CalibrationFailed, VtcalError
 from pipeline.io.fileio import config_hash
 from pipeline.io.jsonio import json_bytes, jsonable, write_json
@@ -230,8 +232,9 @@ def _run_in(
     if "report" in names and "touchups" in names:
         from pipeline.report.warm import WarmReport
 
-        # loads the Rerun SDK on the core ingest leaves idle (pipeline.report.warm)
-        ctx.warm_report = WarmReport.start()
+        # loads the Rerun SDK on the core ingest leaves idle (pipeline.report.warm), and
+        # computes the report's code digest there, where its modules are loaded anyway
+        ctx.warm_report = WarmReport.start(partial(stage_code_digest, "report"))
         if ctx.warm_report is not None:  # the frames it will show, once they are known
             ctx.after_stage.setdefault("touchups", []).append(ctx.warm_report.prefetch)
     try:

@@ -10,6 +10,7 @@ it is not started where it must not run.
 from __future__ import annotations
 
 import shutil
+from functools import partial
 from pathlib import Path
 
 import pandas as pd
@@ -129,7 +130,8 @@ def test_the_warm_process_computes_the_reports_code_digest_as_here(monkeypatch, 
     from pipeline import code_key
     from pipeline.report import html
 
-    w = warm.WarmReport.start()
+    digest = partial(code_key.stage_code_digest, "report")  # what the orchestrator hands in
+    w = warm.WarmReport.start(digest)
     assert w is not None
     assert w.code_digest() == code_key.stage_code_digest("report")
     w.close()
@@ -140,9 +142,13 @@ def test_the_warm_process_computes_the_reports_code_digest_as_here(monkeypatch, 
 
     monkeypatch.setattr(html, "build_report", other_build_report)
     changed = code_key.stage_code_digest("report")
-    w = warm.WarmReport.start()
+    w = warm.WarmReport.start(digest)
     assert w is not None
     assert w.code_digest() == changed
+    w.close()
+    w = warm.WarmReport.start()  # handed no digest function: the caller computes it
+    assert w is not None
+    assert w.code_digest() is None
     w.close()
 
 
@@ -184,7 +190,7 @@ def test_the_warm_process_is_a_busy_core_while_it_reads_frames(sample_run, cores
 
     from pipeline import code_key
 
-    w = warm.WarmReport.start()
+    w = warm.WarmReport.start(partial(code_key.stage_code_digest, "report"))
     assert w is not None
     try:
         assert w.cores_busy() == 0
