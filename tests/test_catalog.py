@@ -15,10 +15,10 @@ from pathlib import Path
 
 import pytest
 
-from pipeline import code_key
-from pipeline.catalog import STAGE_NAMES, STAGES
 from pipeline.io.run_folder import ARTEFACTS, BY_KEY, RUN_FILES, writer
-from pipeline.orchestrator import RunConfig, run_pipeline
+from pipeline.run import code_key
+from pipeline.run.catalog import STAGE_NAMES, STAGES
+from pipeline.run.orchestrator import RunConfig, run_pipeline
 
 SAMPLE = Path(__file__).resolve().parent.parent / "datasets" / "samples" / "sample_lrmate.mcap"
 
@@ -106,7 +106,7 @@ def test_the_runner_keys_no_stage_or_file_by_name() -> None:
     library's identify-and-choose, aside)."""
     import ast
 
-    import pipeline.runner as runner
+    import pipeline.run.runner as runner
 
     names = set(STAGE_NAMES) | set(BY_KEY)
     tree = ast.parse(Path(runner.__file__).read_text())
@@ -129,8 +129,8 @@ def test_identify_declares_the_touchups_it_reads_the_implied_diameter_from(
 ) -> None:
     """The image-implied target diameter reaches identify as a declared input (its key
     holds the touch-ups' hash), not through a config built from the disk (issue 37)."""
-    from pipeline.catalog import STAGE
     from pipeline.io.artefacts import read_meta
+    from pipeline.run.catalog import STAGE
 
     assert "touchups" in STAGE["identify"].optional
     inputs = json.loads(read_meta(sample_run / RUN_FILES["parameters"])["inputs"])
@@ -175,8 +175,8 @@ def test_a_run_takes_the_tables_it_wrote_instead_of_reading_them_back(
     a file changed since it was written is read."""
     import shutil
 
-    from pipeline import runner
     from pipeline.io import artefacts
+    from pipeline.run import runner
 
     out = tmp_path / "run"
     shutil.copytree(sample_run, out)

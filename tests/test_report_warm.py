@@ -17,8 +17,8 @@ import pandas as pd
 import pytest
 
 from pipeline.errors import BadInput
-from pipeline.orchestrator import RunConfig, run_pipeline
 from pipeline.report import outputs, warm
+from pipeline.run.orchestrator import RunConfig, run_pipeline
 from pipeline.stages import parallel_map
 
 REPO = Path(__file__).resolve().parent.parent
@@ -127,8 +127,8 @@ def test_not_started_without_a_free_core_or_in_a_worker(monkeypatch) -> None:
 def test_the_warm_process_computes_the_reports_code_digest_as_here(monkeypatch, cores_free):
     """The report's cache key takes its code digest from the warm process (a fork of this
     one): the same as here, a function replaced before the run included."""
-    from pipeline import code_key
     from pipeline.report import html
+    from pipeline.run import code_key
 
     digest = partial(code_key.stage_code_digest, "report")  # what the orchestrator hands in
     w = warm.WarmReport.start(digest)
@@ -188,7 +188,7 @@ def test_the_warm_process_is_a_busy_core_while_it_reads_frames(sample_run, cores
     answered in order."""
     import time
 
-    from pipeline import code_key
+    from pipeline.run import code_key
 
     w = warm.WarmReport.start(partial(code_key.stage_code_digest, "report"))
     assert w is not None

@@ -37,7 +37,7 @@ THREAD_ENV: dict[str, str] = {
 #: rendering libraries load in a worker only when it renders a report).
 PRELOAD = (
     "pipeline.batch.run",
-    "pipeline.orchestrator",
+    "pipeline.run.orchestrator",
     "pipeline.stages.ingest.stage",
     "pipeline.stages.detect.detector",
     "pipeline.stages.touchup.stage",
@@ -45,7 +45,7 @@ PRELOAD = (
     "pipeline.stages.identify.stage",
     "pipeline.stages.crossval.stage",
     "pipeline.stages.crossval.choose",
-    "pipeline.nodes",
+    "pipeline.run.nodes",
 )
 
 #: what a batch's workers load besides before their first recording: the lazily loaded

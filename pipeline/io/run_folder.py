@@ -10,8 +10,8 @@ opens a run-folder file names it through :data:`RUN_FILES`
 Pure facts about file names, standard library only, at the bottom of the
 package: the report, the exports, ``vtcal validate``, the simulator and the
 batch read it without importing the run's machinery. The stage table
-(:data:`pipeline.catalog.STAGES`) sits above, in the run's machinery; a stage it
-registers adds its files here (:func:`pipeline.catalog.register`), in place.
+(:data:`pipeline.run.catalog.STAGES`) sits above, in the run's machinery; a stage it
+registers adds its files here (:func:`pipeline.run.catalog.register`), in place.
 """
 
 from __future__ import annotations

@@ -134,7 +134,7 @@ class WarmReport:
 
     def code_digest(self) -> str | None:
         """The report's code digest (the ``code_digest`` function :meth:`start` was handed:
-        :func:`pipeline.code_key.stage_code_digest`) computed there, where the report's
+        :func:`pipeline.run.code_key.stage_code_digest`) computed there, where the report's
         modules are loaded anyway; None when it cannot be asked or was handed none.
 
         The process is a fork of this one, made when the run started, and reads the same

@@ -5,7 +5,7 @@ that computes it, the artefacts it reads and those it writes, and the config
 dataclass of its options. The files of a run folder (their names, schemas and
 writers) are declared below it, in :mod:`pipeline.io.run_folder`
 (:data:`~pipeline.io.run_folder.ARTEFACTS`), which the readers of a run folder
-import without the stage table. The runner (:mod:`pipeline.runner`) walks this
+import without the stage table. The runner (:mod:`pipeline.run.runner`) walks this
 table; stage functions take data and return data, and only the runner writes.
 ``tests/test_catalog.py`` checks that every file has exactly one writer and
 that each stage reads only what an earlier stage wrote.
@@ -37,10 +37,10 @@ class Stage:
         written after its Parquet ones: the last present means the stage finished
     config : ``module:Class`` of its options dataclass, or None
     code : further ``module:function`` entry points whose code decides its result
-        (the stage code key, :mod:`pipeline.code_key`)
+        (the stage code key, :mod:`pipeline.run.code_key`)
     optional : inputs it reads only when their stage is part of the run
     cache : how the runner keys it. ``"outputs"``: fresh when its Parquet outputs record
-        the same input hashes and config (:func:`pipeline.runner.is_fresh`);
+        the same input hashes and config (:func:`pipeline.run.runner.is_fresh`);
         ``"always"``: cheap, computed every run, a file rewritten only when its bytes
         change; ``"ledger"``: keyed in ``run.json`` (its files are written by their own
         writers, and it shows the stage table, so it runs last)
@@ -76,7 +76,7 @@ class Stage:
 STAGES: list[Stage] = [
     Stage(
         "ingest",
-        "pipeline.nodes:ingest",
+        "pipeline.run.nodes:ingest",
         (),
         ("frames", "detections", "recording"),
         "pipeline.stages.ingest.stage:IngestConfig",
@@ -86,7 +86,7 @@ STAGES: list[Stage] = [
     ),
     Stage(
         "touchups",
-        "pipeline.nodes:touchups",
+        "pipeline.run.nodes:touchups",
         ("frames", "detections", "recording"),
         ("touchups",),
         "pipeline.stages.touchup.stage:TouchupConfig",
@@ -94,7 +94,7 @@ STAGES: list[Stage] = [
     ),
     Stage(
         "outliers",
-        "pipeline.nodes:outliers",
+        "pipeline.run.nodes:outliers",
         ("touchups", "recording"),
         ("inliers",),
         "pipeline.stages.trust.outliers:OutlierConfig",
@@ -102,7 +102,7 @@ STAGES: list[Stage] = [
     ),
     Stage(
         "identify",
-        "pipeline.nodes:identify",
+        "pipeline.run.nodes:identify",
         ("inliers",),
         ("parameters", "residuals", "targets", "model_urdfs", "models"),
         "pipeline.stages.identify.stage:IdentifyConfig",
@@ -112,7 +112,7 @@ STAGES: list[Stage] = [
     ),
     Stage(
         "crossval",
-        "pipeline.nodes:crossval",
+        "pipeline.run.nodes:crossval",
         ("inliers", "parameters", "models"),
         ("crossval",),
         "pipeline.stages.crossval.stage:CrossvalConfig",
@@ -120,7 +120,7 @@ STAGES: list[Stage] = [
     ),
     Stage(
         "choose",
-        "pipeline.nodes:choose",
+        "pipeline.run.nodes:choose",
         ("models", "model_urdfs", "parameters"),
         ("calibrated_urdf", "calibration", "identify"),
         None,
@@ -132,7 +132,7 @@ STAGES: list[Stage] = [
     ),
     Stage(
         "report",
-        "pipeline.nodes:report",
+        "pipeline.run.nodes:report",
         (
             "recording",
             "touchups",
