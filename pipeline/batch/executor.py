@@ -132,7 +132,7 @@ def open_executor(
         ``LocalCluster`` of ``workers`` single-threaded processes is started on loopback
     out_dir : the batch folder; with a ``scheduler``, the cluster's workers are
         first checked to run the same vtcal code and to see this folder
-        (:func:`pipeline.cluster.preflight`)
+        (:func:`pipeline.batch.cluster.preflight`)
     preload : modules the process pool's fork server imports besides :data:`PRELOAD`
 
     Raises
@@ -166,7 +166,7 @@ def open_executor(
             except (OSError, TimeoutError) as exc:
                 raise BadInput(f"--scheduler {scheduler}: cannot connect: {exc}") from exc
             if out_dir is not None:
-                from pipeline.cluster import preflight
+                from pipeline.batch.cluster import preflight
 
                 preflight(client, scheduler, out_dir)
         else:
