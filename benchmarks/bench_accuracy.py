@@ -24,7 +24,7 @@ from pathlib import Path
 import numpy as np
 
 from pipeline.accuracy.evaluate import judge_run
-from pipeline.orchestrator import RunConfig, run_pipeline
+from pipeline.run.orchestrator import RunConfig, run_pipeline
 from pipeline.sim.scenario import scenario_from_dict
 from pipeline.sim.simulator import write_recording
 

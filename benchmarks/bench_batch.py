@@ -157,7 +157,7 @@ def main() -> None:
     RECYCLE = args.recycle
 
     from pipeline.batch.run import load_manifest, open_executor
-    from pipeline.orchestrator import RunConfig
+    from pipeline.run.orchestrator import RunConfig
 
     tmp = tempfile.TemporaryDirectory(prefix="bench_batch_")
     workdir = args.workdir or Path(tmp.name)

@@ -29,7 +29,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "tests"))  # the
 from support.field_variants import png_grey, raw_image, rewrite, upscaled  # noqa: E402
 
 from pipeline.accuracy.evaluate import judge_run  # noqa: E402
-from pipeline.orchestrator import RunConfig, run_pipeline  # noqa: E402
+from pipeline.run.orchestrator import RunConfig, run_pipeline  # noqa: E402
 from pipeline.sim.scenario import load_scenario  # noqa: E402
 from pipeline.sim.simulator import simulate  # noqa: E402
 

@@ -87,7 +87,7 @@ def simulate(workdir: Path, n: int) -> list[Path]:
 def warm(recording: str, out: str) -> int:
     """Run on every worker: one recording, so imports and the detector load untimed."""
     from pipeline.batch.run import BatchItem, run_recording
-    from pipeline.orchestrator import RunConfig
+    from pipeline.run.orchestrator import RunConfig
 
     cfg = RunConfig(stage_options={"identify": {"model": "offsets", "accept_implausible": True}})
     run_recording(BatchItem("warm", Path(recording)), Path(out) / str(os.getpid()), cfg, UNTIL)
@@ -133,7 +133,7 @@ def main() -> None:
     logging.getLogger("distributed").setLevel(logging.ERROR)  # start/stop chatter
 
     from pipeline.batch.run import items_from_paths
-    from pipeline.orchestrator import RunConfig
+    from pipeline.run.orchestrator import RunConfig
 
     tmp = tempfile.TemporaryDirectory(prefix="bench_fleet_")
     workdir = args.workdir or Path(tmp.name)

@@ -94,7 +94,7 @@ def judge(rec: Path, truth: dict[str, Any], out: Path, seed: int) -> dict[str, A
     """``vtcal run`` on ``rec`` and the calibrated pin against the truth."""
     from pipeline.accuracy.evaluate import judge_run
     from pipeline.io.artefacts import read_artefact
-    from pipeline.orchestrator import RunConfig, run_pipeline
+    from pipeline.run.orchestrator import RunConfig, run_pipeline
 
     t0 = time.perf_counter()
     run_pipeline(rec, out, RunConfig(report=False), until="crossval")

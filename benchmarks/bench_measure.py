@@ -47,7 +47,7 @@ from pipeline.live.plan_file import read_plan
 from pipeline.live.record import open_recording
 from pipeline.live.session import SessionOptions, goal_from_metadata, run_session
 from pipeline.live.summary import summarize
-from pipeline.orchestrator import RunConfig, run_pipeline
+from pipeline.run.orchestrator import RunConfig, run_pipeline
 from pipeline.sim.link import sim_cell, write_plan
 
 REPO = Path(__file__).resolve().parent.parent

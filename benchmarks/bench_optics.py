@@ -87,7 +87,7 @@ def one_case(cell: str, effect: str, seed: int, work: str) -> dict[str, Any]:
 
     from pipeline.accuracy.evaluate import judge_run
     from pipeline.io.artefacts import read_artefact
-    from pipeline.orchestrator import RunConfig, run_pipeline
+    from pipeline.run.orchestrator import RunConfig, run_pipeline
     from pipeline.sim.scenario import scenario_from_dict
     from pipeline.sim.simulator import write_recording
 

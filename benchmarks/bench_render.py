@@ -99,7 +99,7 @@ def evaluate(rec: Path, seed: int, work: Path) -> dict[str, Any]:
     """``vtcal run`` on ``rec`` (to cross-validation), judged against its truth."""
     from pipeline.accuracy.evaluate import judge_run
     from pipeline.accuracy.verdict import verdict
-    from pipeline.orchestrator import RunConfig, run_pipeline
+    from pipeline.run.orchestrator import RunConfig, run_pipeline
 
     truth = json.loads(Path(str(rec) + ".truth.json").read_text())
     out = work / rec.stem

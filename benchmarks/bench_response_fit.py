@@ -52,7 +52,7 @@ def recordings(workdir: Path) -> dict[str, Path]:
 def profiles_of(rec: Path) -> list[Any]:
     """The edge profiles ``estimate_from_profiles`` is given in an ingest of ``rec``."""
     import pipeline.stages.image.response_estimate as rest
-    from pipeline.orchestrator import RunConfig, ingest_configs
+    from pipeline.run.orchestrator import RunConfig, ingest_configs
     from pipeline.stages.ingest.stage import ingest_recording
 
     seen: list[list[Any]] = []

@@ -158,7 +158,7 @@ def stage_seconds(out: Path) -> dict[str, float]:
 def bench_stages(recs: dict[str, Path], workdir: Path, repeat: int) -> None:
     """Per-stage wall time of ``vtcal run --force`` per cell, median over ``repeat`` runs."""
     print(f"\n== vtcal run --force, fresh process, median of {repeat} (load {load()})")
-    from pipeline.catalog import STAGES
+    from pipeline.run.catalog import STAGES
 
     # every stage the runner declares (the choose stage included), then the report
     names = tuple(dict.fromkeys([*(st.name for st in STAGES), "report"]))

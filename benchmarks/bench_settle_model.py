@@ -53,7 +53,7 @@ def final_centres(rec: Path, out: Path) -> tuple[np.ndarray, float]:
     their spacing (s), from the touch-up stage's ``converged_frame_indices``."""
     import pandas as pd
 
-    from pipeline.orchestrator import RunConfig, run_pipeline
+    from pipeline.run.orchestrator import RunConfig, run_pipeline
 
     run_pipeline(rec, out, RunConfig(report=False), until="touchups")
     tu = pd.read_parquet(out / "touchups.parquet")

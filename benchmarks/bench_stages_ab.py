@@ -38,7 +38,7 @@ import json, sys
 from pathlib import Path
 import numpy, pandas, pyarrow.parquet
 import pipeline.stages.ingest.stage, pipeline.stages.detect.detector
-from pipeline.orchestrator import RunConfig, run_pipeline
+from pipeline.run.orchestrator import RunConfig, run_pipeline
 rec, out, workers = Path(sys.argv[1]), Path(sys.argv[2]), int(sys.argv[3])
 keep = {"frames.parquet", "detections.parquet", "recording.json"}
 for p in out.iterdir():

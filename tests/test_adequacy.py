@@ -143,7 +143,7 @@ def wrong_curve_cell(tmp_path_factory: pytest.TempPathFactory):
 def _run(rec, out, overrides):
     import json
 
-    from pipeline.orchestrator import RunConfig, run_pipeline
+    from pipeline.run.orchestrator import RunConfig, run_pipeline
 
     run_pipeline(rec, out, RunConfig(report=False, overrides=overrides), until="choose")
     return json.loads((out / "identify.json").read_text())

@@ -13,7 +13,8 @@ from __future__ import annotations
 import re
 from pathlib import Path
 
-from pipeline.catalog import ARTEFACTS, STAGE_NAMES
+from pipeline.io.run_folder import ARTEFACTS
+from pipeline.run.catalog import STAGE_NAMES
 from tests.test_import_graph import _package_sources, analyse, package_edges
 
 ROOT = Path(__file__).resolve().parent.parent

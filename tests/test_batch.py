@@ -321,7 +321,7 @@ def test_workers_run_single_threaded_numerics() -> None:
     before = {k: os.environ.get(k) for k in THREAD_ENV}
     with open_executor("processes", 1) as pool:
         got = {k: pool.submit(os.getenv, k).result() for k in THREAD_ENV}
-        probe = "'pipeline.orchestrator' in __import__('sys').modules"
+        probe = "'pipeline.run.orchestrator' in __import__('sys').modules"
         preloaded = pool.submit(eval, probe).result()
     assert got == THREAD_ENV
     assert preloaded  # the pipeline is imported once in the fork server, not per worker

@@ -26,9 +26,9 @@ import pytest
 
 pytest.importorskip("distributed")
 
+from pipeline.batch.cluster import PROBE_PREFIX, preflight, worker_facts  # noqa: E402
 from pipeline.batch.run import items_from_paths, run_batch  # noqa: E402
 from pipeline.cli import main  # noqa: E402
-from pipeline.cluster import PROBE_PREFIX, preflight, worker_facts  # noqa: E402
 from pipeline.errors import BadInput  # noqa: E402
 
 REPO = Path(__file__).resolve().parent.parent
@@ -207,9 +207,9 @@ def test_cli_scheduler_without_workers_is_bad_input(
     lonely: str, tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture
 ) -> None:
     """One stderr line naming the scheduler, exit 2, nothing written in the batch folder."""
-    import pipeline.cluster
+    import pipeline.batch.cluster
 
-    monkeypatch.setattr(pipeline.cluster, "WORKER_WAIT_S", 1.0)
+    monkeypatch.setattr(pipeline.batch.cluster, "WORKER_WAIT_S", 1.0)
     out = tmp_path / "fleet"
     with pytest.raises(SystemExit) as ex:
         main(["batch", str(SAMPLE), "--out", str(out), "--executor", "dask",

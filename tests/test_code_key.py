@@ -17,8 +17,8 @@ from pathlib import Path
 
 import pytest
 
-from pipeline import code_key
-from pipeline.orchestrator import RunConfig, run_pipeline
+from pipeline.run import code_key
+from pipeline.run.orchestrator import RunConfig, run_pipeline
 
 REPO = Path(__file__).resolve().parent.parent
 SAMPLE = REPO / "datasets" / "samples" / "sample_lrmate.mcap"
@@ -39,7 +39,7 @@ def flag_outliers(table, info, config):  # noqa: F811  (a changed stage, for the
 
 RUN = """
 import json, sys
-from pipeline.orchestrator import RunConfig, run_pipeline
+from pipeline.run.orchestrator import RunConfig, run_pipeline
 res = run_pipeline(sys.argv[1], sys.argv[2], RunConfig(report=False), until=sys.argv[3])
 print(json.dumps({s.stage: s.status for s in res.stages}))
 """
@@ -208,7 +208,7 @@ def test_the_reports_code_key_does_not_load_the_rerun_sdk() -> None:
     Before, the key loaded it outside the report's timed span."""
     code = (
         "import sys\n"
-        "from pipeline.code_key import stage_code_digest\n"
+        "from pipeline.run.code_key import stage_code_digest\n"
         "stage_code_digest('report')\n"
         "import pipeline.report.rrd, pipeline.report.outputs\n"
         "print('rerun' in sys.modules)\n"

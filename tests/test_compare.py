@@ -14,7 +14,7 @@ from pipeline.cli import main
 from pipeline.errors import BadInput
 from pipeline.io.artefacts import read_artefact
 from pipeline.kinematics.chain import Chain, load_chain
-from pipeline.runner import write_fits
+from pipeline.run.runner import write_fits
 from pipeline.stages.crossval.stage import CrossvalConfig, cross_validate
 from pipeline.stages.identify.stage import IdentifyConfig, identify
 

@@ -34,7 +34,7 @@ from pipeline.estimation.correction_frame import (
 from pipeline.io.artefacts import read_artefact
 from pipeline.kinematics import fk, load_chain
 from pipeline.measurement.image import pair_change
-from pipeline.orchestrator import RunConfig, run_pipeline
+from pipeline.run.orchestrator import RunConfig, run_pipeline
 from pipeline.sim.scenario import scenario_from_dict
 from pipeline.sim.simulator import write_recording
 from pipeline.stages.identify.stage import IdentifyConfig, identify

@@ -578,7 +578,7 @@ ENCODINGS = ["mono8", "8UC1", "mono16", "mono16_be", "16UC1", "rgb8", "bgr8", "r
 @pytest.fixture(scope="module")
 def reference(sim, tmp_path_factory) -> float:
     from pipeline.accuracy.evaluate import judge_run
-    from pipeline.orchestrator import RunConfig, run_pipeline
+    from pipeline.run.orchestrator import RunConfig, run_pipeline
 
     rec, truth = sim
     out = tmp_path_factory.mktemp("ref") / "run"

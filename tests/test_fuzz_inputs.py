@@ -300,7 +300,7 @@ def base_table() -> Case:
 
 
 def identify_and_write(df: pd.DataFrame, urdf: str, out: Path) -> None:
-    from pipeline.runner import write_fits
+    from pipeline.run.runner import write_fits
     from pipeline.stages.identify.stage import IdentifyConfig, identify
 
     res = identify(df, urdf, "base_link", "flange", IdentifyConfig(model="offsets", n_workspace=20))

@@ -19,7 +19,7 @@ from pipeline.errors import BadInput, CalibrationFailed
 from pipeline.io.artefacts import read_artefact
 from pipeline.kinematics import load_chain
 from pipeline.robots import builtin_urdf
-from pipeline.runner import write_fits
+from pipeline.run.runner import write_fits
 from pipeline.stages.identify.stage import IdentifyConfig, identify
 
 PIN = np.array([0.0167, -0.0101, 0.2524])

@@ -145,7 +145,7 @@ def test_no_package_import_cycle() -> None:
 def subpackage_edges(edges: dict[str, set[str]], packages: set[str]) -> dict[str, set[str]]:
     """The import graph between the innermost packages: every module is its own package's
     node (``pipeline.stages.identify.data`` -> ``pipeline.stages.identify``), a package's
-    ``__init__`` the package itself, a top-level module (``pipeline.runner``) itself. Finer than :func:`package_edges`, which sees
+    ``__init__`` the package itself, a top-level module (``pipeline.cli``) itself. Finer than :func:`package_edges`, which sees
     ``pipeline/stages/`` as one node and so missed ``image <-> detect`` and
     ``identify <-> trust``."""
 

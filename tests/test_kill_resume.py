@@ -24,7 +24,7 @@ from pathlib import Path
 import numpy as np
 
 from pipeline.io.artefacts import read_artefact
-from pipeline.withdraw import BACKUP
+from pipeline.run.withdraw import BACKUP
 
 REPO = Path(__file__).resolve().parent.parent
 SAMPLE = REPO / "datasets" / "samples" / "sample_lrmate.mcap"
@@ -55,7 +55,7 @@ def _check_folder(out: Path) -> list[str]:
     """Every artefact present is whole; returns the hidden temporaries found."""
     for p in out.iterdir():
         name = p.name
-        if name == BACKUP:  # a killed run's links to the files it found (pipeline.withdraw)
+        if name == BACKUP:  # a killed run's links to the files it found (pipeline.run.withdraw)
             assert p.is_dir() and all(q.parent == p for q in p.iterdir()), name
             continue
         if name.startswith("."):
@@ -128,7 +128,7 @@ def test_stale_temporaries_of_a_killed_write_are_removed(tmp_path: Path) -> None
     never read as an artefact and is removed by the next run."""
     from test_robustness_data import tiny_recording
 
-    from pipeline.orchestrator import run_pipeline
+    from pipeline.run.orchestrator import run_pipeline
 
     rec = tiny_recording(tmp_path / "rec.mcap")
     out = tmp_path / "run"
@@ -147,7 +147,7 @@ def test_damaged_artefacts_in_the_run_folder_are_redone(tmp_path: Path) -> None:
     """A truncated Parquet artefact or a broken JSON side file is not 'fresh': redone."""
     from test_robustness_data import tiny_recording
 
-    from pipeline.orchestrator import run_pipeline
+    from pipeline.run.orchestrator import run_pipeline
 
     rec = tiny_recording(tmp_path / "rec.mcap")
     out = tmp_path / "run"

@@ -34,7 +34,7 @@ import pytest
 from pipeline.accuracy.evaluate import pin_accuracy, workspace_poses
 from pipeline.io.artefacts import read_artefact
 from pipeline.kinematics import fk, load_chain
-from pipeline.orchestrator import RunConfig, run_pipeline
+from pipeline.run.orchestrator import RunConfig, run_pipeline
 from pipeline.sim.scenario import scenario_from_dict
 from pipeline.sim.simulator import write_recording
 from pipeline.stages.ingest.stage import RecordingInfo

@@ -160,7 +160,7 @@ def test_mean_shift_score_is_the_drop_in_residual_sum_of_squares() -> None:
 
 
 def test_rules_fire_on_the_conformance_sample(conformance_sample: Path, tmp_path: Path) -> None:
-    from pipeline.orchestrator import RunConfig, run_pipeline
+    from pipeline.run.orchestrator import RunConfig, run_pipeline
 
     run_pipeline(conformance_sample, tmp_path, RunConfig(report=False), until="outliers")
     inl = pd.read_parquet(tmp_path / "inliers.parquet")

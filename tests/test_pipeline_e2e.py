@@ -10,9 +10,9 @@ import pyarrow.parquet as pq
 import pytest
 
 from pipeline.accuracy.evaluate import pin_accuracy, workspace_poses
-from pipeline.catalog import RUN_FILES
 from pipeline.cli import main
 from pipeline.io.artefacts import read_artefact
+from pipeline.io.run_folder import RUN_FILES
 from pipeline.kinematics import load_chain, parse_urdf
 from pipeline.provenance import read_provenance, strip_provenance
 

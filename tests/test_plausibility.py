@@ -200,7 +200,7 @@ def test_the_target_diameter_against_the_image_jacobian(declared, words):
 
 def test_the_implied_diameter_matches_the_print_on_both_samples(tmp_path, conformance_sample):
     from pipeline.io.artefacts import read_meta
-    from pipeline.orchestrator import run_pipeline
+    from pipeline.run.orchestrator import run_pipeline
 
     sample = REPO / "datasets" / "samples" / "sample_lrmate.mcap"
     for rec in (sample, conformance_sample):

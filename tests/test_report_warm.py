@@ -10,14 +10,15 @@ it is not started where it must not run.
 from __future__ import annotations
 
 import shutil
+from functools import partial
 from pathlib import Path
 
 import pandas as pd
 import pytest
 
 from pipeline.errors import BadInput
-from pipeline.orchestrator import RunConfig, run_pipeline
 from pipeline.report import outputs, warm
+from pipeline.run.orchestrator import RunConfig, run_pipeline
 from pipeline.stages import parallel_map
 
 REPO = Path(__file__).resolve().parent.parent
@@ -126,10 +127,11 @@ def test_not_started_without_a_free_core_or_in_a_worker(monkeypatch) -> None:
 def test_the_warm_process_computes_the_reports_code_digest_as_here(monkeypatch, cores_free):
     """The report's cache key takes its code digest from the warm process (a fork of this
     one): the same as here, a function replaced before the run included."""
-    from pipeline import code_key
     from pipeline.report import html
+    from pipeline.run import code_key
 
-    w = warm.WarmReport.start()
+    digest = partial(code_key.stage_code_digest, "report")  # what the orchestrator hands in
+    w = warm.WarmReport.start(digest)
     assert w is not None
     assert w.code_digest() == code_key.stage_code_digest("report")
     w.close()
@@ -140,9 +142,13 @@ def test_the_warm_process_computes_the_reports_code_digest_as_here(monkeypatch, 
 
     monkeypatch.setattr(html, "build_report", other_build_report)
     changed = code_key.stage_code_digest("report")
-    w = warm.WarmReport.start()
+    w = warm.WarmReport.start(digest)
     assert w is not None
     assert w.code_digest() == changed
+    w.close()
+    w = warm.WarmReport.start()  # handed no digest function: the caller computes it
+    assert w is not None
+    assert w.code_digest() is None
     w.close()
 
 
@@ -182,9 +188,9 @@ def test_the_warm_process_is_a_busy_core_while_it_reads_frames(sample_run, cores
     answered in order."""
     import time
 
-    from pipeline import code_key
+    from pipeline.run import code_key
 
-    w = warm.WarmReport.start()
+    w = warm.WarmReport.start(partial(code_key.stage_code_digest, "report"))
     assert w is not None
     try:
         assert w.cores_busy() == 0

@@ -33,7 +33,7 @@ from pipeline.cli import main
 from pipeline.errors import BadInput
 from pipeline.io.artefacts import read_artefact
 from pipeline.io.recording import TOUCHUP_TOPIC
-from pipeline.orchestrator import RunConfig, run_pipeline
+from pipeline.run.orchestrator import RunConfig, run_pipeline
 from pipeline.stages.detect.detector import DetectConfig
 from pipeline.stages.ingest.stage import IngestConfig, ingest_recording
 

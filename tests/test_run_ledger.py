@@ -18,8 +18,8 @@ from pathlib import Path
 
 import pytest
 
-from pipeline import run_ledger
-from pipeline.orchestrator import RunConfig, cached_run, run_pipeline
+from pipeline.run import ledger as run_ledger
+from pipeline.run.orchestrator import RunConfig, cached_run, run_pipeline
 
 REPO = Path(__file__).resolve().parent.parent
 SAMPLE = REPO / "datasets" / "samples" / "sample_lrmate.mcap"

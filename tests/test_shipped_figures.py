@@ -20,7 +20,7 @@ import pandas as pd
 import pytest
 
 from pipeline.accuracy.verdict import verdict
-from pipeline.orchestrator import RunConfig, run_pipeline
+from pipeline.run.orchestrator import RunConfig, run_pipeline
 from pipeline.sim.scenario import scenario_from_dict
 from pipeline.sim.simulator import write_recording
 

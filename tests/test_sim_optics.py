@@ -163,7 +163,7 @@ def test_bayer_raw_is_bgr8_and_the_pipeline_reads_it(tmp_path: Path) -> None:
     ims = images(out)
     assert {m.encoding for _, m in ims} == {"bgr8"}
     assert truth["image_encoding"] == "bgr8"
-    from pipeline.orchestrator import RunConfig, run_pipeline
+    from pipeline.run.orchestrator import RunConfig, run_pipeline
 
     run_pipeline(out, tmp_path / "run", RunConfig(report=False), until="touchups")
     cam = json.loads((tmp_path / "run" / "recording.json").read_text())["camera"]

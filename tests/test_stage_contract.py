@@ -2,7 +2,7 @@
 
 As ``tests/test_model_contract.py`` does for an error model, a throw-away stage
 is declared here, and only here: its function and options dataclass below, one
-:func:`pipeline.catalog.register` call for it and its file. ``vtcal identify``
+:func:`pipeline.run.catalog.register` call for it and its file. ``vtcal identify``
 then plans it (after choose), builds its options (``runner.build_configs``),
 keys its code (``code_key``), reads its inputs, runs it and writes its file, and
 ``--set tally.OPTION=VALUE`` reaches it; nothing else of the package is edited
@@ -22,10 +22,12 @@ import numpy as np
 import pytest
 from test_identify import _case
 
-from pipeline import catalog, code_key
-from pipeline.catalog import Artefact, Stage
 from pipeline.cli import main
 from pipeline.commands._common import split_stage_options
+from pipeline.io import run_folder
+from pipeline.io.run_folder import Artefact
+from pipeline.run import catalog, code_key
+from pipeline.run.catalog import Stage
 
 NAME = "tally"
 
@@ -85,8 +87,8 @@ def test_a_stage_declared_in_the_catalog_runs(throwaway: str, tmp_path: Path) ->
 
 def test_unregister_leaves_the_pipeline_as_declared(throwaway: str) -> None:
     catalog.unregister(throwaway)
-    assert throwaway not in catalog.STAGE and throwaway not in catalog.BY_KEY
-    assert catalog.STAGE_NAMES[-1] == "report" and "tally.json" not in catalog.RUN_FILES.values()
+    assert throwaway not in catalog.STAGE and throwaway not in run_folder.BY_KEY
+    assert catalog.STAGE_NAMES[-1] == "report" and "tally.json" not in run_folder.RUN_FILES.values()
     with pytest.raises(ValueError):  # a name taken is refused
         catalog.register(Stage("report", "m:f", (), (), None))
     catalog.register(

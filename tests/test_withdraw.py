@@ -1,4 +1,4 @@
-"""A refused run leaves its run folder as it found it (pipeline.withdraw).
+"""A refused run leaves its run folder as it found it (pipeline.run.withdraw).
 
 A forced re-run of a finished run folder rewrites its artefacts as it goes; when
 a later stage refuses, the files it rewrote must come back as they were, not be
@@ -12,7 +12,7 @@ import os
 from pathlib import Path
 
 from pipeline.cli import main
-from pipeline.withdraw import BACKUP, release, snapshot, withdraw
+from pipeline.run.withdraw import BACKUP, release, snapshot, withdraw
 
 REPO = Path(__file__).resolve().parents[1]
 SAMPLE = REPO / "datasets" / "samples" / "sample_lrmate.mcap"

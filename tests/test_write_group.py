@@ -11,7 +11,7 @@ from pathlib import Path
 import pytest
 
 from pipeline.io import fileio
-from pipeline.orchestrator import RunConfig, run_pipeline
+from pipeline.run.orchestrator import RunConfig, run_pipeline
 
 SAMPLE = Path(__file__).resolve().parents[1] / "datasets" / "samples" / "sample_lrmate.mcap"
 

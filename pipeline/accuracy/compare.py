@@ -37,8 +37,8 @@ from typing import Any
 import numpy as np
 import pandas as pd
 
-from pipeline.catalog import RUN_FILES
 from pipeline.errors import BadInput
+from pipeline.io.run_folder import RUN_FILES
 from pipeline.numfmt import fmt, short
 
 #: columns of the compare table, in order (see ``schemas/compare.json``)

@@ -23,7 +23,7 @@ import numpy as np
 import pandas as pd
 from numpy.typing import ArrayLike
 
-from pipeline.catalog import RUN_FILES
+from pipeline.io.run_folder import RUN_FILES
 from pipeline.kinematics.chain import Chain, fk
 from pipeline.kinematics.se3 import F64
 

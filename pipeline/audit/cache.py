@@ -9,7 +9,7 @@ An entry's key is a digest of everything that computes it:
   the bytes of its ``inliers.parquet`` and ``recording.json``, or the touch-up table's
   content when the caller read it, the nominal chain, the known distances and the
   touch-up stage's measured noise of ``touchups.parquet``), the error model the change
-  test compares, and the code (:func:`pipeline.code_key.code_digest`: the function and
+  test compares, and the code (:func:`pipeline.run.code_key.code_digest`: the function and
   its modules' import closure);
 * **heldout** (:func:`pipeline.audit.fit.heldout_mm`): the inputs, the error model, the code;
 * **compare** (:func:`pipeline.audit.pairs.compare_pair`): both fits' keys, the two
@@ -103,7 +103,7 @@ class Keys:
     """The cache keys of an audit's entries (the code digests taken once)."""
 
     def __init__(self) -> None:
-        from pipeline.code_key import code_digest
+        from pipeline.run.code_key import code_digest
 
         self.code = {kind: code_digest((entry,)) for kind, entry in ENTRIES.items()}
 

@@ -70,7 +70,7 @@ class Engine:
     ----------
     kind, workers, scheduler : as ``vtcal batch`` (:func:`pipeline.batch.executor.open_executor`)
     out_dir : the audit folder (with a ``scheduler``: the cluster is first checked to run
-        this vtcal and to see it, :func:`pipeline.cluster.preflight`)
+        this vtcal and to see it, :func:`pipeline.batch.cluster.preflight`)
     """
 
     def __init__(

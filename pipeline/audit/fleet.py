@@ -91,7 +91,7 @@ def run_crossval(item: AuditItem) -> Crossval:
     [models not told apart from it])``; empty where the run has no cross-validation."""
     import json
 
-    from pipeline.catalog import RUN_FILES
+    from pipeline.io.run_folder import RUN_FILES
 
     try:
         s = json.loads((item.path / RUN_FILES["identify"]).read_text())

@@ -26,8 +26,8 @@ from typing import Any
 
 import pandas as pd
 
-from pipeline.catalog import RUN_FILES
 from pipeline.errors import BadInput
+from pipeline.io.run_folder import RUN_FILES
 
 RECORDING = RUN_FILES["recording"]
 INLIERS = RUN_FILES["inliers"]

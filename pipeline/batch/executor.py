@@ -37,7 +37,7 @@ THREAD_ENV: dict[str, str] = {
 #: rendering libraries load in a worker only when it renders a report).
 PRELOAD = (
     "pipeline.batch.run",
-    "pipeline.orchestrator",
+    "pipeline.run.orchestrator",
     "pipeline.stages.ingest.stage",
     "pipeline.stages.detect.detector",
     "pipeline.stages.touchup.stage",
@@ -45,7 +45,7 @@ PRELOAD = (
     "pipeline.stages.identify.stage",
     "pipeline.stages.crossval.stage",
     "pipeline.stages.crossval.choose",
-    "pipeline.nodes",
+    "pipeline.run.nodes",
 )
 
 #: what a batch's workers load besides before their first recording: the lazily loaded
@@ -132,7 +132,7 @@ def open_executor(
         ``LocalCluster`` of ``workers`` single-threaded processes is started on loopback
     out_dir : the batch folder; with a ``scheduler``, the cluster's workers are
         first checked to run the same vtcal code and to see this folder
-        (:func:`pipeline.cluster.preflight`)
+        (:func:`pipeline.batch.cluster.preflight`)
     preload : modules the process pool's fork server imports besides :data:`PRELOAD`
 
     Raises
@@ -166,7 +166,7 @@ def open_executor(
             except (OSError, TimeoutError) as exc:
                 raise BadInput(f"--scheduler {scheduler}: cannot connect: {exc}") from exc
             if out_dir is not None:
-                from pipeline.cluster import preflight
+                from pipeline.batch.cluster import preflight
 
                 preflight(client, scheduler, out_dir)
         else:

@@ -17,11 +17,11 @@ from typing import TYPE_CHECKING, Any
 
 from pipeline.batch.executor import THREAD_ENV
 from pipeline.batch.manifest import BatchItem
-from pipeline.catalog import RUN_FILES
 from pipeline.errors import BadInput, CalibrationFailed, VtcalError
+from pipeline.io.run_folder import RUN_FILES
 
 if TYPE_CHECKING:
-    from pipeline.orchestrator import RunConfig
+    from pipeline.run.orchestrator import RunConfig
 
 #: Headline figures copied from ``identify.json`` into the summary (same names there).
 FIGURES_INT = ("n_rows", "n_used", "n_targets", "n_identified", "n_params")
@@ -180,7 +180,7 @@ def run_recording(
     ----------
     item : the recording and its manifest facts
     run_dir : run folder for its artefacts (created)
-    config, until, force : passed to :func:`pipeline.orchestrator.run_pipeline`
+    config, until, force : passed to :func:`pipeline.run.orchestrator.run_pipeline`
 
     Returns
     -------
@@ -193,7 +193,7 @@ def run_recording(
     t0, c0 = time.perf_counter(), time.process_time()
     try:
         from pipeline.batch.manifest import ensure_recording
-        from pipeline.orchestrator import run_pipeline
+        from pipeline.run.orchestrator import run_pipeline
 
         ensure_recording(item)  # a manifest's demo recording, simulated first when missing
         result = run_pipeline(item.recording, out, config, until=until, force=force)
@@ -219,10 +219,10 @@ def cached_outcome(
     Asked in the batch's own process before fanning out: what
     :func:`run_recording` would report for a run with every stage cached, made
     without a worker and without loading pandas or a stage module
-    (:func:`pipeline.orchestrator.cached_run`). ``worker`` and the memory figures
+    (:func:`pipeline.run.orchestrator.cached_run`). ``worker`` and the memory figures
     are this process's.
     """
-    from pipeline.orchestrator import cached_run
+    from pipeline.run.orchestrator import cached_run
 
     out = Path(run_dir)
     t0, c0 = time.perf_counter(), time.process_time()

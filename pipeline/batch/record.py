@@ -14,10 +14,10 @@ from typing import TYPE_CHECKING, Any
 
 from pipeline.batch.manifest import BatchItem
 from pipeline.batch.outcome import RecordingOutcome
-from pipeline.catalog import RUN_FILES
+from pipeline.io.run_folder import RUN_FILES
 
 if TYPE_CHECKING:
-    from pipeline.orchestrator import RunConfig
+    from pipeline.run.orchestrator import RunConfig
 
 #: file in the batch folder recording the fingerprint of the batch that wrote the
 #: summary and comparison files, their hashes and the comparison's printed lines
@@ -38,9 +38,9 @@ def batch_fingerprint(
     None when a recording did not finish or its run folder has no ledger entry
     (such a batch is never taken as unchanged).
     """
-    from pipeline import run_ledger
     from pipeline.io.fileio import config_hash
-    from pipeline.orchestrator import RunConfig
+    from pipeline.run import ledger as run_ledger
+    from pipeline.run.orchestrator import RunConfig
 
     if any(o.status != "ok" for o in outcomes):
         return None

@@ -2,7 +2,7 @@
 
 A batch is a list of :class:`BatchItem` (from paths or a dataset manifest, see
 :func:`load_manifest`). Each item is one task, :func:`run_recording`, which runs
-:func:`pipeline.orchestrator.run_pipeline` on the recording in a worker process,
+:func:`pipeline.run.orchestrator.run_pipeline` on the recording in a worker process,
 into ``OUT/<name>/``, and returns a small picklable :class:`RecordingOutcome`
 (status, one-line error, stage statuses, headline figures, peak RSS): no
 DataFrame ever crosses the executor, the artefacts stay on disk.
@@ -22,7 +22,7 @@ Caching is the orchestrator's: every stage's Parquet outputs record the hashes
 of their inputs, the stage configuration and the package version, and a fresh
 stage is skipped. An interrupted batch therefore resumes where it stopped.
 ``force=True`` re-runs every stage. Before fanning out, this process asks the
-run ledger (:mod:`pipeline.run_ledger`) about every recording: a run folder it
+run ledger (:mod:`pipeline.run.ledger`) about every recording: a run folder it
 vouches for (same recording bytes, options, ``until``, code; artefacts intact)
 is not sent to a worker at all, and when no recording is left the worker pool
 is never started. When, in addition, ``batch.json`` says the summary and
@@ -114,7 +114,7 @@ __all__ = [
 if TYPE_CHECKING:
     import pandas as pd
 
-    from pipeline.orchestrator import RunConfig
+    from pipeline.run.orchestrator import RunConfig
 
 
 class BatchIncomplete(VtcalError):
@@ -292,12 +292,12 @@ def run_batch(
     ----------
     items : the recordings (:func:`items_from_paths`, :func:`load_manifest`)
     out : batch folder (created); ``out/summary.parquet`` is the summary
-    config : stage options for every recording (:class:`pipeline.orchestrator.RunConfig`)
+    config : stage options for every recording (:class:`pipeline.run.orchestrator.RunConfig`)
     executor : an open executor to use (left open; every task is submitted to it at
         once); without it one is opened from ``kind``, ``workers``, ``scheduler``:
         for ``"processes"``, ``workers`` one-process pools fed one recording at a
         time, for ``"dask"`` :func:`open_executor`
-    until, force : passed to every :func:`~pipeline.orchestrator.run_pipeline`
+    until, force : passed to every :func:`~pipeline.run.orchestrator.run_pipeline`
     progress : called in this process as each recording finishes
     compare : also write the cross-run comparison of the identified runs
         (``compare.parquet``, ``compare.html``, see :func:`compare_batch`)
@@ -383,7 +383,7 @@ def _check_request(
     """Step 1 of :func:`run_batch`: refuse bad names, stages and executor options (BadInput)."""
     _check_names(items)
     if until is not None:
-        from pipeline.orchestrator import STAGES
+        from pipeline.run.orchestrator import STAGES
 
         if until not in STAGES:
             raise BadInput(f"--until {until!r}: not a stage (stages: {', '.join(STAGES)})")

@@ -13,7 +13,7 @@ from pipeline.errors import VtcalError
 if TYPE_CHECKING:
     import pandas as pd
 
-    from pipeline.orchestrator import RunConfig
+    from pipeline.run.orchestrator import RunConfig
 
 
 def _summary_columns() -> tuple[list[str], list[str]]:
@@ -88,7 +88,7 @@ def write_summary(
 ) -> Path:
     """Write ``out_dir/summary.parquet`` (schema ``batch_summary``); return its path."""
     from pipeline.io.artefacts import write_artefact
-    from pipeline.orchestrator import jsonable
+    from pipeline.run.orchestrator import jsonable
 
     path = out_dir / "summary.parquet"
     write_artefact(

@@ -25,7 +25,7 @@ import importlib
 LAZY = (
     "pipeline.io.artefacts",
     "pipeline.provenance",
-    "pipeline.run_ledger",
+    "pipeline.run.ledger",
     "pipeline.accuracy.verdict",
     "pipeline.io.mcap_index",
     "pipeline.stages.trust.adequacy",

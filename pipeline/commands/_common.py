@@ -65,7 +65,7 @@ def set_option(fn: Callable[..., Any]) -> Callable[..., Any]:
 
 def stage_option_prefixes() -> list[str]:
     """The names ``--set STAGE.OPTION=VALUE`` reaches (the catalog's option groups)."""
-    from pipeline.catalog import option_groups
+    from pipeline.run.catalog import option_groups
 
     return option_groups()
 

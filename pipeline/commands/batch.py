@@ -140,7 +140,7 @@ def command(
 
     # light: no numeric library. The workers' fork server is started by run_batch,
     # only when some recording is not already complete (the run ledger says which).
-    from pipeline.orchestrator import STAGES, RunConfig
+    from pipeline.run.orchestrator import STAGES, RunConfig
 
     if until is not None and until not in STAGES:
         raise BadInput(f"--until {until!r}: not a stage (stages: {', '.join(STAGES)})")

@@ -3,7 +3,7 @@
     vtcal identify TABLE.{parquet,csv} --urdf ROBOT.urdf --out DIR
         [--base-link L] [--flange-link L] [--distance A:B=METRES ...] [--model NAME|all]
 
-The runner (:mod:`pipeline.runner`) started at identify with the table given:
+The runner (:mod:`pipeline.run.runner`) started at identify with the table given:
 identify, crossval, choose and report write into ``DIR`` what ``vtcal run``
 writes from identification on (see ``docs/identification.md``).
 """
@@ -18,7 +18,6 @@ from typing import Any
 import click
 import pandas as pd
 
-from pipeline.catalog import RUN_FILES
 from pipeline.commands._common import (
     accept_implausible_option,
     distance_option,
@@ -28,6 +27,7 @@ from pipeline.commands._common import (
     tolerance_option,
 )
 from pipeline.errors import BadInput
+from pipeline.io.run_folder import RUN_FILES
 from pipeline.io.tables import read_table
 from pipeline.models import model_help
 
@@ -69,7 +69,7 @@ def _table_source(table: Path, urdf_path: Path, df: pd.DataFrame, conf: dict[str
     from pipeline import __version__
     from pipeline.io.fileio import config_hash, file_hash
     from pipeline.provenance import Source, recorded_utc
-    from pipeline.run_ledger import code_digest
+    from pipeline.run.ledger import code_digest
 
     sha = file_hash(table)
     request = {
@@ -187,7 +187,7 @@ def command(
         "robust_loss": robust_loss,
         "accept_implausible": accept_implausible,
     }
-    from pipeline.runner import Context, build_configs, plan, run_stages
+    from pipeline.run.runner import Context, build_configs, plan, run_stages
 
     off = (("crossval", no_crossval), ("report", no_report))
     names = plan(None, leave_out=tuple(n for n, leave in off if leave))

@@ -6,9 +6,9 @@ from pathlib import Path
 
 import click
 
-from pipeline.catalog import RUN_FILES
 from pipeline.commands._common import POSITIVE
 from pipeline.errors import BadInput
+from pipeline.io.run_folder import RUN_FILES
 
 
 @click.command(

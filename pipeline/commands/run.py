@@ -8,7 +8,6 @@ from typing import Any
 import click
 
 from pipeline.accuracy.verdict import tolerance_from_metadata
-from pipeline.catalog import RUN_FILES
 from pipeline.commands._common import (
     accept_implausible_option,
     distance_option,
@@ -19,7 +18,8 @@ from pipeline.commands._common import (
     split_stage_options,
     tolerance_option,
 )
-from pipeline.orchestrator import STAGES, RunConfig, run_pipeline
+from pipeline.io.run_folder import RUN_FILES
+from pipeline.run.orchestrator import STAGES, RunConfig, run_pipeline
 
 
 @click.command(
@@ -118,7 +118,7 @@ def command(
         tolerance_mm=tolerance_mm,
     )
     # a refusal leaves nothing in --out and carries ingest's warnings in its one line
-    # (pipeline.orchestrator.run_pipeline)
+    # (pipeline.run.orchestrator.run_pipeline)
     with progress_bars(enabled=not quiet) as progress:
         result = run_pipeline(recording, out, cfg, until=until, force=force, progress=progress)
     rec = _recording_json(out)

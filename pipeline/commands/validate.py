@@ -59,7 +59,7 @@ def _from_recording(recording: Path, folder: Path, flange_link: str | None, quie
     import json
 
     from pipeline.io.artefacts import read_artefact
-    from pipeline.orchestrator import RunConfig, run_paths, run_pipeline
+    from pipeline.run.orchestrator import RunConfig, run_paths, run_pipeline
 
     overrides = {"flange_link": flange_link} if flange_link else {}
     with progress_bars(enabled=not quiet) as progress:
@@ -231,7 +231,7 @@ def _prediction_model(calibrated: Path, joints: list[str], flange: str) -> Any:
     ``elastic`` (joint compliance) predicts through its own map, which a URDF cannot
     hold; None when there is no record, it is the URDF's model, or another robot.
     """
-    from pipeline.catalog import RUN_FILES
+    from pipeline.io.run_folder import RUN_FILES
 
     path = calibrated.parent / RUN_FILES["calibration"]
     if calibrated.name != RUN_FILES["calibrated_urdf"] or not path.is_file():
@@ -340,8 +340,8 @@ def _echo(result: dict[str, Any]) -> None:
 
 def _write(result: dict[str, Any], out: Path) -> None:
     from pipeline.io.fileio import atomic_write_bytes
-    from pipeline.orchestrator import write_json
     from pipeline.report.validate_html import render_validation
+    from pipeline.run.orchestrator import write_json
 
     out.mkdir(parents=True, exist_ok=True)
     write_json(out / "validate.json", result)

@@ -26,8 +26,8 @@ from typing import Any
 
 import numpy as np
 
-from pipeline.catalog import RUN_FILES
 from pipeline.errors import BadInput
+from pipeline.io.run_folder import RUN_FILES
 from pipeline.kinematics.chain import Chain, load_chain
 from pipeline.kinematics.se3 import F64
 from pipeline.kinematics.urdf import parse_urdf

@@ -29,9 +29,9 @@ import math
 from collections.abc import Sequence
 from typing import Any
 
-from pipeline.catalog import RUN_FILES
 from pipeline.errors import BadInput, ExportRefused
 from pipeline.export.calibration import RunCalibration, header_lines
+from pipeline.io.run_folder import RUN_FILES
 
 
 def parse_signs(text: str | None, n: int) -> list[int]:

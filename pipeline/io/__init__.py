@@ -8,5 +8,6 @@
 And vtcal's own files: ``artefacts`` (the declared Parquet schemas, checked on
 write and read), ``fileio`` (atomic writes, file and config hashes), ``jsonio``
 (the JSON side files' one byte-stable form), ``resources`` (where the schemas,
-report templates and the spec are), ``tables`` (a user's CSV or Parquet tables).
+report templates and the spec are), ``tables`` (a user's CSV or Parquet tables),
+``run_folder`` (the files of a run folder: names, schemas, writers).
 """

@@ -22,8 +22,8 @@ import numpy as np
 import pandas as pd
 import pyarrow.parquet as pq
 
-from pipeline.catalog import RUN_FILES
 from pipeline.io.artefacts import SCHEMA_DIR, file_hash, read_artefact
+from pipeline.io.run_folder import RUN_FILES
 from pipeline.kinematics.chain import Chain, load_chain
 from pipeline.kinematics.urdf import RobotDescription, parse_urdf
 

@@ -35,8 +35,8 @@ from typing import Any
 import numpy as np
 import pandas as pd
 
-from pipeline.catalog import RUN_FILES
 from pipeline.io.artefacts import read_meta
+from pipeline.io.run_folder import RUN_FILES
 from pipeline.kinematics.chain import fk
 from pipeline.report.data import RunData
 

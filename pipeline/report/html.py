@@ -33,8 +33,8 @@ from typing import Any
 import numpy as np
 import pandas as pd
 
-from pipeline.catalog import RUN_FILES
 from pipeline.io.artefacts import atomic_write_bytes
+from pipeline.io.run_folder import RUN_FILES
 from pipeline.report import plots
 from pipeline.report.data import RunData, load_run
 from pipeline.report.diagnosis import camera_section

@@ -37,8 +37,8 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from pipeline.catalog import RUN_FILES
 from pipeline.io.fileio import commit_file
+from pipeline.io.run_folder import RUN_FILES
 from pipeline.report.data import RunData, load_run, run_uuid
 from pipeline.report.images import Frame
 

@@ -3,7 +3,7 @@
 The entity tree, timelines and notes are described in :mod:`pipeline.report.rrd`,
 which opens and finalises the file; this module is the part that needs the
 Rerun SDK (0.2-0.3 s of imports). It is apart so that the report's code key
-(:mod:`pipeline.code_key`, which imports the stage's entry modules) does not load
+(:mod:`pipeline.run.code_key`, which imports the stage's entry modules) does not load
 the SDK. The warm report process (:mod:`pipeline.report.warm`) imports it while
 the run ingests; without that process the report stage imports it while its
 frames are read (:mod:`pipeline.report.outputs`).

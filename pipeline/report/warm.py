@@ -33,6 +33,7 @@ import multiprocessing
 import multiprocessing.connection
 import os
 import signal
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -79,13 +80,21 @@ class WarmReport:
         return message
 
     @classmethod
-    def start(cls) -> WarmReport | None:
-        """Fork the process, or None when :func:`can_start` says no or the fork fails."""
+    def start(cls, code_digest: Callable[[], str] | None = None) -> WarmReport | None:
+        """Fork the process, or None when :func:`can_start` says no or the fork fails.
+
+        ``code_digest`` computes the report's code digest (the run's machinery hands it
+        in: ``stage_code_digest("report")``, so the report does not import the stage
+        table); the process calls it when asked (:meth:`code_digest`). Without it the
+        process cannot say, and the caller computes the digest itself.
+        """
         if not can_start():
             return None
         ctx = multiprocessing.get_context("fork")
         here, there = ctx.Pipe()
-        proc = ctx.Process(target=_serve, args=(there, here), name="vtcal-report", daemon=True)
+        proc = ctx.Process(
+            target=_serve, args=(there, here, code_digest), name="vtcal-report", daemon=True
+        )
         try:
             proc.start()
         except OSError:
@@ -124,8 +133,9 @@ class WarmReport:
         self._reading = self._send(("prefetch", str(run_dir)))
 
     def code_digest(self) -> str | None:
-        """The report's code digest (:func:`pipeline.code_key.stage_code_digest`) computed
-        there, where the report's modules are loaded anyway; None when it cannot be asked.
+        """The report's code digest (the ``code_digest`` function :meth:`start` was handed:
+        :func:`pipeline.run.code_key.stage_code_digest`) computed there, where the report's
+        modules are loaded anyway; None when it cannot be asked or was handed none.
 
         The process is a fork of this one, made when the run started, and reads the same
         source files, so the digest is the one this process would compute; computing it
@@ -165,14 +175,15 @@ class WarmReport:
 
 
 def _serve(
-    conn: multiprocessing.connection.Connection, parent_end: multiprocessing.connection.Connection
+    conn: multiprocessing.connection.Connection,
+    parent_end: multiprocessing.connection.Connection,
+    code_digest: Callable[[], str] | None = None,
 ) -> None:
     """The process: load the SDK and the report's modules, then answer messages until told to stop."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C is the run's to handle
     parent_end.close()
 
     import pipeline.report.rrd_log  # noqa: F401 - the Rerun SDK: what this process is for
-    from pipeline.code_key import stage_code_digest
     from pipeline.report.outputs import build_outputs, prefetch_frames
 
     frames: dict[int, Any] = {}
@@ -185,7 +196,9 @@ def _serve(
             return
         if message[0] == "digest":
             try:
-                conn.send(("digest", stage_code_digest("report")))
+                if code_digest is None:
+                    raise RuntimeError("no code digest function was handed in")
+                conn.send(("digest", code_digest()))
             except Exception as exc:  # noqa: BLE001 - the run computes it itself
                 conn.send(("error", RuntimeError(str(exc))))
             continue

@@ -377,8 +377,8 @@ def recording_json(rec: HistoryRecording) -> dict[str, Any]:
 
 def write_history(history: list[HistoryRecording], out: Path) -> list[Path]:
     """Write each recording as ``out/NAME/{inliers.parquet, recording.json, truth.json}``."""
-    from pipeline.catalog import RUN_FILES
     from pipeline.io.artefacts import write_artefact
+    from pipeline.io.run_folder import RUN_FILES
 
     folders = []
     for rec in history:

@@ -212,7 +212,7 @@ def load(run_dir: str | Path) -> Calibration:
         The folder has no ``calibration.json`` (a run from an older vtcal: run it
         again), or the file is not a calibration record.
     """
-    from pipeline.catalog import RUN_FILES
+    from pipeline.io.run_folder import RUN_FILES
 
     path = Path(run_dir) / RUN_FILES["calibration"]
     try:

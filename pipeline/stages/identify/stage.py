@@ -570,14 +570,14 @@ def fit_outputs(results: IdentifyResult | dict[str, IdentifyResult]) -> dict[str
     Returns
     -------
     dict with ``parameters``, ``residuals``, ``targets``: every model's rows in
-    one table (``model`` column), as :class:`pipeline.catalog.Parquet` with the
+    one table (``model`` column), as :class:`pipeline.io.run_folder.Parquet` with the
     :func:`best_result`'s ``scale_held`` and ``model`` in the metadata;
     ``model_urdfs``: ``{model: calibrated URDF text}``; ``models``: the JSON
     document ``{"models": {model: summary}, "order": [model, ...], "best_model": name}``
     (NaN as null; ``order``: the order the models were fitted, which headlines follow)
     from which the choose stage (:mod:`pipeline.stages.crossval.choose`) makes identify.json.
     """
-    from pipeline.catalog import Parquet
+    from pipeline.io.run_folder import Parquet
 
     many = results if isinstance(results, dict) else {results.model: results}
     best = best_result(results)

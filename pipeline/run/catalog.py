@@ -1,94 +1,25 @@
-"""The declared pipeline: every run-folder file and every stage, each declared once.
+"""The declared pipeline: every stage, declared once.
 
-:data:`ARTEFACTS` names each file of a run folder (``spec/outputs.md``),
-its schema (``schemas/NAME.json`` for Parquet) and the one stage that writes
-it. :data:`STAGES` is the pipeline as a table of :class:`Stage`: the function
+:data:`STAGES` is the pipeline as a table of :class:`Stage`: the function
 that computes it, the artefacts it reads and those it writes, and the config
-dataclass of its options. The runner (:mod:`pipeline.runner`) walks this
+dataclass of its options. The files of a run folder (their names, schemas and
+writers) are declared below it, in :mod:`pipeline.io.run_folder`
+(:data:`~pipeline.io.run_folder.ARTEFACTS`), which the readers of a run folder
+import without the stage table. The runner (:mod:`pipeline.run.runner`) walks this
 table; stage functions take data and return data, and only the runner writes.
 ``tests/test_catalog.py`` checks that every file has exactly one writer and
 that each stage reads only what an earlier stage wrote.
 
-Standard library only: the report, ``vtcal validate``, ``vtcal compare``, the
-batch and the run ledger read the catalogue without importing the runner or
-a stage (functions and configs are named ``module:attribute``, resolved by
-the runner).
+Standard library only: ``vtcal run``'s options and the run ledger read the
+catalogue without importing the runner or a stage (functions and configs are
+named ``module:attribute``, resolved by the runner).
 """
 
 from __future__ import annotations
 
-from collections.abc import Mapping
-from dataclasses import dataclass, field
-from pathlib import Path
-from typing import Any
+from dataclasses import dataclass
 
-
-@dataclass(frozen=True)
-class Artefact:
-    """One file of a run folder.
-
-    Attributes
-    ----------
-    key : the name stages and readers use (``"parameters"``)
-    file : file name inside the run folder (``"parameters.parquet"``)
-    writer : the stage that writes it (``"runner"``: the runner's own ledger)
-    schema : declared Parquet schema (``schemas/SCHEMA.json``), None for other files
-    keyed : its hash is part of the cache key of the stages that read it. False
-        for a side file whose results its writer's Parquet outputs (read too)
-        already key, and which holds wall-clock timings: keying on it would
-        make a reader's Parquet bytes differ from run to run
-    index : for a file per fitted model (``file`` holds ``{model}``): the JSON
-        artefact whose ``"models"`` list names the models, so the files
-    """
-
-    key: str
-    file: str
-    writer: str
-    schema: str | None = None
-    keyed: bool = True
-    index: str | None = None
-
-    @property
-    def per_model(self) -> bool:
-        """One file per fitted model (``file`` is a pattern, :attr:`index` names them)."""
-        return "{model}" in self.file
-
-
-#: every file of a run folder, in the order the stages write them
-ARTEFACTS: list[Artefact] = [
-    Artefact("frames", "frames.parquet", "ingest", "frames"),
-    Artefact("detections", "detections.parquet", "ingest", "detections"),
-    Artefact("recording", "recording.json", "ingest"),
-    Artefact("touchups", "touchups.parquet", "touchups", "touchups"),
-    Artefact("inliers", "inliers.parquet", "outliers", "inliers"),
-    Artefact("parameters", "parameters.parquet", "identify", "parameters"),
-    Artefact("residuals", "residuals.parquet", "identify", "residuals"),
-    Artefact("targets", "targets.parquet", "identify", "targets"),
-    Artefact("models", "models.json", "identify", keyed=False),
-    Artefact("model_urdfs", "calibrated_{model}.urdf", "identify", index="models"),
-    Artefact("crossval", "crossval.parquet", "crossval", "crossval"),
-    Artefact("calibrated_urdf", "calibrated.urdf", "choose"),
-    Artefact("calibration", "calibration.json", "choose"),
-    Artefact("identify", "identify.json", "choose"),
-    Artefact("report", "report.html", "report"),
-    Artefact("rrd", "run.rrd", "report"),
-    Artefact("run", "run.json", "runner"),
-]
-
-#: artefact key -> file name inside a run folder (``spec/outputs.md``);
-#: the per-model URDFs (``Artefact.per_model``) are named by the models fitted
-RUN_FILES = {a.key: a.file for a in ARTEFACTS if "{" not in a.file}
-
-#: artefact key -> its declaration
-BY_KEY = {a.key: a for a in ARTEFACTS}
-
-
-@dataclass(frozen=True)
-class Parquet:
-    """A stage's Parquet output: the rows and further ``vtcal.*`` metadata strings."""
-
-    data: Any
-    meta: Mapping[str, str] = field(default_factory=dict)
+from pipeline.io.run_folder import ARTEFACTS, BY_KEY, RUN_FILES, Artefact
 
 
 @dataclass(frozen=True)
@@ -106,10 +37,10 @@ class Stage:
         written after its Parquet ones: the last present means the stage finished
     config : ``module:Class`` of its options dataclass, or None
     code : further ``module:function`` entry points whose code decides its result
-        (the stage code key, :mod:`pipeline.code_key`)
+        (the stage code key, :mod:`pipeline.run.code_key`)
     optional : inputs it reads only when their stage is part of the run
     cache : how the runner keys it. ``"outputs"``: fresh when its Parquet outputs record
-        the same input hashes and config (:func:`pipeline.runner.is_fresh`);
+        the same input hashes and config (:func:`pipeline.run.runner.is_fresh`);
         ``"always"``: cheap, computed every run, a file rewritten only when its bytes
         change; ``"ledger"``: keyed in ``run.json`` (its files are written by their own
         writers, and it shows the stage table, so it runs last)
@@ -145,7 +76,7 @@ class Stage:
 STAGES: list[Stage] = [
     Stage(
         "ingest",
-        "pipeline.nodes:ingest",
+        "pipeline.run.nodes:ingest",
         (),
         ("frames", "detections", "recording"),
         "pipeline.stages.ingest.stage:IngestConfig",
@@ -155,7 +86,7 @@ STAGES: list[Stage] = [
     ),
     Stage(
         "touchups",
-        "pipeline.nodes:touchups",
+        "pipeline.run.nodes:touchups",
         ("frames", "detections", "recording"),
         ("touchups",),
         "pipeline.stages.touchup.stage:TouchupConfig",
@@ -163,7 +94,7 @@ STAGES: list[Stage] = [
     ),
     Stage(
         "outliers",
-        "pipeline.nodes:outliers",
+        "pipeline.run.nodes:outliers",
         ("touchups", "recording"),
         ("inliers",),
         "pipeline.stages.trust.outliers:OutlierConfig",
@@ -171,7 +102,7 @@ STAGES: list[Stage] = [
     ),
     Stage(
         "identify",
-        "pipeline.nodes:identify",
+        "pipeline.run.nodes:identify",
         ("inliers",),
         ("parameters", "residuals", "targets", "model_urdfs", "models"),
         "pipeline.stages.identify.stage:IdentifyConfig",
@@ -181,7 +112,7 @@ STAGES: list[Stage] = [
     ),
     Stage(
         "crossval",
-        "pipeline.nodes:crossval",
+        "pipeline.run.nodes:crossval",
         ("inliers", "parameters", "models"),
         ("crossval",),
         "pipeline.stages.crossval.stage:CrossvalConfig",
@@ -189,7 +120,7 @@ STAGES: list[Stage] = [
     ),
     Stage(
         "choose",
-        "pipeline.nodes:choose",
+        "pipeline.run.nodes:choose",
         ("models", "model_urdfs", "parameters"),
         ("calibrated_urdf", "calibration", "identify"),
         None,
@@ -201,7 +132,7 @@ STAGES: list[Stage] = [
     ),
     Stage(
         "report",
-        "pipeline.nodes:report",
+        "pipeline.run.nodes:report",
         (
             "recording",
             "touchups",
@@ -261,13 +192,3 @@ def unregister(name: str) -> None:
 def option_groups() -> list[str]:
     """Every name ``--set GROUP.OPTION=VALUE`` takes (:attr:`Stage.option_groups`)."""
     return [g for s in STAGES for g in s.option_groups]
-
-
-def writer(key: str) -> str:
-    """The stage that writes artefact ``key`` (a KeyError names an undeclared file)."""
-    return BY_KEY[key].writer
-
-
-def run_paths(out: Path) -> dict[str, Path]:
-    """The files a run folder holds, as paths under ``out``."""
-    return {k: out / v for k, v in RUN_FILES.items()}

@@ -34,12 +34,12 @@ from pathlib import Path
 from typing import Any
 
 from pipeline import __version__
-from pipeline.catalog import RUN_FILES
 from pipeline.io import resources
 from pipeline.io.fileio import file_hash, hash_named_files
 from pipeline.io.layout import locate, recording_hash
+from pipeline.io.run_folder import RUN_FILES
 
-PACKAGE_DIR = Path(__file__).resolve().parent
+PACKAGE_DIR = Path(__file__).resolve().parents[1]  # pipeline/ (this module is in pipeline/run/)
 SCHEMA_DIR = resources.SCHEMA_DIR
 
 #: key of the ledger entry in ``run.json``
@@ -84,7 +84,7 @@ def fingerprint(recording: Path, config: Any, until: str | None) -> dict[str, An
     ----------
     recording : the MCAP file or ROS bag (hashed: its bytes, not its name, count;
         :func:`pipeline.io.layout.recording_hash`)
-    config : the run's :class:`~pipeline.orchestrator.RunConfig`
+    config : the run's :class:`~pipeline.run.orchestrator.RunConfig`
     until : last stage asked for, or None
     """
     return {

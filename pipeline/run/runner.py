@@ -5,7 +5,7 @@ For each stage of a plan the runner
 1. hashes the files the stage reads (``Stage.inputs``; data handed in by the
    caller, :attr:`Context.given`, has no file and so no hash) and builds the
    stage's cache key: those hashes plus ``{"stage", "config", "code"}``
-   (:func:`pipeline.code_key.stage_code_digest`);
+   (:func:`pipeline.run.code_key.stage_code_digest`);
 2. skips the stage when its outputs are fresh (:func:`is_fresh`: every output
    exists and its Parquet metadata records these inputs and this key);
 3. otherwise reads its inputs (lazily: a stage reads only what it asks for),
@@ -22,7 +22,7 @@ writers (HTML, Rerun). A stage that reads the recording itself (``Stage.source``
 ingest) is keyed by the recording's hash; a file per fitted model
 (``Artefact.per_model``) is named by its index artefact's ``"models"`` list.
 
-``vtcal run`` starts the runner at ingest (:func:`pipeline.orchestrator.run_pipeline`),
+``vtcal run`` starts the runner at ingest (:func:`pipeline.run.orchestrator.run_pipeline`),
 ``vtcal identify`` at identify with the touch-up table given
 (:mod:`pipeline.commands.identify`).
 """
@@ -39,11 +39,12 @@ from pathlib import Path
 from typing import Any
 
 from pipeline import __version__
-from pipeline.catalog import BY_KEY, STAGE, STAGE_NAMES, STAGES, Artefact, Parquet, Stage, run_paths
-from pipeline.code_key import stage_code_digest
 from pipeline.errors import BadInput
 from pipeline.io.fileio import atomic_write_bytes, config_hash, file_hash, write_group
 from pipeline.io.jsonio import json_bytes, jsonable
+from pipeline.io.run_folder import BY_KEY, Artefact, Parquet, run_paths
+from pipeline.run.catalog import STAGE, STAGE_NAMES, STAGES, Stage
+from pipeline.run.code_key import stage_code_digest
 
 #: Reports progress of a long stage: ``(stage, done, total or None)``.
 Progress = Callable[[str, int, int | None], None]
@@ -282,7 +283,7 @@ def write_output(
 ) -> list[Path]:
     """Write one output of a stage by its artefact's kind; the paths written.
 
-    Parquet (:class:`pipeline.catalog.Parquet` or a DataFrame): checked against
+    Parquet (:class:`pipeline.io.run_folder.Parquet` or a DataFrame): checked against
     its schema, with the stage's key in the metadata (and, with ``written``, its hash and
     Arrow table kept there: :attr:`Context.written`). JSON: sorted keys
     (:func:`pipeline.io.jsonio.json_bytes`). URDF: text. Per-model URDFs: one file each. A path (the report's
@@ -462,7 +463,7 @@ def write_run(
     """The one writer of ``run.json``: ``{"version", "stages", **fields}``, byte-stable
     (:func:`pipeline.io.jsonio.json_bytes`), atomic; with ``changed_only`` only when its bytes
     change. The runner writes this run's stage table before the report (which shows it),
-    :mod:`pipeline.orchestrator` the finished run with its ledger entry."""
+    :mod:`pipeline.run.orchestrator` the finished run with its ledger entry."""
     path = run_paths(out)["run"]
     blob = json_bytes({"version": __version__, "stages": stages, **fields})
     if not changed_only or not path.is_file() or path.read_bytes() != blob:

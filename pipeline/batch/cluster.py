@@ -45,14 +45,14 @@ def worker_facts(out_dir: str, probe_name: str, token: str) -> dict[str, Any]:
 
     Returns
     -------
-    dict with ``version`` and ``code`` (:func:`pipeline.run_ledger.code_digest`)
+    dict with ``version`` and ``code`` (:func:`pipeline.run.ledger.code_digest`)
     of the worker's vtcal, ``sees_out`` (the probe file is there with the token),
     ``host`` and ``pid``.
     """
     import socket
 
     from pipeline import __version__
-    from pipeline.run_ledger import code_digest
+    from pipeline.run.ledger import code_digest
 
     try:
         sees = (Path(out_dir) / probe_name).read_text() == token
@@ -82,7 +82,7 @@ def preflight(client: Any, scheduler: str, out_dir: Path, wait_s: float | None =
         digest); a worker that does not see ``out_dir`` (no shared filesystem).
     """
     from pipeline import __version__
-    from pipeline.run_ledger import code_digest
+    from pipeline.run.ledger import code_digest
 
     where = f"--scheduler {scheduler}"
     wait_s = WORKER_WAIT_S if wait_s is None else wait_s

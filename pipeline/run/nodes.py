@@ -2,7 +2,7 @@
 
 Each ``NAME(data, config, context)`` takes the artefacts its stage reads
 (``data``: DataFrames for Parquet, dicts for JSON, text for URDFs), its options
-and the run's context (:class:`pipeline.runner.Context`: the recording, the
+and the run's context (:class:`pipeline.run.runner.Context`: the recording, the
 robot, the provenance source), calls the stage's computation in
 ``pipeline/stages/`` and returns ``{artefact key: value}`` for the runner to
 write. Nothing here writes a file, except the report (its two files are
@@ -10,7 +10,7 @@ written by the HTML and Rerun writers themselves).
 
 The computations are looked up on their modules at call time, so a function
 replaced at run time is the one that runs (and the one the stage code key
-hashes, :mod:`pipeline.code_key`).
+hashes, :mod:`pipeline.run.code_key`).
 """
 
 from __future__ import annotations
@@ -20,7 +20,7 @@ import json
 import math
 from typing import Any
 
-from pipeline.catalog import Parquet
+from pipeline.io.run_folder import Parquet
 
 
 def _info(recording: dict[str, Any]) -> Any:
@@ -114,7 +114,7 @@ def identify(data: dict[str, Any], config: Any, context: Any) -> dict[str, Any]:
 
 def _meta(data: Any, key: str) -> dict[str, str]:
     """The ``vtcal.*`` metadata of Parquet input ``key``; from the runner's inputs without
-    reading the table's rows (:meth:`pipeline.runner.Inputs.meta`)."""
+    reading the table's rows (:meth:`pipeline.run.runner.Inputs.meta`)."""
     meta = getattr(data, "meta", None)
     return dict(meta(key)) if meta is not None else dict(data[key].attrs["vtcal"])
 

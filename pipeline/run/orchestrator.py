@@ -1,14 +1,14 @@
 """The run orchestrator: ``vtcal run`` as the runner started at ingest.
 
-The pipeline is declared in :mod:`pipeline.catalog` (``STAGES``: each stage's
+The pipeline is declared in :mod:`pipeline.run.catalog` (``STAGES``: each stage's
 function, inputs, outputs and options; ``ARTEFACTS``: each file and its one
-writer) and walked by :mod:`pipeline.runner`, the only writer of a run folder,
+writer) and walked by :mod:`pipeline.run.runner`, the only writer of a run folder,
 which skips a stage whose outputs are fresh (``force=True`` re-runs
 everything). This module builds the stages' options from a :class:`RunConfig`
 and the recording, checks the recording between ingest and the touch-ups, and
 keeps the run ledger in ``run.json``.
 
-Before any of that, the run ledger (:mod:`pipeline.run_ledger`) is asked whether
+Before any of that, the run ledger (:mod:`pipeline.run.ledger`) is asked whether
 the run folder is already exactly what this request makes: same recording bytes,
 options, ``until``, version and code, every artefact intact. Then the run returns
 at once with every stage cached, without loading pandas, pyarrow or a stage
@@ -33,17 +33,20 @@ import json
 import math
 from collections.abc import Mapping
 from dataclasses import dataclass, field
+from functools import partial
 from pathlib import Path
 from typing import Any
 
-from pipeline import catalog
-from pipeline.catalog import RUN_FILES, STAGE_NAMES, run_paths
 from pipeline.errors import BadInput, CalibrationFailed, VtcalError
 from pipeline.io.fileio import config_hash
 from pipeline.io.jsonio import json_bytes, jsonable, write_json
 from pipeline.io.layout import locate
+from pipeline.io.run_folder import RUN_FILES, run_paths
 from pipeline.known_distances import metadata_distances
-from pipeline.runner import (
+from pipeline.run import catalog
+from pipeline.run.catalog import STAGE_NAMES
+from pipeline.run.code_key import stage_code_digest
+from pipeline.run.runner import (
     Context,
     Progress,
     StageRecord,
@@ -54,7 +57,7 @@ from pipeline.runner import (
     run_stages,
     write_run,
 )
-from pipeline.withdraw import release, snapshot, withdraw
+from pipeline.run.withdraw import release, snapshot, withdraw
 
 #: the stage names, in run order (``--until`` takes one)
 STAGES = STAGE_NAMES
@@ -143,12 +146,12 @@ def run_pipeline(
     The run, in steps:
 
     1. check the request (``until``, the recording, known distances) and ask the run ledger;
-    2. ingest (:func:`pipeline.runner.run_stages`);
+    2. ingest (:func:`pipeline.run.runner.run_stages`);
     3. read recording.json, refuse an implausible recording, build the options of
        the later stages from it (:func:`stage_configs`);
-    4. the rest of the plan (:func:`pipeline.runner.plan`), then ``run.json``.
+    4. the rest of the plan (:func:`pipeline.run.runner.plan`), then ``run.json``.
     """
-    from pipeline import run_ledger
+    from pipeline.run import ledger as run_ledger
 
     cfg = config or RunConfig()
     names = plan(until, leave_out=() if cfg.report else ("report",))
@@ -208,8 +211,8 @@ def _run_in(
     before: Any,
 ) -> RunResult:
     """Steps 2-4 of :func:`run_pipeline` in the run folder ``out`` (made); ``before`` its
-    files when the run started (:func:`pipeline.withdraw.snapshot`)."""
-    from pipeline import run_ledger
+    files when the run started (:func:`pipeline.run.withdraw.snapshot`)."""
+    from pipeline.run import ledger as run_ledger
 
     # temporaries a killed run left behind (atomic writes, the .rrd's partial save): never
     # artefacts; a run folder has one run at a time, so they are stale
@@ -229,13 +232,14 @@ def _run_in(
     if "report" in names and "touchups" in names:
         from pipeline.report.warm import WarmReport
 
-        # loads the Rerun SDK on the core ingest leaves idle (pipeline.report.warm)
-        ctx.warm_report = WarmReport.start()
+        # loads the Rerun SDK on the core ingest leaves idle (pipeline.report.warm), and
+        # computes the report's code digest there, where its modules are loaded anyway
+        ctx.warm_report = WarmReport.start(partial(stage_code_digest, "report"))
         if ctx.warm_report is not None:  # the frames it will show, once they are known
             ctx.after_stage.setdefault("touchups", []).append(ctx.warm_report.prefetch)
     try:
         key = _run_plan(ctx, cfg, names, recording, fp)
-    except VtcalError as exc:  # a refusal: nothing partial stays (pipeline.withdraw)
+    except VtcalError as exc:  # a refusal: nothing partial stays (pipeline.run.withdraw)
         warned = _ingest_warnings(out)
         withdraw(out, before)
         if warned:  # still one line: a truncated recording is often why a later stage failed
@@ -288,7 +292,7 @@ def _run_plan(
 
 def ingest_configs(cfg: RunConfig) -> dict[str, Any]:
     """The ingest stage's options: ``{"ingest": IngestConfig, "detect": DetectConfig}``
-    (:func:`pipeline.runner.build_configs`, with the topics and metadata overrides)."""
+    (:func:`pipeline.run.runner.build_configs`, with the topics and metadata overrides)."""
     topics = {
         "image_topic": cfg.image_topic,
         "joint_topic": cfg.joint_topic,
@@ -306,7 +310,7 @@ def stage_configs(cfg: RunConfig, info: Any) -> dict[str, Any]:
     with the recording's known distances (not strict: a truncated recording may
     not reach every target; strict when given on the command line) and its printed
     target size (the image-implied one identify reads from the touch-ups it declares,
-    :func:`pipeline.nodes.identify`).
+    :func:`pipeline.run.nodes.identify`).
     """
     fixed = {
         "identify": {
@@ -348,7 +352,7 @@ def _finish(
     tolerance_mm: float | None = None,
 ) -> RunResult:
     """Write ``run.json`` (what each stage did, and the run ledger's entry) and the result."""
-    from pipeline import run_ledger
+    from pipeline.run import ledger as run_ledger
 
     summary: dict[str, Any] = {}
     if P["identify"].exists():
@@ -368,7 +372,7 @@ def _from_ledger(out: Path, fp: dict[str, Any]) -> RunResult | None:
     On a hit ``run.json`` is brought to what a run with every stage cached writes
     (statuses ``cached``; rewritten only when that changes its bytes).
     """
-    from pipeline import run_ledger
+    from pipeline.run import ledger as run_ledger
 
     run = run_ledger.lookup(out, fp)
     if run is None:
@@ -412,7 +416,7 @@ def cached_run(
     config : stage options, as given to :func:`run_pipeline`
     until : last stage, as given to :func:`run_pipeline`
     """
-    from pipeline import run_ledger
+    from pipeline.run import ledger as run_ledger
 
     try:
         recording, out = Path(recording), Path(out)

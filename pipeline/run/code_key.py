@@ -16,14 +16,14 @@ configuration *and the same code* (a changed stage must not answer
   replaced at run time (a plug-in, or a test's monkeypatch) changes the key
   even though no file changed.
 
-Stages and their entry points are declared once, in :data:`pipeline.catalog.STAGES`
+Stages and their entry points are declared once, in :data:`pipeline.run.catalog.STAGES`
 (``Stage.code``; :data:`ENTRY_POINTS` is that column). The compiled code of the
-stage's own function (``Stage.fn``, in :mod:`pipeline.nodes`) is hashed too,
+stage's own function (``Stage.fn``, in :mod:`pipeline.run.nodes`) is hashed too,
 but not the import closure of its module (it imports every stage). The digest
-is what the runner (:mod:`pipeline.runner`) adds to each stage's
+is what the runner (:mod:`pipeline.run.runner`) adds to each stage's
 configuration hash (``config_hash`` in the Parquet metadata) and to the
 report's key in ``run.json``; the run ledger's ``code`` digest
-(:func:`pipeline.run_ledger.code_digest`) covers every file of the package, so
+(:func:`pipeline.run.ledger.code_digest`) covers every file of the package, so
 a file change also defeats the ledger's whole-run shortcut.
 
 Parsing the import closures is the slow part (0.2 s over the stages after ingest);
@@ -43,13 +43,13 @@ from functools import cache
 from pathlib import Path
 from typing import Any
 
-from pipeline import catalog
-from pipeline.catalog import STAGES
 from pipeline.io import resources
 from pipeline.io.fileio import atomic_write_bytes, hash_named_files
 from pipeline.io.resources import user_cache_dir
+from pipeline.run import catalog
+from pipeline.run.catalog import STAGES
 
-PACKAGE_DIR = Path(__file__).resolve().parent
+PACKAGE_DIR = Path(__file__).resolve().parents[1]  # pipeline/ (this module is in pipeline/run/)
 SCHEMA_DIR = resources.SCHEMA_DIR
 
 #: stage -> ``module:function`` entry points that compute it (``catalog.STAGES``)
@@ -249,7 +249,7 @@ def stage_code_digest(stage: str) -> str:
 
     Parameters
     ----------
-    stage : a stage of :data:`pipeline.catalog.STAGE` (read at the call: a registered one too)
+    stage : a stage of :data:`pipeline.run.catalog.STAGE` (read at the call: a registered one too)
 
     Returns
     -------
