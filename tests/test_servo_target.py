@@ -80,7 +80,7 @@ def test_a_recording_without_designated_values_reads_them_from_its_loops(
     within 0.05 px (centre) and 0.01 px (size) of the values it declares, where the
     median of its final captures is 0.09 px (u) and 0.038 px (size) off."""
     from pipeline.io.artefacts import read_artefact
-    from pipeline.orchestrator import RunConfig, run_pipeline
+    from pipeline.run.orchestrator import RunConfig, run_pipeline
     from pipeline.stages.ingest.types import RecordingInfo
     from pipeline.stages.touchup.stage import TouchupConfig, extract_touchups
 
