@@ -39,6 +39,9 @@ class FitData:
     #: (flange frame, :mod:`pipeline.stages.identify.print_shape`), None without those columns
     shape_g: F64 | None = None
     shape_l: F64 | None = None
+    #: (N,) each used row's image anisotropy ``|v_i|`` of (S3) (NaN where unknown), None
+    #: without the column: (S2) of :mod:`pipeline.stages.identify.print_shape`
+    shape_v: F64 | None = None
     #: (M, 3, 3) every row's image-Jacobian pair scatter ``S_i`` (flange frame, m^2,
     #: :mod:`pipeline.estimation.correction_frame` F2), None without those columns
     pair_scatter_all: F64 | None = None

@@ -253,7 +253,9 @@ def touch_targets(
     df["note"] = ""
     for c in ("studentized", "leverage", "view_gx", "view_gy", "view_gz", "axis_lx", "axis_ly"):
         df[c] = np.nan
-    for c in ("axis_lz", "pair_sxx", "pair_syy", "pair_szz", "pair_sxy", "pair_sxz", "pair_syz"):
+    for c in ("axis_lz", "axis_anisotropy", "pair_sxx", "pair_syy", "pair_szz", "pair_sxy"):
+        df[c] = np.nan
+    for c in ("pair_sxz", "pair_syz"):
         df[c] = np.nan
     return df
 

@@ -49,7 +49,8 @@ def _print_rows(rt: RefitTable, rows: np.ndarray) -> PrintRows | None:
     if not isinstance(prep, PreparedTable) or prep.shape_all is None:
         return None
     sh = prep.shape_all[rows]
-    return PrintRows(sh[:, :3], sh[:, 3:], rt.df["target_id"].to_numpy()[rows])
+    v = sh[:, 6] if sh.shape[1] > 6 else None
+    return PrintRows(sh[:, :3], sh[:, 3:6], rt.df["target_id"].to_numpy()[rows], v)
 
 
 def heldout_predictions(

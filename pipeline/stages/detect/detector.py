@@ -133,15 +133,12 @@ class DetectConfig:
         when numba is installed; False: the NumPy reference path.
     response : Response or None
         The camera's response curve (:class:`pipeline.stages.response.curve.Response`):
-        the grey levels of the target's window are linearised with its inverse
-        before the sub-pixel stage, so that the halfway level is halfway in
-        irradiance. None (the default, ``auto``): not known; ingest takes the
-        recording's ``camera_response`` metadata or estimates the curve from the
-        first images (:func:`pipeline.stages.image.response_estimate.estimate_response`);
-        :func:`detect_target` called alone treats it as linear. A spec string
-        (``linear``, ``srgb``, ``gamma:G``, ``table:...``, ``auto``), as settings read
-        from a command line or JSON give it, is parsed once, on construction; the
-        object is carried from then on and :meth:`to_dict` writes its spec.
+        the window's grey levels are linearised with its inverse before the sub-pixel
+        stage (the halfway level is halfway in irradiance). None (``auto``): not known;
+        ingest takes the recording's ``camera_response`` or estimates it
+        (:func:`pipeline.stages.image.response_estimate.estimate_response`); alone,
+        linear. A spec string (a command line, JSON) is parsed once, on construction;
+        :meth:`to_dict` writes the spec.
     clip_correction : bool
         Where the bright side of the edge is clipped at the image type's top code
         (an over-exposed plate), move the contour to where the unclipped halfway

@@ -18,7 +18,7 @@ from pipeline.estimation.correction_frame import table_scatters
 from pipeline.kinematics.chain import Chain
 from pipeline.kinematics.se3 import F64
 from pipeline.measurement.data import FitData
-from pipeline.stages.identify.print_shape import SHAPE_COLUMNS
+from pipeline.stages.identify.print_shape import ANISOTROPY_COLUMN, SHAPE_COLUMNS
 from pipeline.stages.identify.types import IdentifyConfig
 
 #: rows beyond these are flagged, not fitted: a joint at 1000 rad (or m), a residual correction
@@ -98,11 +98,15 @@ def _prepare(
     ui = np.flatnonzero(used)
     shape_all = None
     if all(c in df.columns for c in SHAPE_COLUMNS):
-        shape_all = np.stack(
-            [pd.to_numeric(df[c], errors="coerce").to_numpy(dtype=float) for c in SHAPE_COLUMNS],
-            axis=1,
+        cols = (
+            [*SHAPE_COLUMNS, ANISOTROPY_COLUMN]
+            if ANISOTROPY_COLUMN in df.columns
+            else SHAPE_COLUMNS
         )
-    shape_g, shape_l = _used_shape(shape_all, ui)
+        shape_all = np.stack(
+            [pd.to_numeric(df[c], errors="coerce").to_numpy(dtype=float) for c in cols], axis=1
+        )
+    shape_g, shape_l, shape_v = _used_shape(shape_all, ui)
     data = FitData(
         q=q_all[ui],
         d=d_all[ui],
@@ -120,21 +124,23 @@ def _prepare(
         tk_all=tk_all,
         shape_g=shape_g,
         shape_l=shape_l,
+        shape_v=shape_v,
         pair_scatter_all=table_scatters(df),
     )
     return data, shape_all, all_text
 
 
-def _used_shape(shape_all: F64 | None, ui: np.ndarray) -> tuple[F64 | None, F64 | None]:
+def _used_shape(shape_all: F64 | None, ui: np.ndarray) -> tuple[F64 | None, F64 | None, F64 | None]:
     """The used rows' print-size levers ``g`` and long-axis directions ``l``, ``(N, 3)`` each,
-    from every row's ``(M, 6)`` shape columns; (None, None) without them, without used rows
-    or when a used row's are not numbers."""
+    and their image anisotropy ``(N,)`` (None without its column; NaN rows use (S2)), from
+    every row's ``(M, 6)`` or ``(M, 7)`` shape columns; (None, None, None) without them,
+    without used rows or when a used row's ``g`` and ``l`` are not numbers."""
     if shape_all is None:
-        return None, None
+        return None, None, None
     sh = shape_all[ui]
-    if len(sh) and np.all(np.isfinite(sh)):
-        return sh[:, :3], sh[:, 3:]
-    return None, None
+    if len(sh) and np.all(np.isfinite(sh[:, :6])):
+        return sh[:, :3], sh[:, 3:6], (sh[:, 6].copy() if sh.shape[1] > 6 else None)
+    return None, None, None
 
 
 @dataclass
@@ -212,7 +218,7 @@ def restrict(prep: PreparedTable, keep: np.ndarray, config: IdentifyConfig) -> F
         reasons[i] = "; ".join([*parts[:at], prep.rejected[i], *parts[at:]])
     used = np.zeros(M, dtype=bool)
     used[ui] = True
-    shape_g, shape_l = _used_shape(prep.shape_all, ui)
+    shape_g, shape_l, shape_v = _used_shape(prep.shape_all, ui)
     ps = base.pair_scatter_all
     return FitData(
         q=base.q[sel],
@@ -231,6 +237,7 @@ def restrict(prep: PreparedTable, keep: np.ndarray, config: IdentifyConfig) -> F
         tk_all=tk_all,
         shape_g=shape_g,
         shape_l=shape_l,
+        shape_v=shape_v,
         pair_scatter_all=None if ps is None else ps.copy(),
     )
 

@@ -32,11 +32,35 @@ relative to one reference target (the first): a size error common to every
 print moves every touch-up by the same ``z kappa`` along the view, which is the
 virtual pin's own along-view coordinate. It is held at zero and named.
 
+(S2) is first order in the ellipticity *against the tilt*: it holds where the
+view's tilt sets the long axis (``theta_v^2 / 2 >> 2 e``, ``theta_v`` the angle
+between the view and the plate normal). Near face-on, where tilt and print
+compete for the long axis, it does not. To first order in both, the image
+ellipse's shape is ``I + v`` (semi-axes ``R (1 - theta_v^2 / 4 +- |v| / 2)``)
+with the anisotropy, as a 2-vector of angle ``2 alpha`` in the plate,
+
+    v = 2 p - (theta_v^2 / 2) u(2 tau),     p = (c, s) = e u(2 phi)
+
+(``u(x) = (cos x, sin x)``, ``tau`` the tilt's direction in the plate), so the
+long axis is ``R (1 + |v| / 2 - theta_v^2 / 4)`` and, with
+``theta_v^2 / 2 = |v - 2 p|`` from the same equation,
+
+    eps_i = kappa_t + (|v_i| - |v_i - 2 p_t|) / 2                          (S3)
+
+``v_i`` is measured: the image's own anisotropy ``2 (s - s_minor) / (s + s_minor)``
+along ``u(2 alpha_i)`` (the touch-up table's ``axis_anisotropy``). Where tilt
+dominates, ``|v_i - 2 p| = |v_i| - 2 p . u(2 alpha_i)`` to first order and (S3) is
+(S2); face-on (``v_i = 2 p``) it gives ``kappa + e``; in between it holds where
+(S2) errs by up to ``e`` (a UR5e-like cell at 240 mm with 60 um out-of-round
+prints viewed within 8 deg of face-on: 0.34 mm shape error with (S2)). Rows
+without the anisotropy column (tables written elsewhere) use (S2).
+
 The parameters ``theta = (kappa_1..kappa_{K-1}, c_0, s_0, .., c_{K-1}, s_{K-1})``
 enter the fit (:func:`pipeline.stages.identify.stage`) through the correction: the
-rows' ``d_i`` become ``d_i + g_i (B_i . theta)`` with ``B_i`` the design row of
-(S2); a Gauss-Newton step on ``theta`` jointly with every other unknown,
-repeated three times with ``alpha`` recomputed from the current kinematics.
+rows' ``d_i`` become ``d_i + g_i eps_i(theta)``; a Gauss-Newton step on ``theta``
+(its Jacobian rows ``B_i = d eps_i / d theta``: (S2)'s rows at ``p = 0``) jointly
+with every other unknown, repeated three times with ``alpha`` recomputed from the
+current kinematics.
 """
 
 from __future__ import annotations
@@ -50,6 +74,11 @@ from pipeline.kinematics.se3 import F64
 #: the touch-up columns of each touch-up's print-shape geometry: the lever ``g`` and the
 #: long-axis direction ``l``, flange frame (``pipeline/measurement/image.py``, view_geometry)
 SHAPE_COLUMNS = ("view_gx", "view_gy", "view_gz", "axis_lx", "axis_ly", "axis_lz")
+#: the optional column of the image's anisotropy ``|v_i|`` of (S3); without it, (S2)
+ANISOTROPY_COLUMN = "axis_anisotropy"
+#: ``|v - 2 p|`` is smoothed as ``sqrt(|v - 2 p|^2 + MIN_MISS^2)``: where the print alone
+#: sets the long axis its direction turns fast; eps moves by at most ``MIN_MISS / 2``
+MIN_MISS = 2e-5
 
 
 def plate_frames(
@@ -135,6 +164,43 @@ def design_in_frames(l_base: F64, tk: np.ndarray, e1: F64, e2: F64) -> tuple[F64
     return B, ok
 
 
+def print_error(B: F64, tk: np.ndarray, K: int, theta: F64, v_mag: F64 | None) -> tuple[F64, F64]:
+    """Each row's relative long-axis error ``eps_i`` by (S3) and its Jacobian in ``theta``.
+
+    Parameters
+    ----------
+    B : (N, 3K - 1) the rows' (S2) design (:func:`design_in_frames`): ``u(2 alpha_i)`` in
+        the columns of its target's ``(c, s)``, zeros for rows without a frame
+    tk : (N,) target index of each row
+    K : number of targets
+    theta : (3K - 1,) the print parameters
+    v_mag : (N,) the rows' measured anisotropy ``|v_i|``; None, or NaN on a row: (S2)
+
+    Returns
+    -------
+    eps : (N,) ; J : (N, 3K - 1) ``d eps / d theta`` (``B`` itself on (S2) rows)
+    """
+    eps = B @ theta
+    J = B.copy()
+    if v_mag is None:
+        return eps, J
+    N = len(tk)
+    ci = K - 1 + 2 * np.asarray(tk, dtype=int)
+    ui = np.stack([B[np.arange(N), ci], B[np.arange(N), ci + 1]], axis=1)  # u(2 alpha_i)
+    rows = np.flatnonzero(np.isfinite(v_mag) & (np.abs(ui).sum(axis=1) > 0))
+    if not len(rows):
+        return eps, J
+    p = np.stack([theta[ci[rows]], theta[ci[rows] + 1]], axis=1)
+    v = v_mag[rows, None] * ui[rows]
+    w = v - 2.0 * p
+    nw = np.sqrt(np.sum(w * w, axis=1) + MIN_MISS**2)
+    kap = np.where(tk[rows] > 0, theta[np.maximum(tk[rows] - 1, 0)], 0.0)
+    eps[rows] = kap + 0.5 * (v_mag[rows] - nw)
+    J[rows, ci[rows]] = w[:, 0] / nw
+    J[rows, ci[rows] + 1] = w[:, 1] / nw
+    return eps, J
+
+
 def summarise(theta: F64, std: F64, K: int, diameter_m: float | None) -> list[dict[str, float]]:
     """Per target: size error and out-of-roundness from ``theta`` (and their standard errors).
 
@@ -182,7 +248,14 @@ class ShapeFit:
     e2: F64
     target_ids: tuple[int, ...]
 
-    def lever_terms(self, R: F64, g: F64, l_flange: F64, target_id: np.ndarray) -> F64:
+    def lever_terms(
+        self,
+        R: F64,
+        g: F64,
+        l_flange: F64,
+        target_id: np.ndarray,
+        v_mag: F64 | None = None,
+    ) -> F64:
         """Each row's print correction ``eps_i g_i`` (S1), flange frame, (N, 3).
 
         Parameters
@@ -191,6 +264,7 @@ class ShapeFit:
         g, l_flange : (N, 3) the rows' levers and long-axis directions (flange frame)
         target_id : (N,) the rows' target ids; a row of a target the fit did not see,
             or without finite shape columns, gets zero
+        v_mag : (N,) the rows' image anisotropy of (S3); None: (S2)
         """
         index = {t: k for k, t in enumerate(self.target_ids)}
         tk = np.array([index.get(int(t), -1) for t in target_id], dtype=int)
@@ -200,5 +274,7 @@ class ShapeFit:
             return out
         l_base = np.einsum("nij,nj->ni", R[seen], l_flange[seen])
         B, _ = design_in_frames(l_base, tk[seen], self.e1, self.e2)
-        out[seen] = g[seen] * (B @ self.theta)[:, None]
+        vm = None if v_mag is None else np.asarray(v_mag, dtype=float)[seen]
+        eps, _ = print_error(B, tk[seen], len(self.e1), self.theta, vm)
+        out[seen] = g[seen] * eps[:, None]
         return out

@@ -5,6 +5,7 @@ See :mod:`pipeline.stages.identify.print_shape` for the model and the F-test tha
 
 from __future__ import annotations
 
+import dataclasses
 from typing import Any, NamedTuple
 
 import numpy as np
@@ -19,6 +20,8 @@ from pipeline.stages.identify.types import IdentifyConfig
 
 #: joint Gauss-Newton steps of the print-shape test without a refit (:func:`_linear_test`)
 LINEAR_STEPS = 2
+#: joint Gauss-Newton steps (each followed by the full solve) of a print-shape fit
+SHAPE_STEPS = 8
 
 
 def spent_unknowns(W: F64 | None, shape: dict[str, Any] | None) -> int:
@@ -113,11 +116,12 @@ def _rss(prob: Problem, D: FitData, z: F64) -> float:
     return float(np.sum(((p - tg[D.tk]) * D.sw[:, None]) ** 2))
 
 
-def _joint(prob: Problem, D: FitData, cols: np.ndarray, z: F64) -> tuple[F64, F64, F64]:
-    """(A, r, B): Jacobian over [z, theta[cols]], residual and the design at ``z``.
+def _joint(prob: Problem, D: FitData, cols: np.ndarray, z: F64, theta: F64) -> tuple[F64, F64, F64]:
+    """(A, r, B): Jacobian over [z, theta[cols]], residual and the (S2) design at ``z``.
 
-    ``D`` is the data being corrected (its ``shape_g``, ``shape_l`` are the levers and
-    long axes of :mod:`pipeline.stages.identify.print_shape`).
+    ``D`` is the data being corrected (its ``shape_g``, ``shape_l``, ``shape_v`` are the
+    levers, long axes and anisotropies of :mod:`pipeline.stages.identify.print_shape`);
+    the columns of ``theta`` are ``d eps / d theta`` of (S3) at ``theta``.
     """
     from pipeline.stages.identify import print_shape as ps
 
@@ -130,7 +134,7 @@ def _joint(prob: Problem, D: FitData, cols: np.ndarray, z: F64) -> tuple[F64, F6
     _, R, _ = prob.model.pin_and_jacobian(x, D.q, pin + D.d, jac=False)
     B, _ = ps.design(np.einsum("nij,nj->ni", R, L), D.tk, K, np.einsum("nij,nj->ni", R, G))
     V = np.einsum("nij,nj->ni", R, G) if prob.W is None else G @ prob.W.T
-    Bc = B[:, cols]
+    Bc = ps.print_error(B, D.tk, K, theta, D.shape_v)[1][:, cols]
     S = np.zeros((prob.m, ne))
     S[: 3 * N] = (V[:, :, None] * Bc[:, None, :] * D.sw[:, None, None]).reshape(3 * N, ne)
     return np.hstack([Jf[:, prob.columns()], S]), r, B
@@ -177,15 +181,18 @@ def _linear_test(
     D, G, n_all, ne, dof1 = _dimensions(D0, cols, n_free)
     if dof1 < 5:
         return {"fitted": False, "note": "print shape not fitted: too few touch-ups"}, False
+    # the test is made in (S2), linear in theta, where two steps land; the refit of a
+    # significant one (:func:`_attempt`) fits (S3)
+    D = dataclasses.replace(D, shape_v=None)
     K = D0.K
     prob.data, prob.W = D, W0
     theta = np.zeros(n_all)
     z = np.array(sol0.x, dtype=float)
     for _ in range(LINEAR_STEPS):
-        step, B = _gauss_newton_step(prob, D, cols, z)
+        step, B = _gauss_newton_step(prob, D, cols, z, theta)
         z = z + step[:-ne]
         theta[cols] += step[-ne:]
-        D.d[:] = D0.d + G * (B @ theta)[:, None]
+        D.d[:] = D0.d + G * ps.print_error(B, D.tk, K, theta, D.shape_v)[0][:, None]
     rss1 = _rss(prob, D, z)
     prob.data = D0
     out = _f_test(rss0, rss1, ne, dof1, n_all, config, "tested")
@@ -207,10 +214,12 @@ def _dimensions(D0: FitData, cols: np.ndarray, n_free: int) -> tuple[FitData, F6
     return D, D0.shape_g, 3 * K - 1, ne, dof1
 
 
-def _gauss_newton_step(prob: Problem, D: FitData, cols: np.ndarray, z: F64) -> tuple[F64, F64]:
-    """One joint Gauss-Newton step on ``[z, theta[cols]]`` from ``z`` (columns scaled to
-    unit norm for the least squares), and the design ``B`` at ``z``."""
-    A, r, B = _joint(prob, D, cols, z)
+def _gauss_newton_step(
+    prob: Problem, D: FitData, cols: np.ndarray, z: F64, theta: F64
+) -> tuple[F64, F64]:
+    """One joint Gauss-Newton step on ``[z, theta[cols]]`` from ``(z, theta)`` (columns
+    scaled to unit norm for the least squares), and the (S2) design ``B`` at ``z``."""
+    A, r, B = _joint(prob, D, cols, z, theta)
     cn = np.maximum(np.linalg.norm(A, axis=0), 1e-300)
     step = np.linalg.lstsq(A / cn, -r, rcond=None)[0] / cn
     return step, B
@@ -260,13 +269,23 @@ def _attempt(
     prob.data, prob.W = D, W0
     theta = np.zeros(n_all)
     s1 = sol0
-    for _ in range(3):
-        step, B = _gauss_newton_step(prob, D, cols, s1.x)
-        theta[cols] += step[-ne:]
-        D.d[:] = D0.d + G * (B @ theta)[:, None]
+    for _ in range(SHAPE_STEPS):
+        step, B = _gauss_newton_step(prob, D, cols, s1.x, theta)
+        dz, dth = step[:-ne], step[-ne:]
+        # (S3) is not linear in theta: halve a step that raises the residual sum
+        rss_old = _rss(prob, D, s1.x)
+        trial = theta
+        for _h in range(6):
+            trial = theta.copy()
+            trial[cols] += dth
+            D.d[:] = D0.d + G * ps.print_error(B, D.tk, K, trial, D.shape_v)[0][:, None]
+            if _rss(prob, D, s1.x + dz) <= rss_old:
+                break
+            dz, dth = 0.5 * dz, 0.5 * dth
+        theta = trial
         D.d_all[D.used_idx] = D.d
         s1 = solve(s1.x)
-    A, r, B = _joint(prob, D, cols, s1.x)
+    A, r, B = _joint(prob, D, cols, s1.x, theta)
     cn = np.maximum(np.linalg.norm(A, axis=0), 1e-300)
     dof_w = prob.m - A.shape[1]
     sig2 = float(r @ r / dof_w) if dof_w > 0 else float("nan")

@@ -154,11 +154,13 @@ class Robot:
 
 class PrintRows(NamedTuple):
     """Rows' print-shape geometry for :meth:`IdentifyResult.predict`: levers ``g`` and
-    long-axis directions ``l`` (N, 3) each, flange frame, and target ids (N,)."""
+    long-axis directions ``l`` (N, 3) each, flange frame, target ids (N,) and the image
+    anisotropy (N,) of (S3) (None: (S2))."""
 
     g: F64
     l: F64
     target_id: np.ndarray
+    v_mag: F64 | None = None
 
 
 @dataclass
@@ -225,6 +227,6 @@ class IdentifyResult:
             R = T[:, :3, :3]
             p = np.einsum("nij,nj->ni", R, pts) + T[:, :3, 3]
         if self.print_shape is not None and shape is not None:
-            lever = self.print_shape.lever_terms(R, shape.g, shape.l, shape.target_id)
+            lever = self.print_shape.lever_terms(R, shape.g, shape.l, shape.target_id, shape.v_mag)
             p = p + np.einsum("nij,nj->ni", R, lever)
         return np.asarray(p)

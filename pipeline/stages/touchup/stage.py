@@ -167,6 +167,30 @@ def _captures(frames: pd.DataFrame, detections: pd.DataFrame, info: Any) -> Capt
     )
 
 
+def _designated_attrs(des: Designated, aim: ServoTarget | None) -> dict[str, Any]:
+    """The designated values used, and the loops' own aim beside them (its offset from
+    them: the loop's measure told from vtcal's), for the table's metadata."""
+    out: dict[str, Any] = {
+        "u": des.u0,
+        "v": des.v0,
+        "s": des.s0,
+        "threshold_px": des.thr,
+        "threshold_size_px": des.thr_s,
+    }
+    if aim is not None:
+        used = np.array([des.u0, des.v0, des.s0])
+        out["loop_aim"] = {
+            "u": float(aim.m0[0]),
+            "v": float(aim.m0[1]),
+            "s": float(aim.m0[2]),
+            "sd_px": [float(x) for x in aim.sd],
+            "minus_used_px": [float(x) for x in aim.m0 - used],
+            "n_steps": aim.n_steps,
+            "gain": aim.gain,
+        }
+    return out
+
+
 def _loop_aim(loops: list[np.ndarray], c: Captures, config: TouchupConfig) -> ServoTarget | None:
     """Where the touch-up loops aimed, read from their steps (:mod:`.servo_target`, (D1)-(D2)).
 
@@ -423,33 +447,16 @@ def extract_touchups(
         row = (k, fr, finals[k], shape[k, :3], loop_start[k], g, c, des, J, tilt)
         out.append(touchup_row(*row, config.depth_scaled_jacobian))
     table = pd.DataFrame(out)
+    # the image's own anisotropy at convergence, (S3) of pipeline.stages.identify.print_shape
+    with np.errstate(invalid="ignore", divide="ignore"):
+        table["axis_anisotropy"] = 2.0 * (shape[:, 2] - shape[:, 3]) / (shape[:, 2] + shape[:, 3])
     for col, vals in scatter_columns(pair_scatters(pair_seg, dF_all, len(seg_frames))).items():
         table[col] = vals
     # stable column order: declared first, then extras
     table.attrs["image_jacobian"] = J_global.tolist()
     table.attrs["image_jacobian_per_target"] = {int(g): J.tolist() for g, J in J_target.items()}
     table.attrs["pin_estimate_flange"] = p_pin.tolist()
-    table.attrs["designated"] = {
-        "u": des.u0,
-        "v": des.v0,
-        "s": des.s0,
-        "threshold_px": des.thr,
-        "threshold_size_px": des.thr_s,
-    }
-    if aim is not None:  # the loops' own aim, and its offset from the values used
-        table.attrs["designated"]["loop_aim"] = {
-            "u": float(aim.m0[0]),
-            "v": float(aim.m0[1]),
-            "s": float(aim.m0[2]),
-            "sd_px": [float(x) for x in aim.sd],
-            "minus_used_px": [
-                float(aim.m0[0] - des.u0),
-                float(aim.m0[1] - des.v0),
-                float(aim.m0[2] - des.s0),
-            ],
-            "n_steps": aim.n_steps,
-            "gain": aim.gain,
-        }
+    table.attrs["designated"] = _designated_attrs(des, aim)
     table.attrs["n_jacobian_pairs"] = len(pair_seg)
     table.attrs["settle"] = settled
     captured = capture_noise(uses, c.u, c.v, c.s, J_global, des.s0)

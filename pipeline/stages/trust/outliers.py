@@ -86,7 +86,7 @@ from pipeline.estimation.distributions import f_sf
 from pipeline.estimation.whitening import robust_flange_whitening
 from pipeline.kinematics.se3 import F64
 from pipeline.measurement.pin import ParamLayout, distance_row, whitened_rows
-from pipeline.stages.identify.print_shape import SHAPE_COLUMNS
+from pipeline.stages.identify.print_shape import ANISOTROPY_COLUMN, SHAPE_COLUMNS
 
 INLIER_COLUMNS = (
     "touchup_id",
@@ -253,7 +253,7 @@ def flag_outliers(table: pd.DataFrame, info: Any, config: OutlierConfig) -> pd.D
     ]
     # identification uses converged rows: a corrected one counts as converged from here on
     out.loc[fixed, "converged"] = True
-    for c in (*SHAPE_COLUMNS, *PAIR_COLUMNS):
+    for c in (*SHAPE_COLUMNS, ANISOTROPY_COLUMN, *PAIR_COLUMNS):
         out[c] = (
             pd.to_numeric(base[c], errors="coerce").to_numpy(dtype=float)
             if c in base
