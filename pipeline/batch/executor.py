@@ -40,11 +40,11 @@ PRELOAD = (
     "pipeline.run.orchestrator",
     "pipeline.stages.ingest.stage",
     "pipeline.stages.detect.detector",
-    "pipeline.stages.touchup.stage",
-    "pipeline.stages.trust.outliers",
+    "pipeline.stages.touchups.stage",
+    "pipeline.stages.outliers.stage",
     "pipeline.stages.identify.stage",
     "pipeline.stages.crossval.stage",
-    "pipeline.stages.crossval.choose",
+    "pipeline.stages.choose.stage",
     "pipeline.run.nodes",
 )
 

@@ -66,7 +66,7 @@ def ingest(data: dict[str, Any], config: dict[str, Any], context: Any) -> dict[s
 def touchups(data: dict[str, Any], config: Any, context: Any) -> dict[str, Any]:
     """touchups.parquet from frames and detections (its implied target size and the designated
     values used in the metadata)."""
-    from pipeline.stages.touchup import stage as touchup
+    from pipeline.stages.touchups import stage as touchup
 
     info = _info(data["recording"])
     table = touchup.extract_touchups(data["frames"], data["detections"], info, config)
@@ -83,7 +83,7 @@ def touchups(data: dict[str, Any], config: Any, context: Any) -> dict[str, Any]:
 
 def outliers(data: dict[str, Any], config: Any, context: Any) -> dict[str, Any]:
     """inliers.parquet: every touch-up, flagged (with the reason of each rejection)."""
-    from pipeline.stages.trust import outliers as stage
+    from pipeline.stages.outliers import stage as stage
 
     return {"inliers": stage.flag_outliers(data["touchups"], _info(data["recording"]), config)}
 
@@ -97,7 +97,7 @@ def identify(data: dict[str, Any], config: Any, context: Any) -> dict[str, Any]:
     the pin offset no residual sees (:func:`pipeline.estimation.uncertainty.with_pin_offset`).
     """
     from pipeline.stages.identify import stage
-    from pipeline.stages.touchup.noise import pin_offset_cov
+    from pipeline.stages.touchups.noise import pin_offset_cov
 
     urdf, base_link, flange_link = context.robot
     if "touchups" in data:
@@ -173,11 +173,11 @@ def crossval(data: dict[str, Any], config: Any, context: Any) -> dict[str, Any]:
 def choose(data: dict[str, Any], config: Any, context: Any) -> dict[str, Any]:
     """calibrated.urdf, calibration.json and identify.json: the shipped models.
 
-    :mod:`pipeline.stages.crossval.choose` picks the URDF's model,
+    :mod:`pipeline.stages.choose.stage` picks the URDF's model,
     :mod:`pipeline.use.record` records the model predictions use.
     """
-    from pipeline.stages.crossval import choose as stage
-    from pipeline.stages.trust.adequacy import trust
+    from pipeline.stages.choose import stage
+    from pipeline.stages.outliers.adequacy import trust
     from pipeline.use.record import calibration_record
 
     # the cross-validation summary and the capture noise ride in their tables' metadata

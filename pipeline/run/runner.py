@@ -526,7 +526,7 @@ def write_fits(results: Any, out: Path) -> dict[str, Path]:
     choice (no cross-validation, no provenance block) as ``calibrated.urdf``
     and ``identify.json``. Returns ``{artefact key: path}``.
     """
-    from pipeline.stages.crossval.choose import choose_model
+    from pipeline.stages.choose.stage import choose_model
     from pipeline.stages.identify.stage import fit_outputs
 
     out = Path(out)
