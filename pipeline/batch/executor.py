@@ -45,7 +45,12 @@ PRELOAD = (
     "pipeline.stages.identify.stage",
     "pipeline.stages.crossval.stage",
     "pipeline.stages.choose.stage",
-    "pipeline.run.nodes",
+    "pipeline.stages.ingest.node",
+    "pipeline.stages.touchups.node",
+    "pipeline.stages.outliers.node",
+    "pipeline.stages.identify.node",
+    "pipeline.stages.crossval.node",
+    "pipeline.stages.choose.node",
 )
 
 #: what a batch's workers load besides before their first recording: the lazily loaded

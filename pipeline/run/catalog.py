@@ -76,7 +76,7 @@ class Stage:
 STAGES: list[Stage] = [
     Stage(
         "ingest",
-        "pipeline.run.nodes:ingest",
+        "pipeline.stages.ingest.node:ingest",
         (),
         ("frames", "detections", "recording"),
         "pipeline.stages.ingest.stage:IngestConfig",
@@ -86,7 +86,7 @@ STAGES: list[Stage] = [
     ),
     Stage(
         "touchups",
-        "pipeline.run.nodes:touchups",
+        "pipeline.stages.touchups.node:touchups",
         ("frames", "detections", "recording"),
         ("touchups",),
         "pipeline.stages.touchups.stage:TouchupConfig",
@@ -94,7 +94,7 @@ STAGES: list[Stage] = [
     ),
     Stage(
         "outliers",
-        "pipeline.run.nodes:outliers",
+        "pipeline.stages.outliers.node:outliers",
         ("touchups", "recording"),
         ("inliers",),
         "pipeline.stages.outliers.stage:OutlierConfig",
@@ -102,7 +102,7 @@ STAGES: list[Stage] = [
     ),
     Stage(
         "identify",
-        "pipeline.run.nodes:identify",
+        "pipeline.stages.identify.node:identify",
         ("inliers",),
         ("parameters", "residuals", "targets", "model_urdfs", "models"),
         "pipeline.stages.identify.stage:IdentifyConfig",
@@ -112,7 +112,7 @@ STAGES: list[Stage] = [
     ),
     Stage(
         "crossval",
-        "pipeline.run.nodes:crossval",
+        "pipeline.stages.crossval.node:crossval",
         ("inliers", "parameters", "models"),
         ("crossval",),
         "pipeline.stages.crossval.stage:CrossvalConfig",
@@ -120,7 +120,7 @@ STAGES: list[Stage] = [
     ),
     Stage(
         "choose",
-        "pipeline.run.nodes:choose",
+        "pipeline.stages.choose.node:choose",
         ("models", "model_urdfs", "parameters"),
         ("calibrated_urdf", "calibration", "identify"),
         None,
@@ -132,7 +132,7 @@ STAGES: list[Stage] = [
     ),
     Stage(
         "report",
-        "pipeline.run.nodes:report",
+        "pipeline.report.node:report",
         (
             "recording",
             "touchups",
