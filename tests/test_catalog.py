@@ -47,10 +47,21 @@ def test_stages_read_only_what_an_earlier_stage_wrote() -> None:
 
 def test_every_declared_function_and_config_resolves() -> None:
     for stage in STAGES:
-        for entry in (stage.fn, *stage.code, *([stage.config] if stage.config else [])):
+        assert callable(stage.fn), stage.name
+        for entry in (*stage.code, *([stage.config] if stage.config else [])):
             mod, attr = entry.split(":")
             assert callable(getattr(importlib.import_module(mod), attr)), entry
     assert set(code_key.ENTRY_POINTS) == set(STAGE_NAMES)
+
+
+def test_each_stages_node_is_in_its_stages_package() -> None:
+    """The catalog holds each stage's function itself (no ``module:function`` string for a
+    stage), defined in ``node.py`` of the package named as the stage (the report's code is
+    ``pipeline/report/``) (issue 47)."""
+    for stage in STAGES:
+        package = "pipeline.report" if stage.name == "report" else f"pipeline.stages.{stage.name}"
+        assert stage.fn.__module__ == f"{package}.node", stage.name
+        assert stage.fn_name == f"{package}.node:{stage.name}"
 
 
 @pytest.fixture(scope="module")

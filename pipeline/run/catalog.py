@@ -10,16 +10,33 @@ table; stage functions take data and return data, and only the runner writes.
 ``tests/test_catalog.py`` checks that every file has exactly one writer and
 that each stage reads only what an earlier stage wrote.
 
-Standard library only: ``vtcal run``'s options and the run ledger read the
-catalogue without importing the runner or a stage (functions and configs are
-named ``module:attribute``, resolved by the runner).
+Cheap to import: ``vtcal run``'s options and the run ledger read the catalogue
+without importing the runner or a stage's computation. Each stage's function is
+held itself (``Stage.fn``: its node, ``node.py`` in the stage's package, which
+imports only the standard library and :mod:`pipeline.io.run_folder` at module level
+and the stage's computation inside the function); configs and code entry points
+stay named ``module:attribute`` (their modules are the heavy ones: the runner
+resolves a config when it builds the options, :mod:`pipeline.run.code_key` reads
+the entry modules' import closure).
 """
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
+from typing import Any
 
 from pipeline.io.run_folder import ARTEFACTS, BY_KEY, RUN_FILES, Artefact
+from pipeline.report import node as report_node
+from pipeline.stages.choose import node as choose_node
+from pipeline.stages.crossval import node as crossval_node
+from pipeline.stages.identify import node as identify_node
+from pipeline.stages.ingest import node as ingest_node
+from pipeline.stages.outliers import node as outliers_node
+from pipeline.stages.touchups import node as touchups_node
+
+#: a stage's function: ``fn(data, config, context) -> {artefact key: value}``
+Node = Callable[[Any, Any, Any], dict[str, Any]]
 
 
 @dataclass(frozen=True)
@@ -29,9 +46,10 @@ class Stage:
     Attributes
     ----------
     name : the stage's name (``--until`` takes it)
-    fn : ``module:function`` computing it: ``fn(data, config, context) -> {key: value}``
-        with ``data`` the artefacts of ``inputs`` (tables and dicts) and the
-        result holding one value per key of ``outputs``
+    fn : the function computing it, its node (``node.py`` in the stage's package):
+        ``fn(data, config, context) -> {key: value}`` with ``data`` the artefacts of
+        ``inputs`` (tables and dicts) and the result holding one value per key of
+        ``outputs``
     inputs : artefact keys it reads (each written by an earlier stage)
     outputs : artefact keys it writes (it is their only writer), in the order they are
         written after its Parquet ones: the last present means the stage finished
@@ -54,7 +72,7 @@ class Stage:
     """
 
     name: str
-    fn: str
+    fn: Node
     inputs: tuple[str, ...]
     outputs: tuple[str, ...]
     config: str | None
@@ -64,6 +82,11 @@ class Stage:
     source: bool = False
     follows: str | None = None
     sub_configs: tuple[tuple[str, str], ...] = ()
+
+    @property
+    def fn_name(self) -> str:
+        """``module:function`` of :attr:`fn` (what the stage code key names it by)."""
+        return f"{self.fn.__module__}:{self.fn.__qualname__}"
 
     @property
     def option_groups(self) -> tuple[str, ...]:
@@ -76,7 +99,7 @@ class Stage:
 STAGES: list[Stage] = [
     Stage(
         "ingest",
-        "pipeline.stages.ingest.node:ingest",
+        ingest_node.ingest,
         (),
         ("frames", "detections", "recording"),
         "pipeline.stages.ingest.stage:IngestConfig",
@@ -86,7 +109,7 @@ STAGES: list[Stage] = [
     ),
     Stage(
         "touchups",
-        "pipeline.stages.touchups.node:touchups",
+        touchups_node.touchups,
         ("frames", "detections", "recording"),
         ("touchups",),
         "pipeline.stages.touchups.stage:TouchupConfig",
@@ -94,7 +117,7 @@ STAGES: list[Stage] = [
     ),
     Stage(
         "outliers",
-        "pipeline.stages.outliers.node:outliers",
+        outliers_node.outliers,
         ("touchups", "recording"),
         ("inliers",),
         "pipeline.stages.outliers.stage:OutlierConfig",
@@ -102,7 +125,7 @@ STAGES: list[Stage] = [
     ),
     Stage(
         "identify",
-        "pipeline.stages.identify.node:identify",
+        identify_node.identify,
         ("inliers",),
         ("parameters", "residuals", "targets", "model_urdfs", "models"),
         "pipeline.stages.identify.stage:IdentifyConfig",
@@ -112,7 +135,7 @@ STAGES: list[Stage] = [
     ),
     Stage(
         "crossval",
-        "pipeline.stages.crossval.node:crossval",
+        crossval_node.crossval,
         ("inliers", "parameters", "models"),
         ("crossval",),
         "pipeline.stages.crossval.stage:CrossvalConfig",
@@ -120,7 +143,7 @@ STAGES: list[Stage] = [
     ),
     Stage(
         "choose",
-        "pipeline.stages.choose.node:choose",
+        choose_node.choose,
         ("models", "model_urdfs", "parameters"),
         ("calibrated_urdf", "calibration", "identify"),
         None,
@@ -132,7 +155,7 @@ STAGES: list[Stage] = [
     ),
     Stage(
         "report",
-        "pipeline.report.node:report",
+        report_node.report,
         (
             "recording",
             "touchups",

@@ -259,9 +259,7 @@ def stage_code_digest(stage: str) -> str:
     """
     h = hashlib.sha256()
     declared = catalog.STAGE[stage]  # read now: a registered stage is keyed too
-    mod, attr = declared.fn.split(":")
-    node = getattr(importlib.import_module(mod), attr)
-    h.update(declared.fn.encode() + b"\0" + _code_bytes(node.__code__))
+    h.update(declared.fn_name.encode() + b"\0" + _code_bytes(declared.fn.__code__))
     _hash_entries(h, declared.code)
     save_import_cache()
     return h.hexdigest()[:16]

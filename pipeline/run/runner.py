@@ -410,10 +410,10 @@ def stage_config(name: str, context: Context) -> Any:
 
 
 def _call(stage: Stage, context: Context, names: list[str]) -> dict[str, Any]:
-    mod, attr = stage.fn.split(":")
-    fn = getattr(importlib.import_module(mod), attr)
     keys = [*stage.inputs, *(k for k in stage.optional if BY_KEY[k].writer in names)]
-    result: dict[str, Any] = fn(Inputs(keys, context), stage_config(stage.name, context), context)
+    result: dict[str, Any] = stage.fn(
+        Inputs(keys, context), stage_config(stage.name, context), context
+    )
     return result
 
 
