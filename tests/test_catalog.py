@@ -17,7 +17,7 @@ import pytest
 
 from pipeline.io.run_folder import ARTEFACTS, BY_KEY, RUN_FILES, writer
 from pipeline.run import code_key
-from pipeline.run.catalog import STAGE_NAMES, STAGES
+from pipeline.run.catalog import STAGE, STAGE_NAMES, STAGES
 from pipeline.run.orchestrator import RunConfig, run_pipeline
 
 SAMPLE = Path(__file__).resolve().parent.parent / "datasets" / "samples" / "sample_lrmate.mcap"
@@ -52,6 +52,22 @@ def test_every_declared_function_and_config_resolves() -> None:
             mod, attr = entry.split(":")
             assert callable(getattr(importlib.import_module(mod), attr)), entry
     assert set(code_key.ENTRY_POINTS) == set(STAGE_NAMES)
+
+
+def test_a_stage_takes_only_the_options_of_an_earlier_stage() -> None:
+    """``Stage.uses_configs`` names earlier stages with options, each a keyword its function
+    takes (crossval: identify's), so no node reads another stage's options from the
+    run's context (issue 47)."""
+    import inspect
+
+    earlier: set[str] = set()
+    for stage in STAGES:
+        params = inspect.signature(stage.fn).parameters
+        for other in stage.uses_configs:
+            assert other in earlier and STAGE[other].config, (stage.name, other)
+            assert params[other].kind is inspect.Parameter.KEYWORD_ONLY, (stage.name, other)
+        earlier.add(stage.name)
+    assert STAGE["crossval"].uses_configs == ("identify",)
 
 
 def test_each_stages_node_is_in_its_stages_package() -> None:

@@ -35,8 +35,9 @@ from pipeline.stages.ingest import node as ingest_node
 from pipeline.stages.outliers import node as outliers_node
 from pipeline.stages.touchups import node as touchups_node
 
-#: a stage's function: ``fn(data, config, context) -> {artefact key: value}``
-Node = Callable[[Any, Any, Any], dict[str, Any]]
+#: a stage's function: ``fn(data, config, context, **other_configs) -> {artefact key: value}``
+#: (``other_configs``: those of :attr:`Stage.uses_configs`)
+Node = Callable[..., dict[str, Any]]
 
 
 @dataclass(frozen=True)
@@ -66,6 +67,10 @@ class Stage:
         recording's content hash
     follows : a stage after which this one always runs when that one is planned
         (``--until`` stopping between them still ships its result)
+    uses_configs : earlier stages whose options this stage's function takes too, handed
+        over by the runner as keyword arguments named as those stages (crossval refits
+        with identify's options: ``fn(data, config, context, identify=...)``); they are
+        not part of this stage's cache key (the outputs of those stages it reads are)
     sub_configs : further option groups ``(name, "module:Class")`` of a stage whose
         options are several dataclasses (ingest: ``detect``); its config is then
         ``{name: options, group: options, ...}``
@@ -82,6 +87,7 @@ class Stage:
     source: bool = False
     follows: str | None = None
     sub_configs: tuple[tuple[str, str], ...] = ()
+    uses_configs: tuple[str, ...] = ()
 
     @property
     def fn_name(self) -> str:
@@ -140,6 +146,7 @@ STAGES: list[Stage] = [
         ("crossval",),
         "pipeline.stages.crossval.stage:CrossvalConfig",
         ("pipeline.stages.crossval.stage:cross_validate",),
+        uses_configs=("identify",),  # its refits fit as identify did
     ),
     Stage(
         "choose",

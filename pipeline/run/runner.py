@@ -411,8 +411,10 @@ def stage_config(name: str, context: Context) -> Any:
 
 def _call(stage: Stage, context: Context, names: list[str]) -> dict[str, Any]:
     keys = [*stage.inputs, *(k for k in stage.optional if BY_KEY[k].writer in names)]
+    # the options of the earlier stages it declares it takes (Stage.uses_configs)
+    others = {other: context.configs[other] for other in stage.uses_configs}
     result: dict[str, Any] = stage.fn(
-        Inputs(keys, context), stage_config(stage.name, context), context
+        Inputs(keys, context), stage_config(stage.name, context), context, **others
     )
     return result
 

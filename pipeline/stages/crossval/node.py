@@ -40,12 +40,15 @@ def integer_target_ids(table: Any, config: Any) -> tuple[Any, Any]:
     return out, dataclasses.replace(config, distances=distances)
 
 
-def crossval(data: dict[str, Any], config: Any, context: Any) -> dict[str, Any]:
-    """crossval.parquet: held-out residuals per model; its summary rides in the metadata."""
+def crossval(data: dict[str, Any], config: Any, context: Any, *, identify: Any) -> dict[str, Any]:
+    """crossval.parquet: held-out residuals per model; its summary rides in the metadata.
+
+    ``identify``: identify's options, which the refits fit with (the catalog declares
+    them, ``Stage.uses_configs``, and the runner hands them over)."""
     from pipeline.stages.crossval import stage
 
     urdf, base_link, flange_link = context.robot
-    table, id_config = integer_target_ids(data["inliers"], context.configs["identify"])
+    table, id_config = integer_target_ids(data["inliers"], identify)
     models = data["models"].get("models")
     result = stage.cross_validate(
         table,
