@@ -5,4 +5,5 @@
 model-adequacy test). The guardrails on the input (inputs that look right but
 cannot be, caught before identification) are :mod:`pipeline.guardrails.plausibility`,
 below identification, which applies them.
+``node`` (the stage's node: the function the runner calls, data in, data out).
 """
