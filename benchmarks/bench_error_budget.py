@@ -6,7 +6,7 @@ conformance sample and ``../shared/foreign``), the touch-ups vtcal extracts are
 judged source by source, in micrometres of the corrected pin (flange frame),
 through vtcal's own image Jacobian ``d_F = -J^-1 e``:
 
-- **predicted** from the recording alone (:mod:`pipeline.stages.touchup.noise`):
+- **predicted** from the recording alone (:mod:`pipeline.stages.touchups.noise`):
   the repeated captures' detection noise (N1)-(N2), the pose component the loop's
   small steps show (N3), and their sum (N4);
 - **measured** against the truth, per touch-up (its converged captures):
@@ -53,7 +53,7 @@ import numpy as np
 from pipeline.kinematics.chain import fk, load_chain
 from pipeline.stages.detect.detector import DetectConfig
 from pipeline.stages.ingest.stage import IngestConfig, ingest_recording
-from pipeline.stages.touchup.stage import TouchupConfig, extract_touchups
+from pipeline.stages.touchups.stage import TouchupConfig, extract_touchups
 
 SHARED = Path(__file__).resolve().parents[2] / "shared"
 DEFAULT = [

@@ -168,7 +168,7 @@ def one_case(cell: str, effect: str, seed: int, work: str) -> dict[str, Any]:
         "miss_across_um": across,
         "miss_along_um": along,
         # what the run claimed: the verdict's figure, whether it called it a lower bound,
-        # and the model-adequacy ratio (pipeline.stages.trust.adequacy)
+        # and the model-adequacy ratio (pipeline.stages.outliers.adequacy)
         "claim": float(v.get("validated_mm") or float("nan")),
         "claim_kind": str(v.get("predicted_kind") or "shape"),
         "lower_bound": bool(v.get("lower_bound")),
@@ -314,7 +314,7 @@ def _print_seed(
         " figure (pipeline.accuracy.verdict V2), x true = claim / the true error of its kind (absolute with"
         " the calibration bar, else shape; goal 0.5-2x, or the run"
         " said the figure is a lower bound: lower), adeq = the fit's residual over what the"
-        " repeated captures' noise predicts (pipeline.stages.trust.adequacy A1; > 3: lower bound)"
+        " repeated captures' noise predicts (pipeline.stages.outliers.adequacy A1; > 3: lower bound)"
     )
     n = sum(1 for c in cells for e in effects)
     met = sum(1 for c in cells for e in effects if not _claim_flag(res[(c, e)]))

@@ -4,7 +4,7 @@ A flange camera still swinging after the last move of a touch-up puts an offset
 into its final captures that the encoders do not see. ``touchup_settle`` weighs
 the captures by their scatter; what is left is the swing still in the last one.
 This benchmark asks whether a model of the swing could take that out too, and
-shows why :mod:`pipeline.stages.touchup.swing` (which does, when the settle test
+shows why :mod:`pipeline.stages.touchups.swing` (which does, when the settle test
 finds the camera swinging) takes the arm's decay and phase step from the pooled
 second moments of the captures rather than from the least-squares cost.
 
@@ -18,7 +18,7 @@ with one phase ``phi`` per touch-up shared by ``u`` and ``v`` (five unknowns
 step ``Delta`` shared by every touch-up (the captures are equally spaced, so only
 the step aliased into ``[0, pi]`` can be told). For each ``(r, Delta)`` on a grid
 every touch-up's ``phi`` is searched on a grid and ``c, a`` solved by linear
-least squares (:func:`pipeline.stages.touchup.swing.fit_one_mode`); the summed
+least squares (:func:`pipeline.stages.touchups.swing.fit_one_mode`); the summed
 squared residual is the fit's cost.
 
 Run on the standard LR Mate-like cell (36 touch-ups) with the vibration of
@@ -70,8 +70,8 @@ def final_centres(rec: Path, out: Path) -> tuple[np.ndarray, float]:
 
 def fit(X: np.ndarray, r: float, delta: float) -> tuple[float, np.ndarray]:
     """Summed cost of the one-mode model at ``(r, delta)`` and the swing it puts into the
-    last capture, ``(n, 2)`` px (:func:`pipeline.stages.touchup.swing.fit_one_mode`)."""
-    from pipeline.stages.touchup.swing import fit_one_mode
+    last capture, ``(n, 2)`` px (:func:`pipeline.stages.touchups.swing.fit_one_mode`)."""
+    from pipeline.stages.touchups.swing import fit_one_mode
 
     cost, _, swing = fit_one_mode(X, r, delta)
     return float(cost.sum()), swing
@@ -129,13 +129,13 @@ def main() -> None:
         f"truth {at_truth * 1e4:.3f}; over Delta 30-150 deg and r 0.3-0.7 "
         f"{band.min() * 1e4:.3f}-{band.max() * 1e4:.3f}"
     )
-    from pipeline.stages.touchup.swing import moment_globals
+    from pipeline.stages.touchups.swing import moment_globals
 
     sigma2 = float(grid[i, j]) / len(X)  # one residual dof per touch-up
     got = moment_globals(X, sigma2, (float(rs[j]), float(ds[i])))
     if got is not None:
         print(
-            f"pooled second moments (S2 of pipeline.stages.touchup.swing, noise "
+            f"pooled second moments (S2 of pipeline.stages.touchups.swing, noise "
             f"{np.sqrt(sigma2):.4f} px from the best cost): r {got[0]:.3f}, Delta "
             f"{np.degrees(got[1]):.0f} deg (what the touch-up stage uses)"
         )

@@ -33,7 +33,7 @@ import numpy as np
 from pipeline.kinematics.chain import fk, load_chain
 from pipeline.stages.detect.detector import DetectConfig
 from pipeline.stages.ingest.stage import IngestConfig, ingest_recording
-from pipeline.stages.touchup.stage import TouchupConfig, extract_touchups
+from pipeline.stages.touchups.stage import TouchupConfig, extract_touchups
 
 SAMPLE = Path("/work/shared/samples/conformance_lrmate_small.mcap")
 

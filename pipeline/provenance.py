@@ -22,7 +22,7 @@ run request (the run ledger's fingerprint: recording hash, options, vtcal
 version and code), never a path or a time. The wall-clock time a file was
 written is its modification time.
 
-Pure functions on text; the choose stage (:mod:`pipeline.stages.crossval.choose`)
+Pure functions on text; the choose stage (:mod:`pipeline.stages.choose.stage`)
 stamps the shipped URDF and the runner writes it.
 """
 

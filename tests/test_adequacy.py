@@ -1,7 +1,7 @@
 """The model-adequacy test and the assumptions: when the run's figure cannot be trusted.
 
 The fit's residual against what the repeated captures' scatter predicts
-(:mod:`pipeline.stages.trust.adequacy`, (A1); :mod:`pipeline.stages.touchup.noise`,
+(:mod:`pipeline.stages.outliers.adequacy`, (A1); :mod:`pipeline.stages.touchups.noise`,
 (N1)-(N2)); an assumed camera response; and what the verdict then says.
 """
 
@@ -13,8 +13,8 @@ import numpy as np
 import pytest
 
 from pipeline.accuracy.verdict import verdict
-from pipeline.stages.touchup.noise import capture_noise
-from pipeline.stages.trust.adequacy import RATIO_MAX, adequacy, assumptions, trust
+from pipeline.stages.outliers.adequacy import RATIO_MAX, adequacy, assumptions, trust
+from pipeline.stages.touchups.noise import capture_noise
 
 
 def _noise(rms_um=10.0):
@@ -205,7 +205,7 @@ def _pairs_with_pose_component(rng, sd_cap, sd_pose, n_pairs=300):
 def test_the_pose_component_is_recovered_from_the_loop_steps_beside_the_captures():
     """(N3)-(N4): a bias the same at every capture of one pose is invisible to the
     repeated captures; the pairs a step apart recover it (seeded, known truth)."""
-    from pipeline.stages.touchup.noise import pose_noise
+    from pipeline.stages.touchups.noise import pose_noise
 
     rng = np.random.default_rng(11)
     s0 = 47.77
@@ -233,7 +233,7 @@ def test_the_pose_component_is_recovered_from_the_loop_steps_beside_the_captures
 
 
 def test_single_captures_measure_the_loop_steps_but_leave_the_test_untested():
-    from pipeline.stages.touchup.noise import capture_noise, pose_noise
+    from pipeline.stages.touchups.noise import capture_noise, pose_noise
 
     rng = np.random.default_rng(12)
     s0 = 47.77

@@ -17,7 +17,7 @@ import pytest
 
 from pipeline.io.run_folder import ARTEFACTS, BY_KEY, RUN_FILES, writer
 from pipeline.run import code_key
-from pipeline.run.catalog import STAGE_NAMES, STAGES
+from pipeline.run.catalog import STAGE, STAGE_NAMES, STAGES
 from pipeline.run.orchestrator import RunConfig, run_pipeline
 
 SAMPLE = Path(__file__).resolve().parent.parent / "datasets" / "samples" / "sample_lrmate.mcap"
@@ -47,10 +47,37 @@ def test_stages_read_only_what_an_earlier_stage_wrote() -> None:
 
 def test_every_declared_function_and_config_resolves() -> None:
     for stage in STAGES:
-        for entry in (stage.fn, *stage.code, *([stage.config] if stage.config else [])):
+        assert callable(stage.fn), stage.name
+        for entry in (*stage.code, *([stage.config] if stage.config else [])):
             mod, attr = entry.split(":")
             assert callable(getattr(importlib.import_module(mod), attr)), entry
     assert set(code_key.ENTRY_POINTS) == set(STAGE_NAMES)
+
+
+def test_a_stage_takes_only_the_options_of_an_earlier_stage() -> None:
+    """``Stage.uses_configs`` names earlier stages with options, each a keyword its function
+    takes (crossval: identify's), so no node reads another stage's options from the
+    run's context (issue 47)."""
+    import inspect
+
+    earlier: set[str] = set()
+    for stage in STAGES:
+        params = inspect.signature(stage.fn).parameters
+        for other in stage.uses_configs:
+            assert other in earlier and STAGE[other].config, (stage.name, other)
+            assert params[other].kind is inspect.Parameter.KEYWORD_ONLY, (stage.name, other)
+        earlier.add(stage.name)
+    assert STAGE["crossval"].uses_configs == ("identify",)
+
+
+def test_each_stages_node_is_in_its_stages_package() -> None:
+    """The catalog holds each stage's function itself (no ``module:function`` string for a
+    stage), defined in ``node.py`` of the package named as the stage (the report's code is
+    ``pipeline/report/``) (issue 47)."""
+    for stage in STAGES:
+        package = "pipeline.report" if stage.name == "report" else f"pipeline.stages.{stage.name}"
+        assert stage.fn.__module__ == f"{package}.node", stage.name
+        assert stage.fn_name == f"{package}.node:{stage.name}"
 
 
 @pytest.fixture(scope="module")

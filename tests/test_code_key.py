@@ -87,7 +87,7 @@ def test_a_changed_stage_and_everything_downstream_rerun(sample_run, tmp_path) -
         ["ingest", "touchups", "outliers", "identify", "crossval", "choose"], "cached"
     ), "an identical copy of the code must find every stage fresh"
 
-    target = pkg / "pipeline" / "stages" / "trust" / "outliers.py"
+    target = pkg / "pipeline" / "stages" / "outliers" / "stage.py"
     target.write_text(target.read_text() + CHANGED_OUTLIERS)
     status = _run_with(pkg, rec, out, "crossval")
     assert status == {
@@ -121,7 +121,7 @@ def test_a_change_outside_a_stages_code_leaves_it_cached(sample_run, tmp_path) -
 
 def test_the_digest_sees_a_function_replaced_at_run_time(monkeypatch) -> None:
     before = {s: code_key.stage_code_digest(s) for s in code_key.ENTRY_POINTS}
-    from pipeline.stages.trust import outliers
+    from pipeline.stages.outliers import stage as outliers
 
     original = outliers.flag_outliers
 
@@ -137,8 +137,8 @@ def test_the_digest_sees_a_function_replaced_at_run_time(monkeypatch) -> None:
 
 
 def test_the_closure_follows_imports_and_stops_at_the_stage() -> None:
-    touchup = set(code_key.module_closure("pipeline.stages.touchup.stage"))
-    assert {"pipeline.stages.touchup.stage", "pipeline.kinematics.chain", "pipeline"} <= touchup
+    touchup = set(code_key.module_closure("pipeline.stages.touchups.stage"))
+    assert {"pipeline.stages.touchups.stage", "pipeline.kinematics.chain", "pipeline"} <= touchup
     assert not any(m.startswith("pipeline.report") for m in touchup)
     identify = set(code_key.module_closure("pipeline.stages.identify.stage"))
     # the error models are imported by the registry at run time: every one is code of identify
@@ -181,23 +181,23 @@ def test_import_parses_are_kept_by_source_and_used_again(fresh_import_cache) -> 
     key = code_key._import_key(mod, code_key._module_path(mod).read_bytes())
     assert key in entries
     # the cache is what answers: a planted entry for crossval's bytes is believed
-    entries[key] = ["pipeline.stages.trust.outliers"]
+    entries[key] = ["pipeline.stages.outliers.stage"]
     path.write_text(json.dumps({"format": 1, "entries": entries}))
     fresh_import_cache()
-    assert code_key._imports(mod) == frozenset({"pipeline.stages.trust.outliers"})
+    assert code_key._imports(mod) == frozenset({"pipeline.stages.outliers.stage"})
     # other bytes (an edited module) are another key: parsed afresh
     assert code_key._import_key(mod, b"import pipeline.io.jsonio\n") != key
 
 
 def test_a_damaged_import_cache_only_means_parsing(fresh_import_cache) -> None:
-    expected = code_key.module_closure("pipeline.stages.trust.outliers")
+    expected = code_key.module_closure("pipeline.stages.outliers.stage")
     digest = code_key.stage_code_digest("outliers")
     for damage in ("{not json", json.dumps({"format": 1, "entries": {"x": 3}}), "[]"):
         path = code_key.import_cache_path()
         path.parent.mkdir(parents=True, exist_ok=True)
         path.write_text(damage)
         fresh_import_cache()
-        assert code_key.module_closure("pipeline.stages.trust.outliers") == expected
+        assert code_key.module_closure("pipeline.stages.outliers.stage") == expected
         assert code_key.stage_code_digest("outliers") == digest
         assert json.loads(path.read_text())["format"] == 1  # rewritten whole
 

@@ -39,8 +39,8 @@ from pipeline.sim.scenario import scenario_from_dict
 from pipeline.sim.simulator import write_recording
 from pipeline.stages.identify.stage import IdentifyConfig, identify
 from pipeline.stages.ingest.stage import RecordingInfo
-from pipeline.stages.touchup.jacobian import estimate_jacobian
-from pipeline.stages.touchup.stage import TouchupConfig, extract_touchups
+from pipeline.stages.touchups.jacobian import estimate_jacobian
+from pipeline.stages.touchups.stage import TouchupConfig, extract_touchups
 
 ROOT = Path(__file__).resolve().parents[1]
 SAMPLE_TRUTH = ROOT / "datasets" / "samples" / "sample_lrmate.mcap.truth.json"

@@ -35,7 +35,7 @@ def sim(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, dict]:
     return simulated(tmp_path_factory.mktemp("field"))
 
 
-#: the verdict's own warnings (pipeline.stages.trust.adequacy: the calibration's trust, the
+#: the verdict's own warnings (pipeline.stages.outliers.adequacy: the calibration's trust, the
 #: same on the reference recording of the tiny scene), not warnings about reading it
 _TRUST = (
     "vtcal: warning: systematic error likely",

@@ -149,8 +149,8 @@ def stages(path: Path, deep: bool) -> None:
     from pipeline.stages.detect.detector import DetectConfig
     from pipeline.stages.identify import stage as identify
     from pipeline.stages.ingest.stage import IngestConfig, ingest_recording
-    from pipeline.stages.touchup import stage as touchup
-    from pipeline.stages.trust import outliers
+    from pipeline.stages.outliers import stage as outliers
+    from pipeline.stages.touchups import stage as touchup
 
     frames, dets, info = ingest_recording(path, IngestConfig(), DetectConfig())
     conform(frames, "frames")

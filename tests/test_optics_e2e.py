@@ -38,7 +38,7 @@ from pipeline.run.orchestrator import RunConfig, run_pipeline
 from pipeline.sim.scenario import scenario_from_dict
 from pipeline.sim.simulator import write_recording
 from pipeline.stages.ingest.stage import RecordingInfo
-from pipeline.stages.touchup.stage import TouchupConfig, extract_touchups
+from pipeline.stages.touchups.stage import TouchupConfig, extract_touchups
 
 ROOT = Path(__file__).resolve().parents[1]
 SEED = 7

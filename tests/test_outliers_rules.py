@@ -6,7 +6,7 @@ from types import SimpleNamespace
 
 import pandas as pd
 
-from pipeline.stages.trust.outliers import OutlierConfig, flag_outliers
+from pipeline.stages.outliers.stage import OutlierConfig, flag_outliers
 
 
 def test_rules_flag_with_reasons_and_keep_rows() -> None:

@@ -23,7 +23,7 @@ from pipeline.accuracy.evaluate import (
 )
 from pipeline.kinematics.chain import Chain, load_chain
 from pipeline.stages.identify.stage import IdentifyConfig, IdentifyResult, identify
-from pipeline.stages.trust.outliers import OutlierConfig, _fit, _mean_shift, flag_outliers
+from pipeline.stages.outliers.stage import OutlierConfig, _fit, _mean_shift, flag_outliers
 
 URDF = (Path(__file__).resolve().parent.parent / "pipeline/robots/lrmate.urdf").read_text()
 PIN = np.array([0.01, -0.02, 0.2])
@@ -209,7 +209,7 @@ def test_each_touchup_is_tested_alone_once_per_fit(monkeypatch: pytest.MonkeyPat
     """The search's single-touch-up candidates and the final studentized residuals test the
     same touch-ups against the same last fit: once each (twice each before), the same
     figures."""
-    from pipeline.stages.trust import outliers
+    from pipeline.stages.outliers import stage as outliers
 
     tab, _, _, info = make_cell(11)
     before = flag_outliers(tab, info, OutlierConfig())

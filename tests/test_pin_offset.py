@@ -16,7 +16,7 @@ from pipeline.accuracy.evaluate import registered_errors
 from pipeline.accuracy.verdict import predicted_kind, verdict
 from pipeline.estimation.uncertainty import predicted_errors, with_pin_offset
 from pipeline.kinematics.se3 import matrix_from_axis_angle
-from pipeline.stages.touchup.noise import pin_offset_cov
+from pipeline.stages.touchups.noise import pin_offset_cov
 
 
 def _poses(rng: np.random.Generator, n: int) -> tuple[np.ndarray, np.ndarray]:

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from pipeline.estimation.region import GROWTH_WARN, region_summary, widened_poses
-from pipeline.stages.trust.adequacy import trust
+from pipeline.stages.outliers.adequacy import trust
 
 
 def test_widened_poses_reach_half_a_span_beyond_and_keep_to_the_limits():

@@ -13,7 +13,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from pipeline.stages.touchup.servo_target import loop_steps, servo_target
+from pipeline.stages.touchups.servo_target import loop_steps, servo_target
 
 
 def _loops(rng: np.random.Generator, m0: np.ndarray, n: int = 12):
@@ -82,7 +82,7 @@ def test_a_recording_without_designated_values_reads_them_from_its_loops(
     from pipeline.io.artefacts import read_artefact
     from pipeline.run.orchestrator import RunConfig, run_pipeline
     from pipeline.stages.ingest.types import RecordingInfo
-    from pipeline.stages.touchup.stage import TouchupConfig, extract_touchups
+    from pipeline.stages.touchups.stage import TouchupConfig, extract_touchups
 
     out = tmp_path / "run"
     run_pipeline(conformance_sample, out, RunConfig(report=False), until="touchups")

@@ -51,7 +51,7 @@ def throwaway() -> Iterator[str]:
     catalog.register(
         Stage(
             NAME,
-            f"{__name__}:tally",
+            tally,
             ("inliers", "identify"),
             (NAME,),
             f"{__name__}:TallyConfig",
@@ -90,7 +90,5 @@ def test_unregister_leaves_the_pipeline_as_declared(throwaway: str) -> None:
     assert throwaway not in catalog.STAGE and throwaway not in run_folder.BY_KEY
     assert catalog.STAGE_NAMES[-1] == "report" and "tally.json" not in run_folder.RUN_FILES.values()
     with pytest.raises(ValueError):  # a name taken is refused
-        catalog.register(Stage("report", "m:f", (), (), None))
-    catalog.register(
-        Stage(NAME, f"{__name__}:tally", (), (NAME,), None), Artefact(NAME, "tally.json", NAME)
-    )
+        catalog.register(Stage("report", tally, (), (), None))
+    catalog.register(Stage(NAME, tally, (), (NAME,), None), Artefact(NAME, "tally.json", NAME))

@@ -12,7 +12,7 @@ from pipeline.sim.camera import CameraModel
 from pipeline.sim.target_geometry import projected_ellipse
 from pipeline.stages.detect.detector import DetectConfig
 from pipeline.stages.ingest.stage import IngestConfig, ingest_recording
-from pipeline.stages.touchup.stage import (
+from pipeline.stages.touchups.stage import (
     TouchupConfig,
     estimate_jacobian,
     extract_touchups,

@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from pipeline.stages.touchup.segments import PROBE_SPAN_M, segments
+from pipeline.stages.touchups.segments import PROBE_SPAN_M, segments
 
 
 def _pose(x: float, y: float, z: float, yaw: float = 0.0) -> np.ndarray:
@@ -66,7 +66,7 @@ def test_relative_poses_are_relative_pose_pair_by_pair_to_the_bit() -> None:
     angles and translations as one call per pair (dF enters the image Jacobian, so equal
     to the last bit, not to a tolerance), also for an empty list."""
     from pipeline.kinematics.se3 import matrix_from_rpy
-    from pipeline.stages.touchup.segments import relative_pose, relative_poses
+    from pipeline.stages.touchups.segments import relative_pose, relative_poses
 
     rng = np.random.default_rng(11)
     T = np.tile(np.eye(4), (40, 1, 1))

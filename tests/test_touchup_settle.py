@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from pipeline.stages.touchup.settle import settle_weights, wmean
+from pipeline.stages.touchups.settle import settle_weights, wmean
 
 
 def _captures(swing: tuple[float, float, float], n: int = 36, seed: int = 0):
@@ -50,7 +50,7 @@ def test_lost_touchups_and_short_blocks_are_taken_as_they_are() -> None:
 def test_the_summary_says_what_the_weights_did() -> None:
     """settle_summary (touchups.parquet's ``vtcal.settle``, shown by the report) gives the
     scatter of each place against the last, the test and the weights settle_weights used."""
-    from pipeline.stages.touchup.settle import settle_summary
+    from pipeline.stages.touchups.settle import settle_summary
 
     uses, u, v = _captures((0.05, 0.02, 0.008))
     sizes = (np.zeros_like(u) + np.random.default_rng(3).normal(0, 0.01, len(u)),)

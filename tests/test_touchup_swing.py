@@ -5,9 +5,9 @@ from __future__ import annotations
 import numpy as np
 import pandas as pd
 
-from pipeline.stages.touchup.rows import final_shapes
-from pipeline.stages.touchup.swing import fit_one_mode, moment_globals, remove_swing
-from pipeline.stages.touchup.types import Captures
+from pipeline.stages.touchups.rows import final_shapes
+from pipeline.stages.touchups.swing import fit_one_mode, moment_globals, remove_swing
+from pipeline.stages.touchups.types import Captures
 
 DT = 0.21
 
@@ -42,7 +42,7 @@ def test_recovers_the_still_centre_of_a_one_mode_swing() -> None:
     sw = remove_swing(uses, t, u, v)
     assert sw is not None and sorted(sw.centres) == list(range(len(uses)))
     got = np.array([sw.centres[k] for k in range(len(uses))])
-    from pipeline.stages.touchup.settle import settle_weights, wmean
+    from pipeline.stages.touchups.settle import settle_weights, wmean
 
     w = settle_weights(uses, (u, v))
     weighted = np.array([[wmean(u, x, w), wmean(v, x, w)] for x in uses])
@@ -103,7 +103,7 @@ def test_the_touchup_stage_uses_it_only_for_a_swinging_camera() -> None:
     finals = [np.array(x) for x in uses]
     _, shape, found = final_shapes(finals, _captures(u, v, t))
     assert found["centre"]["weighted"] and found["centre"]["swing"]["n"] == len(uses)
-    from pipeline.stages.touchup.settle import settle_weights, wmean
+    from pipeline.stages.touchups.settle import settle_weights, wmean
 
     w = settle_weights(uses, (u, v))
     weighted = np.array([[wmean(u, x, w), wmean(v, x, w)] for x in uses])

@@ -1,11 +1,11 @@
-"""Target grouping of touch-ups (``pipeline.stages.touchup.targets``)."""
+"""Target grouping of touch-ups (``pipeline.stages.touchups.targets``)."""
 
 from __future__ import annotations
 
 import numpy as np
 
 from pipeline.kinematics.se3 import matrix_from_rpy
-from pipeline.stages.touchup.targets import _best_hypothesis, group_targets
+from pipeline.stages.touchups.targets import _best_hypothesis, group_targets
 
 
 def _poses(

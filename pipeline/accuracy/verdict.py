@@ -10,7 +10,7 @@ its own measurement error (:func:`own_noise_mm`), so the figure is
 
 the covariance-predicted error ``pred`` (absolute with a known distance, shape
 without: :func:`predicted_kind`) (the random error the fit leaves,
-valid when the model is adequate: :mod:`pipeline.stages.trust.adequacy`) or, when the
+valid when the model is adequate: :mod:`pipeline.stages.outliers.adequacy`) or, when the
 held-out touch-ups miss by more than that beyond their own noise ``e``, that
 (the ``(k-1)/k``: each fold's fit had that share of the touch-ups). The raw
 held-out RMS overstated the error by up to 3.5x where the touch-ups' own noise
@@ -23,7 +23,7 @@ nominal one. Otherwise it says "not improved", and nothing is shown green.
 
 Neither figure sees an error that the fit absorbs. When the model-adequacy test
 or an assumption says one is likely (``identify.json["trust"]``,
-:mod:`pipeline.stages.trust.adequacy`), the line says the figure is a lower bound and a
+:mod:`pipeline.stages.outliers.adequacy`), the line says the figure is a lower bound and a
 tolerance fails.
 """
 
@@ -110,7 +110,7 @@ def verdict(
     ``predicted_mm``, ``nominal_mm``, ``ratio`` (nominal / validated), ``improved`` (bool or
     None when unknown), ``tolerance_mm``, ``passed`` (None without a tolerance),
     ``lower_bound`` (the summary's ``trust`` found a systematic error likely or an
-    assumption the figure hinges on: :mod:`pipeline.stages.trust.adequacy`; a tolerance then
+    assumption the figure hinges on: :mod:`pipeline.stages.outliers.adequacy`; a tolerance then
     fails), ``warnings`` (its console lines) and ``line`` (one sentence for the CLI).
     """
     if not summary:
@@ -202,7 +202,7 @@ def _pass_fail(
 
 
 def lower_bound_reason(trust: dict[str, Any]) -> str:
-    """Why a run's figure is a lower bound, a few words (:mod:`pipeline.stages.trust.adequacy`)."""
+    """Why a run's figure is a lower bound, a few words (:mod:`pipeline.stages.outliers.adequacy`)."""
     if (trust.get("adequacy") or {}).get("systematic"):
         return "systematic error likely"
     keys = [str(a.get("key")) for a in trust.get("assumptions") or [] if a.get("lower_bound")]

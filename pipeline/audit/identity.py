@@ -48,7 +48,7 @@ class AuditItem:
     distances : known distances ``(a, b, metres)`` from its metadata
     truth : ``truth.json`` beside it when simulated (None otherwise; the benchmark reads it)
     noise : the touch-up stage's measured noise (``capture_noise`` of ``touchups.parquet``,
-        :mod:`pipeline.stages.touchup.noise`), None where the folder lacks it
+        :mod:`pipeline.stages.touchups.noise`), None where the folder lacks it
     table_read : False when :func:`load_item` left ``table`` unread (empty) for a
         worker to read (:func:`with_table`)
     """
@@ -191,7 +191,7 @@ def with_table(item: AuditItem) -> AuditItem:
 
 def measured_noise(path: Path) -> dict[str, Any] | None:
     """The ``capture_noise`` metadata of a run folder's ``touchups.parquet`` (the touch-up
-    stage's measured noise, :mod:`pipeline.stages.touchup.noise`), None where the file or
+    stage's measured noise, :mod:`pipeline.stages.touchups.noise`), None where the file or
     the key is missing or unreadable."""
     if not path.is_file():
         return None

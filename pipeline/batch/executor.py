@@ -40,12 +40,17 @@ PRELOAD = (
     "pipeline.run.orchestrator",
     "pipeline.stages.ingest.stage",
     "pipeline.stages.detect.detector",
-    "pipeline.stages.touchup.stage",
-    "pipeline.stages.trust.outliers",
+    "pipeline.stages.touchups.stage",
+    "pipeline.stages.outliers.stage",
     "pipeline.stages.identify.stage",
     "pipeline.stages.crossval.stage",
-    "pipeline.stages.crossval.choose",
-    "pipeline.run.nodes",
+    "pipeline.stages.choose.stage",
+    "pipeline.stages.ingest.node",
+    "pipeline.stages.touchups.node",
+    "pipeline.stages.outliers.node",
+    "pipeline.stages.identify.node",
+    "pipeline.stages.crossval.node",
+    "pipeline.stages.choose.node",
 )
 
 #: what a batch's workers load besides before their first recording: the lazily loaded

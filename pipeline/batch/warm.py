@@ -28,7 +28,7 @@ LAZY = (
     "pipeline.run.ledger",
     "pipeline.accuracy.verdict",
     "pipeline.io.mcap_index",
-    "pipeline.stages.trust.adequacy",
+    "pipeline.stages.outliers.adequacy",
     "pipeline.stages.detect.saturation",
     "pipeline.report.data",
     "pipeline.report.diagnosis",

@@ -12,6 +12,6 @@ builds the estimation on it:
   :mod:`~pipeline.estimation.distributions`
 
 Used by identification (:mod:`pipeline.stages.identify.stage`), outlier rejection
-(:mod:`pipeline.stages.trust.outliers`), cross-validation and pose planning
+(:mod:`pipeline.stages.outliers.stage`), cross-validation and pose planning
 (:mod:`pipeline.plan.design`).
 """

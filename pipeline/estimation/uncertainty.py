@@ -39,7 +39,7 @@ def predicted_errors(Jw: F64, cov: F64, p: F64, kind: str) -> F64:
 def with_pin_offset(cov_e: F64, pin_offset_cov: Any) -> F64:
     """The kinematic-and-pin covariance with the touch-ups' unseen constant pin offset added.
 
-    The pose component of a touch-up's error (:func:`pipeline.stages.touchup.noise.
+    The pose component of a touch-up's error (:func:`pipeline.stages.touchups.noise.
     pose_noise`, covariance ``Sigma_pose`` in the flange frame) varies from pose to pose
     around a mean no residual can see: a constant offset of every touch-up's pin is
     absorbed by the pin itself. Taking that mean as one more draw of the pose component,

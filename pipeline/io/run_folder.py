@@ -90,6 +90,14 @@ class Parquet:
     meta: Mapping[str, str] = field(default_factory=dict)
 
 
+def parquet_meta(data: Any, key: str) -> dict[str, str]:
+    """The ``vtcal.*`` metadata of Parquet input ``key`` of a stage's node; from the runner's
+    inputs without reading the table's rows (:meth:`pipeline.run.runner.Inputs.meta`), else
+    from the table's ``attrs``."""
+    meta = getattr(data, "meta", None)
+    return dict(meta(key)) if meta is not None else dict(data[key].attrs["vtcal"])
+
+
 def writer(key: str) -> str:
     """The stage that writes artefact ``key`` (a KeyError names an undeclared file)."""
     return BY_KEY[key].writer

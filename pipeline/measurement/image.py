@@ -18,7 +18,7 @@ axis its first two rows are ``-(f/z)`` times the first two rows of
 (:func:`camera_from_jacobian`). The residual correction of a touch-up that
 stopped at ``e_T`` is ``d_F = -J^-1 e_T`` (:func:`residual_correction`).
 
-Callers: the touch-up stage (:mod:`pipeline.stages.touchup.stage`, ``touchup_rows``,
+Callers: the touch-up stage (:mod:`pipeline.stages.touchups.stage`, ``touchup_rows``,
 ``touchup_tilt``), the live loop (:class:`pipeline.live.loop.Goal`), the
 simulator (:func:`pipeline.sim.cell.virtual_pin_camera`, the cell's designated
 size), the report's nominal camera (:func:`pipeline.report.rrd_log.camera_guess`).

@@ -15,7 +15,7 @@ long axis' direction on the plate. This section shows, from the artefacts only:
 * the illumination gradient across the target;
 * touch-ups that stopped off target and were corrected rather than rejected;
 * whether the camera had settled at each touch-up's repeated final captures,
-  and the weights their averages used (:mod:`pipeline.stages.touchup.settle`);
+  and the weights their averages used (:mod:`pipeline.stages.touchups.settle`);
 * per-target print shape, where identification estimated one
   (``targets.parquet`` columns ``print_*``);
 * the along-view residual of every used touch-up against the tilt ``theta``
@@ -220,9 +220,9 @@ def settle_rows(data: RunData) -> list[dict[str, str]]:
     """Whether the camera had settled at the touch-ups' repeated final captures.
 
     From ``touchups.parquet``'s ``vtcal.settle`` metadata
-    (:func:`pipeline.stages.touchup.settle.settle_summary`): the scatter of each
+    (:func:`pipeline.stages.touchups.settle.settle_summary`): the scatter of each
     capture before the last against the last, the weights the averages used, and
-    the one-mode swing fit of the centre (:mod:`pipeline.stages.touchup.swing`).
+    the one-mode swing fit of the centre (:mod:`pipeline.stages.touchups.swing`).
     """
     path = data.run_dir / RUN_FILES["touchups"]
     try:

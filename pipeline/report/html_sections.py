@@ -81,7 +81,7 @@ def verdict_section(data: RunData) -> dict[str, Any]:
     if not isinstance(nominal, (int, float)) and before:
         nominal = before[0]
     v = verdict(idf, tol, nominal_mm=nominal) or {}
-    adequacy = (idf.get("trust") or {}).get("adequacy") or {}  # pipeline.stages.trust.adequacy
+    adequacy = (idf.get("trust") or {}).get("adequacy") or {}  # pipeline.stages.outliers.adequacy
     region = idf.get("region") or {}  # pipeline.estimation.region
     if before and isinstance(v.get("nominal_mm"), (int, float)):
         before = (float(v["nominal_mm"]), before[1])  # one nominal figure on the page

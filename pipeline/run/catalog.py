@@ -10,16 +10,34 @@ table; stage functions take data and return data, and only the runner writes.
 ``tests/test_catalog.py`` checks that every file has exactly one writer and
 that each stage reads only what an earlier stage wrote.
 
-Standard library only: ``vtcal run``'s options and the run ledger read the
-catalogue without importing the runner or a stage (functions and configs are
-named ``module:attribute``, resolved by the runner).
+Cheap to import: ``vtcal run``'s options and the run ledger read the catalogue
+without importing the runner or a stage's computation. Each stage's function is
+held itself (``Stage.fn``: its node, ``node.py`` in the stage's package, which
+imports only the standard library and :mod:`pipeline.io.run_folder` at module level
+and the stage's computation inside the function); configs and code entry points
+stay named ``module:attribute`` (their modules are the heavy ones: the runner
+resolves a config when it builds the options, :mod:`pipeline.run.code_key` reads
+the entry modules' import closure).
 """
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
+from typing import Any
 
 from pipeline.io.run_folder import ARTEFACTS, BY_KEY, RUN_FILES, Artefact
+from pipeline.report import node as report_node
+from pipeline.stages.choose import node as choose_node
+from pipeline.stages.crossval import node as crossval_node
+from pipeline.stages.identify import node as identify_node
+from pipeline.stages.ingest import node as ingest_node
+from pipeline.stages.outliers import node as outliers_node
+from pipeline.stages.touchups import node as touchups_node
+
+#: a stage's function: ``fn(data, config, context, **other_configs) -> {artefact key: value}``
+#: (``other_configs``: those of :attr:`Stage.uses_configs`)
+Node = Callable[..., dict[str, Any]]
 
 
 @dataclass(frozen=True)
@@ -29,9 +47,10 @@ class Stage:
     Attributes
     ----------
     name : the stage's name (``--until`` takes it)
-    fn : ``module:function`` computing it: ``fn(data, config, context) -> {key: value}``
-        with ``data`` the artefacts of ``inputs`` (tables and dicts) and the
-        result holding one value per key of ``outputs``
+    fn : the function computing it, its node (``node.py`` in the stage's package):
+        ``fn(data, config, context) -> {key: value}`` with ``data`` the artefacts of
+        ``inputs`` (tables and dicts) and the result holding one value per key of
+        ``outputs``
     inputs : artefact keys it reads (each written by an earlier stage)
     outputs : artefact keys it writes (it is their only writer), in the order they are
         written after its Parquet ones: the last present means the stage finished
@@ -48,13 +67,17 @@ class Stage:
         recording's content hash
     follows : a stage after which this one always runs when that one is planned
         (``--until`` stopping between them still ships its result)
+    uses_configs : earlier stages whose options this stage's function takes too, handed
+        over by the runner as keyword arguments named as those stages (crossval refits
+        with identify's options: ``fn(data, config, context, identify=...)``); they are
+        not part of this stage's cache key (the outputs of those stages it reads are)
     sub_configs : further option groups ``(name, "module:Class")`` of a stage whose
         options are several dataclasses (ingest: ``detect``); its config is then
         ``{name: options, group: options, ...}``
     """
 
     name: str
-    fn: str
+    fn: Node
     inputs: tuple[str, ...]
     outputs: tuple[str, ...]
     config: str | None
@@ -64,6 +87,12 @@ class Stage:
     source: bool = False
     follows: str | None = None
     sub_configs: tuple[tuple[str, str], ...] = ()
+    uses_configs: tuple[str, ...] = ()
+
+    @property
+    def fn_name(self) -> str:
+        """``module:function`` of :attr:`fn` (what the stage code key names it by)."""
+        return f"{self.fn.__module__}:{self.fn.__qualname__}"
 
     @property
     def option_groups(self) -> tuple[str, ...]:
@@ -76,7 +105,7 @@ class Stage:
 STAGES: list[Stage] = [
     Stage(
         "ingest",
-        "pipeline.run.nodes:ingest",
+        ingest_node.ingest,
         (),
         ("frames", "detections", "recording"),
         "pipeline.stages.ingest.stage:IngestConfig",
@@ -86,23 +115,23 @@ STAGES: list[Stage] = [
     ),
     Stage(
         "touchups",
-        "pipeline.run.nodes:touchups",
+        touchups_node.touchups,
         ("frames", "detections", "recording"),
         ("touchups",),
-        "pipeline.stages.touchup.stage:TouchupConfig",
-        ("pipeline.stages.touchup.stage:extract_touchups",),
+        "pipeline.stages.touchups.stage:TouchupConfig",
+        ("pipeline.stages.touchups.stage:extract_touchups",),
     ),
     Stage(
         "outliers",
-        "pipeline.run.nodes:outliers",
+        outliers_node.outliers,
         ("touchups", "recording"),
         ("inliers",),
-        "pipeline.stages.trust.outliers:OutlierConfig",
-        ("pipeline.stages.trust.outliers:flag_outliers",),
+        "pipeline.stages.outliers.stage:OutlierConfig",
+        ("pipeline.stages.outliers.stage:flag_outliers",),
     ),
     Stage(
         "identify",
-        "pipeline.run.nodes:identify",
+        identify_node.identify,
         ("inliers",),
         ("parameters", "residuals", "targets", "model_urdfs", "models"),
         "pipeline.stages.identify.stage:IdentifyConfig",
@@ -112,19 +141,20 @@ STAGES: list[Stage] = [
     ),
     Stage(
         "crossval",
-        "pipeline.run.nodes:crossval",
+        crossval_node.crossval,
         ("inliers", "parameters", "models"),
         ("crossval",),
         "pipeline.stages.crossval.stage:CrossvalConfig",
         ("pipeline.stages.crossval.stage:cross_validate",),
+        uses_configs=("identify",),  # its refits fit as identify did
     ),
     Stage(
         "choose",
-        "pipeline.run.nodes:choose",
+        choose_node.choose,
         ("models", "model_urdfs", "parameters"),
         ("calibrated_urdf", "calibration", "identify"),
         None,
-        ("pipeline.stages.crossval.choose:choose_model", "pipeline.use.record:calibration_record"),
+        ("pipeline.stages.choose.stage:choose_model", "pipeline.use.record:calibration_record"),
         # touchups: the repeated captures' noise; recording: the assumptions (adequacy)
         optional=("crossval", "touchups", "recording"),
         cache="always",
@@ -132,7 +162,7 @@ STAGES: list[Stage] = [
     ),
     Stage(
         "report",
-        "pipeline.run.nodes:report",
+        report_node.report,
         (
             "recording",
             "touchups",

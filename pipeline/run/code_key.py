@@ -18,8 +18,9 @@ configuration *and the same code* (a changed stage must not answer
 
 Stages and their entry points are declared once, in :data:`pipeline.run.catalog.STAGES`
 (``Stage.code``; :data:`ENTRY_POINTS` is that column). The compiled code of the
-stage's own function (``Stage.fn``, in :mod:`pipeline.run.nodes`) is hashed too,
-but not the import closure of its module (it imports every stage). The digest
+stage's own function (``Stage.fn``, its node: ``node.py`` in the stage's package) is
+hashed too, but not the import closure of its module (its imports are the stage's
+entry points, keyed by ``Stage.code``). The digest
 is what the runner (:mod:`pipeline.run.runner`) adds to each stage's
 configuration hash (``config_hash`` in the Parquet metadata) and to the
 report's key in ``run.json``; the run ledger's ``code`` digest
@@ -258,9 +259,7 @@ def stage_code_digest(stage: str) -> str:
     """
     h = hashlib.sha256()
     declared = catalog.STAGE[stage]  # read now: a registered stage is keyed too
-    mod, attr = declared.fn.split(":")
-    node = getattr(importlib.import_module(mod), attr)
-    h.update(declared.fn.encode() + b"\0" + _code_bytes(node.__code__))
+    h.update(declared.fn_name.encode() + b"\0" + _code_bytes(declared.fn.__code__))
     _hash_entries(h, declared.code)
     save_import_cache()
     return h.hexdigest()[:16]

@@ -310,7 +310,7 @@ def stage_configs(cfg: RunConfig, info: Any) -> dict[str, Any]:
     with the recording's known distances (not strict: a truncated recording may
     not reach every target; strict when given on the command line) and its printed
     target size (the image-implied one identify reads from the touch-ups it declares,
-    :func:`pipeline.run.nodes.identify`).
+    :func:`pipeline.stages.identify.node.identify`).
     """
     fixed = {
         "identify": {

@@ -410,10 +410,12 @@ def stage_config(name: str, context: Context) -> Any:
 
 
 def _call(stage: Stage, context: Context, names: list[str]) -> dict[str, Any]:
-    mod, attr = stage.fn.split(":")
-    fn = getattr(importlib.import_module(mod), attr)
     keys = [*stage.inputs, *(k for k in stage.optional if BY_KEY[k].writer in names)]
-    result: dict[str, Any] = fn(Inputs(keys, context), stage_config(stage.name, context), context)
+    # the options of the earlier stages it declares it takes (Stage.uses_configs)
+    others = {other: context.configs[other] for other in stage.uses_configs}
+    result: dict[str, Any] = stage.fn(
+        Inputs(keys, context), stage_config(stage.name, context), context, **others
+    )
     return result
 
 
@@ -526,7 +528,7 @@ def write_fits(results: Any, out: Path) -> dict[str, Path]:
     choice (no cross-validation, no provenance block) as ``calibrated.urdf``
     and ``identify.json``. Returns ``{artefact key: path}``.
     """
-    from pipeline.stages.crossval.choose import choose_model
+    from pipeline.stages.choose.stage import choose_model
     from pipeline.stages.identify.stage import fit_outputs
 
     out = Path(out)

@@ -1,4 +1,8 @@
-"""The pipeline's stages, one subpackage per concept (``catalog.STAGES`` declares them).
+"""The pipeline's stages: one subpackage per stage of ``catalog.STAGES``, named as the stage
+(``ingest``, ``touchups``, ``outliers``, ``identify``, ``crossval``, ``choose``; the report's
+code is :mod:`pipeline.report`), and ingest's sub-concepts beside them (``image``,
+``detect``, ``response``: the camera's image, the detector and the response curve ingest
+applies to every frame).
 
 - ``ingest/``: one streaming pass over a recording -> frames, detections, recording info
   (the stage, the pass, the joint states, its settings).
@@ -7,15 +11,17 @@
   of images too large for the detector.
 - ``detect/``: the target's image ellipse, sub-pixel (the detector, its blob search,
   edge stage, ellipse geometry, the clipped-plate contour, its compiled kernel).
-- ``touchup/``: from frames and detections to the touch-up table (segments, image
+- ``touchups/``: from frames and detections to the touch-up table (segments, image
   Jacobian, targets, tilt, settling, swing, noise, the rows).
-- ``trust/``: what the data and the fit can be trusted with: implausible inputs
-  (plausibility), touch-ups identification must not trust (the outliers stage), a model
-  that does not explain the data (adequacy).
+- ``outliers/``: what the data and the fit can be trusted with: touch-ups identification
+  must not trust (the outliers stage), a model that does not explain the data
+  (adequacy; the choose stage records it). Implausible inputs are
+  :mod:`pipeline.guardrails.plausibility`, below the stages.
 - ``identify/``: from converged touch-ups to a calibrated robot (the stage, the fit's
   data, print shape, structure, tables, notes).
-- ``crossval/``: which error model the run ships: held-out error of each (the crossval
-  stage, its refits and predictions) and the choice by it (the choose stage).
+- ``crossval/``: the held-out error of each error model (the crossval stage, its refits
+  and predictions).
+- ``choose/``: which error model the run ships, by that error (the choose stage).
 - ``parallel_map``: the map over independent CPU-bound tasks the stages share.
 
 A stage's entry module is ``stage.py`` in its package; the others are its parts.

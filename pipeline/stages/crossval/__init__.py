@@ -1,6 +1,7 @@
-"""Which error model the run ships: held-out error of each, and the choice by it.
+"""The held-out error of each error model (the choose stage, :mod:`pipeline.stages.choose`,
+ships by it).
 
 ``stage`` (the crossval stage: k-fold and leave-one-target-out), ``refit`` (the refits
-on subsets of one table), ``predict`` (held-out predictions), ``choose`` (the choose
-stage: the shipped model and its summary).
+on subsets of one table), ``predict`` (held-out predictions).
+``node`` (the stage's node: the function the runner calls, data in, data out).
 """

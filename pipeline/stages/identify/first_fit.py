@@ -3,7 +3,7 @@
 Every identification in the calibrated correction frame starts with a first fit
 (:func:`pipeline.stages.identify.frame.correction_frame`: prediction only, no print
 shape, corrections as the table has them). In ``vtcal run`` the outliers stage
-identifies its inliers (:func:`pipeline.stages.trust.outliers.flag_outliers`) and the
+identifies its inliers (:func:`pipeline.stages.outliers.stage.flag_outliers`) and the
 identify stage then identifies the same rows again, with settings that differ only
 where the first fit does not read them (the model list, the predicted-error poses,
 the guardrails, the printed size): the same first fit, twice, on the identify stage's

@@ -575,7 +575,7 @@ def fit_outputs(results: IdentifyResult | dict[str, IdentifyResult]) -> dict[str
     ``model_urdfs``: ``{model: calibrated URDF text}``; ``models``: the JSON
     document ``{"models": {model: summary}, "order": [model, ...], "best_model": name}``
     (NaN as null; ``order``: the order the models were fitted, which headlines follow)
-    from which the choose stage (:mod:`pipeline.stages.crossval.choose`) makes identify.json.
+    from which the choose stage (:mod:`pipeline.stages.choose.stage`) makes identify.json.
     """
     from pipeline.io.run_folder import Parquet
 

@@ -61,7 +61,7 @@ class IdentifyConfig:
         (:func:`pipeline.measurement.image.diameter_from_jacobian`), checked against
         ``target_diameter_m`` by the guardrails; None for a table without images
     pin_offset_cov_m2 : (3 x 3 nested list, m^2, flange frame) the covariance of the
-        touch-ups' pose component (:func:`pipeline.stages.touchup.noise.pose_noise`): its
+        touch-ups' pose component (:func:`pipeline.stages.touchups.noise.pose_noise`): its
         mean over the recording is a constant pin offset no residual sees, added to the
         pin's covariance before the predicted errors (P1 of
         :func:`pipeline.estimation.uncertainty.with_pin_offset`);

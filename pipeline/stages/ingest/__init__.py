@@ -5,4 +5,5 @@ joint states at every image), ``types`` (its settings and what it learns about a
 recording), ``row_buffer`` (the growable tables it fills), ``image_worker`` (the thread
 that decodes and detects the images, in order, while the pass reads on) and ``prefetch``
 (an image message to grey pixels).
+``node`` (the stage's node: the function the runner calls, data in, data out).
 """

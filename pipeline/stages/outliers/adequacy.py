@@ -7,7 +7,7 @@ view, a print's shape the model does not hold) bends every touch-up a little
 differently; the fit absorbs part of it and the held-out figure sees only the
 rest. What it cannot hide is the size of the fit's residual: with detection
 noise as the only error, the training residual's RMS is predicted by the
-touch-ups' measured noise (:mod:`pipeline.stages.touchup.noise`): the repeated
+touch-ups' measured noise (:mod:`pipeline.stages.touchups.noise`): the repeated
 captures' scatter (N1)-(N2) plus the pose component the loop's small steps show
 (N3)-(N4), which the captures at one pose cannot see::
 
@@ -53,7 +53,7 @@ def adequacy(summary: Mapping[str, Any], noise: Mapping[str, Any] | None) -> dic
     Parameters
     ----------
     summary : identify's summary of the shipped model (``rms_mm``, ``dof``, ``n_rows``)
-    noise : :func:`pipeline.stages.touchup.noise.capture_noise` of the recording, or None
+    noise : :func:`pipeline.stages.touchups.noise.capture_noise` of the recording, or None
 
     Returns
     -------

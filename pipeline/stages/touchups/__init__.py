@@ -6,4 +6,5 @@ target), ``rows`` (step 5: averaged final captures, the row), ``tilt`` (a tilted
 target's bias), ``settle`` / ``swing`` / ``noise`` (the repeated final captures:
 settling weights, the camera's swing, the detection noise), ``types`` (the records the
 steps share).
+``node`` (the stage's node: the function the runner calls, data in, data out).
 """

@@ -5,7 +5,7 @@ captures a large move apart belong to different touch-ups (:func:`segments`).
 Inside one, the captures at the final pose are the repeated captures at
 convergence (:func:`final_block`) and the loop starts where the probing shifts
 come back to the first pose (:func:`loop_starts`). The steps are described in
-:mod:`pipeline.stages.touchup.stage`; poses are the nominal model's flange poses.
+:mod:`pipeline.stages.touchups.stage`; poses are the nominal model's flange poses.
 """
 
 from __future__ import annotations

@@ -1,7 +1,7 @@
 """The detection noise of a touch-up, measured from its repeated final captures.
 
 At convergence a touch-up takes several captures at one flange pose
-(:mod:`pipeline.stages.touchup.stage`, step 5). Their measurements ``m = (u, v, 1/s)``
+(:mod:`pipeline.stages.touchups.stage`, step 5). Their measurements ``m = (u, v, 1/s)``
 differ only by what changes from one image to the next at a fixed pose: sensor
 noise, flicker, a camera still swinging. Pooled over every touch-up with ``n_k``
 captures, with ``mbar_k`` its mean::
@@ -16,7 +16,7 @@ capture's noise in the flange frame and that of a touch-up's averaged correction
 (``n_eff`` the harmonic mean of the ``n_k``). This is what the touch-ups' pin
 positions would scatter by if detection noise were their only error: an
 independent prediction of the fit's residual, against which
-:mod:`pipeline.stages.trust.adequacy` tests the fit. It is blind, by construction, to
+:mod:`pipeline.stages.outliers.adequacy` tests the fit. It is blind, by construction, to
 what stays the same at one pose and changes between poses (a response curve,
 defocus, uneven light, an out-of-round print seen from another angle): those are
 exactly the errors the test is there to reveal.
@@ -131,7 +131,7 @@ def pose_noise(
     capture : :func:`capture_noise` of the same recording (its ``sd_px`` and ``n_eff``;
         NaN without repeated captures: then (N3) gives one capture's whole noise, reported
         as ``pose_sd_px``, and ``rms_touchup_um`` stays NaN: the adequacy test of
-        :mod:`pipeline.stages.trust.adequacy` stays untested, as before (on the truncated
+        :mod:`pipeline.stages.outliers.adequacy` stays untested, as before (on the truncated
         conformance sample the loop steps alone gave a ratio of 21, unexamined))
     s0 : designated long axis, px
     max_change_px : pairs whose predicted centre change exceeds this are left out

@@ -1,7 +1,7 @@
 """The touch-up stage's intermediate records: captures, designated values, tilt.
 
-Shared by :mod:`pipeline.stages.touchup.stage` (steps 1-4) and
-:mod:`pipeline.stages.touchup.rows` (step 5, one row per touch-up).
+Shared by :mod:`pipeline.stages.touchups.stage` (steps 1-4) and
+:mod:`pipeline.stages.touchups.rows` (step 5, one row per touch-up).
 """
 
 from __future__ import annotations
@@ -52,7 +52,7 @@ class Designated(NamedTuple):
 
 
 class Tilt(NamedTuple):
-    """Per touch-up tilt bias (:func:`pipeline.stages.touchup.tilt.tilt_bias`) and view geometry (:func:`pipeline.measurement.image.view_geometry`)."""
+    """Per touch-up tilt bias (:func:`pipeline.stages.touchups.tilt.tilt_bias`) and view geometry (:func:`pipeline.measurement.image.view_geometry`)."""
 
     bias: np.ndarray  # (n, 3)
     tilt_deg: np.ndarray  # (n,)

@@ -3,8 +3,8 @@
 A tilted circle images as an ellipse whose centre is not the image of the
 circle's centre and whose long axis exceeds the untilted size;
 :func:`tilt_bias` gives both offsets per touch-up, with the camera taken from the
-image Jacobian (:mod:`pipeline.stages.touchup.jacobian`). The steps are described
-in :mod:`pipeline.stages.touchup.stage`.
+image Jacobian (:mod:`pipeline.stages.touchups.jacobian`). The steps are described
+in :mod:`pipeline.stages.touchups.stage`.
 """
 
 from __future__ import annotations

@@ -84,7 +84,7 @@ def loop_steps(
     -------
     mk, dm : (K, 3) each
     """
-    from pipeline.stages.touchup.segments import relative_pose
+    from pipeline.stages.touchups.segments import relative_pose
 
     mk: list[np.ndarray] = []
     dm: list[np.ndarray] = []

@@ -1,11 +1,11 @@
 """Step 5 of the touch-up stage: each touch-up's averaged final captures, then its row.
 
 :func:`final_shapes` averages every touch-up's repeated final captures (weighted
-where the camera had not settled, :mod:`pipeline.stages.touchup.settle`, and the
-centre then freed of the swing left in the last one, :mod:`pipeline.stages.touchup.swing`);
+where the camera had not settled, :mod:`pipeline.stages.touchups.settle`, and the
+centre then freed of the swing left in the last one, :mod:`pipeline.stages.touchups.swing`);
 :func:`measurement` turns one average into the table's measurement and its
 residual correction ``d_F = -J^-1 e_T`` (:mod:`pipeline.measurement.image`); :func:`touchup_row` makes the row.
-The stage itself: :mod:`pipeline.stages.touchup.stage`.
+The stage itself: :mod:`pipeline.stages.touchups.stage`.
 """
 
 from __future__ import annotations
@@ -15,9 +15,9 @@ from typing import Any
 import numpy as np
 
 from pipeline.measurement.image import image_error, residual_correction, touchup_error
-from pipeline.stages.touchup.settle import settle, wmean
-from pipeline.stages.touchup.swing import remove_swing
-from pipeline.stages.touchup.types import Captures, Designated, Tilt, pose_key
+from pipeline.stages.touchups.settle import settle, wmean
+from pipeline.stages.touchups.swing import remove_swing
+from pipeline.stages.touchups.types import Captures, Designated, Tilt, pose_key
 
 
 def final_shapes(
@@ -26,8 +26,8 @@ def final_shapes(
     """Step 5: each touch-up's final captures (good, else any found), averaged (weighted
     where the camera had not settled: touchup_settle; the centre then freed of the swing
     left in the last capture, touchup_swing), as ``(n, 5)`` u, v, s, s_minor, angle; and
-    what the settle test found (:func:`pipeline.stages.touchup.settle.settle_summary`, with
-    ``centre.swing`` the one-mode fit's :meth:`~pipeline.stages.touchup.swing.Swing.summary`
+    what the settle test found (:func:`pipeline.stages.touchups.settle.settle_summary`, with
+    ``centre.swing`` the one-mode fit's :meth:`~pipeline.stages.touchups.swing.Swing.summary`
     when the centres were weighted, None when it was not used)."""
     u, v, s = c.u, c.v, c.s
     s_minor = c.df["s_minor"].to_numpy(float)

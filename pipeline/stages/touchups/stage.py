@@ -53,10 +53,10 @@ joint vector interpolated at each image stamp):
 
 The code of the steps (:func:`extract_touchups` calls them in order): the
 segments, the final pose and the loop start in
-:mod:`pipeline.stages.touchup.segments`; the image Jacobian and the camera it
-implies in :mod:`pipeline.stages.touchup.jacobian`; the targets in
-:mod:`pipeline.stages.touchup.targets`; the tilt bias of a tilted target's
-ellipse, applied before the correction, in :mod:`pipeline.stages.touchup.tilt`;
+:mod:`pipeline.stages.touchups.segments`; the image Jacobian and the camera it
+implies in :mod:`pipeline.stages.touchups.jacobian`; the targets in
+:mod:`pipeline.stages.touchups.targets`; the tilt bias of a tilted target's
+ellipse, applied before the correction, in :mod:`pipeline.stages.touchups.tilt`;
 the designated values, the Jacobian pairs, convergence and correction, and the
 table's rows here.
 """
@@ -73,14 +73,14 @@ from pipeline.errors import BadInput
 from pipeline.estimation.correction_frame import scatter_columns
 from pipeline.kinematics.chain import fk, load_chain
 from pipeline.measurement.image import diameter_from_jacobian, pair_change, view_geometry
-from pipeline.stages.touchup.jacobian import estimate_jacobian, pair_scatters, size_row_scales
-from pipeline.stages.touchup.noise import capture_noise, pose_noise
-from pipeline.stages.touchup.rows import final_shapes, touchup_row
-from pipeline.stages.touchup.segments import final_block, loop_starts, relative_poses, segments
-from pipeline.stages.touchup.servo_target import ServoTarget, loop_steps, servo_target
-from pipeline.stages.touchup.targets import group_targets
-from pipeline.stages.touchup.tilt import tilt_bias
-from pipeline.stages.touchup.types import Captures, Designated, Tilt
+from pipeline.stages.touchups.jacobian import estimate_jacobian, pair_scatters, size_row_scales
+from pipeline.stages.touchups.noise import capture_noise, pose_noise
+from pipeline.stages.touchups.rows import final_shapes, touchup_row
+from pipeline.stages.touchups.segments import final_block, loop_starts, relative_poses, segments
+from pipeline.stages.touchups.servo_target import ServoTarget, loop_steps, servo_target
+from pipeline.stages.touchups.targets import group_targets
+from pipeline.stages.touchups.tilt import tilt_bias
+from pipeline.stages.touchups.types import Captures, Designated, Tilt
 
 #: the public names of touch-up extraction, importable from here (the image
 #: Jacobian and the tilt bias live in touchup_jacobian and touchup_tilt; what a

@@ -4,7 +4,7 @@ The virtual-pin point ``p`` (flange frame) is unknown, but all touch-ups of one
 target satisfy ``R_i p + t_i = c``: :func:`group_targets` finds the ``p`` that
 makes most touch-ups coincide in pairs (RANSAC), refines it, and groups the
 points ``c_i = R_i p + t_i``. The steps are described in
-:mod:`pipeline.stages.touchup.stage`.
+:mod:`pipeline.stages.touchups.stage`.
 """
 
 from __future__ import annotations

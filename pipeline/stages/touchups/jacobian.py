@@ -7,7 +7,7 @@ consecutive still captures a small pure flange translation apart
 measurably another size (:func:`size_row_scales`). A pair's change of ``(u, v,
 s_inv)`` and the camera, diameter and view geometry a Jacobian implies are the
 measurement model's (:mod:`pipeline.measurement.image`). The steps are described
-in :mod:`pipeline.stages.touchup.stage`.
+in :mod:`pipeline.stages.touchups.stage`.
 """
 
 from __future__ import annotations

@@ -1,6 +1,6 @@
 """A touch-up's final centre freed of the camera's swing after the last move (one mode).
 
-When :mod:`pipeline.stages.touchup.settle` finds that the camera had not settled
+When :mod:`pipeline.stages.touchups.settle` finds that the camera had not settled
 at the repeated final captures, weighting them still leaves the swing that is in
 the last one. An arm that stops rings mostly in one mode: the camera's offset
 decays as ``e^(-t/tau) sin(2 pi f t + phi)`` along one direction, and the

@@ -1,0 +1,50 @@
+"""The ingest stage's node: the recording in, frames, detections and recording.json out.
+
+Called by the runner as declared in :data:`pipeline.run.catalog.STAGES`: the
+artefacts the stage reads (``data``), its options and the run's context
+(:class:`pipeline.run.runner.Context`) in, ``{artefact key: value}`` out for the
+runner to write; nothing here writes a file. The stage's computation is
+imported inside the function, so importing this module stays cheap (the catalog
+imports it) and a function replaced at run time is the one that runs (and the one
+the stage code key hashes, :mod:`pipeline.run.code_key`).
+"""
+
+from __future__ import annotations
+
+import json
+from typing import Any
+
+from pipeline.io.run_folder import Parquet
+
+
+def ingest(data: dict[str, Any], config: dict[str, Any], context: Any) -> dict[str, Any]:
+    """frames, detections and recording.json from the recording (one streaming pass)."""
+    from pipeline.stages.detect.precompile import compile_detector
+    from pipeline.stages.ingest import stage
+
+    progress = context.progress
+
+    def cb(done: int, total: int | None) -> None:
+        if progress:
+            progress("ingest", done, total)
+
+    # a fresh install compiles the detector first (~10-20 s): never a silent wait
+    slow: list[bool] = []
+
+    def announce() -> None:
+        slow.append(True)
+        if progress:
+            progress("compile", 0, None)
+
+    compile_detector(config["detect"], on_slow=announce)
+    if slow and progress:
+        progress("compile", 1, 1)
+    frames, detections, info = stage.ingest_recording(
+        context.recording.resolve(), config["ingest"], config["detect"], progress=cb
+    )
+    joint_meta = {"joint_names": json.dumps(list(info.joint_names))}
+    return {
+        "frames": Parquet(frames, joint_meta),
+        "detections": Parquet(detections),
+        "recording": info,
+    }

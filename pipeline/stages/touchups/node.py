@@ -1,0 +1,36 @@
+"""The touchups stage's node: frames and detections in, touchups.parquet out.
+
+Called by the runner as declared in :data:`pipeline.run.catalog.STAGES`: the
+artefacts the stage reads (``data``), its options and the run's context
+(:class:`pipeline.run.runner.Context`) in, ``{artefact key: value}`` out for the
+runner to write; nothing here writes a file. The stage's computation is
+imported inside the function, so importing this module stays cheap (the catalog
+imports it) and a function replaced at run time is the one that runs (and the one
+the stage code key hashes, :mod:`pipeline.run.code_key`).
+"""
+
+from __future__ import annotations
+
+import json
+from typing import Any
+
+from pipeline.io.run_folder import Parquet
+
+
+def touchups(data: dict[str, Any], config: Any, context: Any) -> dict[str, Any]:
+    """touchups.parquet from frames and detections (its implied target size and the designated
+    values used in the metadata)."""
+    from pipeline.stages.ingest.types import RecordingInfo
+    from pipeline.stages.touchups import stage as touchup
+
+    info = RecordingInfo(**data["recording"])
+    table = touchup.extract_touchups(data["frames"], data["detections"], info, config)
+    implied = table.attrs.get("implied_target_diameter_m", float("nan"))
+    meta = {"implied_target_diameter_m": repr(float(implied))}
+    # the designated values used, and how those the recording lacked were found
+    how = {k: v for k, v in info.inferred.items() if k.startswith(("designated", "threshold"))}
+    meta["designated"] = json.dumps({**table.attrs.get("designated", {}), "inferred": how})
+    meta["settle"] = json.dumps(table.attrs.get("settle") or {})  # the report shows it
+    # the repeated captures' scatter: the detection noise the fit is tested against
+    meta["capture_noise"] = json.dumps(table.attrs.get("capture_noise") or {})
+    return {"touchups": Parquet(table, meta)}
