@@ -99,42 +99,53 @@ def tilt_bias(
         if len(idx) == 1:
             resolved[idx[0]] = bool(tilt_deg[idx[0]] < 2.0)
             continue
-        best, best_sc = None, -1.0
-        if len(idx) <= 10:
-            for code in range(1 << len(idx)):
-                sg = np.array([(-1.0 if (code >> jj) & 1 else 1.0) for jj in range(len(idx))])
-                vecs = np.where(sg[:, None] > 0, n_base[idx], n_flip[idx])
-                sc = float(np.linalg.norm(vecs.sum(axis=0)))
-                if sc > best_sc:
-                    best, best_sc = sg, sc
-        else:
-            sg = np.ones(len(idx))
-            for _ in range(5):
-                for j in range(len(idx)):
-                    rest = np.where(sg[:, None] > 0, n_base[idx], n_flip[idx]).sum(axis=0)
-                    rest -= n_base[idx[j]] if sg[j] > 0 else n_flip[idx[j]]
-                    sg[j] = 1.0 if n_base[idx[j]] @ rest >= n_flip[idx[j]] @ rest else -1.0
-            best = sg
-        assert best is not None
+        best = _signs(n_base[idx], n_flip[idx])
         sign[idx] = best
         resolved[idx] = True
-        if geometric:
-            # (T2): the target's plate normal, then each view's tilt from it
-            N = np.where(best[:, None] > 0, n_base[idx], n_flip[idx]).sum(axis=0)
-            if np.linalg.norm(N) > 0:
-                N = N / np.linalg.norm(N)
-                R_bc = np.einsum("nij,jk->nik", T_base_flange[idx, :3, :3], R_fc)
-                nc = np.einsum("nji,j->ni", R_bc, N)  # the normal in each camera frame
-                nxy = np.hypot(nc[:, 0], nc[:, 1])
-                cos_t[idx] = np.clip(-nc[:, 2], 0.0, 1.0)
-                sin_t[idx] = nxy
-                with np.errstate(invalid="ignore", divide="ignore"):
-                    mg = nc[:, :2] / nxy[:, None]
-                m[idx] = np.where(nxy[:, None] > 1e-12, mg, m[idx])
-                sign[idx] = 1.0
-                tilt_deg[idx] = np.degrees(np.arctan2(nxy, -nc[:, 2]))
+        N = np.where(best[:, None] > 0, n_base[idx], n_flip[idx]).sum(axis=0)
+        if geometric and np.linalg.norm(N) > 0:  # (T2): each view's tilt from the normal
+            R_bc = np.einsum("nij,jk->nik", T_base_flange[idx, :3, :3], R_fc)
+            cos_t[idx], sin_t[idx], m[idx], tilt_deg[idx] = _view_tilts(N, R_bc, m[idx])
+            sign[idx] = 1.0
     shift = (a**2 / f) * sin_t * cos_t
     bias[:, 0] = np.where(ok & resolved, sign * shift * m[:, 0], 0.0)
     bias[:, 1] = np.where(ok & resolved, sign * shift * m[:, 1], 0.0)
     bias[:, 2] = np.where(ok, shape[:, 2] * (a / f) ** 2 * sin_t**2 / 2.0, 0.0)
     return bias, tilt_deg, resolved
+
+
+def _signs(n_base: np.ndarray, n_flip: np.ndarray) -> np.ndarray:
+    """Which end of each view's minor axis the normal leans to (+1: ``n_base``, -1:
+    ``n_flip``): the choice whose normals agree best (the longest sum; every choice up to
+    ten views, else coordinate ascent)."""
+    k = len(n_base)
+    if k <= 10:
+        best, best_sc = np.ones(k), -1.0
+        for code in range(1 << k):
+            sg = np.array([(-1.0 if (code >> jj) & 1 else 1.0) for jj in range(k)])
+            sc = float(np.linalg.norm(np.where(sg[:, None] > 0, n_base, n_flip).sum(axis=0)))
+            if sc > best_sc:
+                best, best_sc = sg, sc
+        return best
+    sg = np.ones(k)
+    for _ in range(5):
+        for j in range(k):
+            rest = np.where(sg[:, None] > 0, n_base, n_flip).sum(axis=0)
+            rest -= n_base[j] if sg[j] > 0 else n_flip[j]
+            sg[j] = 1.0 if n_base[j] @ rest >= n_flip[j] @ rest else -1.0
+    return sg
+
+
+def _view_tilts(
+    N: np.ndarray, R_base_camera: np.ndarray, m: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """(T2): ``cos``, ``sin`` of each view's tilt, the minor-axis direction and the tilt
+    (deg) of the plate normal ``N`` (base frame, any length) seen from cameras
+    ``R_base_camera`` (k, 3, 3); a view straight along it keeps its ``m``."""
+    N = N / np.linalg.norm(N)
+    nc = np.einsum("nji,j->ni", R_base_camera, N)  # the normal in each camera frame
+    nxy = np.hypot(nc[:, 0], nc[:, 1])
+    with np.errstate(invalid="ignore", divide="ignore"):
+        mg = nc[:, :2] / nxy[:, None]
+    m_out = np.where(nxy[:, None] > 1e-12, mg, m)
+    return np.clip(-nc[:, 2], 0.0, 1.0), nxy, m_out, np.degrees(np.arctan2(nxy, -nc[:, 2]))
