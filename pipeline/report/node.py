@@ -1,12 +1,7 @@
 """The report stage's node: the run folder's artefacts in, report.html and run.rrd out.
 
-Called by the runner as declared in :data:`pipeline.run.catalog.STAGES`: the
-artefacts the stage reads (``data``), its options and the run's context
-(:class:`pipeline.run.runner.Context`) in, ``{artefact key: value}`` out for the
-runner to write; nothing here writes a file (the report's two files are written by the HTML and Rerun writers themselves). The stage's computation is
-imported inside the function, so importing this module stays cheap (the catalog
-imports it) and a function replaced at run time is the one that runs (and the one
-the stage code key hashes, :mod:`pipeline.run.code_key`).
+The contract every node keeps is :mod:`pipeline.stages`' (its last paragraph); the
+report's two files are written by the HTML and Rerun writers themselves.
 """
 
 from __future__ import annotations

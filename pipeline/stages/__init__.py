@@ -25,4 +25,13 @@ applies to every frame).
 - ``parallel_map``: the map over independent CPU-bound tasks the stages share.
 
 A stage's entry module is ``stage.py`` in its package; the others are its parts.
+
+A stage's ``node.py`` holds its node, called by the runner as declared in
+:data:`pipeline.run.catalog.STAGES`: the artefacts the stage reads (``data``), its
+options and the run's context (:class:`pipeline.run.runner.Context`) in,
+``{artefact key: value}`` out for the runner to write; a node writes no file. The
+stage's computation is imported inside the node, so importing a node module stays
+cheap (the catalog imports them all) and a function replaced at run time is the one
+that runs (and the one the stage code key hashes, :mod:`pipeline.run.code_key`).
+The report's node (:mod:`pipeline.report.node`) keeps the same contract.
 """

@@ -1,12 +1,6 @@
 """The crossval stage's node: inliers and identify's fits in, crossval.parquet out.
 
-Called by the runner as declared in :data:`pipeline.run.catalog.STAGES`: the
-artefacts the stage reads (``data``), its options and the run's context
-(:class:`pipeline.run.runner.Context`) in, ``{artefact key: value}`` out for the
-runner to write; nothing here writes a file. The stage's computation is
-imported inside the function, so importing this module stays cheap (the catalog
-imports it) and a function replaced at run time is the one that runs (and the one
-the stage code key hashes, :mod:`pipeline.run.code_key`).
+The contract every node keeps is :mod:`pipeline.stages`' (its last paragraph).
 """
 
 from __future__ import annotations
