@@ -241,12 +241,15 @@ class ShapeFit:
     e1, e2 : (K, 3) each target's in-plane axes (base frame of the fitted kinematics,
         :func:`plate_frames` of the fit's rows)
     target_ids : the touch-up table's target id of each of the K targets
+    anisotropic : the shape was fitted with (S3); held-out rows are corrected the same way
     """
 
     theta: F64
     e1: F64
     e2: F64
     target_ids: tuple[int, ...]
+    #: fitted with (S3) (the rows' anisotropy read), else (S2)
+    anisotropic: bool = False
 
     def lever_terms(
         self,
@@ -274,7 +277,7 @@ class ShapeFit:
             return out
         l_base = np.einsum("nij,nj->ni", R[seen], l_flange[seen])
         B, _ = design_in_frames(l_base, tk[seen], self.e1, self.e2)
-        vm = None if v_mag is None else np.asarray(v_mag, dtype=float)[seen]
+        vm = None if v_mag is None or not self.anisotropic else np.asarray(v_mag, dtype=float)[seen]
         eps, _ = print_error(B, tk[seen], len(self.e1), self.theta, vm)
         out[seen] = g[seen] * eps[:, None]
         return out

@@ -319,7 +319,8 @@ def _shape_fit(prob: Problem, D: FitData, z: F64, theta: F64) -> ShapeFit:
     _, R, _ = prob.model.pin_and_jacobian(x, D.q, pin + D.d, jac=False)
     l_base = np.einsum("nij,nj->ni", R, D.shape_l)
     _, e1, e2 = ps.plate_frames(l_base, D.tk, D.K, np.einsum("nij,nj->ni", R, D.shape_g))
-    return ShapeFit(theta.copy(), e1, e2, tuple(int(t) for t in D.target_ids))
+    ids = tuple(int(t) for t in D.target_ids)
+    return ShapeFit(theta.copy(), e1, e2, ids, anisotropic=D.shape_v is not None)
 
 
 def _not_significant(
