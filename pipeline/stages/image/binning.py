@@ -65,6 +65,13 @@ def bin_image(grey: np.ndarray, b: int) -> np.ndarray:
     return np.rint(np.clip(out, 0, 65535)).astype(np.uint16)
 
 
+def scaled_position(x: float, b: float) -> float:
+    """A pixel coordinate of an image scaled down ``b`` times in the original's pixels,
+    ``b x + (b - 1) / 2`` (pixel ``j`` covers ``j b .. j b + b - 1``; any ``b > 0``: below 1
+    it maps the other way)."""
+    return b * float(x) + 0.5 * (b - 1)
+
+
 def unbin(det: dict[str, Any], b: float) -> dict[str, Any]:
     """A detection on a ``b``-binned image in full-resolution pixels (see the module doc;
     ``b`` need not be whole: an image scaled down by any factor maps the same way)."""
@@ -72,7 +79,7 @@ def unbin(det: dict[str, Any], b: float) -> dict[str, Any]:
         return det
     out = dict(det)
     for k in ("u", "v"):
-        out[k] = b * float(det[k]) + 0.5 * (b - 1)
+        out[k] = scaled_position(det[k], b)
     for k in LENGTHS:
         out[k] = b * float(det[k])
     out["s_inv"] = float(det["s_inv"]) / b

@@ -37,7 +37,7 @@ from pipeline.io.recording import TOUCHUP_TOPIC, touchup_from_message
 from pipeline.kinematics.urdf import urdf_text
 from pipeline.stages.detect.blob import image_polarity
 from pipeline.stages.detect.detector import RESULT_KEYS, DetectConfig, detect_target, empty_result
-from pipeline.stages.image.binning import bin_image, choose_binning
+from pipeline.stages.image.binning import bin_image, choose_binning, scaled_position
 from pipeline.stages.image.flat_field import CropStore
 from pipeline.stages.image.response_estimate import ResponseEstimate, estimate_response
 from pipeline.stages.ingest.image_worker import ImageWorker
@@ -203,7 +203,7 @@ def _take_image(
         if shape != last and s.expected is not None:  # a level-of-detail image: rescale
             f = shape[1] / last[1]
             u, v, sz = s.expected
-            s.expected = (f * u + 0.5 * (f - 1), f * v + 0.5 * (f - 1), f * sz)
+            s.expected = (scaled_position(u, f), scaled_position(v, f), f * sz)
         s.shapes.append(shape)
         if shape[0] * shape[1] > s.height * s.width:  # the reference: the largest size
             s.height, s.width = shape

@@ -43,6 +43,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from pipeline.stages.touchups.segments import relative_pose
+
 #: fewest steps (D2) is solved from (each step gives two equations, across it)
 MIN_STEPS = 8
 #: a capture's noise in ``m`` (px): the floor of a step's length in the weights of (D2)
@@ -84,8 +86,6 @@ def loop_steps(
     -------
     mk, dm : (K, 3) each
     """
-    from pipeline.stages.touchups.segments import relative_pose
-
     mk: list[np.ndarray] = []
     dm: list[np.ndarray] = []
     for idx in loops:
