@@ -109,7 +109,7 @@ def full_covariance_prediction(res, q: np.ndarray) -> dict[str, float]:
     kept = np.array([pnames.index(n) for n in kept_names], dtype=int)
     idx = [names.index(n) for n in kept_names] + [names.index(f"pin.{a}") for a in "xyz"]
     cov_e = np.asarray(res.covariance)[np.ix_(idx, idx)]
-    pred = predicted_over(res.error_model, res.x, res.p_flange_pin, kept, cov_e, q)
+    pred, _ = predicted_over(res.error_model, res.x, res.p_flange_pin, kept, cov_e, q)
     return {k: float(np.sqrt(np.mean(v**2))) for k, v in pred.items()}
 
 

@@ -174,6 +174,11 @@ def one_case(cell: str, effect: str, seed: int, work: str) -> dict[str, Any]:
         "lower_bound": bool(v.get("lower_bound")),
         "console_warnings": len(v.get("warnings") or []),
         "adequacy": float(adequacy.get("ratio") or float("nan")),
+        # how far one calibration's truth may fall from the covariance figure
+        # (pipeline.estimation.spread Q2-Q4)
+        "dof": float(v.get("predicted_dof") or float("nan")),
+        "p_within_2x": float(v.get("p_within_2x") or float("nan")),
+        "range_mm": v.get("predicted_range_mm"),
     }
 
 
@@ -274,7 +279,7 @@ def _print_seed(
         f" {'warned':<6} {'model':<8}"
         f" {'sim s':>6}"
         f" {'run s':>6} {'across':>6} {'along':>6}"
-        f" {'claim':>7} {'x true':>6} {'adeq':>5} {'lower':<5}"
+        f" {'claim':>7} {'x true':>6} {'dof':>4} {'P2x':>4} {'adeq':>5} {'lower':<5}"
     )
     print(hdr)
     ok_all = True
@@ -298,7 +303,8 @@ def _print_seed(
                 f" {r['model']!s:<8}"
                 f" {r['t_sim']:6.1f} {r['t_run']:6.1f} {r['miss_across_um']:6.2f}"
                 f" {r['miss_along_um']:6.1f}"
-                f" {r['claim']:7.4f} {r['claim'] / _truth_of(r):6.2f} {r['adequacy']:5.2f}"
+                f" {r['claim']:7.4f} {r['claim'] / _truth_of(r):6.2f} {r['dof']:4.1f}"
+                f" {r['p_within_2x']:4.2f} {r['adequacy']:5.2f}"
                 f" {'yes' if r['lower_bound'] else 'no':<5}{flag}{_claim_flag(r)}",
                 flush=True,
             )
@@ -313,12 +319,16 @@ def _print_seed(
         " corrected pins against the truth, per-target means out; claim = the verdict's"
         " figure (pipeline.accuracy.verdict V2), x true = claim / the true error of its kind (absolute with"
         " the calibration bar, else shape; goal 0.5-2x, or the run"
-        " said the figure is a lower bound: lower), adeq = the fit's residual over what the"
+        " said the figure is a lower bound: lower), dof / P2x = the effective degrees of freedom"
+        " of one calibration's true error about the covariance figure and the chance an exact"
+        " covariance lands within 0.5-2x of it (pipeline.estimation.spread Q2, Q4),"
+        " adeq = the fit's residual over what the"
         " repeated captures' noise predicts (pipeline.stages.outliers.adequacy A1; > 3: lower bound)"
     )
     n = sum(1 for c in cells for e in effects)
     met = sum(1 for c in cells for e in effects if not _claim_flag(res[(c, e)]))
     print(f"verdict within 0.5-2x of the truth or a lower bound said: {met} of {n} rows")
+    print(_chance_line([res[(c, e)] for c in cells for e in effects]))
     hits, false_w, missed, ideal_w = _warning_counts(res, cells, effects)
     print(
         f"adequacy warning: {hits} hits (true error > 2x the figure), {false_w} false warnings,"
@@ -326,6 +336,20 @@ def _print_seed(
         f" {ideal_w} warnings on an ideal (linear) cell"
     )
     return ok_all
+
+
+def _chance_line(rows: list[dict[str, Any]]) -> str:
+    """What an exact covariance would score: the expected rows within 0.5-2x (the sum of each
+    row's Q4 of pipeline.estimation.spread), and the rows whose truth lies in the verdict's
+    90 % range (Q3)."""
+    expect = sum(r["p_within_2x"] for r in rows if np.isfinite(r["p_within_2x"]))
+    ranged = [r for r in rows if r.get("range_mm")]
+    inside = sum(1 for r in ranged if r["range_mm"][0] <= _truth_of(r) <= r["range_mm"][1])
+    return (
+        f"an exact covariance would land within 0.5-2x on {expect:.1f} of {len(rows)} rows"
+        f" (sum of Q4; one calibration's truth scatters about the figure); the truth inside"
+        f" the verdict's 90 % range (Q3): {inside} of {len(ranged)} rows"
+    )
 
 
 def _truth_of(r: dict[str, Any]) -> float:

@@ -16,6 +16,9 @@ held-out touch-ups miss by more than that beyond their own noise ``e``, that
 held-out RMS overstated the error by up to 3.5x where the touch-ups' own noise
 was comparable to the robot's error (bench_optics, docs/identification.md). Without
 cross-validation it is the covariance-predicted error, labelled as such.
+The covariance figure is an RMS expectation; one calibration's true error scatters
+about it (a few parameter directions dominate it), so the line gives the range
+(Q3) of :mod:`pipeline.estimation.spread` beside it.
 It is compared with the nominal robot's error on the same touch-ups (the nominal
 kinematics with their best pin and targets, ``solver.initial_rms_mm``). A run is
 *improved* only when the validated error is below ``IMPROVED_BELOW`` times the
@@ -36,6 +39,8 @@ from pipeline.numfmt import short
 
 #: a validated error at or above this share of the nominal robot's is "not improved"
 IMPROVED_BELOW = 0.8
+#: how the verdict line names the range (Q3) of :mod:`pipeline.estimation.spread`
+RANGE_TEXT = "one calibration's true error 90 % within"
 
 
 def _num(v: Any) -> float | None:
@@ -67,6 +72,18 @@ def own_noise_mm(summary: dict[str, Any]) -> float | None:
     if fit is None or n is None or dof is None or dof <= 0:
         return None
     return fit * math.sqrt(3.0 * n / dof)
+
+
+def spread_mm(pred: float | None, spread: dict[str, Any]) -> list[float] | None:
+    """The range (Q3) of one calibration's true RMS error, mm, or None where unknown.
+
+    ``pred`` the covariance-predicted RMS (mm), ``spread`` identify.json's
+    ``predicted_KIND_spread`` (:func:`pipeline.estimation.spread.error_spread`).
+    """
+    f = spread.get("range_factor") if pred is not None else None
+    if not isinstance(f, list) or len(f) != 2 or _num(f[0]) is None or _num(f[1]) is None:
+        return None
+    return [float(pred) * float(f[0]), float(pred) * float(f[1])]  # type: ignore[arg-type]
 
 
 def predicted_kind(summary: dict[str, Any]) -> str:
@@ -107,7 +124,9 @@ def verdict(
     -------
     None without a summary; else a dict: ``model``, ``validated_mm`` and ``validated_how``
     (held-out k-fold, or predicted), ``validated_max_mm``, ``fit_mm`` (training residual),
-    ``predicted_mm``, ``nominal_mm``, ``ratio`` (nominal / validated), ``improved`` (bool or
+    ``predicted_mm`` with ``predicted_range_mm`` (the range (Q3) one calibration's true error
+    falls in, :func:`spread_mm`), ``predicted_dof`` (Q2) and ``p_within_2x`` (Q4) of
+    :mod:`pipeline.estimation.spread`, ``nominal_mm``, ``ratio`` (nominal / validated), ``improved`` (bool or
     None when unknown), ``tolerance_mm``, ``passed`` (None without a tolerance),
     ``lower_bound`` (the summary's ``trust`` found a systematic error likely or an
     assumption the figure hinges on: :mod:`pipeline.stages.outliers.adequacy`; a tolerance then
@@ -121,6 +140,11 @@ def verdict(
     kind = predicted_kind(summary)
     pred = _num(summary.get(f"predicted_{kind}_rms_mm"))
     own = own_noise_mm(summary)
+    spread = summary.get(f"predicted_{kind}_spread") or {}
+    span = spread_mm(pred, spread)
+    pred_text = f"{pred:.4f} mm {kind}" if pred is not None else ""
+    if span is not None:
+        pred_text += f", {RANGE_TEXT} {span[0]:.4f}-{span[1]:.4f} mm"
     if held is not None and pred is not None and own is not None:
         k = float((summary.get("crossval") or {}).get("k") or 5)
         beyond = math.sqrt(max(held * held - own * own, 0.0) * (k - 1.0) / k)
@@ -128,14 +152,14 @@ def verdict(
         how = (
             f"held-out (k-fold, {cv.get('kfold_n', '?')} touch-ups: {held:.4f} mm each, "
             f"{beyond:.4f} mm less their own {own:.4f} mm noise; covariance-predicted "
-            f"{pred:.4f} mm {kind})"
+            f"{pred_text})"
         )
     elif held is not None:
         validated, vmax = held, _num(cv.get("kfold_max_mm"))
         how = f"held-out (k-fold, {cv.get('kfold_n', '?')} touch-ups)"
     elif pred is not None:
         validated, vmax = pred, _num(summary.get(f"predicted_{kind}_max_mm"))
-        how = f"predicted from the parameter covariance, {kind} (not cross-validated)"
+        how = f"predicted from the parameter covariance, {pred_text} (not cross-validated)"
     else:
         validated, vmax, how = None, None, "not available"
     nominal = (
@@ -177,6 +201,9 @@ def verdict(
         "fit_mm": fit,
         "predicted_mm": pred,
         "predicted_kind": kind,
+        "predicted_range_mm": span,
+        "predicted_dof": _num(spread.get("dof")),
+        "p_within_2x": _num(spread.get("p_within_2x")),
         "nominal_mm": nominal,
         "ratio": ratio,
         "improved": improved,

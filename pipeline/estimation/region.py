@@ -22,6 +22,7 @@ from typing import Any
 
 import numpy as np
 
+from pipeline.estimation.spread import error_spread
 from pipeline.estimation.uncertainty import predicted_errors
 from pipeline.kinematics.se3 import F64
 
@@ -60,16 +61,21 @@ def predicted_over(
     cov_e: F64,
     q: F64,
     kinds: tuple[str, ...] = ("shape", "absolute", "raw"),
-) -> dict[str, F64]:
+    spread: bool = False,
+) -> tuple[dict[str, F64], dict[str, dict[str, Any]]]:
     """Covariance-predicted pin errors (m) at the poses ``q`` (W, n), per registration kind.
 
     ``cov_e`` the covariance of the identified kinematic columns ``kept`` and the pin;
-    :func:`pipeline.estimation.uncertainty.predicted_errors` does the propagation.
+    :func:`pipeline.estimation.uncertainty.predicted_errors` does the propagation. With
+    ``spread``, also per kind how far one calibration's true RMS error may fall from the
+    predicted RMS (:func:`pipeline.estimation.spread.error_spread`), else ``{}``.
     """
     p, R, J = model.pin_and_jacobian(x, q, pin, jac=True)
     assert J is not None
     Je = np.concatenate([J[:, :, kept], R], axis=2)
-    return {kind: predicted_errors(Je, cov_e, p, kind) for kind in kinds}
+    pred = {kind: predicted_errors(Je, cov_e, p, kind) for kind in kinds}
+    spreads = {kind: error_spread(Je, cov_e, p, kind) for kind in kinds} if spread else {}
+    return pred, spreads
 
 
 def region_summary(names: list[str], q: F64, inside_mm: float, beyond_mm: float) -> dict[str, Any]:

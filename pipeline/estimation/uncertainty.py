@@ -9,14 +9,13 @@ import numpy as np
 from pipeline.kinematics.se3 import F64
 
 
-def predicted_errors(Jw: F64, cov: F64, p: F64, kind: str) -> F64:
-    """Per-pose standard pin error the covariance predicts after a registration.
+def registered_field(Jw: F64, p: F64, kind: str) -> F64:
+    """The pin error field's Jacobian after a registration, ``Pr J_w`` (3N, p).
 
-    The error field ``dp = J_w dz`` (``J_w`` (N, 3, p), ``dz ~ N(0, cov)``) minus its
-    best-fit rigid (``absolute``) or similarity (``shape``) motion: to first
-    order a projection ``Pr = I - Q Q^T`` onto the complement of the fields
-    ``[I, -[p_i]x]`` (and ``p_i - mean`` for a similarity). Returns
-    ``sqrt(trace_i(Pr J cov J^T Pr))`` per pose, (N,).
+    The error field ``dp = J_w dz`` (``J_w`` (N, 3, p)) minus its best-fit rigid
+    (``absolute``) or similarity (``shape``) motion: to first order a projection
+    ``Pr = I - Q Q^T`` onto the complement of the fields ``[I, -[p_i]x]`` (and
+    ``p_i - mean`` for a similarity); ``raw``: no registration.
     """
     N = len(p)
     G = Jw.reshape(3 * N, -1)
@@ -32,7 +31,17 @@ def predicted_errors(Jw: F64, cov: F64, p: F64, kind: str) -> F64:
             basis.append(c.reshape(3 * N, 1))
         Q, _ = np.linalg.qr(np.concatenate(basis, axis=1))
         G = G - Q @ (Q.T @ G)
-    var = np.einsum("ij,jk,ik->i", G, cov, G).reshape(N, 3).sum(axis=1)
+    return np.asarray(G)
+
+
+def predicted_errors(Jw: F64, cov: F64, p: F64, kind: str) -> F64:
+    """Per-pose standard pin error the covariance predicts after a registration.
+
+    With ``G = Pr J_w`` (:func:`registered_field`) and ``dz ~ N(0, cov)``, returns
+    ``sqrt(trace_i(G cov G^T))`` per pose, (N,).
+    """
+    G = registered_field(Jw, p, kind)
+    var = np.einsum("ij,jk,ik->i", G, cov, G).reshape(len(p), 3).sum(axis=1)
     return np.asarray(np.sqrt(np.clip(var, 0.0, None)))
 
 

@@ -440,12 +440,14 @@ def _uncertainty(s: _Setup, f: _Solved, config: IdentifyConfig) -> Uncertainty:
     cov_e = with_pin_offset(cov_e, offset)
     rng = np.random.default_rng(config.seed)
     at = (model, f.x, f.pin, kept, cov_e)
-    pred = predicted_over(*at, workspace_poses(data.q, config.n_workspace, rng))
+    pred, spread = predicted_over(
+        *at, workspace_poses(data.q, config.n_workspace, rng), spread=True
+    )
     # (G1) of pipeline.estimation.region: just outside the covered joint ranges
     nom = model.nominal
     q_out = widened_poses(data.q, nom.lower, nom.upper, config.n_workspace, rng)
-    pred["beyond"] = predicted_over(*at, q_out, ("shape",))["shape"]
-    return Uncertainty(std_z, corr, sigma2, int(dof), obs, pred, cov)
+    pred["beyond"] = predicted_over(*at, q_out, ("shape",))[0]["shape"]
+    return Uncertainty(std_z, corr, sigma2, int(dof), obs, pred, cov, spread)
 
 
 def _identify_one(name: str, robot: Robot, data: FitData, config: IdentifyConfig) -> IdentifyResult:

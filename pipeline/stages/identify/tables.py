@@ -10,7 +10,7 @@ its uncertainty (:class:`Uncertainty`).
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
@@ -35,6 +35,8 @@ class Uncertainty:
     obs : observability indices and condition number of the reduced Jacobian
     pred : ``{"shape"|"absolute"|"raw": (W,) predicted pin errors (m)}`` over workspace poses
     cov : (Z, Z) the covariance itself, in the order of ``std_z`` (kinematic, pin, targets)
+    spread : ``{"shape"|"absolute"|"raw": error_spread dict}``: how far one calibration's
+        true RMS error may fall from the predicted one (:mod:`pipeline.estimation.spread`)
     """
 
     std_z: F64
@@ -44,6 +46,7 @@ class Uncertainty:
     obs: dict[str, float]
     pred: dict[str, F64]
     cov: F64 | None = None
+    spread: dict[str, dict[str, Any]] = field(default_factory=dict)
 
 
 @dataclass
@@ -305,12 +308,18 @@ def _distance_rows(f: FitFigures) -> list[dict[str, Any]]:
 def _predicted_fields(u: Uncertainty) -> dict[str, Any]:
     """RMS and max (mm) of each kind of :attr:`Uncertainty.pred`, NaN without redundancy
     (``beyond``: the shape error just outside the covered joint ranges, :mod:`pipeline.
-    estimation.region`)."""
+    estimation.region`), and for shape and absolute the spread of one calibration's true
+    RMS error about it (``predicted_KIND_spread``: :mod:`pipeline.estimation.spread`)."""
     return {
         **{
             f"predicted_{kind}_{stat}_mm": (float(fn(e) * 1e3) if u.dof > 0 else float("nan"))
             for kind, e in u.pred.items()
             for stat, fn in (("rms", lambda a: np.sqrt(np.mean(a**2))), ("max", np.max))
+        },
+        **{
+            f"predicted_{kind}_spread": sp
+            for kind, sp in u.spread.items()
+            if kind in ("shape", "absolute") and u.dof > 0
         },
         "predicted_note": (
             "covariance-predicted pin position error over poses spread through the touched "
