@@ -330,6 +330,11 @@ class Problem:
         self._last = (z.tobytes(), J)
         return r
 
+    def set_data(self, data: FitData) -> None:
+        """Replace the rows' data (weights, corrections) and forget the cached Jacobian."""
+        self.data = data
+        self.__dict__.pop("_last", None)
+
     def jac(self, z: F64) -> F64:
         last = getattr(self, "_last", None)
         if last is not None and last[0] == z.tobytes():

@@ -24,16 +24,20 @@ LINEAR_STEPS = 2
 SHAPE_STEPS = 8
 
 
-def spent_unknowns(W: F64 | None, shape: dict[str, Any] | None) -> int:
+def spent_unknowns(
+    W: F64 | None, shape: dict[str, Any] | None, components: dict[str, Any] | None = None
+) -> int:
     """Unknowns a fit estimated from its residuals outside its Jacobian's columns: the
-    flange whitening's shape ((W1) of :mod:`pipeline.estimation.whitening`) and a fitted
-    print shape's parameters (``shape["n_params"]``, held fixed once fitted). Both are
-    taken from the residual degrees of freedom of the variance factor::
+    flange whitening's shape ((W1) of :mod:`pipeline.estimation.whitening`), a fitted
+    print shape's parameters (``shape["n_params"]``, held fixed once fitted) and the
+    per-target variance ratios where the targets were weighed apart ((C3) of
+    :mod:`pipeline.estimation.components`). All are taken from the residual degrees of
+    freedom of the variance factor::
 
-        f = m - p - 5 [whitened] - n_shape [print shape fitted]                    (W2)
+        f = m - p - 5 [whitened] - n_shape [print shape fitted] - (G - 1) [weighed]  (W2)
     """
     n_shape = int(shape.get("n_params") or 0) if shape and shape.get("fitted") else 0
-    return whitening_params(W) + n_shape
+    return whitening_params(W) + n_shape + int((components or {}).get("spent") or 0)
 
 
 def fit_print_shape(

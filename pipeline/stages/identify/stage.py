@@ -22,7 +22,8 @@ Noise model: a touch-up's error is fixed in the flange (camera) frame and far
 larger along the view than across it. After an isotropic fit the residuals'
 3x3 covariance in the flange frame is estimated and the fit repeated with the
 residuals whitened, ``W R_i^T (p_i - t_k)`` (feasible generalised least
-squares; ``noise_model="isotropic"`` skips it).
+squares; ``noise_model="isotropic"`` skips it). Targets whose touch-ups scatter
+unequally are then weighed apart (:mod:`pipeline.stages.identify.components`).
 
 Identifiability: redundancies are exact only where residuals vanish, so they
 are found on exact synthetic touch-ups of the nominal robot (cached per robot
@@ -70,22 +71,24 @@ from pipeline.estimation.uncertainty import (
     residual_variance,
     with_pin_offset,
 )
-from pipeline.estimation.whitening import (
-    flange_residual_cov,
-    flange_whitening,
-)
+from pipeline.estimation.whitening import flange_residual_cov, flange_whitening
 from pipeline.kinematics.se3 import F64
 from pipeline.kinematics.urdf_write import write_calibrated_urdf
 from pipeline.measurement.data import FitData
 from pipeline.measurement.pin import Problem, initial_pin_targets
 from pipeline.models import model_names
 from pipeline.models.observability import indices_from_singular_values, project_out
+from pipeline.stages.identify.components import weigh_targets
 from pipeline.stages.identify.data import implausible_rows, prepare_data, refuse_early
 from pipeline.stages.identify.frame import correction_frame
 from pipeline.stages.identify.notes import COND_WARN, conditioning_note
 from pipeline.stages.identify.print_shape import ShapeFit
 from pipeline.stages.identify.shape import fit_print_shape, spent_unknowns
-from pipeline.stages.identify.structure import design_jacobian, exact_touchups, structure
+from pipeline.stages.identify.structure import (
+    design_jacobian,
+    share_exact_touchups,
+    structure,
+)
 from pipeline.stages.identify.tables import (
     FitFigures,
     Uncertainty,
@@ -107,9 +110,7 @@ from pipeline.stages.identify.types import (
 )
 from pipeline.stages.parallel_map import parallel_map
 
-#: the public names of identification, importable from here (the parts live in
-#: identify_types, identify_data, identify_shape, identify_notes, identify_tables, and
-#: the estimation of eq. (1) in pipeline.estimation)
+#: the public names of identification, importable from here (its parts: this package)
 __all__ = [
     "AUTO_ORDER",
     "COND_WARN",
@@ -230,7 +231,7 @@ def _identify_models(
 
         names = model_names(robot.chain)
         if config.workers != 1:
-            _share_exact_touchups(robot)
+            share_exact_touchups(robot)
         results: dict[str, IdentifyResult] = {}
         errors: list[str] = []
         for name, r in zip(names, parallel_map(fit_one, names, config.workers), strict=True):
@@ -263,22 +264,6 @@ def _identify_models(
     one = _identify_one(config.model, robot, data, config)
     one.summary["implausible"] = implausible
     return one
-
-
-def _share_exact_touchups(robot: Robot) -> None:
-    """Make the robot's exact synthetic touch-ups here, before the fits fork.
-
-    Every model's structural identifiability (:func:`structure`) rates it on the same
-    exact touch-ups (:func:`pipeline.stages.identify.structure.exact_touchups`, cached
-    per process); made once in this process, the forked workers (and a later stage's)
-    find them made instead of each solving their inverse kinematics again. When they
-    cannot be made, each model's fit says so.
-    """
-    chain = robot.chain
-    try:
-        exact_touchups(robot.urdf, chain.base_link, chain.tip_link)
-    except CalibrationFailed:
-        pass
 
 
 @dataclass
@@ -361,6 +346,7 @@ class _Solved:
     tg: F64
     r: F64
     J: F64
+    components: dict[str, Any] | None  # per-target variance components (identify.components)
 
 
 def _solve(s: _Setup, data: FitData, config: IdentifyConfig) -> _Solved:
@@ -408,11 +394,13 @@ def _solve(s: _Setup, data: FitData, config: IdentifyConfig) -> _Solved:
     shape_fit: ShapeFit | None = None
     if data.shape_g is not None and config.target_shape != "none":
         sol, data, shape, shape_fit = fit_print_shape(prob, sol, solve, config, len(kept))
+    sol, vc = weigh_targets(prob, sol, solve, config)
+    data = prob.data if vc and vc["applied"] else data
     x, pin, tg = prob.split(sol.x)
     r, Jfull = prob.full_eval(x, pin, tg)
     assert Jfull is not None
     return _Solved(
-        sol, data, shape, shape_fit, noise_note, sigma_flange, method, x, pin, tg, r, Jfull
+        sol, data, shape, shape_fit, noise_note, sigma_flange, method, x, pin, tg, r, Jfull, vc
     )
 
 
@@ -423,7 +411,7 @@ def _uncertainty(s: _Setup, f: _Solved, config: IdentifyConfig) -> Uncertainty:
     Jfull = f.J
     Jz = Jfull[:, prob.columns()]
     zscale = np.concatenate([s.pscale[kept], np.ones(prob.layout.n_nuisance)])
-    cov, sigma2, dof = covariance(Jz, zscale, f.r, spent_unknowns(prob.W, f.shape))
+    cov, sigma2, dof = covariance(Jz, zscale, f.r, spent_unknowns(prob.W, f.shape, f.components))
     std_z = np.sqrt(np.clip(np.diag(cov), 0, None))
     ne = len(kept) + 3
     cov_e = cov[:ne, :ne]
@@ -478,6 +466,7 @@ def _identify_one(name: str, robot: Robot, data: FitData, config: IdentifyConfig
         norms_used=norms_used,
         shape=f.shape,
         noise_note=f.noise_note,
+        components=f.components,
         sigma_flange=f.sigma_flange,
         sol=f.sol,
         method=f.method,
@@ -530,7 +519,9 @@ def _prediction_only(name: str, s: _Setup, f: _Solved, t0: float) -> IdentifyRes
     without the covariance, the tables and the URDF (about 30 % of a refit): the
     targets are :attr:`IdentifyResult.target_xyz` alone."""
     model, data = s.model, f.data
-    sigma2, dof = residual_variance(f.r, len(s.prob.columns()) + spent_unknowns(s.prob.W, f.shape))
+    sigma2, dof = residual_variance(
+        f.r, len(s.prob.columns()) + spent_unknowns(s.prob.W, f.shape, f.components)
+    )
     summary = {
         "rms_mm": weighted_rms(_pin_distances(model, f), data.sw) * 1e3,
         "sigma_mm": math.sqrt(sigma2) * 1e3 if dof > 0 else float("nan"),

@@ -26,7 +26,7 @@ from pipeline.measurement.pin import Problem
 from pipeline.models import make_model
 from pipeline.models.observability import project_out
 from pipeline.stages.identify.data import prepare_data
-from pipeline.stages.identify.types import DEFAULT_MODEL, IdentifyConfig
+from pipeline.stages.identify.types import DEFAULT_MODEL, IdentifyConfig, Robot
 
 
 @dataclass(frozen=True)
@@ -172,3 +172,19 @@ def design_jacobian(
     assert J is not None
     P = m.n_params
     return J[:, st.kept] * pscale[st.kept], J[:, P:], [m.param_names[int(j)] for j in st.kept]
+
+
+def share_exact_touchups(robot: Robot) -> None:
+    """Make the robot's exact synthetic touch-ups here, before the fits fork.
+
+    Every model's structural identifiability (:func:`structure`) rates it on the same
+    exact touch-ups (:func:`exact_touchups`, cached
+    per process); made once in this process, the forked workers (and a later stage's)
+    find them made instead of each solving their inverse kinematics again. When they
+    cannot be made, each model's fit says so.
+    """
+    chain = robot.chain
+    try:
+        exact_touchups(robot.urdf, chain.base_link, chain.tip_link)
+    except CalibrationFailed:
+        pass

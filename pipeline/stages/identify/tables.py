@@ -67,6 +67,7 @@ class FitFigures:
     norms_used: F64  # (N,) pin-to-target distances of the used rows (m)
     shape: dict[str, Any] | None
     noise_note: str
+    components: dict[str, Any] | None  # per-target variance components (identify.components)
     sigma_flange: F64 | None
     sol: Any  # scipy OptimizeResult
     method: str
@@ -224,6 +225,7 @@ def fit_summary(f: FitFigures, u: Uncertainty) -> dict[str, Any]:
         "held": held_list,
         **_scale_fields(len(data.dist)),
         "noise_model": f.noise_note,
+        "variance_components": f.components,
         "flange_sigma_mm": (
             [float(v) * 1e3 for v in f.sigma_flange] if f.sigma_flange is not None else None
         ),
