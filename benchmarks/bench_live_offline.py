@@ -236,6 +236,8 @@ def main() -> None:
     if args.show:
         show(json.loads(args.show.read_text()), before)
         return
+    from pipeline.errors import BadInput, CellFault
+
     res: dict[str, Any] = {}
     with tempfile.TemporaryDirectory() as tmp:
         work = Path(tmp)
@@ -243,10 +245,13 @@ def main() -> None:
             for cell in args.cells:
                 for row in args.rows:
                     t0 = time.perf_counter()
-                    if row == "offline":
-                        r = offline(cell, args.effect, seed, work)
-                    else:
-                        r = live(cell, args.effect, seed, work, row == "live, undeclared")
+                    try:
+                        if row == "offline":
+                            r = offline(cell, args.effect, seed, work)
+                        else:
+                            r = live(cell, args.effect, seed, work, row == "live, undeclared")
+                    except (BadInput, CellFault) as exc:  # the row failed; the others run
+                        r = {"error": f"{type(exc).__name__}: {exc}"}
                     r["wall_s"] = time.perf_counter() - t0
                     res[f"{cell}|{row}|{seed}"] = r
                     print(f"# {cell} {row} {seed}: {json.dumps(r)}", flush=True)
