@@ -14,9 +14,9 @@ import os
 import sys
 from typing import Any
 
-from pipeline.threads import prefer_one_thread
+from pipeline.run.threads import prefer_one_thread
 
-prefer_one_thread()  # before numpy loads: see pipeline/threads.py
+prefer_one_thread()  # before numpy loads: see pipeline/run/threads.py
 
 import click  # noqa: E402
 

@@ -40,9 +40,9 @@ from typing import Any
 from pipeline.errors import BadInput, CalibrationFailed, VtcalError
 from pipeline.io.fileio import config_hash
 from pipeline.io.jsonio import json_bytes, jsonable, write_json
+from pipeline.io.known_distances import metadata_distances
 from pipeline.io.layout import locate
 from pipeline.io.run_folder import RUN_FILES, run_paths
-from pipeline.known_distances import metadata_distances
 from pipeline.run import catalog
 from pipeline.run.catalog import STAGE_NAMES
 from pipeline.run.code_key import stage_code_digest
@@ -330,7 +330,7 @@ def _recording_source(recording: Path, frames: Path, fp: Mapping[str, Any]) -> A
     """Provenance source of a run: the recording's name, hash, time and the run id."""
     import pyarrow.parquet as pq
 
-    from pipeline.provenance import Source, recorded_utc
+    from pipeline.export.provenance import Source, recorded_utc
 
     stamps = pq.read_table(frames, columns=["stamp_ns"]).column("stamp_ns").to_pylist()
     return Source(

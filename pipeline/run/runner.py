@@ -72,7 +72,7 @@ class Context:
     recording : the recording (ingest reads it), None when starting later
     recording_hash : its content hash (ingest's cache key)
     robot : ``(URDF text, base link, flange link)`` the fits use
-    source : :class:`pipeline.provenance.Source` stamped into calibrated.urdf, or None
+    source : :class:`pipeline.export.provenance.Source` stamped into calibrated.urdf, or None
     tolerance_mm : the report's PASS/FAIL tolerance (None: run.json's, else the recording's)
     given : ``{artefact key: data}`` handed in instead of a file (``vtcal identify``'s table)
     force : rerun stages even when fresh
