@@ -187,14 +187,15 @@ def command(
         "robust_loss": robust_loss,
         "accept_implausible": accept_implausible,
     }
+    from pipeline.run.catalog import CROSSVAL, IDENTIFY, REPORT
     from pipeline.run.runner import Context, build_configs, plan, run_stages
 
-    off = (("crossval", no_crossval), ("report", no_report))
+    off = ((CROSSVAL, no_crossval), (REPORT, no_report))
     names = plan(None, leave_out=tuple(n for n, leave in off if leave))
-    names = names[names.index("identify") :]
+    names = names[names.index(IDENTIFY) :]
     ctx = Context(
         out_dir,
-        configs=build_configs(names, {}, {"identify": conf}),
+        configs=build_configs(names, {}, {IDENTIFY: conf}),
         robot=(urdf, base_link, flange_link),
         source=_table_source(table, urdf_path, df, conf),
         tolerance_mm=tolerance_mm,

@@ -59,12 +59,13 @@ def _from_recording(recording: Path, folder: Path, flange_link: str | None, quie
     import json
 
     from pipeline.io.artefacts import read_artefact
+    from pipeline.run.catalog import OUTLIERS
     from pipeline.run.orchestrator import RunConfig, run_paths, run_pipeline
 
     overrides = {"flange_link": flange_link} if flange_link else {}
     with progress_bars(enabled=not quiet) as progress:
         run_pipeline(
-            recording, folder, RunConfig(overrides=overrides), until="outliers", progress=progress
+            recording, folder, RunConfig(overrides=overrides), until=OUTLIERS, progress=progress
         )
     P = run_paths(folder)
     info = json.loads(P["recording"].read_text())

@@ -35,6 +35,16 @@ from pipeline.stages.ingest import node as ingest_node
 from pipeline.stages.outliers import node as outliers_node
 from pipeline.stages.touchups import node as touchups_node
 
+#: the stage names, each written once, here: code that names a stage uses these
+#: (``tests/test_stage_literals.py`` fails on a stage name typed as a string elsewhere)
+INGEST = "ingest"
+TOUCHUPS = "touchups"
+OUTLIERS = "outliers"
+IDENTIFY = "identify"
+CROSSVAL = "crossval"
+CHOOSE = "choose"
+REPORT = "report"
+
 #: a stage's function: ``fn(data, config, context, **other_configs) -> {artefact key: value}``
 #: (``other_configs``: those of :attr:`Stage.uses_configs`)
 Node = Callable[..., dict[str, Any]]
@@ -104,7 +114,7 @@ class Stage:
 #: the pipeline, in run order
 STAGES: list[Stage] = [
     Stage(
-        "ingest",
+        INGEST,
         ingest_node.ingest,
         (),
         ("frames", "detections", "recording"),
@@ -114,7 +124,7 @@ STAGES: list[Stage] = [
         sub_configs=(("detect", "pipeline.stages.detect.detector:DetectConfig"),),
     ),
     Stage(
-        "touchups",
+        TOUCHUPS,
         touchups_node.touchups,
         ("frames", "detections", "recording"),
         ("touchups",),
@@ -122,7 +132,7 @@ STAGES: list[Stage] = [
         ("pipeline.stages.touchups.stage:extract_touchups",),
     ),
     Stage(
-        "outliers",
+        OUTLIERS,
         outliers_node.outliers,
         ("touchups", "recording"),
         ("inliers",),
@@ -130,7 +140,7 @@ STAGES: list[Stage] = [
         ("pipeline.stages.outliers.stage:flag_outliers",),
     ),
     Stage(
-        "identify",
+        IDENTIFY,
         identify_node.identify,
         ("inliers",),
         ("parameters", "residuals", "targets", "model_urdfs", "models"),
@@ -140,16 +150,16 @@ STAGES: list[Stage] = [
         optional=("touchups",),
     ),
     Stage(
-        "crossval",
+        CROSSVAL,
         crossval_node.crossval,
         ("inliers", "parameters", "models"),
         ("crossval",),
         "pipeline.stages.crossval.stage:CrossvalConfig",
         ("pipeline.stages.crossval.stage:cross_validate",),
-        uses_configs=("identify",),  # its refits fit as identify did
+        uses_configs=(IDENTIFY,),  # its refits fit as identify did
     ),
     Stage(
-        "choose",
+        CHOOSE,
         choose_node.choose,
         ("models", "model_urdfs", "parameters"),
         ("calibrated_urdf", "calibration", "identify"),
@@ -158,10 +168,10 @@ STAGES: list[Stage] = [
         # touchups: the repeated captures' noise; recording: the assumptions (adequacy)
         optional=("crossval", "touchups", "recording"),
         cache="always",
-        follows="identify",
+        follows=IDENTIFY,
     ),
     Stage(
-        "report",
+        REPORT,
         report_node.report,
         (
             "recording",

@@ -43,7 +43,7 @@ from pipeline.errors import BadInput
 from pipeline.io.fileio import atomic_write_bytes, config_hash, file_hash, write_group
 from pipeline.io.jsonio import json_bytes, jsonable
 from pipeline.io.run_folder import BY_KEY, Artefact, Parquet, run_paths
-from pipeline.run.catalog import STAGE, STAGE_NAMES, STAGES, Stage
+from pipeline.run.catalog import CHOOSE, IDENTIFY, STAGE, STAGE_NAMES, STAGES, Stage
 from pipeline.run.code_key import stage_code_digest
 
 #: Reports progress of a long stage: ``(stage, done, total or None)``.
@@ -87,6 +87,9 @@ class Context:
     written : ``{path: (file hash, Arrow table)}`` of the Parquet artefacts this run wrote:
         a later stage reading one takes the table instead of reading the file back while
         the file still has that hash (:func:`load_input`)
+    stage : the name of the stage whose node is running (set by the runner before it
+        calls the node: a node names its own stage, its progress and its option group
+        by it, not by a string of its own)
     """
 
     out: Path
@@ -104,6 +107,7 @@ class Context:
     warm_report: Any = None
     after_stage: dict[str, list[Callable[[Path], None]]] = field(default_factory=dict)
     written: dict[Path, tuple[str, Any]] = field(default_factory=dict)
+    stage: str = ""
 
 
 def plan(until: str | None, *, leave_out: tuple[str, ...] = ()) -> list[str]:
@@ -413,6 +417,7 @@ def _call(stage: Stage, context: Context, names: list[str]) -> dict[str, Any]:
     keys = [*stage.inputs, *(k for k in stage.optional if BY_KEY[k].writer in names)]
     # the options of the earlier stages it declares it takes (Stage.uses_configs)
     others = {other: context.configs[other] for other in stage.uses_configs}
+    context.stage = stage.name
     result: dict[str, Any] = stage.fn(
         Inputs(keys, context), stage_config(stage.name, context), context, **others
     )
@@ -536,10 +541,10 @@ def write_fits(results: Any, out: Path) -> dict[str, Path]:
     fits = fit_outputs(results)
     paths: dict[str, Path] = {}
     for key in ("parameters", "residuals", "targets", "model_urdfs", "models"):
-        written = write_output(key, fits[key], out, stage="identify", config={}, inputs={})
+        written = write_output(key, fits[key], out, stage=IDENTIFY, config={}, inputs={})
         if key != "model_urdfs":
             paths[key] = written[0]
     urdf, summary = choose_model(fits["models"], fits["model_urdfs"], None)
     for key, value in (("calibrated_urdf", urdf), ("identify", summary)):
-        paths[key] = write_output(key, value, out, stage="choose", config={}, inputs={})[0]
+        paths[key] = write_output(key, value, out, stage=CHOOSE, config={}, inputs={})[0]
     return paths
