@@ -30,7 +30,6 @@ ingest) is keyed by the recording's hash; a file per fitted model
 from __future__ import annotations
 
 import dataclasses
-import importlib
 import json
 import time
 from collections.abc import Callable, Iterator, Mapping
@@ -374,11 +373,6 @@ def build_options(cls: Any, options: Mapping[str, Any], **base: Any) -> Any:
     return cls(**{**{k: v for k, v in base.items() if k in fields}, **given})
 
 
-def _resolve(entry: str) -> Any:
-    mod, attr = entry.split(":")
-    return getattr(importlib.import_module(mod), attr)
-
-
 def build_configs(
     names: list[str],
     options: Mapping[str, Mapping[str, Any]],
@@ -401,7 +395,7 @@ def build_configs(
             continue
         groups = [(name, stage.config), *stage.sub_configs]
         built = {
-            g: build_options(_resolve(cls), options.get(g, {}), **fixed.get(g, {}))
+            g: build_options(cls.load(), options.get(g, {}), **fixed.get(g, {}))
             for g, cls in groups
         }
         out[name] = built if stage.sub_configs else built[name]
