@@ -41,7 +41,7 @@ from pipeline.audit.change import ALPHA, compare_estimates  # noqa: E402
 from pipeline.audit.drift import drift_m, read_drift_m  # noqa: E402
 from pipeline.audit.fit import fit_item  # noqa: E402
 from pipeline.audit.identity import AuditItem  # noqa: E402
-from pipeline.known_distances import parse_distances  # noqa: E402
+from pipeline.io.known_distances import parse_distances  # noqa: E402
 from pipeline.robots import builtin_urdf  # noqa: E402
 from pipeline.sim.history import Event, HistoryRecording, make_history  # noqa: E402
 

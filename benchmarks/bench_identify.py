@@ -153,7 +153,7 @@ def evaluate_run(run_dir: Path, recording: Path) -> None:
 
     import pandas as pd
 
-    from pipeline.known_distances import parse_distances
+    from pipeline.io.known_distances import parse_distances
 
     t = json.loads(Path(str(recording) + ".truth.json").read_text())
     base, fl = t["base_link"], t["flange_link"]

@@ -28,7 +28,7 @@ from typing import Any
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from pipeline.threads import prefer_one_thread  # noqa: E402
+from pipeline.run.threads import prefer_one_thread  # noqa: E402
 
 prefer_one_thread()
 

@@ -40,7 +40,6 @@ from typing import Any
 import numpy as np
 
 from pipeline.accuracy.evaluate import judge_run
-from pipeline.cell_adapters import connect
 from pipeline.commands.measure import HOLD_S, run_measure
 from pipeline.live.detector import vtcal_detector
 from pipeline.live.plan_file import read_plan
@@ -48,6 +47,7 @@ from pipeline.live.record import open_recording
 from pipeline.live.session import SessionOptions, goal_from_metadata, run_session
 from pipeline.live.summary import summarize
 from pipeline.run.orchestrator import RunConfig, run_pipeline
+from pipeline.sim.adapters import connect
 from pipeline.sim.link import sim_cell, write_plan
 
 REPO = Path(__file__).resolve().parent.parent

@@ -47,8 +47,8 @@ import numpy as np
 import pandas as pd
 
 from pipeline.accuracy.evaluate import pin_accuracy, register_points, workspace_poses
+from pipeline.io.known_distances import parse_distances
 from pipeline.kinematics.chain import fk, load_chain
-from pipeline.known_distances import parse_distances
 from pipeline.stages.crossval.predict import heldout_predictions
 from pipeline.stages.crossval.stage import fold_assignment, usable_rows
 from pipeline.stages.identify.stage import IdentifyConfig

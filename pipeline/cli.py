@@ -8,45 +8,77 @@ into one clear line on stderr and its exit code (see README, "Exit codes").
 
 from __future__ import annotations
 
-import importlib
-import importlib.util
 import os
 import sys
 from typing import Any
 
-from pipeline.threads import prefer_one_thread
+from pipeline.run.threads import prefer_one_thread
 
-prefer_one_thread()  # before numpy loads: see pipeline/threads.py
+prefer_one_thread()  # before numpy loads: see pipeline/run/threads.py
 
 import click  # noqa: E402
 
 from pipeline import __version__  # noqa: E402
 from pipeline.errors import EXIT_INTERNAL, EXIT_INTERRUPTED, VtcalError  # noqa: E402
+from pipeline.run.lazy import Ref  # noqa: E402
 
-#: command name -> (module, one-line help shown in ``vtcal --help``)
-COMMANDS: dict[str, tuple[str, str]] = {
-    "simulate": ("pipeline.commands.simulate", "Simulate a touch-up recording with ground truth."),
-    "run": ("pipeline.commands.run", "Calibrate from a recording: every stage, end to end."),
-    "identify": ("pipeline.commands.identify", "Identify kinematics from a touch-up table."),
-    "report": ("pipeline.commands.report", "Re-render report.html and run.rrd from a run folder."),
-    "plan": ("pipeline.commands.plan", "Plan well-conditioned measuring poses."),
-    "compare": ("pipeline.commands.compare", "Compare runs: held-out error, parameters, drift."),
-    "batch": ("pipeline.commands.batch", "Run many recordings, cached, in parallel."),
-    "audit": ("pipeline.commands.audit", "Robots over time: drift, what changed, models ranked."),
+#: command name -> (its ``command``, imported when used; one-line help shown in ``vtcal --help``)
+COMMANDS: dict[str, tuple[Ref, str]] = {
+    "simulate": (
+        Ref("pipeline.commands.simulate", "command"),
+        "Simulate a touch-up recording with ground truth.",
+    ),
+    "run": (
+        Ref("pipeline.commands.run", "command"),
+        "Calibrate from a recording: every stage, end to end.",
+    ),
+    "identify": (
+        Ref("pipeline.commands.identify", "command"),
+        "Identify kinematics from a touch-up table.",
+    ),
+    "report": (
+        Ref("pipeline.commands.report", "command"),
+        "Re-render report.html and run.rrd from a run folder.",
+    ),
+    "plan": (Ref("pipeline.commands.plan", "command"), "Plan well-conditioned measuring poses."),
+    "compare": (
+        Ref("pipeline.commands.compare", "command"),
+        "Compare runs: held-out error, parameters, drift.",
+    ),
+    "batch": (
+        Ref("pipeline.commands.batch", "command"),
+        "Run many recordings, cached, in parallel.",
+    ),
+    "audit": (
+        Ref("pipeline.commands.audit", "command"),
+        "Robots over time: drift, what changed, models ranked.",
+    ),
     "validate": (
-        "pipeline.commands.validate",
+        Ref("pipeline.commands.validate", "command"),
         "Judge a calibrated URDF on another recording's touch-ups.",
     ),
-    "export": ("pipeline.commands.export", "Write a run's calibration for a controller or ROS."),
-    "predict": ("pipeline.commands.predict", "Where the calibrated robot puts its tool at joints."),
+    "export": (
+        Ref("pipeline.commands.export", "command"),
+        "Write a run's calibration for a controller or ROS.",
+    ),
+    "predict": (
+        Ref("pipeline.commands.predict", "command"),
+        "Where the calibrated robot puts its tool at joints.",
+    ),
     "compensate": (
-        "pipeline.commands.compensate",
+        Ref("pipeline.commands.compensate", "command"),
         "Joints that reach targets on the calibrated robot.",
     ),
-    "measure": ("pipeline.commands.measure", "Run a plan on a cell: touch up and record."),
-    "calibrate": ("pipeline.commands.calibrate", "Plan -> measure -> run for a cell, in one go."),
+    "measure": (
+        Ref("pipeline.commands.measure", "command"),
+        "Run a plan on a cell: touch up and record.",
+    ),
+    "calibrate": (
+        Ref("pipeline.commands.calibrate", "command"),
+        "Plan -> measure -> run for a cell, in one go.",
+    ),
     "cell-server": (
-        "pipeline.commands.cell_server",
+        Ref("pipeline.commands.cell_server", "command"),
         "Serve the simulated cell over the cell protocol (TCP).",
     ),
 }
@@ -56,13 +88,12 @@ class LazyGroup(click.Group):
     """A group whose sub-commands are imported only when used."""
 
     def list_commands(self, ctx: click.Context) -> list[str]:
-        return [n for n, (mod, _) in COMMANDS.items() if importlib.util.find_spec(mod)]
+        return [n for n, (ref, _) in COMMANDS.items() if ref.exists()]
 
     def get_command(self, ctx: click.Context, cmd_name: str) -> click.Command | None:
         if cmd_name not in COMMANDS or cmd_name not in self.list_commands(ctx):
             return None
-        mod = importlib.import_module(COMMANDS[cmd_name][0])
-        cmd: click.Command = mod.command
+        cmd: click.Command = COMMANDS[cmd_name][0].load()
         return cmd
 
     def format_commands(self, ctx: click.Context, formatter: click.HelpFormatter) -> None:

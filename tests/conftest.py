@@ -9,7 +9,7 @@ from typing import Any
 
 import pytest
 
-from pipeline.threads import prefer_one_thread
+from pipeline.run.threads import prefer_one_thread
 
 prefer_one_thread()  # as the CLI does, before numpy loads: in-process runs match vtcal's own
 

@@ -9,7 +9,6 @@ cached and the held-out choice was lost (identify's training choice shipped).
 
 from __future__ import annotations
 
-import importlib
 import json
 from pathlib import Path
 
@@ -18,6 +17,7 @@ import pytest
 from pipeline.io.run_folder import ARTEFACTS, BY_KEY, RUN_FILES, writer
 from pipeline.run import code_key
 from pipeline.run.catalog import STAGE, STAGE_NAMES, STAGES
+from pipeline.run.lazy import resolve
 from pipeline.run.orchestrator import RunConfig, run_pipeline
 
 SAMPLE = Path(__file__).resolve().parent.parent / "datasets" / "samples" / "sample_lrmate.mcap"
@@ -49,8 +49,7 @@ def test_every_declared_function_and_config_resolves() -> None:
     for stage in STAGES:
         assert callable(stage.fn), stage.name
         for entry in (*stage.code, *([stage.config] if stage.config else [])):
-            mod, attr = entry.split(":")
-            assert callable(getattr(importlib.import_module(mod), attr)), entry
+            assert callable(resolve(entry)), entry
     assert set(code_key.ENTRY_POINTS) == set(STAGE_NAMES)
 
 

@@ -10,7 +10,7 @@ from click.testing import CliRunner
 
 from pipeline.cli import COMMANDS, cli, main
 from pipeline.errors import BadInput
-from pipeline.known_distances import parse_distances
+from pipeline.io.known_distances import parse_distances
 
 
 def test_help_lists_every_declared_command() -> None:

@@ -145,7 +145,7 @@ def mutate(data: bytes, muts: list[tuple[str, Any, Any]]) -> bytes:
 
 def stages(path: Path, deep: bool) -> None:
     """Ingest and touch-up extraction; with ``deep`` also outliers and identification."""
-    from pipeline.known_distances import parse_distances
+    from pipeline.io.known_distances import parse_distances
     from pipeline.stages.detect.detector import DetectConfig
     from pipeline.stages.identify import stage as identify
     from pipeline.stages.ingest.stage import IngestConfig, ingest_recording

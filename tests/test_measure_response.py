@@ -23,8 +23,8 @@ import pandas as pd
 import pytest
 from mcap.reader import make_reader
 
-from pipeline.cell_adapters import connect
 from pipeline.cli import main
+from pipeline.sim.adapters import connect
 from pipeline.sim.link import sim_cell, write_plan
 from pipeline.stages.detect.detector import DetectConfig, detect_target
 from pipeline.stages.ingest.stage import load_image

@@ -11,10 +11,10 @@ import pytest
 
 from pipeline.accuracy.evaluate import pin_accuracy, workspace_poses
 from pipeline.cli import main
+from pipeline.export.provenance import read_provenance, strip_provenance
 from pipeline.io.artefacts import read_artefact
 from pipeline.io.run_folder import RUN_FILES
 from pipeline.kinematics import load_chain, parse_urdf
-from pipeline.provenance import read_provenance, strip_provenance
 
 REPO = Path(__file__).resolve().parent.parent
 SAMPLE = REPO / "datasets" / "samples" / "sample_lrmate.mcap"

@@ -269,7 +269,7 @@ def test_labels_at_one_point_are_stacked_apart() -> None:
 
 
 def test_numbers_are_written_for_people() -> None:
-    from pipeline.numfmt import fmt, sci, short
+    from pipeline.io.numfmt import fmt, sci, short
 
     assert fmt(40210926531.0, 1) == "4.02e10"
     assert fmt(40210926531.0, 4) == "4.02e10"

@@ -1,6 +1,6 @@
 """Provenance block of calibrated.urdf: what it says, that it is deterministic, that readers load it.
 
-The block (pipeline/provenance.py) must name the shipped model with its own
+The block (pipeline/export/provenance.py) must name the shipped model with its own
 held-out and predicted figures from identify.json, the source's hash as the
 run ledger computes it, the scale status and a date that is the source's, so
 that two runs of the same input give byte-identical files in any folder.
@@ -16,14 +16,14 @@ import pytest
 
 from pipeline.accuracy.verdict import verdict
 from pipeline.cli import main
-from pipeline.io.fileio import file_hash
-from pipeline.provenance import (
+from pipeline.export.provenance import (
     Source,
     provenance_lines,
     read_provenance,
     recorded_utc,
     stamp_urdf,
 )
+from pipeline.io.fileio import file_hash
 
 
 def test_provenance_block_in_calibrated_urdf(lrmate_run: Path) -> None:

@@ -102,7 +102,7 @@ def test_bag_calibrates_like_its_mcap(runs: dict[str, Path], kind: str) -> None:
     id_b = _figures(json.loads((got / "identify.json").read_text()))
     assert id_a == id_b and id_a["models"]["offsets"]
     # the same robot; only the provenance block differs (it names the source and its hash)
-    from pipeline.provenance import read_provenance, strip_provenance
+    from pipeline.export.provenance import read_provenance, strip_provenance
 
     a, b = ((d / "calibrated.urdf").read_text() for d in (ref, got))
     assert strip_provenance(a) == strip_provenance(b)

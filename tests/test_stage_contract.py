@@ -28,6 +28,7 @@ from pipeline.io import run_folder
 from pipeline.io.run_folder import Artefact
 from pipeline.run import catalog, code_key
 from pipeline.run.catalog import Stage
+from pipeline.run.lazy import Ref
 
 NAME = "tally"
 
@@ -54,8 +55,8 @@ def throwaway() -> Iterator[str]:
             tally,
             ("inliers", "identify"),
             (NAME,),
-            f"{__name__}:TallyConfig",
-            (f"{__name__}:tally",),
+            Ref(__name__, "TallyConfig"),
+            (tally,),  # the function itself: code_key takes its module from tally.__module__
         ),
         Artefact(NAME, "tally.json", NAME),
     )

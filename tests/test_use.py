@@ -313,7 +313,7 @@ def test_validate_and_exports_carry_the_prediction_model(panda_run):
     rec = json.loads((out / "calibration.json").read_text())
     assert rec["model"] != rec["urdf_model"]
     urdf = (out / "calibrated.urdf").read_text()
-    from pipeline.provenance import read_provenance
+    from pipeline.export.provenance import read_provenance
 
     line = read_provenance(urdf)["predictions"]
     assert f"holds the rigid model {rec['urdf_model']} only" in line and rec["model"] in line

@@ -7,7 +7,7 @@ import numpy as np
 
 from pipeline.audit.fit import fit_table
 from pipeline.estimation.whitening import SHAPE_PARAMS, whitening_params
-from pipeline.known_distances import parse_distances
+from pipeline.io.known_distances import parse_distances
 from pipeline.robots import builtin_urdf
 from pipeline.sim.history import make_history
 from pipeline.stages.identify.stage import identify

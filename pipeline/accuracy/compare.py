@@ -38,8 +38,8 @@ import numpy as np
 import pandas as pd
 
 from pipeline.errors import BadInput
+from pipeline.io.numfmt import fmt, short
 from pipeline.io.run_folder import RUN_FILES
-from pipeline.numfmt import fmt, short
 
 #: columns of the compare table, in order (see ``schemas/compare.json``)
 COLUMNS = [
@@ -394,7 +394,7 @@ def heldout_text(v: Any) -> str:
 
 def _cell(v: Any, unit: str = "") -> str:
     """A table cell: SI lengths in mm and angles in deg (as the report shows them), every
-    figure through :mod:`pipeline.numfmt`."""
+    figure through :mod:`pipeline.io.numfmt`."""
     if isinstance(v, (bool, np.bool_)):
         return "yes" if v else ""
     if isinstance(v, (float, np.floating)):

@@ -53,12 +53,12 @@ from pipeline.estimation.correction_frame import (
     table_scatters,
     translation_map,
 )
+from pipeline.io.numfmt import short
 from pipeline.kinematics.chain import Chain, fk
 from pipeline.kinematics.se3 import F64
 from pipeline.kinematics.urdf import RobotDescription
 from pipeline.kinematics.urdf_write import PIN_JOINT
 from pipeline.measurement.pin import fit_pin_and_targets
-from pipeline.numfmt import short
 
 #: a target needs this many usable touch-ups for a consistency (one point is always "consistent")
 MIN_PER_TARGET = 2

@@ -35,7 +35,7 @@ from __future__ import annotations
 import math
 from typing import Any
 
-from pipeline.numfmt import short
+from pipeline.io.numfmt import short
 
 #: a validated error at or above this share of the nominal robot's is "not improved"
 IMPROVED_BELOW = 0.8

@@ -185,7 +185,7 @@ def reading(row: dict[Any, Any]) -> str:
     """The row's why, in a few words: what failed and the change its latest comparison
     read (``drift beyond 0.1 mm; joint_3 zero offset``, ``camera / pin remounted, within
     tolerance (0.0230 mm)``); empty when there is nothing to say."""
-    from pipeline.numfmt import fmt, short
+    from pipeline.io.numfmt import fmt, short
 
     parts = []
     if row["status"] == "failed":

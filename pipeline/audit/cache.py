@@ -35,6 +35,7 @@ from pathlib import Path
 from typing import Any
 
 from pipeline.audit.identity import INLIERS, RECORDING, AuditItem
+from pipeline.run.lazy import Ref
 
 #: the first bytes of every entry (a format change is a new magic: old entries are recomputed)
 MAGIC = b"vtcal-audit-cache 1\n"
@@ -42,9 +43,9 @@ _DIGEST = 32
 
 #: the function whose code keys each kind of entry
 ENTRIES = {
-    "fit": "pipeline.audit.fit:fit_item",
-    "heldout": "pipeline.audit.fit:heldout_mm",
-    "compare": "pipeline.audit.pairs:compare_pair",
+    "fit": Ref("pipeline.audit.fit", "fit_item"),
+    "heldout": Ref("pipeline.audit.fit", "heldout_mm"),
+    "compare": Ref("pipeline.audit.pairs", "compare_pair"),
 }
 
 

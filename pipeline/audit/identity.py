@@ -138,7 +138,7 @@ def load_item(
         (neither the ``robot_id`` metadata key nor ``robot_id`` given).
     """
     from pipeline.io.artefacts import read_artefact
-    from pipeline.known_distances import metadata_distances
+    from pipeline.io.known_distances import metadata_distances
 
     folder = Path(folder)
     try:

@@ -18,7 +18,7 @@ Self-contained like the run report (``reports/audit.html.j2`` and
   comparison with robots of its model; its models x recordings heat map, coloured by
   the held-out error on a log scale, the best model of each recording outlined.
 
-Figures are written by :func:`pipeline.numfmt.fmt` (a chi-square of 4e10 as ``4.02e10``).
+Figures are written by :func:`pipeline.io.numfmt.fmt` (a chi-square of 4e10 as ``4.02e10``).
 """
 
 from __future__ import annotations
@@ -39,7 +39,7 @@ from pipeline import __version__
 from pipeline.audit.attention import DAY_NS, STATUSES, Rows, fleet_status_rows, reading, rows_of
 from pipeline.audit.attribute import display_unit
 from pipeline.audit.audit import AuditResult
-from pipeline.numfmt import fmt, short
+from pipeline.io.numfmt import fmt, short
 from pipeline.report.svg import Panel, canvas, legend_height, padded, sparkline
 from pipeline.report.templates import render_template
 

@@ -258,10 +258,11 @@ def take_result(rec: RecordingOutcome, result: Any) -> None:
     the validated figure, improved or not, PASS / FAIL against the recording's
     ``tolerance_mm`` when it has one)."""
     from pipeline.accuracy.verdict import verdict
+    from pipeline.run.catalog import IDENTIFY
 
     rec.status = "ok"
     rec.stages = [(s.stage, s.status, float(s.seconds)) for s in result.stages]
-    if any(s.stage == "identify" for s in result.stages):
+    if any(s.stage == IDENTIFY for s in result.stages):
         summ = result.summary
         rec.figures = {"model": summ.get("best_model") or summ.get("model")}
         rec.figures["scale_identified"] = (

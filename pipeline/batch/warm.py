@@ -24,7 +24,7 @@ import importlib
 #: modules a run imports lazily, besides those the fork server already preloads
 LAZY = (
     "pipeline.io.artefacts",
-    "pipeline.provenance",
+    "pipeline.export.provenance",
     "pipeline.run.ledger",
     "pipeline.accuracy.verdict",
     "pipeline.io.mcap_index",

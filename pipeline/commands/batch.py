@@ -140,6 +140,7 @@ def command(
 
     # light: no numeric library. The workers' fork server is started by run_batch,
     # only when some recording is not already complete (the run ledger says which).
+    from pipeline.run.catalog import IDENTIFY
     from pipeline.run.orchestrator import STAGES, RunConfig
 
     if until is not None and until not in STAGES:
@@ -150,9 +151,9 @@ def command(
         overrides["known_distances"] = ";".join(distance)
     overrides, stage_options = split_stage_options(overrides)
     if model:
-        stage_options.setdefault("identify", {})["model"] = model
+        stage_options.setdefault(IDENTIFY, {})["model"] = model
     if accept_implausible:
-        stage_options.setdefault("identify", {})["accept_implausible"] = True
+        stage_options.setdefault(IDENTIFY, {})["accept_implausible"] = True
     cfg = RunConfig(overrides=overrides, stage_options=stage_options, report=not no_report)
 
     console = summary_console()

@@ -122,7 +122,7 @@ def _say(cal: Calibration, out: pd.DataFrame, what: str) -> None:
     """The console summary of a compensation."""
     import numpy as np
 
-    from pipeline.numfmt import fmt
+    from pipeline.io.numfmt import fmt
     from pipeline.use.tables import region_line
 
     res = out["residual_m"].to_numpy(dtype=float) * 1e3

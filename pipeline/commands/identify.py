@@ -60,15 +60,15 @@ def infer_links(urdf: str) -> tuple[str, str]:
 
 
 def _table_source(table: Path, urdf_path: Path, df: pd.DataFrame, conf: dict[str, Any]) -> Any:
-    """Provenance source of an identification from a table (:mod:`pipeline.provenance`).
+    """Provenance source of an identification from a table (:mod:`pipeline.export.provenance`).
 
     The run id hashes what decides the result: the table's and the URDF's bytes,
     the options, vtcal's version and code. The date is the table's earliest
     ``stamp_ns`` when it has that column (a run's touchups.parquet does), else unknown.
     """
     from pipeline import __version__
+    from pipeline.export.provenance import Source, recorded_utc
     from pipeline.io.fileio import config_hash, file_hash
-    from pipeline.provenance import Source, recorded_utc
     from pipeline.run.ledger import code_digest
 
     sha = file_hash(table)
@@ -162,7 +162,7 @@ def command(
     parameters.parquet, residuals.parquet, targets.parquet, calibrated.urdf (with
     virtual_pin), identify.json, crossval.parquet, report.html and run.rrd.
     """
-    from pipeline.known_distances import parse_distances
+    from pipeline.io.known_distances import parse_distances
 
     df = read_table(table)
     try:
@@ -187,14 +187,15 @@ def command(
         "robust_loss": robust_loss,
         "accept_implausible": accept_implausible,
     }
+    from pipeline.run.catalog import CROSSVAL, IDENTIFY, REPORT
     from pipeline.run.runner import Context, build_configs, plan, run_stages
 
-    off = (("crossval", no_crossval), ("report", no_report))
+    off = ((CROSSVAL, no_crossval), (REPORT, no_report))
     names = plan(None, leave_out=tuple(n for n, leave in off if leave))
-    names = names[names.index("identify") :]
+    names = names[names.index(IDENTIFY) :]
     ctx = Context(
         out_dir,
-        configs=build_configs(names, {}, {"identify": conf}),
+        configs=build_configs(names, {}, {IDENTIFY: conf}),
         robot=(urdf, base_link, flange_link),
         source=_table_source(table, urdf_path, df, conf),
         tolerance_mm=tolerance_mm,

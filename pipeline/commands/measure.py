@@ -131,11 +131,11 @@ def run_measure(
     """
     import numpy as np
 
-    from pipeline.cell_adapters import connect
     from pipeline.live.plan_file import check_limits, in_travel_order, read_plan
     from pipeline.live.protocols import MeasureFault
     from pipeline.live.session import SessionOptions
     from pipeline.live.session import dry_run as visit
+    from pipeline.sim.adapters import connect
 
     def fault(exc: MeasureFault, what: str) -> CellFault:
         return CellFault(f"{what}: {exc.kind}: {exc}")
@@ -202,7 +202,7 @@ def with_target_order(
     out = {**meta, "target_order": ",".join(order)}
     text = meta.get("known_distances")
     if text:
-        from pipeline.known_distances import parse_distances
+        from pipeline.io.known_distances import parse_distances
 
         items = parse_distances(text)
         if all(isinstance(x, int) and 0 <= x < len(named) for a, b, _ in items for x in (a, b)):

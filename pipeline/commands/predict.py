@@ -66,7 +66,7 @@ def _say(cal: Calibration, out: pd.DataFrame, payload: np.ndarray) -> None:
     """The console summary: the model, the uncertainty, the rows outside the region."""
     import numpy as np
 
-    from pipeline.numfmt import fmt
+    from pipeline.io.numfmt import fmt
     from pipeline.use.tables import region_line
 
     m = cal.model

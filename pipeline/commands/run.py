@@ -19,6 +19,7 @@ from pipeline.commands._common import (
     tolerance_option,
 )
 from pipeline.io.run_folder import RUN_FILES
+from pipeline.run.catalog import IDENTIFY, INGEST
 from pipeline.run.orchestrator import STAGES, RunConfig, run_pipeline
 
 
@@ -103,11 +104,11 @@ def command(
         overrides["known_distances"] = ";".join(distance)
     overrides, stage_options = split_stage_options(overrides)
     if model:
-        stage_options.setdefault("identify", {})["model"] = model
+        stage_options.setdefault(IDENTIFY, {})["model"] = model
     if joint_prefix:
-        stage_options.setdefault("ingest", {})["joint_prefix"] = joint_prefix
+        stage_options.setdefault(INGEST, {})["joint_prefix"] = joint_prefix
     if accept_implausible:
-        stage_options.setdefault("identify", {})["accept_implausible"] = True
+        stage_options.setdefault(IDENTIFY, {})["accept_implausible"] = True
     cfg = RunConfig(
         image_topic=image_topic,
         joint_topic=joint_topic,

@@ -59,12 +59,13 @@ def _from_recording(recording: Path, folder: Path, flange_link: str | None, quie
     import json
 
     from pipeline.io.artefacts import read_artefact
+    from pipeline.run.catalog import OUTLIERS
     from pipeline.run.orchestrator import RunConfig, run_paths, run_pipeline
 
     overrides = {"flange_link": flange_link} if flange_link else {}
     with progress_bars(enabled=not quiet) as progress:
         run_pipeline(
-            recording, folder, RunConfig(overrides=overrides), until="outliers", progress=progress
+            recording, folder, RunConfig(overrides=overrides), until=OUTLIERS, progress=progress
         )
     P = run_paths(folder)
     info = json.loads(P["recording"].read_text())
@@ -162,8 +163,8 @@ def command(
     from pipeline.accuracy.validate import pin_of, refusal, usable_touchups, validate
     from pipeline.accuracy.verdict import tolerance_from_metadata
     from pipeline.commands.identify import infer_links, read_table
+    from pipeline.io.known_distances import parse_distances
     from pipeline.kinematics import parse_urdf
-    from pipeline.known_distances import parse_distances
 
     cal_text = _read_text(calibrated, "calibrated URDF")
     try:
@@ -282,7 +283,7 @@ def _known_distances(
 ) -> tuple[list[tuple[str, str, float]], list[str]]:
     """(kept, dropped): the --distance ones (all must match a target), else the recording's."""
     from pipeline.accuracy.validate import match_distances
-    from pipeline.known_distances import metadata_distances
+    from pipeline.io.known_distances import metadata_distances
 
     if given:
         kept, dropped = match_distances(given, labels, inp.source)
@@ -304,8 +305,8 @@ def _refuse_its_own_training_data(calibrated: Path, cal_text: str, input_path: P
     names the source's SHA-256 (16 hex); a file with the same bytes is refused.
     """
     from pipeline.errors import CalibrationFailed
+    from pipeline.export.provenance import read_provenance
     from pipeline.io.fileio import file_hash
-    from pipeline.provenance import read_provenance
 
     source = read_provenance(cal_text).get("source", "")
     if not source or not input_path.is_file():

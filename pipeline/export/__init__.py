@@ -14,6 +14,9 @@ format              module                                     for
 ``json``            :mod:`pipeline.export.machine`             programs
 ==================  =========================================  ===============================
 
+The calibrated URDF's provenance block (what it was fitted from, its verdict) is
+:mod:`pipeline.export.provenance`: the choose stage stamps it, the exports read it.
+
 See ``docs/export.md``.
 """
 

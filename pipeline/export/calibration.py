@@ -27,12 +27,12 @@ from typing import Any
 import numpy as np
 
 from pipeline.errors import BadInput
+from pipeline.export.provenance import read_provenance
 from pipeline.io.run_folder import RUN_FILES
 from pipeline.kinematics.chain import Chain, load_chain
 from pipeline.kinematics.se3 import F64
 from pipeline.kinematics.urdf import parse_urdf
 from pipeline.kinematics.urdf_write import PIN_JOINT
-from pipeline.provenance import read_provenance
 
 
 @dataclass(frozen=True)

@@ -5,7 +5,7 @@
 identified geometry folded into the joint origins, joint zero offsets as
 origin rotations about the joint axes, and the ``virtual_pin`` link
 (``pipeline.kinematics.urdf_write``). Exporting it is a copy; the provenance
-block (``pipeline.provenance``) travels with it.
+block (``pipeline.export.provenance``) travels with it.
 """
 
 from __future__ import annotations

@@ -10,4 +10,8 @@ write and read), ``fileio`` (atomic writes, file and config hashes), ``jsonio``
 (the JSON side files' one byte-stable form), ``resources`` (where the schemas,
 report templates and the spec are), ``tables`` (a user's CSV or Parquet tables),
 ``run_folder`` (the files of a run folder: names, schemas, writers).
+
+And the forms vtcal reads and writes as text: ``known_distances`` (a recording's
+``known_distances`` metadata and ``--distance``: ``A:B=METRES``), ``numfmt`` (numbers
+as the HTML pages show them).
 """

@@ -5,7 +5,7 @@ returns the plain values its part of the template shows: the verdict (1), residu
 (2), targets and parameters (3), conditioning (4), cross-validation and the
 error-model comparison (6), the run (7), in the numbering of :mod:`pipeline.report.html`
 (whose page assembly adds the touch-up sections, 5, which need the recording's images).
-:func:`pipeline.numfmt.fmt` is the template's number filter.
+:func:`pipeline.io.numfmt.fmt` is the template's number filter.
 """
 
 from __future__ import annotations
@@ -19,8 +19,8 @@ import numpy as np
 import pandas as pd
 
 from pipeline import __version__
+from pipeline.io.numfmt import fmt, short
 from pipeline.live.summary import from_metadata
-from pipeline.numfmt import fmt, short
 from pipeline.report import plots
 from pipeline.report.data import RunData, artefact_hashes, run_uuid
 from pipeline.report.figures import (

@@ -14,7 +14,7 @@ from collections.abc import Mapping, Sequence
 
 import numpy as np
 
-from pipeline.numfmt import fmt
+from pipeline.io.numfmt import fmt
 from pipeline.report.svg import (
     LEGEND_GAP,
     Panel,

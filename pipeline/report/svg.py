@@ -19,7 +19,7 @@ from html import escape
 import numpy as np
 from numpy.typing import ArrayLike
 
-from pipeline.numfmt import short
+from pipeline.io.numfmt import short
 
 FONT = 'font-family="sans-serif" font-size="11"'
 GRID = "#d0d7de"

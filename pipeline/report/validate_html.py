@@ -10,7 +10,7 @@ from typing import Any
 
 from pipeline import __version__
 from pipeline.accuracy.verdict import IMPROVED_BELOW
-from pipeline.numfmt import fmt, short
+from pipeline.io.numfmt import fmt, short
 from pipeline.report.templates import render_template
 
 TEMPLATE = "validate.html.j2"

@@ -6,7 +6,8 @@ node, is ``node.py`` in the stage's package), ``runner`` (walks the table, skips
 ``orchestrator`` (``vtcal run``: the ledger's shortcut, ingest, the later stages'
 options, ``run.json``), ``code_key`` (the digest of a stage's code, part of its cache
 key), ``ledger`` (the run ledger in ``run.json``), ``withdraw`` (nothing partial left
-by a refused run).
+by a refused run), ``threads`` (one BLAS thread per process, set by the CLI
+before numpy loads).
 
 Above the stages and the report, which it runs: nothing below imports it (the report
 is handed its code digest by the orchestrator). Importing the package imports none of

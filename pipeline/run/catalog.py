@@ -15,9 +15,9 @@ without importing the runner or a stage's computation. Each stage's function is
 held itself (``Stage.fn``: its node, ``node.py`` in the stage's package, which
 imports only the standard library and :mod:`pipeline.io.run_folder` at module level
 and the stage's computation inside the function); configs and code entry points
-stay named ``module:attribute`` (their modules are the heavy ones: the runner
-resolves a config when it builds the options, :mod:`pipeline.run.code_key` reads
-the entry modules' import closure).
+are :class:`~pipeline.run.lazy.Ref` (their modules are the heavy ones: the runner
+loads a config class when it builds the options, :mod:`pipeline.run.code_key` the
+entry functions when it keys a stage, and reads their modules' import closure).
 """
 
 from __future__ import annotations
@@ -28,12 +28,23 @@ from typing import Any
 
 from pipeline.io.run_folder import ARTEFACTS, BY_KEY, RUN_FILES, Artefact
 from pipeline.report import node as report_node
+from pipeline.run.lazy import Ref
 from pipeline.stages.choose import node as choose_node
 from pipeline.stages.crossval import node as crossval_node
 from pipeline.stages.identify import node as identify_node
 from pipeline.stages.ingest import node as ingest_node
 from pipeline.stages.outliers import node as outliers_node
 from pipeline.stages.touchups import node as touchups_node
+
+#: the stage names, each written once, here: code that names a stage uses these
+#: (``tests/test_stage_literals.py`` fails on a stage name typed as a string elsewhere)
+INGEST = "ingest"
+TOUCHUPS = "touchups"
+OUTLIERS = "outliers"
+IDENTIFY = "identify"
+CROSSVAL = "crossval"
+CHOOSE = "choose"
+REPORT = "report"
 
 #: a stage's function: ``fn(data, config, context, **other_configs) -> {artefact key: value}``
 #: (``other_configs``: those of :attr:`Stage.uses_configs`)
@@ -54,9 +65,10 @@ class Stage:
     inputs : artefact keys it reads (each written by an earlier stage)
     outputs : artefact keys it writes (it is their only writer), in the order they are
         written after its Parquet ones: the last present means the stage finished
-    config : ``module:Class`` of its options dataclass, or None
-    code : further ``module:function`` entry points whose code decides its result
-        (the stage code key, :mod:`pipeline.run.code_key`)
+    config : its options dataclass (a :class:`~pipeline.run.lazy.Ref` to it), or None
+    code : further entry functions whose code decides its result (the stage code key,
+        :mod:`pipeline.run.code_key`): each the function, or a
+        :class:`~pipeline.run.lazy.Ref` to it (loaded when the key is computed)
     optional : inputs it reads only when their stage is part of the run
     cache : how the runner keys it. ``"outputs"``: fresh when its Parquet outputs record
         the same input hashes and config (:func:`pipeline.run.runner.is_fresh`);
@@ -71,7 +83,7 @@ class Stage:
         over by the runner as keyword arguments named as those stages (crossval refits
         with identify's options: ``fn(data, config, context, identify=...)``); they are
         not part of this stage's cache key (the outputs of those stages it reads are)
-    sub_configs : further option groups ``(name, "module:Class")`` of a stage whose
+    sub_configs : further option groups ``(name, Ref(module, Class))`` of a stage whose
         options are several dataclasses (ingest: ``detect``); its config is then
         ``{name: options, group: options, ...}``
     """
@@ -80,13 +92,13 @@ class Stage:
     fn: Node
     inputs: tuple[str, ...]
     outputs: tuple[str, ...]
-    config: str | None
-    code: tuple[str, ...] = ()
+    config: Ref | None
+    code: tuple[Ref | Callable[..., Any], ...] = ()
     optional: tuple[str, ...] = ()
     cache: str = "outputs"
     source: bool = False
     follows: str | None = None
-    sub_configs: tuple[tuple[str, str], ...] = ()
+    sub_configs: tuple[tuple[str, Ref], ...] = ()
     uses_configs: tuple[str, ...] = ()
 
     @property
@@ -104,64 +116,67 @@ class Stage:
 #: the pipeline, in run order
 STAGES: list[Stage] = [
     Stage(
-        "ingest",
+        INGEST,
         ingest_node.ingest,
         (),
         ("frames", "detections", "recording"),
-        "pipeline.stages.ingest.stage:IngestConfig",
-        ("pipeline.stages.ingest.stage:ingest_recording",),
+        Ref("pipeline.stages.ingest.stage", "IngestConfig"),
+        (Ref("pipeline.stages.ingest.stage", "ingest_recording"),),
         source=True,
-        sub_configs=(("detect", "pipeline.stages.detect.detector:DetectConfig"),),
+        sub_configs=(("detect", Ref("pipeline.stages.detect.detector", "DetectConfig")),),
     ),
     Stage(
-        "touchups",
+        TOUCHUPS,
         touchups_node.touchups,
         ("frames", "detections", "recording"),
         ("touchups",),
-        "pipeline.stages.touchups.stage:TouchupConfig",
-        ("pipeline.stages.touchups.stage:extract_touchups",),
+        Ref("pipeline.stages.touchups.stage", "TouchupConfig"),
+        (Ref("pipeline.stages.touchups.stage", "extract_touchups"),),
     ),
     Stage(
-        "outliers",
+        OUTLIERS,
         outliers_node.outliers,
         ("touchups", "recording"),
         ("inliers",),
-        "pipeline.stages.outliers.stage:OutlierConfig",
-        ("pipeline.stages.outliers.stage:flag_outliers",),
+        Ref("pipeline.stages.outliers.stage", "OutlierConfig"),
+        (Ref("pipeline.stages.outliers.stage", "flag_outliers"),),
     ),
     Stage(
-        "identify",
+        IDENTIFY,
         identify_node.identify,
         ("inliers",),
         ("parameters", "residuals", "targets", "model_urdfs", "models"),
-        "pipeline.stages.identify.stage:IdentifyConfig",
-        ("pipeline.stages.identify.stage:identify",),
+        Ref("pipeline.stages.identify.stage", "IdentifyConfig"),
+        (Ref("pipeline.stages.identify.stage", "identify"),),
         # touchups: the target diameter its image Jacobian implies (the guardrails check it)
         optional=("touchups",),
     ),
     Stage(
-        "crossval",
+        CROSSVAL,
         crossval_node.crossval,
         ("inliers", "parameters", "models"),
         ("crossval",),
-        "pipeline.stages.crossval.stage:CrossvalConfig",
-        ("pipeline.stages.crossval.stage:cross_validate",),
-        uses_configs=("identify",),  # its refits fit as identify did
+        Ref("pipeline.stages.crossval.stage", "CrossvalConfig"),
+        (Ref("pipeline.stages.crossval.stage", "cross_validate"),),
+        uses_configs=(IDENTIFY,),  # its refits fit as identify did
     ),
     Stage(
-        "choose",
+        CHOOSE,
         choose_node.choose,
         ("models", "model_urdfs", "parameters"),
         ("calibrated_urdf", "calibration", "identify"),
         None,
-        ("pipeline.stages.choose.stage:choose_model", "pipeline.use.record:calibration_record"),
+        (
+            Ref("pipeline.stages.choose.stage", "choose_model"),
+            Ref("pipeline.use.record", "calibration_record"),
+        ),
         # touchups: the repeated captures' noise; recording: the assumptions (adequacy)
         optional=("crossval", "touchups", "recording"),
         cache="always",
-        follows="identify",
+        follows=IDENTIFY,
     ),
     Stage(
-        "report",
+        REPORT,
         report_node.report,
         (
             "recording",
@@ -177,9 +192,9 @@ STAGES: list[Stage] = [
         ("report", "rrd"),
         None,
         (
-            "pipeline.report.html:build_report",
-            "pipeline.report.rrd:build_rrd",
-            "pipeline.report.outputs:build_outputs",
+            Ref("pipeline.report.html", "build_report"),
+            Ref("pipeline.report.rrd", "build_rrd"),
+            Ref("pipeline.report.outputs", "build_outputs"),
         ),
         cache="ledger",
     ),

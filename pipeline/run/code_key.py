@@ -17,7 +17,9 @@ configuration *and the same code* (a changed stage must not answer
   even though no file changed.
 
 Stages and their entry points are declared once, in :data:`pipeline.run.catalog.STAGES`
-(``Stage.code``; :data:`ENTRY_POINTS` is that column). The compiled code of the
+(``Stage.code``; :data:`ENTRY_POINTS` is that column): functions, or
+:class:`~pipeline.run.lazy.Ref` to them, loaded here when a stage is keyed; a
+function's module (the root of its import closure) is its ``__module__``. The compiled code of the
 stage's own function (``Stage.fn``, its node: ``node.py`` in the stage's package) is
 hashed too, but not the import closure of its module (its imports are the stage's
 entry points, keyed by ``Stage.code``). The digest
@@ -36,10 +38,10 @@ from __future__ import annotations
 
 import ast
 import hashlib
-import importlib
 import json
 import sys
 import types
+from collections.abc import Callable
 from functools import cache
 from pathlib import Path
 from typing import Any
@@ -49,12 +51,16 @@ from pipeline.io.fileio import atomic_write_bytes, hash_named_files
 from pipeline.io.resources import user_cache_dir
 from pipeline.run import catalog
 from pipeline.run.catalog import STAGES
+from pipeline.run.lazy import Ref, resolve
 
 PACKAGE_DIR = Path(__file__).resolve().parents[1]  # pipeline/ (this module is in pipeline/run/)
 SCHEMA_DIR = resources.SCHEMA_DIR
 
-#: stage -> ``module:function`` entry points that compute it (``catalog.STAGES``)
-ENTRY_POINTS: dict[str, tuple[str, ...]] = {s.name: s.code for s in STAGES}
+#: an entry point: a function, or a :class:`~pipeline.run.lazy.Ref` to one
+Entry = Ref | Callable[..., Any]
+
+#: stage -> entry points that compute it (``catalog.STAGES``)
+ENTRY_POINTS: dict[str, tuple[Entry, ...]] = {s.name: s.code for s in STAGES}
 
 #: packages whose ``__init__`` imports every module of the package at run time
 DYNAMIC_PACKAGES = ("pipeline.models",)
@@ -265,21 +271,23 @@ def stage_code_digest(stage: str) -> str:
     return h.hexdigest()[:16]
 
 
-def _hash_entries(h: Any, entries: tuple[str, ...]) -> None:
-    """Feed ``h`` the entry points' current code and their import closure's sources."""
+def _hash_entries(h: Any, entries: tuple[Entry, ...]) -> None:
+    """Feed ``h`` the entry points' current code and their import closure's sources
+    (each function's module: its ``__module__``)."""
     modules: set[str] = set()
     for entry in entries:
-        mod, attr = entry.split(":")
+        fn = resolve(entry)
+        mod = fn.__module__
         modules.update(module_closure(mod))
-        fn = getattr(importlib.import_module(mod), attr)
         code = getattr(fn, "__code__", None)
-        h.update(entry.encode() + b"\0")
+        name = getattr(fn, "__qualname__", None) or str(entry).rpartition(":")[2]
+        h.update(f"{mod}:{name}".encode() + b"\0")
         h.update(_code_bytes(code) if code is not None else repr(fn).encode())
     h.update(_sources_digest(tuple(sorted(modules))))
 
 
-def code_digest(entries: tuple[str, ...]) -> str:
-    """Digest of the code behind ``module:function`` entry points that are not a stage
+def code_digest(entries: tuple[Entry, ...]) -> str:
+    """Digest of the code behind entry points that are not a stage
     (the audit's fits, :mod:`pipeline.audit.cache`): as :func:`stage_code_digest`, the
     entry functions' code and their modules' import closure with the schemas.
 

@@ -40,11 +40,11 @@ from typing import Any
 from pipeline.errors import BadInput, CalibrationFailed, VtcalError
 from pipeline.io.fileio import config_hash
 from pipeline.io.jsonio import json_bytes, jsonable, write_json
+from pipeline.io.known_distances import metadata_distances
 from pipeline.io.layout import locate
 from pipeline.io.run_folder import RUN_FILES, run_paths
-from pipeline.known_distances import metadata_distances
 from pipeline.run import catalog
-from pipeline.run.catalog import STAGE_NAMES
+from pipeline.run.catalog import CHOOSE, IDENTIFY, INGEST, REPORT, STAGE_NAMES, TOUCHUPS
 from pipeline.run.code_key import stage_code_digest
 from pipeline.run.runner import (
     Context,
@@ -154,7 +154,7 @@ def run_pipeline(
     from pipeline.run import ledger as run_ledger
 
     cfg = config or RunConfig()
-    names = plan(until, leave_out=() if cfg.report else ("report",))
+    names = plan(until, leave_out=() if cfg.report else (REPORT,))
     recording = Path(recording)
     out = Path(out)
     locate(recording)  # a missing file, a directory that is not a bag: BadInput now
@@ -221,7 +221,7 @@ def _run_in(
     P = run_paths(out)
     ctx = Context(
         out,
-        configs={"ingest": ingest_configs(cfg)},
+        configs={INGEST: ingest_configs(cfg)},
         recording=recording,
         recording_hash=str(fp["recording"]),
         tolerance_mm=cfg.tolerance_mm,
@@ -229,14 +229,14 @@ def _run_in(
         ledger=True,
         progress=progress,
     )
-    if "report" in names and "touchups" in names:
+    if REPORT in names and TOUCHUPS in names:
         from pipeline.report.warm import WarmReport
 
         # loads the Rerun SDK on the core ingest leaves idle (pipeline.report.warm), and
         # computes the report's code digest there, where its modules are loaded anyway
-        ctx.warm_report = WarmReport.start(partial(stage_code_digest, "report"))
+        ctx.warm_report = WarmReport.start(partial(stage_code_digest, REPORT))
         if ctx.warm_report is not None:  # the frames it will show, once they are known
-            ctx.after_stage.setdefault("touchups", []).append(ctx.warm_report.prefetch)
+            ctx.after_stage.setdefault(TOUCHUPS, []).append(ctx.warm_report.prefetch)
     try:
         key = _run_plan(ctx, cfg, names, recording, fp)
     except VtcalError as exc:  # a refusal: nothing partial stays (pipeline.run.withdraw)
@@ -249,7 +249,7 @@ def _run_in(
         if ctx.warm_report is not None:
             ctx.warm_report.close()
     # run.json's tolerance is the one the report judged with: none without a report
-    tolerance = cfg.tolerance_mm if "report" in names else None
+    tolerance = cfg.tolerance_mm if REPORT in names else None
     return _finish(out, P, ctx.records, key, fingerprint=fp, tolerance_mm=tolerance)
 
 
@@ -268,14 +268,14 @@ def _run_plan(
 ) -> dict[str, str] | None:
     """Ingest, then (steps 3-4 of :func:`run_pipeline`) the rest of the plan; the report's key."""
     P = run_paths(ctx.out)
-    run_stages(["ingest"], ctx, names)
+    run_stages([INGEST], ctx, names)
     rest = names[1:]
     if rest:
         from pipeline.stages.ingest.stage import RecordingInfo
 
         info = RecordingInfo(**json.loads(P["recording"].read_text()))
         metadata_distances(info.metadata)  # bad values fail now
-        if info.implausible and not cfg.stage_options.get("identify", {}).get(
+        if info.implausible and not cfg.stage_options.get(IDENTIFY, {}).get(
             "accept_implausible", False
         ):
             raise CalibrationFailed(
@@ -285,7 +285,7 @@ def _run_plan(
             )
         ctx.configs.update(stage_configs(cfg, info))
         ctx.robot = (info.urdf, info.base_link, info.flange_link)
-        if "choose" in rest:
+        if CHOOSE in rest:
             ctx.source = _recording_source(recording, P["frames"], fp)
     return run_stages(rest, ctx, names)
 
@@ -313,7 +313,7 @@ def stage_configs(cfg: RunConfig, info: Any) -> dict[str, Any]:
     :func:`pipeline.stages.identify.node.identify`).
     """
     fixed = {
-        "identify": {
+        IDENTIFY: {
             "model": "all",
             "distances": metadata_distances(info.metadata),
             # the recording's own distances may name a target a truncated run never
@@ -330,7 +330,7 @@ def _recording_source(recording: Path, frames: Path, fp: Mapping[str, Any]) -> A
     """Provenance source of a run: the recording's name, hash, time and the run id."""
     import pyarrow.parquet as pq
 
-    from pipeline.provenance import Source, recorded_utc
+    from pipeline.export.provenance import Source, recorded_utc
 
     stamps = pq.read_table(frames, columns=["stamp_ns"]).column("stamp_ns").to_pylist()
     return Source(

@@ -30,7 +30,6 @@ ingest) is keyed by the recording's hash; a file per fitted model
 from __future__ import annotations
 
 import dataclasses
-import importlib
 import json
 import time
 from collections.abc import Callable, Iterator, Mapping
@@ -43,7 +42,7 @@ from pipeline.errors import BadInput
 from pipeline.io.fileio import atomic_write_bytes, config_hash, file_hash, write_group
 from pipeline.io.jsonio import json_bytes, jsonable
 from pipeline.io.run_folder import BY_KEY, Artefact, Parquet, run_paths
-from pipeline.run.catalog import STAGE, STAGE_NAMES, STAGES, Stage
+from pipeline.run.catalog import CHOOSE, IDENTIFY, STAGE, STAGE_NAMES, STAGES, Stage
 from pipeline.run.code_key import stage_code_digest
 
 #: Reports progress of a long stage: ``(stage, done, total or None)``.
@@ -72,7 +71,7 @@ class Context:
     recording : the recording (ingest reads it), None when starting later
     recording_hash : its content hash (ingest's cache key)
     robot : ``(URDF text, base link, flange link)`` the fits use
-    source : :class:`pipeline.provenance.Source` stamped into calibrated.urdf, or None
+    source : :class:`pipeline.export.provenance.Source` stamped into calibrated.urdf, or None
     tolerance_mm : the report's PASS/FAIL tolerance (None: run.json's, else the recording's)
     given : ``{artefact key: data}`` handed in instead of a file (``vtcal identify``'s table)
     force : rerun stages even when fresh
@@ -87,6 +86,9 @@ class Context:
     written : ``{path: (file hash, Arrow table)}`` of the Parquet artefacts this run wrote:
         a later stage reading one takes the table instead of reading the file back while
         the file still has that hash (:func:`load_input`)
+    stage : the name of the stage whose node is running (set by the runner before it
+        calls the node: a node names its own stage, its progress and its option group
+        by it, not by a string of its own)
     """
 
     out: Path
@@ -104,6 +106,7 @@ class Context:
     warm_report: Any = None
     after_stage: dict[str, list[Callable[[Path], None]]] = field(default_factory=dict)
     written: dict[Path, tuple[str, Any]] = field(default_factory=dict)
+    stage: str = ""
 
 
 def plan(until: str | None, *, leave_out: tuple[str, ...] = ()) -> list[str]:
@@ -370,11 +373,6 @@ def build_options(cls: Any, options: Mapping[str, Any], **base: Any) -> Any:
     return cls(**{**{k: v for k, v in base.items() if k in fields}, **given})
 
 
-def _resolve(entry: str) -> Any:
-    mod, attr = entry.split(":")
-    return getattr(importlib.import_module(mod), attr)
-
-
 def build_configs(
     names: list[str],
     options: Mapping[str, Mapping[str, Any]],
@@ -397,7 +395,7 @@ def build_configs(
             continue
         groups = [(name, stage.config), *stage.sub_configs]
         built = {
-            g: build_options(_resolve(cls), options.get(g, {}), **fixed.get(g, {}))
+            g: build_options(cls.load(), options.get(g, {}), **fixed.get(g, {}))
             for g, cls in groups
         }
         out[name] = built if stage.sub_configs else built[name]
@@ -413,6 +411,7 @@ def _call(stage: Stage, context: Context, names: list[str]) -> dict[str, Any]:
     keys = [*stage.inputs, *(k for k in stage.optional if BY_KEY[k].writer in names)]
     # the options of the earlier stages it declares it takes (Stage.uses_configs)
     others = {other: context.configs[other] for other in stage.uses_configs}
+    context.stage = stage.name
     result: dict[str, Any] = stage.fn(
         Inputs(keys, context), stage_config(stage.name, context), context, **others
     )
@@ -536,10 +535,10 @@ def write_fits(results: Any, out: Path) -> dict[str, Path]:
     fits = fit_outputs(results)
     paths: dict[str, Path] = {}
     for key in ("parameters", "residuals", "targets", "model_urdfs", "models"):
-        written = write_output(key, fits[key], out, stage="identify", config={}, inputs={})
+        written = write_output(key, fits[key], out, stage=IDENTIFY, config={}, inputs={})
         if key != "model_urdfs":
             paths[key] = written[0]
     urdf, summary = choose_model(fits["models"], fits["model_urdfs"], None)
     for key, value in (("calibrated_urdf", urdf), ("identify", summary)):
-        paths[key] = write_output(key, value, out, stage="choose", config={}, inputs={})[0]
+        paths[key] = write_output(key, value, out, stage=CHOOSE, config={}, inputs={})[0]
     return paths

@@ -10,7 +10,8 @@ ellipse), :mod:`~pipeline.sim.detect` (the simulated controller's detection),
 :mod:`~pipeline.sim.poses` (planned poses), :mod:`~pipeline.sim.session` (clock,
 motion, capture), :mod:`~pipeline.sim.cell_adapter` (the cell behind the
 measurement protocols), :mod:`~pipeline.sim.link` (that cell as ``vtcal measure``'s
-``sim:`` link), :mod:`~pipeline.sim.faults`, :mod:`~pipeline.sim.truth`
+``sim:`` link), :mod:`~pipeline.sim.adapters` (``vtcal measure``'s adapter strings: a
+live cell or the simulated one), :mod:`~pipeline.sim.faults`, :mod:`~pipeline.sim.truth`
 (the truth file, whose layout follows the conformance sample's) and
 :mod:`~pipeline.sim.simulator` (runs a session with the shared touch-up loop of
 :mod:`pipeline.live.loop`). It writes with the project's streaming ROS 2 MCAP writer,

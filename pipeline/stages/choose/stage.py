@@ -15,7 +15,7 @@ writes the run's ``identify.json``; it is the only writer of both:
 3. ``identify.json`` is the shipped model's summary at the top, every model's
    under ``models``, cross-validation's under ``crossval``, and a headline that
    says what was shipped and why (:func:`shipped_summary`);
-4. the shipped URDF gets its provenance block (:mod:`pipeline.provenance`) from
+4. the shipped URDF gets its provenance block (:mod:`pipeline.export.provenance`) from
    that summary and the run's source.
 
 Pure: text and dicts in, text and a dict out.
@@ -66,7 +66,7 @@ def choose_model(
     model_urdfs : ``{model: calibrated URDF text}`` of every fitted model
     crossval : cross-validation's summary (``chosen_model``, ``choice``, ...), or
         None when it did not run
-    source : :class:`pipeline.provenance.Source` of the run, or None (no provenance block)
+    source : :class:`pipeline.export.provenance.Source` of the run, or None (no provenance block)
 
     Returns
     -------
@@ -99,7 +99,7 @@ def choose_model(
             summary["headline"] = [*lines, choice]
     urdf = model_urdfs[shipped]
     if source is not None:
-        from pipeline.provenance import provenance_lines, stamp_urdf
+        from pipeline.export.provenance import provenance_lines, stamp_urdf
 
         urdf = stamp_urdf(urdf, provenance_lines(summary, source, __version__))
     return urdf, summary

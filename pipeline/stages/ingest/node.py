@@ -16,11 +16,11 @@ def ingest(data: dict[str, Any], config: dict[str, Any], context: Any) -> dict[s
     from pipeline.stages.detect.precompile import compile_detector
     from pipeline.stages.ingest import stage
 
-    progress = context.progress
+    progress, name = context.progress, context.stage  # name: the catalog's, its options' group
 
     def cb(done: int, total: int | None) -> None:
         if progress:
-            progress("ingest", done, total)
+            progress(name, done, total)
 
     # a fresh install compiles the detector first (~10-20 s): never a silent wait
     slow: list[bool] = []
@@ -34,7 +34,7 @@ def ingest(data: dict[str, Any], config: dict[str, Any], context: Any) -> dict[s
     if slow and progress:
         progress("compile", 1, 1)
     frames, detections, info = stage.ingest_recording(
-        context.recording.resolve(), config["ingest"], config["detect"], progress=cb
+        context.recording.resolve(), config[name], config["detect"], progress=cb
     )
     joint_meta = {"joint_names": json.dumps(list(info.joint_names))}
     return {

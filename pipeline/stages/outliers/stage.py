@@ -302,8 +302,8 @@ class _Fit:
 
 def _fit(out: pd.DataFrame, info: Any, model: str, config: OutlierConfig) -> _Fit:
     """Identify on the current inliers and build the linearised problem."""
+    from pipeline.io.known_distances import metadata_distances
     from pipeline.kinematics.chain import load_chain
-    from pipeline.known_distances import metadata_distances
     from pipeline.models import make_model
     from pipeline.stages.identify.stage import IdentifyConfig, IdentifyResult, identify
 

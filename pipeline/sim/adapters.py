@@ -11,9 +11,10 @@
 With a TCP robot and a camera of its own (OpenCV, folder) the joint states are
 polled and stamped on the host clock, the camera's clock (docs/measure.md, "Clocks").
 
-Above both :mod:`pipeline.live` (the live adapters) and :mod:`pipeline.sim`
-(the simulated cell, :mod:`pipeline.sim.link`), which runs the measure loop: so
-neither package imports the other both ways.
+Above both :mod:`pipeline.live` (the live adapters) and the simulated cell
+(:mod:`pipeline.sim.link`): it sits in :mod:`pipeline.sim`, the package above
+:mod:`pipeline.live` (the simulator runs the live loop), so neither package imports
+the other both ways.
 """
 
 from __future__ import annotations
