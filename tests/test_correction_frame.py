@@ -34,12 +34,12 @@ from pipeline.estimation.correction_frame import (
 from pipeline.io.artefacts import read_artefact
 from pipeline.kinematics import fk, load_chain
 from pipeline.measurement.image import pair_change
+from pipeline.measurement.image_jacobian import fit_image_jacobian as estimate_jacobian
 from pipeline.run.orchestrator import RunConfig, run_pipeline
 from pipeline.sim.scenario import scenario_from_dict
 from pipeline.sim.simulator import write_recording
 from pipeline.stages.identify.stage import IdentifyConfig, identify
 from pipeline.stages.ingest.stage import RecordingInfo
-from pipeline.stages.touchups.jacobian import estimate_jacobian
 from pipeline.stages.touchups.stage import TouchupConfig, extract_touchups
 
 ROOT = Path(__file__).resolve().parents[1]

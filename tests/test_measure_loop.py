@@ -18,10 +18,10 @@ from pipeline.live.loop import (
     LoopConfig,
     broyden_update,
     estimate_jacobian,
-    servo_step,
     touch_up,
 )
 from pipeline.live.protocols import Frame
+from pipeline.measurement.image_jacobian import servo_step
 
 GOAL = Goal(u0=319.5, v0=239.5, s0=80.0, threshold_px=0.5, threshold_size_px=0.5, polarity="x")
 
@@ -188,3 +188,28 @@ def test_jacobian_update_rescues_a_wrong_start() -> None:
     err0 = np.linalg.norm((J_wrong - J_true) @ np.array(cell.moves).T)
     err1 = np.linalg.norm((upd.jacobian - J_true) @ np.array(cell.moves).T)
     assert err1 < 0.5 * err0
+
+
+def test_the_probe_is_the_one_estimator_and_gives_central_differences() -> None:
+    """(J1) on the live probe's six pairs is each column's central difference, whatever
+    the curvature (the pairs are symmetric), and the servo step is the core's residual
+    correction times the gain (J2)."""
+    from pipeline.live.loop import jacobian_from_probes, probe_shifts
+    from pipeline.measurement.image import residual_correction
+
+    rng = np.random.default_rng(4)
+    h = 0.002
+    A = rng.normal(size=(3, 3)) * [[4000.0], [4000.0], [0.1]]
+    m0 = np.array([320.0, 240.0, 1 / 80.0])
+    # a curved image map: m(d) = m0 + A d + quadratic terms
+    meas = [
+        m0 + A @ d + 50.0 * np.array([d @ d, d[0] * d[1], 1e-4 * d[2] ** 2])
+        for d in probe_shifts(h)
+    ]
+    central = np.stack([(meas[1 + 2 * k] - meas[2 + 2 * k]) / (2 * h) for k in range(3)], axis=1)
+    J = jacobian_from_probes(meas, h)
+    assert J is not None
+    np.testing.assert_allclose(J, central, rtol=1e-9, atol=1e-12)
+    e = np.array([3.0, -2.0, 1e-4])
+    np.testing.assert_allclose(servo_step(J, e, 0.7, 1.0), 0.7 * residual_correction(J, e))
+    assert not np.any(servo_step(np.zeros((3, 3)), e, 0.7, 1.0))  # singular: no step

@@ -8,13 +8,13 @@ import pytest
 from pipeline.io.artefacts import read_artefact, write_artefact
 from pipeline.kinematics.se3 import matrix_from_rpy
 from pipeline.measurement.image import camera_from_jacobian
+from pipeline.measurement.image_jacobian import fit_image_jacobian
 from pipeline.sim.camera import CameraModel
 from pipeline.sim.target_geometry import projected_ellipse
 from pipeline.stages.detect.detector import DetectConfig
 from pipeline.stages.ingest.stage import IngestConfig, ingest_recording
 from pipeline.stages.touchups.stage import (
     TouchupConfig,
-    estimate_jacobian,
     extract_touchups,
     size_row_scales,
     tilt_bias,
@@ -101,10 +101,10 @@ def test_estimate_jacobian_robust():
     dF = rng.normal(0, 0.002, (30, 3))
     dm = dF @ J.T + rng.normal(0, [0.01, 0.01, 2e-6], (30, 3))
     dm[5] += [30.0, -20.0, 0.001]  # a capture with a wrong detection
-    J_hat = estimate_jacobian(dF, dm)
+    J_hat = fit_image_jacobian(dF, dm)
     assert J_hat is not None
     assert np.allclose(J_hat, J, atol=np.array([[5.0], [5.0], [2e-3]]))
-    assert estimate_jacobian(dF[:, :1] * np.ones((1, 3)), dm) is None  # one direction only
+    assert fit_image_jacobian(dF[:, :1] * np.ones((1, 3)), dm) is None  # one direction only
 
 
 def test_size_row_scale_only_for_a_print_of_another_size():
@@ -116,7 +116,7 @@ def test_size_row_scale_only_for_a_print_of_another_size():
     groups = np.repeat([0, 1, 2], 20)
     Jk = np.array([J * np.array([[1.0], [1.0], [scale[int(g)]]]) for g in groups])
     dm = np.einsum("nij,nj->ni", Jk, dF) + rng.normal(0, [0.01, 0.01, 2e-7], (60, 3))
-    J_hat = estimate_jacobian(dF, dm)
+    J_hat = fit_image_jacobian(dF, dm)
     assert J_hat is not None
     c_ref, kept = size_row_scales(J_hat, dF, dm, groups, sigmas=3.0, min_pairs=6)
     assert set(kept) == {1}, kept
@@ -126,7 +126,7 @@ def test_size_row_scale_only_for_a_print_of_another_size():
     assert abs(c_ref * J_hat[2] - J[2]).max() < 0.002 * abs(J[2]).max()
     # the same pairs with every print alike: no scale is kept
     dm_same = dF @ J.T + rng.normal(0, [0.01, 0.01, 2e-7], (60, 3))
-    J_same = estimate_jacobian(dF, dm_same)
+    J_same = fit_image_jacobian(dF, dm_same)
     assert J_same is not None
     assert size_row_scales(J_same, dF, dm_same, groups, sigmas=3.0, min_pairs=6)[1] == {}
 

@@ -86,6 +86,14 @@ def spread_mm(pred: float | None, spread: dict[str, Any]) -> list[float] | None:
     return [float(pred) * float(f[0]), float(pred) * float(f[1])]  # type: ignore[arg-type]
 
 
+def _predicted_text(pred: float | None, kind: str, span: list[float] | None) -> str:
+    """The covariance figure as the line names it, with its range (Q3) where known."""
+    text = f"{pred:.4f} mm {kind}" if pred is not None else ""
+    if span is not None:
+        text += f", {RANGE_TEXT} {span[0]:.4f}-{span[1]:.4f} mm"
+    return text
+
+
 def predicted_kind(summary: dict[str, Any]) -> str:
     """Which covariance-predicted figure the verdict takes: ``absolute`` or ``shape``.
 
@@ -142,9 +150,7 @@ def verdict(
     own = own_noise_mm(summary)
     spread = summary.get(f"predicted_{kind}_spread") or {}
     span = spread_mm(pred, spread)
-    pred_text = f"{pred:.4f} mm {kind}" if pred is not None else ""
-    if span is not None:
-        pred_text += f", {RANGE_TEXT} {span[0]:.4f}-{span[1]:.4f} mm"
+    pred_text = _predicted_text(pred, kind, span)
     if held is not None and pred is not None and own is not None:
         k = float((summary.get("crossval") or {}).get("k") or 5)
         beyond = math.sqrt(max(held * held - own * own, 0.0) * (k - 1.0) / k)
@@ -162,11 +168,8 @@ def verdict(
         how = f"predicted from the parameter covariance, {pred_text} (not cross-validated)"
     else:
         validated, vmax, how = None, None, "not available"
-    nominal = (
-        nominal_mm
-        if nominal_mm is not None
-        else _num((summary.get("solver") or {}).get("initial_rms_mm"))
-    )
+    initial = _num((summary.get("solver") or {}).get("initial_rms_mm"))
+    nominal = nominal_mm if nominal_mm is not None else initial
     ratio, improved = improvement(validated, nominal)
     fit = _num(summary.get("rms_mm"))
     if validated is None:

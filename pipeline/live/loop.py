@@ -24,6 +24,7 @@ import numpy as np
 
 from pipeline.live.protocols import F64, Camera, Frame, JointReading, Robot
 from pipeline.measurement.image import image_error
+from pipeline.measurement.image_jacobian import fit_image_jacobian, servo_step
 
 #: ``(u, v, s)``: target centre and full long axis of its ellipse (px), or None (not found)
 Detection = tuple[float, float, float] | None
@@ -238,28 +239,29 @@ def probe_shifts(h: float) -> list[F64]:
     return out
 
 
-def jacobian_from_probes(meas: list[F64], h: float) -> F64:
-    """Central differences over the probe measurements.
+def jacobian_from_probes(meas: list[F64], h: float) -> F64 | None:
+    """The image Jacobian from the probe measurements, by the one estimator (J1).
 
-    ``J[:, k] = (m(+h e_k) - m(-h e_k)) / (2 h)`` with ``m = (u, v, 1/s)`` in the order
-    of :func:`probe_shifts` (``meas[0]`` is the base capture, unused here): paper
-    sec. 2.1, the image Jacobian from flange shifts ``dX_F, dY_F, dZ_F``. The
-    truncation error is ``O(h^2)`` (the curvature of the projection cancels).
+    ``meas`` in the order of :func:`probe_shifts` (``meas[0]`` the base capture): the
+    pairs ``(d_k, m_k - m_0)`` of the six shifts go to
+    :func:`pipeline.measurement.image_jacobian.fit_image_jacobian`, where symmetric
+    axis-aligned pairs make each column the central difference
+    ``(m(+h e_k) - m(-h e_k)) / (2 h)`` (paper sec. 2.1; truncation ``O(h^2)``).
 
     Parameters
     ----------
-    meas : list of 7 (3,) arrays
+    meas : list of 7 (3,) arrays ``m = (u, v, 1/s)``
     h : float
         Shift (m).
 
     Returns
     -------
-    (3, 3) ``J = d(u, v, 1/s) / d(p_flange)`` (px/m, px/m, 1/(px m)).
+    (3, 3) ``J = d(u, v, 1/s) / d(p_flange)`` (px/m, px/m, 1/(px m)), or None if
+    ill-posed.
     """
-    J = np.zeros((3, 3))
-    for ax in range(3):
-        J[:, ax] = (meas[1 + 2 * ax] - meas[2 + 2 * ax]) / (2.0 * h)
-    return J
+    dF = np.array(probe_shifts(h)[1:])
+    dm = np.array(meas[1:]) - np.asarray(meas[0])[None, :]
+    return fit_image_jacobian(dF, dm, min_pairs=len(dF))
 
 
 def estimate_jacobian(
@@ -281,7 +283,7 @@ def estimate_jacobian(
     Returns
     -------
     (3, 3) ``J = d(u, v, 1/s) / d(p_flange)``, or None when the target was not
-    found in one of the captures.
+    found in one of the captures (or the shifts were ill-posed).
     """
     h = cfg.probe_shift_m
     at = np.zeros(3)
@@ -299,32 +301,6 @@ def estimate_jacobian(
     if any(m is None for m in meas):
         return None
     return jacobian_from_probes([m for m in meas if m is not None], h)
-
-
-def servo_step(J: F64, e: F64, gain: float, max_step_m: float) -> F64:
-    """The flange step that cancels ``gain`` of the error: ``dp = -gain J^-1 e_T``.
-
-    Linearising ``e_T(p + dp) ~ e_T(p) + J dp`` and asking for
-    ``e_T(p + dp) = (1 - gain) e_T(p)`` gives the step (paper sec. 2.1). A step
-    longer than ``max_step_m`` is scaled down to that length along its own
-    direction (a poor Jacobian or a far start cannot throw the arm).
-
-    Parameters
-    ----------
-    J : (3, 3)
-    e : (3,) ``e_T``
-    gain : float
-    max_step_m : float
-
-    Returns
-    -------
-    (3,) ``dp_flange`` (m, flange frame).
-    """
-    dp = np.asarray(-gain * np.linalg.solve(J, e), dtype=np.float64)
-    n = float(np.linalg.norm(dp))
-    if n > max_step_m:
-        dp = np.asarray(dp * (max_step_m / n), dtype=np.float64)
-    return dp
 
 
 def broyden_update(J: F64, dp: F64, de: F64) -> F64:

@@ -2,8 +2,9 @@
 
 One image Jacobian ``J`` (3 x 3, flange translation -> ``(du, dv, ds_inv)``) for
 every target, fitted row by row by Huber-robust least squares from the pairs of
-consecutive still captures a small pure flange translation apart
-(:func:`estimate_jacobian`), its size row scaled per target only where a print is
+consecutive still captures a small pure flange translation apart (the estimator the
+live loop uses too: :func:`pipeline.measurement.image_jacobian.fit_image_jacobian`),
+its size row scaled per target only where a print is
 measurably another size (:func:`size_row_scales`). A pair's change of ``(u, v,
 s_inv)`` and the camera, diameter and view geometry a Jacobian implies are the
 measurement model's (:mod:`pipeline.measurement.image`). The steps are described
@@ -13,25 +14,6 @@ in :mod:`pipeline.stages.touchups.stage`.
 from __future__ import annotations
 
 import numpy as np
-
-
-def _huber_rows(X: np.ndarray, Y: np.ndarray, iters: int = 10) -> np.ndarray:
-    """Row-wise robust fit of ``Y = X J^T``: ``X (N, 3)``, ``Y (N, 3)`` -> ``J (3, 3)``."""
-    J = np.zeros((Y.shape[1], X.shape[1]))
-    for r in range(Y.shape[1]):
-        y = Y[:, r]
-        w = np.ones(len(y))
-        coef = np.zeros(X.shape[1])
-        for _ in range(iters):
-            sw = np.sqrt(w)
-            coef, *_ = np.linalg.lstsq(X * sw[:, None], y * sw, rcond=None)
-            res = y - X @ coef
-            sc = 1.4826 * float(np.median(np.abs(res))) + 1e-15
-            k = 1.5 * sc
-            a = np.abs(res)
-            w = np.where(a <= k, 1.0, k / np.maximum(a, 1e-300))
-        J[r] = coef
-    return J
 
 
 def pair_scatters(pair_seg: np.ndarray, dF: np.ndarray, n: int) -> np.ndarray:
@@ -44,27 +26,6 @@ def pair_scatters(pair_seg: np.ndarray, dF: np.ndarray, n: int) -> np.ndarray:
     S = np.zeros((n, 3, 3))
     np.add.at(S, pair_seg, dF[:, :, None] * dF[:, None, :])
     return S
-
-
-def estimate_jacobian(dF: np.ndarray, dm: np.ndarray) -> np.ndarray | None:
-    """Image Jacobian from pairs: ``dm (N, 3) ~ J dF (N, 3)``; None if ill-posed.
-
-    Parameters
-    ----------
-    dF : (N, 3) flange-frame translations (m)
-    dm : (N, 3) changes of ``(u, v, s_inv)`` (px, px, 1/px)
-
-    Returns
-    -------
-    (3, 3) ``J`` with ``dm = J dF``, or None with fewer than 4 pairs or
-    translations that do not span 3-D (singular value ratio < 0.05).
-    """
-    if len(dF) < 4:
-        return None
-    sv = np.linalg.svd(dF, compute_uv=False)
-    if sv[-1] < 0.05 * sv[0]:
-        return None
-    return _huber_rows(dF, dm)
 
 
 def size_row_scales(

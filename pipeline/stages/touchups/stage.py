@@ -73,7 +73,8 @@ from pipeline.errors import BadInput
 from pipeline.estimation.correction_frame import scatter_columns
 from pipeline.kinematics.chain import fk, load_chain
 from pipeline.measurement.image import diameter_from_jacobian, pair_change, view_geometry
-from pipeline.stages.touchups.jacobian import estimate_jacobian, pair_scatters, size_row_scales
+from pipeline.measurement.image_jacobian import fit_image_jacobian
+from pipeline.stages.touchups.jacobian import pair_scatters, size_row_scales
 from pipeline.stages.touchups.noise import capture_noise, pose_noise
 from pipeline.stages.touchups.rows import final_shapes, touchup_row
 from pipeline.stages.touchups.segments import final_block, loop_starts, relative_poses, segments
@@ -87,7 +88,6 @@ from pipeline.stages.touchups.types import Captures, Designated, Tilt
 #: Jacobian implies of the camera, in pipeline.measurement.image)
 __all__ = [
     "TouchupConfig",
-    "estimate_jacobian",
     "extract_touchups",
     "size_row_scales",
     "tilt_bias",
@@ -288,7 +288,7 @@ def _jacobian_pairs(
         detections, a small pure flange translation apart)
     dF : (N, 3) its flange-frame translation of the pin point
     dm : (N, 3) its change of ``(u, v, s_inv)``
-    J : (3, 3) the image Jacobian of every pair (:func:`estimate_jacobian`)
+    J : (3, 3) the image Jacobian of every pair (:func:`pipeline.measurement.image_jacobian.fit_image_jacobian`)
     """
     pairs: list[tuple[int, np.ndarray, np.ndarray]] = []
     u, v, s = c.u, c.v, c.s
@@ -315,7 +315,7 @@ def _jacobian_pairs(
         )
     dF_all = np.array([p[1] for p in pairs])
     dm_all = np.array([p[2] for p in pairs])
-    J_global = estimate_jacobian(dF_all, dm_all)
+    J_global = fit_image_jacobian(dF_all, dm_all)
     if J_global is None:
         raise BadInput(
             f"{path}: the small flange translations ({len(pairs)} pairs) do not span "
@@ -359,7 +359,7 @@ def _target_jacobians(
         for g in dict.fromkeys(pair_group.tolist()):  # first-seen order
             members = np.flatnonzero(pair_group == g)
             if len(members) >= config.min_pairs_per_target:
-                Jg = estimate_jacobian(dF_all[members], dm_all[members])
+                Jg = fit_image_jacobian(dF_all[members], dm_all[members])
                 if Jg is not None and np.all(np.isfinite(Jg)):
                     J_target[g] = Jg
     elif config.jacobian == "global":
