@@ -328,7 +328,7 @@ def _print_seed(
     n = sum(1 for c in cells for e in effects)
     met = sum(1 for c in cells for e in effects if not _claim_flag(res[(c, e)]))
     print(f"verdict within 0.5-2x of the truth or a lower bound said: {met} of {n} rows")
-    print(_chance_line([res[(c, e)] for c in cells for e in effects]))
+    print(chance_line([res[(c, e)] for c in cells for e in effects]))
     hits, false_w, missed, ideal_w = _warning_counts(res, cells, effects)
     print(
         f"adequacy warning: {hits} hits (true error > 2x the figure), {false_w} false warnings,"
@@ -338,10 +338,11 @@ def _print_seed(
     return ok_all
 
 
-def _chance_line(rows: list[dict[str, Any]]) -> str:
+def chance_line(rows: list[dict[str, Any]]) -> str:
     """What an exact covariance would score: the expected rows within 0.5-2x (the sum of each
     row's Q4 of pipeline.estimation.spread), and the rows whose truth lies in the verdict's
-    90 % range (Q3)."""
+    90 % range (Q3). ``rows``: ``p_within_2x``, ``range_mm``, ``abs``, ``shape`` and
+    ``claim_kind`` (bench_render's rows too)."""
     expect = sum(r["p_within_2x"] for r in rows if np.isfinite(r["p_within_2x"]))
     ranged = [r for r in rows if r.get("range_mm")]
     inside = sum(1 for r in ranged if r["range_mm"][0] <= _truth_of(r) <= r["range_mm"][1])
