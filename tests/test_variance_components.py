@@ -115,9 +115,18 @@ def test_a_noisy_target_is_weighed_down_and_the_fit_is_better_for_it() -> None:
     assert 0.8 < rms(claims["auto"]) / rms(true_err["auto"]) < 1.3  # measured 1.14
 
 
+def test_by_default_the_components_are_reported_and_the_fit_left_alone() -> None:
+    tab, _, dist = _cell(11, loud=1.2e-4)
+    cfg = IdentifyConfig(model="mdh", distances=dist)
+    assert cfg.target_components == "report"
+    vc = identify(tab, URDF, "base_link", "flange", cfg).summary["variance_components"]
+    assert vc["p_value"] < 1e-10 and vc["factor"][0] > 2.0  # seen (3.5)
+    assert not vc["applied"] and vc["weights"] == [1.0] * 4 and vc["spent"] == 0  # not acted on
+
+
 def test_equal_targets_are_left_alone() -> None:
     tab, _, dist = _cell(21, loud=0.0)
-    res = identify(tab, URDF, "base_link", "flange", IdentifyConfig(model="mdh", distances=dist))
-    vc = res.summary["variance_components"]
+    cfg = IdentifyConfig(model="mdh", distances=dist, target_components="auto")
+    vc = identify(tab, URDF, "base_link", "flange", cfg).summary["variance_components"]
     assert vc["p_value"] > COMPONENT_ALPHA and not vc["applied"] and vc["spent"] == 0
     assert vc["weights"] == [1.0] * 4

@@ -22,8 +22,9 @@ Noise model: a touch-up's error is fixed in the flange (camera) frame and far
 larger along the view than across it. After an isotropic fit the residuals'
 3x3 covariance in the flange frame is estimated and the fit repeated with the
 residuals whitened, ``W R_i^T (p_i - t_k)`` (feasible generalised least
-squares; ``noise_model="isotropic"`` skips it). Targets whose touch-ups scatter
-unequally are then weighed apart (:mod:`pipeline.stages.identify.components`).
+squares; ``noise_model="isotropic"`` skips it). Whether the targets' touch-ups scatter
+alike is tested and reported; asked for, unequal ones are weighed apart
+(:mod:`pipeline.stages.identify.components`).
 
 Identifiability: redundancies are exact only where residuals vanish, so they
 are found on exact synthetic touch-ups of the nominal robot (cached per robot

@@ -43,8 +43,9 @@ class IdentifyConfig:
     noise_model : ``flange`` (estimate the pin error's 3x3 covariance in the flange frame from
         the residuals and refit whitened: a touch-up is far less precise along the view than
         across it) or ``isotropic``
-    target_components : ``auto`` (each target's touch-ups weighed by their own scatter when
-        Bartlett's test finds the targets' variances unequal at 1 %:
+    target_components : ``report`` (each target's variance factor and Bartlett's test of
+        their equality reported in the summary, the fit unchanged), ``auto`` (the targets
+        weighed by their own scatter when the test rejects at 1 %:
         :mod:`pipeline.stages.identify.components`) or ``off``
     max_nfev : iteration budget of the solver
     n_workspace : poses over which the predicted error is evaluated
@@ -104,7 +105,7 @@ class IdentifyConfig:
     data_tol: float = 1e-6
     noise_model: str = "flange"
     reweight_passes: int = 1
-    target_components: str = "auto"
+    target_components: str = "report"
     max_nfev: int = 200
     n_workspace: int = 200
     seed: int = 0
