@@ -58,8 +58,9 @@ def weigh_targets(
         ``applied`` (bool), ``weights`` (per target, the factor its rows' weights were
         multiplied by), ``spent`` (C3)'s ``G - 1`` when applied, else 0
     """
-    if config.target_components == "off":
-        return sol, None
+    mode = config.target_components
+    if mode == "off" or (mode == "report" and config.prediction_only):
+        return sol, None  # nothing to do, or a report no one reads (cross-validation's refits)
     D0 = prob.data
     groups = np.full(prob.m, -1, dtype=int)
     groups[: 3 * len(D0.tk)] = np.repeat(np.asarray(D0.tk, dtype=int), 3)
