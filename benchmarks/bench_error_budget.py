@@ -51,6 +51,7 @@ from typing import Any
 import numpy as np
 
 from pipeline.kinematics.chain import fk, load_chain
+from pipeline.sim.target_geometry import fit_ellipse
 from pipeline.stages.detect.detector import DetectConfig
 from pipeline.stages.ingest.stage import IngestConfig, ingest_recording
 from pipeline.stages.touchups.stage import TouchupConfig, extract_touchups
@@ -64,19 +65,6 @@ DEFAULT = [
 SCENARIO = Path(__file__).resolve().parents[1] / "datasets" / "scenarios" / "standard.toml"
 DOC = Path(__file__).resolve().parents[1] / "docs" / "error-budget.md"
 _PHI = np.linspace(0.0, 2.0 * np.pi, 1440, endpoint=False)
-
-
-def _ellipse(points: np.ndarray) -> np.ndarray:
-    """``(u, v, long axis)`` of the least-squares conic through ``points`` (N, 2)."""
-    mu = points.mean(axis=0)
-    x, y = (points - mu).T
-    A = np.stack([x * x, x * y, y * y, x, y, np.ones_like(x)], axis=1)
-    a, b, c, d, e, f = np.linalg.svd(A)[2][-1]
-    M = np.array([[a, b / 2], [b / 2, c]])
-    ctr = np.linalg.solve(2 * M, -np.array([d, e]))
-    k = -(f + 0.5 * np.array([d, e]) @ ctr)
-    axes = 2.0 / np.sqrt(np.linalg.eigvalsh(M / k))
-    return np.array([ctr[0] + mu[0], ctr[1] + mu[1], axes.max()])
 
 
 def _true_image(truth: dict[str, Any], chain: Any, q: np.ndarray, target: dict[str, Any]):
@@ -101,8 +89,8 @@ def _true_image(truth: dict[str, Any], chain: Any, q: np.ndarray, target: dict[s
 
     centre = project(cc, True)
     return (
-        _ellipse(project(Pc, True)),
-        _ellipse(project(Pc, False)),
+        np.array(fit_ellipse(project(Pc, True))[:3]),  # u, v, long axis
+        np.array(fit_ellipse(project(Pc, False))[:3]),
         np.array([centre[0], centre[1], cam["fx"] * 2 * R / cc[2]]),
     )
 

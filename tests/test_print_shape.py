@@ -24,6 +24,7 @@ from pipeline.accuracy.evaluate import (
 from pipeline.kinematics import load_chain
 from pipeline.kinematics.chain import fk
 from pipeline.robots import builtin_urdf
+from pipeline.sim.target_geometry import fit_ellipse
 from pipeline.stages.identify import print_shape as ps
 from pipeline.stages.identify.stage import IdentifyConfig, identify
 
@@ -264,21 +265,12 @@ def _projected_long_axis(e, phi, th, tau, R=5e-3, z=0.24, f=1128.0):
     Rt = np.eye(3) + np.sin(th) * K + (1 - np.cos(th)) * K @ K
     Q = P @ Rt.T + [0, 0, z]
     uv = f * Q[:, :2] / Q[:, 2:3]
-    mu = uv.mean(axis=0)
-    x, y = (uv - mu).T
-    A = np.stack([x * x, x * y, y * y, x, y, np.ones_like(x)], axis=1)
-    a, b, c, d, ee, ff = np.linalg.svd(A)[2][-1]
-    M = np.array([[a, b / 2], [b / 2, c]])
-    ctr = np.linalg.solve(2 * M, -np.array([d, ee]))
-    k = -(ff + 0.5 * np.array([d, ee]) @ ctr)
-    w, V = np.linalg.eigh(M / k)
-    axes = 1 / np.sqrt(w)
-    i = int(np.argmax(axes))
-    long, short = axes.max(), axes.min()
+    _, _, L, S, ang = fit_ellipse(uv)  # full axes
+    long, short = L / 2, S / 2
     return (
         long / (f * R / z) - 1.0,
         2 * (long - short) / (long + short),
-        np.arctan2(V[1, i], V[0, i]),
+        ang,
     )
 
 
