@@ -33,7 +33,7 @@ def test_range_and_chance_describe_draws_from_the_covariance(weights):
     Jw, p = _field(rng)
     Q, _ = np.linalg.qr(rng.normal(size=(8, 8)))
     cov = (Q * np.asarray(weights) * 1e-10) @ Q.T
-    sp = error_spread(Jw, cov, p, "absolute")
+    sp = error_spread(registered_field(Jw, p, "absolute"), cov)
     rms = float(np.sqrt(np.mean(predicted_errors(Jw, cov, p, "absolute") ** 2)))
     T = _realised(Jw, cov, p, "absolute", rng)
     # (Q1): the predicted RMS is the root of the draws' mean square
@@ -50,11 +50,13 @@ def test_degrees_of_freedom_count_the_dominating_directions():
     Jw, p = _field(rng, n_par=6)
     one = np.zeros((6, 6))
     one[2, 2] = 1e-10
-    assert error_spread(Jw, one, p, "shape")["dof"] == pytest.approx(1.0, abs=1e-6)
+    assert error_spread(registered_field(Jw, p, "shape"), one)["dof"] == pytest.approx(
+        1.0, abs=1e-6
+    )
     # six equal, independent directions through a generic field: close to six, never more
-    k = error_spread(Jw, 1e-10 * np.eye(6), p, "raw")["dof"]
+    k = error_spread(registered_field(Jw, p, "raw"), 1e-10 * np.eye(6))["dof"]
     assert 4.5 < k <= 6.0 + 1e-9
-    assert np.isnan(error_spread(Jw, np.zeros((6, 6)), p, "shape")["dof"])
+    assert np.isnan(error_spread(registered_field(Jw, p, "shape"), np.zeros((6, 6)))["dof"])
 
 
 def test_the_verdict_names_the_range_around_the_covariance_figure():

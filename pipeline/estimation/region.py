@@ -23,7 +23,7 @@ from typing import Any
 import numpy as np
 
 from pipeline.estimation.spread import error_spread
-from pipeline.estimation.uncertainty import predicted_errors
+from pipeline.estimation.uncertainty import field_errors, registered_field
 from pipeline.kinematics.se3 import F64
 
 #: predicted error just outside the covered ranges above this multiple of inside: said
@@ -66,15 +66,17 @@ def predicted_over(
     """Covariance-predicted pin errors (m) at the poses ``q`` (W, n), per registration kind.
 
     ``cov_e`` the covariance of the identified kinematic columns ``kept`` and the pin;
-    :func:`pipeline.estimation.uncertainty.predicted_errors` does the propagation. With
+    :func:`pipeline.estimation.uncertainty.predicted_errors`'s propagation, each kind's
+    registered field made once and shared with the spread. With
     ``spread``, also per kind how far one calibration's true RMS error may fall from the
     predicted RMS (:func:`pipeline.estimation.spread.error_spread`), else ``{}``.
     """
     p, R, J = model.pin_and_jacobian(x, q, pin, jac=True)
     assert J is not None
     Je = np.concatenate([J[:, :, kept], R], axis=2)
-    pred = {kind: predicted_errors(Je, cov_e, p, kind) for kind in kinds}
-    spreads = {kind: error_spread(Je, cov_e, p, kind) for kind in kinds} if spread else {}
+    fields = {kind: registered_field(Je, p, kind) for kind in kinds}
+    pred = {kind: field_errors(G, cov_e) for kind, G in fields.items()}
+    spreads = {kind: error_spread(G, cov_e) for kind, G in fields.items()} if spread else {}
     return pred, spreads
 
 

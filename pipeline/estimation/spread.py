@@ -37,23 +37,20 @@ from typing import Any
 import numpy as np
 from scipy.stats import chi2
 
-from pipeline.estimation.uncertainty import registered_field
 from pipeline.kinematics.se3 import F64
 
 #: the probability the range (Q3) holds the true RMS error
 RANGE_LEVEL = 0.9
 
 
-def error_spread(Jw: F64, cov: F64, p: F64, kind: str) -> dict[str, Any]:
+def error_spread(G: F64, cov: F64) -> dict[str, Any]:
     """(Q1)-(Q4): the effective degrees of freedom and the range of the true RMS error.
 
     Parameters
     ----------
-    Jw : (N, 3, p) the pin's Jacobian over ``N`` workspace poses (columns of ``cov``)
+    G : (3N, p) the registered pin error field over ``N`` workspace poses
+        (:func:`pipeline.estimation.uncertainty.registered_field`; columns of ``cov``)
     cov : (p, p) covariance of those columns (m^2, rad^2)
-    p : (N, 3) pin positions (the registration's lever arms)
-    kind : ``shape`` | ``absolute`` | ``raw`` (:func:`pipeline.estimation.uncertainty.
-        registered_field`)
 
     Returns
     -------
@@ -71,8 +68,8 @@ def error_spread(Jw: F64, cov: F64, p: F64, kind: str) -> dict[str, Any]:
         return nan
     w, V = np.linalg.eigh(0.5 * (cov + cov.T))
     L = V * np.sqrt(np.clip(w, 0.0, None))
-    GL = registered_field(Jw, p, kind) @ L
-    lam = np.clip(np.linalg.eigvalsh(GL.T @ GL / len(p)), 0.0, None)
+    GL = G @ L
+    lam = np.clip(np.linalg.eigvalsh(GL.T @ GL / (len(G) // 3)), 0.0, None)
     total, square = float(lam.sum()), float((lam**2).sum())
     if not total > 0.0:
         return nan

@@ -40,8 +40,12 @@ def predicted_errors(Jw: F64, cov: F64, p: F64, kind: str) -> F64:
     With ``G = Pr J_w`` (:func:`registered_field`) and ``dz ~ N(0, cov)``, returns
     ``sqrt(trace_i(G cov G^T))`` per pose, (N,).
     """
-    G = registered_field(Jw, p, kind)
-    var = np.einsum("ij,jk,ik->i", G, cov, G).reshape(len(p), 3).sum(axis=1)
+    return field_errors(registered_field(Jw, p, kind), cov)
+
+
+def field_errors(G: F64, cov: F64) -> F64:
+    """``sqrt(trace_i(G cov G^T))`` per pose of a registered field ``G`` (3N, p), (N,)."""
+    var = np.einsum("ij,jk,ik->i", G, cov, G).reshape(-1, 3).sum(axis=1)
     return np.asarray(np.sqrt(np.clip(var, 0.0, None)))
 
 
